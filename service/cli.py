@@ -1,0 +1,50 @@
+"""The ``yauyau`` console script: precompute, models, filter, serve, analyze.
+
+Each subcommand lives in ``service/commands/<name>.py`` with ``add_arguments(parser)`` and
+``run(args) -> int``.  User errors (:class:`solver.YauyauError`, ``storage.StoreError``) print one
+line naming the field and exit with status 2 — never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMANDS = {
+    "precompute": "solve the Kolmogorov propagators offline and store the model (prints its id)",
+    "models": "list the stored models",
+    "filter": "run a filter over a file of observation increments",
+    "serve": "serve the HTTP API",
+    "analyze": "estimation-algebra analysis of a model spec and the recommended method",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="yauyau", description="Real-time optimal nonlinear filtering.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, help_text in COMMANDS.items():
+        module = importlib.import_module(f"service.commands.{name}")
+        cmd = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(cmd)
+        cmd.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from solver.errors import YauyauError
+    from storage.errors import StoreError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args._module.run(args) or 0)
+    except (YauyauError, StoreError) as exc:
+        print(f"yauyau {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"yauyau {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,26 @@
+"""Errors the user can cause, each naming the field at fault."""
+
+
+class YauyauError(Exception):
+    """Base class of the errors that are the user's to fix (never a traceback)."""
+
+
+class SpecError(YauyauError, ValueError):
+    """A model specification (or an input derived from it) is invalid.
+
+    ``field`` is a dotted path into the spec, e.g. ``drift[0]`` or ``discretization.dt``.
+    """
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+class InputError(YauyauError, ValueError):
+    """Bad online input (increments, points, ...); ``field`` names it."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message

@@ -1,0 +1,1 @@
+"""Exact finite-dimensional filters of the seeds."""

@@ -1,0 +1,269 @@
+"""Model specification: the signal/observation model and its discretisation.
+
+    dx = f(x) dt + G dv,   dy = h(x) dt + dw,   E[dv dvᵀ] = Q dt,  E[dw dwᵀ] = R dt,
+
+with x ∈ ℝⁿ (n = 1, 2, 3) and y ∈ ℝᵐ.  ``diffusion`` is a = G Q Gᵀ (n×n, SPD) and
+``observation_noise`` is R (m×m, SPD).  One schema (pydantic) serves TOML and JSON;
+:func:`load_spec` turns every problem into one :class:`SpecError` naming the field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import SpecError
+from .expressions import RESERVED_NAMES
+
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
+METHODS = ("auto", "yau-yau", "kalman-bucy", "yau-hu", "wei-norman")
+MAX_SPEC_BYTES = 64 * 1024
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _finite(values: Any, what: str) -> None:
+    arr = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be finite numbers")
+
+
+def check_spd(matrix: list[list[float]], size: int, what: str) -> None:
+    """Raise ValueError unless ``matrix`` is a symmetric positive definite size×size matrix."""
+    arr = np.asarray(matrix, dtype=float)
+    if arr.shape != (size, size):
+        raise ValueError(f"{what} must be {size}x{size}, got shape {arr.shape}")
+    _finite(arr, what)
+    if not np.allclose(arr, arr.T, rtol=1e-12, atol=1e-12):
+        raise ValueError(f"{what} must be symmetric")
+    if np.linalg.eigvalsh(arr).min() <= 1e-12 * max(1.0, np.abs(arr).max()):
+        raise ValueError(f"{what} must be positive definite")
+
+
+class GaussianPrior(_Strict):
+    kind: Literal["gaussian"]
+    mean: list[float]
+    cov: list[list[float]]
+
+
+class MixturePrior(_Strict):
+    kind: Literal["mixture"]
+    weights: list[float] = Field(min_length=1, max_length=64)
+    means: list[list[float]]
+    covs: list[list[list[float]]]
+
+    @field_validator("weights")
+    @classmethod
+    def _weights(cls, w: list[float]) -> list[float]:
+        _finite(w, "weights")
+        if min(w) < 0 or sum(w) <= 0:
+            raise ValueError("weights must be non-negative with a positive sum")
+        return w
+
+
+class DensityPrior(_Strict):
+    kind: Literal["density"]
+    expression: str = Field(max_length=2000)
+
+
+Prior = Annotated[Union[GaussianPrior, MixturePrior, DensityPrior], Field(discriminator="kind")]
+
+
+class Domain(_Strict):
+    radius: float = Field(gt=0, le=1e6)
+    center: list[float] | None = None
+
+
+class Discretization(_Strict):
+    """Time step and resolution of the offline stage.
+
+    ``basis`` is N, the number of L²(B_R)-orthonormal basis functions.  ``mesh`` is the
+    number of elements across the radius (None: chosen from N and n).  ``order`` is the
+    polynomial degree of the finite elements.  ``substeps`` splits dt for the offline time
+    integration.
+    """
+
+    dt: float = Field(gt=0, le=10.0)
+    basis: int = Field(ge=2, le=4000)
+    mesh: int | None = Field(default=None, ge=2, le=4000)
+    order: Literal[1, 2] = 2
+    substeps: int = Field(default=8, ge=1, le=1000)
+
+
+class ModelSpec(_Strict):
+    name: str = Field(min_length=1, max_length=100)
+    state: list[str] = Field(min_length=1, max_length=3)
+    drift: list[str]
+    observation: list[str] = Field(min_length=1, max_length=16)
+    diffusion: list[list[float]] | None = None
+    observation_noise: list[list[float]] | None = None
+    parameters: dict[str, float] = Field(default_factory=dict, max_length=64)
+    initial: Prior
+    domain: Domain
+    discretization: Discretization
+    method: Literal["auto", "yau-yau", "kalman-bucy", "yau-hu", "wei-norman"] = "auto"
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not v.strip() or any(ord(c) < 32 for c in v):
+            raise ValueError("name must be printable and not blank")
+        return v
+
+    @field_validator("state")
+    @classmethod
+    def _state(cls, names: list[str]) -> list[str]:
+        for name in names:
+            if not _NAME.match(name):
+                raise ValueError(f"'{name}' is not a valid variable name (letters, digits, _)")
+            if name in RESERVED_NAMES:
+                raise ValueError(f"'{name}' is reserved (a function or constant name)")
+        if len(set(names)) != len(names):
+            raise ValueError("state names must be distinct")
+        return names
+
+    @field_validator("parameters")
+    @classmethod
+    def _parameters(cls, params: dict[str, float]) -> dict[str, float]:
+        for name, value in params.items():
+            if not _NAME.match(name) or name in RESERVED_NAMES:
+                raise ValueError(f"'{name}' is not a valid parameter name")
+            if not math.isfinite(value):
+                raise ValueError(f"parameter '{name}' must be finite")
+        return params
+
+    @model_validator(mode="after")
+    def _shapes(self) -> "ModelSpec":
+        n, m = len(self.state), len(self.observation)
+        clash = set(self.state) & set(self.parameters)
+        if clash:
+            raise SpecError("parameters", f"names also used as state variables: {sorted(clash)}")
+        if len(self.drift) != n:
+            raise SpecError("drift", f"needs {n} expressions (one per state variable), got {len(self.drift)}")
+        for field, matrix, size in (("diffusion", self.diffusion, n),
+                                    ("observation_noise", self.observation_noise, m)):
+            if matrix is not None:
+                try:
+                    check_spd(matrix, size, field)
+                except ValueError as exc:
+                    raise SpecError(field, str(exc).removeprefix(f"{field} ")) from None
+        if self.domain.center is not None and len(self.domain.center) != n:
+            raise SpecError("domain.center", f"needs {n} coordinates, got {len(self.domain.center)}")
+        if self.domain.center is not None:
+            _finite_or_raise(self.domain.center, "domain.center")
+        _check_prior(self.initial, n)
+        return self
+
+    # -- derived quantities ---------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return len(self.state)
+
+    @property
+    def m(self) -> int:
+        return len(self.observation)
+
+    def diffusion_matrix(self) -> np.ndarray:
+        return np.eye(self.n) if self.diffusion is None else np.asarray(self.diffusion, dtype=float)
+
+    def noise_matrix(self) -> np.ndarray:
+        return np.eye(self.m) if self.observation_noise is None else np.asarray(self.observation_noise, float)
+
+    def center(self) -> np.ndarray:
+        return np.zeros(self.n) if self.domain.center is None else np.asarray(self.domain.center, float)
+
+    def canonical_json(self) -> str:
+        """Deterministic JSON of the spec (the input of the model's content hash)."""
+        return json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+
+
+def _finite_or_raise(values: Any, field: str) -> None:
+    try:
+        _finite(values, field)
+    except ValueError as exc:
+        raise SpecError(field, str(exc)) from None
+
+
+def _check_prior(prior: GaussianPrior | MixturePrior | DensityPrior, n: int) -> None:
+    if isinstance(prior, GaussianPrior):
+        if len(prior.mean) != n:
+            raise SpecError("initial.mean", f"needs {n} numbers, got {len(prior.mean)}")
+        _finite_or_raise(prior.mean, "initial.mean")
+        try:
+            check_spd(prior.cov, n, "cov")
+        except ValueError as exc:
+            raise SpecError("initial.cov", str(exc).removeprefix("cov ")) from None
+    elif isinstance(prior, MixturePrior):
+        k = len(prior.weights)
+        if len(prior.means) != k or len(prior.covs) != k:
+            raise SpecError("initial", f"weights, means and covs need the same length ({k})")
+        for i, (mean, cov) in enumerate(zip(prior.means, prior.covs)):
+            if len(mean) != n:
+                raise SpecError(f"initial.means[{i}]", f"needs {n} numbers, got {len(mean)}")
+            _finite_or_raise(mean, f"initial.means[{i}]")
+            try:
+                check_spd(cov, n, "cov")
+            except ValueError as exc:
+                raise SpecError(f"initial.covs[{i}]", str(exc).removeprefix("cov ")) from None
+
+
+def _field_path(loc: tuple[Any, ...]) -> str:
+    path = ""
+    for part in loc:
+        if isinstance(part, int):
+            path += f"[{part}]"
+        elif part in ("gaussian", "mixture", "density"):
+            continue  # discriminator tag pydantic inserts
+        else:
+            path += f".{part}" if path else str(part)
+    return path or "spec"
+
+
+def spec_from_dict(data: Any) -> ModelSpec:
+    """Validate a parsed document; every failure becomes one SpecError naming the field."""
+    if not isinstance(data, dict):
+        raise SpecError("spec", "must be a table/object")
+    try:
+        spec = ModelSpec.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        ctx_error = (err.get("ctx") or {}).get("error")
+        if isinstance(ctx_error, SpecError):
+            raise ctx_error from None
+        msg = err["msg"].removeprefix("Value error, ")
+        raise SpecError(_field_path(tuple(err["loc"])), msg) from None
+    from .model import compile_model  # expressions are checked when compiled
+
+    compile_model(spec)
+    return spec
+
+
+def parse_spec_text(text: str, fmt: str) -> ModelSpec:
+    """Parse TOML or JSON text (``fmt`` is 'toml' or 'json')."""
+    if len(text.encode("utf-8", "replace")) > MAX_SPEC_BYTES:
+        raise SpecError("spec", f"larger than {MAX_SPEC_BYTES} bytes")
+    try:
+        data = tomllib.loads(text) if fmt == "toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise SpecError("spec", f"not valid {fmt.upper()}: {exc}") from None
+    return spec_from_dict(data)
+
+
+def load_spec(path: str | Path) -> ModelSpec:
+    """Read a spec file (.toml or .json)."""
+    path = Path(path)
+    fmt = "json" if path.suffix.lower() == ".json" else "toml"
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError("spec", f"cannot read {path}: {exc}") from None
+    return parse_spec_text(text, fmt)

@@ -1,0 +1,18 @@
+"""Storage errors: a missing, corrupt or mismatched file or record (never a traceback)."""
+
+
+class StoreError(Exception):
+    """A store problem the user can act on; ``field`` names what is at fault (e.g. 'model')."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+class NotFound(StoreError):
+    """No such model or session."""
+
+
+class Conflict(StoreError):
+    """A sequence gap or a concurrent update that must not be applied."""

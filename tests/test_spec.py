@@ -1,0 +1,95 @@
+"""Model specs and safe expressions: hostile and malformed input is refused, naming the field."""
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from solver import SpecError, compile_model, load_spec, spec_from_dict
+from solver.expressions import parse_expression
+
+X = sp.Symbol("x_0", real=True)
+
+
+def base(**over):
+    spec = {
+        "name": "t", "state": ["x"], "drift": ["-0.2*x"], "observation": ["x**3"],
+        "initial": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]},
+        "domain": {"radius": 7.0}, "discretization": {"dt": 0.01, "basis": 16},
+    }
+    spec.update(over)
+    return spec
+
+
+@pytest.mark.parametrize("text", [
+    "__import__('os').system('x')", "(1).__class__", "lambda: 0", "9**9**9", "x.real",
+    "[x]", "x if x else 1", "open('f')", "x[0]", "{}", "f'{x}'", "1 < x", "x and 1",
+    "exp(x, x)", "exp(x=1)", "exp(*x)", "'abc'", "True", "1j", "y", "__builtins__", "(" * 300 + "x" + ")" * 300,
+    "x+" * 500 + "x", "2**x**x", "1/0", "log(-1)", "", "   ",
+])
+def test_hostile_expression_refused(text):
+    with pytest.raises(SpecError) as err:
+        parse_expression(text, {"x": X}, "drift[0]")
+    assert err.value.field == "drift[0]"
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("-0.2*x", -X / 5), ("x**3", X**3), ("tanh(x)", sp.tanh(X)), ("exp(-x**2/2)", sp.exp(-X**2 / 2)),
+    ("abs(x) + sqrt(4)", sp.Abs(X) + 2), ("-(x - 1)**2", -(X - 1) ** 2), ("2**x", 2**X),
+])
+def test_expression_builds_exact_sympy(text, expected):
+    assert sp.simplify(parse_expression(text, {"x": X}) - expected) == 0
+
+
+@pytest.mark.parametrize("over, field", [
+    ({"state": ["x", "x"]}, "state"),
+    ({"state": ["exp"]}, "state"),
+    ({"state": []}, "state"),
+    ({"state": ["a", "b", "c", "d"]}, "state"),
+    ({"drift": ["x", "x"]}, "drift"),
+    ({"drift": ["q*x"]}, "drift[0]"),
+    ({"observation": ["__import__('os')"]}, "observation[0]"),
+    ({"diffusion": [[1.0, 0.0]]}, "diffusion"),
+    ({"diffusion": [[-1.0]]}, "diffusion"),
+    ({"observation_noise": [[0.0]]}, "observation_noise"),
+    ({"domain": {"radius": 0.0}}, "domain.radius"),
+    ({"domain": {"radius": -1.0}}, "domain.radius"),
+    ({"domain": {"radius": 2.0, "center": [0.0, 1.0]}}, "domain.center"),
+    ({"discretization": {"dt": 0.0, "basis": 8}}, "discretization.dt"),
+    ({"discretization": {"dt": 0.1}}, "discretization.basis"),
+    ({"initial": {"kind": "gaussian", "mean": [0.0, 1.0], "cov": [[1.0]]}}, "initial.mean"),
+    ({"initial": {"kind": "gaussian", "mean": [0.0], "cov": [[0.0]]}}, "initial.cov"),
+    ({"initial": {"kind": "wishful"}}, "initial"),
+    ({"initial": {"kind": "density", "expression": "exp(-x**2)+lambda: 0"}}, "initial.expression"),
+    ({"drift": ["log(x)"]}, "drift"),
+    ({"parameters": {"x": 1.0}}, "parameters"),
+    ({"colour": "red"}, "colour"),
+])
+def test_bad_spec_names_field(over, field):
+    with pytest.raises(SpecError) as err:
+        spec_from_dict(base(**over))
+    assert err.value.field == field, str(err.value)
+
+
+def test_parameters_are_exact_numbers():
+    model = compile_model(spec_from_dict(base(drift=["-theta*x"], parameters={"theta": 0.2})))
+    assert model.drift[0] == -X / 5
+    assert model.div_drift == sp.Rational(-1, 5)
+    assert model.potential == X**6 / 2
+
+
+def test_examples_load():
+    for name in ("cubic_sensor", "ou", "benes", "range_2d"):
+        model = compile_model(load_spec(f"examples/{name}.toml"))
+        pts = np.zeros((3, model.n))
+        assert model.f(pts).shape == (3, model.n)
+        assert model.h(pts).shape == (3, model.m)
+
+
+def test_mixture_prior_is_normalised_density():
+    model = compile_model(load_spec("examples/benes.toml"))
+    x = np.linspace(-12, 12, 20001)[:, None]
+    p = model.prior_density(x)
+    assert abs(np.trapezoid(p, x[:, 0]) - 1) < 1e-10
+    # cosh(x) N(x; 0, 1) normalised: cosh(x) e^{-x²/2} / (sqrt(2π) e^{1/2})
+    exact = np.cosh(x[:, 0]) * np.exp(-x[:, 0] ** 2 / 2) / np.sqrt(2 * np.pi * np.e)
+    assert np.max(np.abs(p - exact)) < 1e-12
