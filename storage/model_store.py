@@ -1,0 +1,380 @@
+"""HDF5 model store: one file per precomputed model, named by the content hash of its spec.
+
+    id = sha256("yauyau-model/<FORMAT_VERSION>\\n" + canonical spec JSON)[:20]   (hex)
+
+Layout of ``<id>.h5``: root attributes ``format_version``, ``model_id``, ``spec`` (JSON),
+``created`` (UTC ISO 8601), ``versions`` (JSON: numpy, scipy, h5py, scikit-fem), ``attrs``
+(JSON, the caller's), ``meta_sha256`` (hash of all of the above plus the array names, shapes
+and dtypes); group ``arrays`` holds one dataset per array, each with a fletcher32 checksum.
+
+Writes go to a hidden temporary file in the same directory which is flushed, fsynced and
+``os.replace``d, so a killed writer never leaves a half-written file under the final name.
+Storage knows files, not math: it never imports solver or service.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import importlib.metadata
+import json
+import os
+import re
+import secrets
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from .errors import NotFound, StoreError
+
+FORMAT_VERSION = 1
+ID_LENGTH = 20
+SUFFIX = ".h5"
+TMP_PREFIX = ".tmp-"
+_ID = re.compile(rf"^[0-9a-f]{{{ID_LENGTH}}}$")
+_ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+_TMP = re.compile(rf"^{re.escape(TMP_PREFIX)}[0-9a-f]{{{ID_LENGTH}}}-(\d+)-[0-9a-f]+{re.escape(SUFFIX)}$")
+_LIBRARIES = ("numpy", "scipy", "h5py", "scikit-fem")
+# Integer arrays (mesh cells) shrink several-fold under shuffle+gzip; dense float
+# propagators barely do (bench/storage.py), so they are stored uncompressed.
+_COMPRESS_KINDS = "iub"
+
+
+@dataclass(frozen=True)
+class StoredModel:
+    id: str
+    spec_json: str
+    arrays: dict[str, np.ndarray]
+    attrs: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """What ``list()`` reports, read from attributes only; ``error`` is set for an unreadable file."""
+
+    id: str
+    name: str | None = None
+    n: int | None = None
+    m: int | None = None
+    dt: float | None = None
+    radius: float | None = None
+    basis: int | None = None
+    created: str | None = None
+    file_size: int = 0
+    error: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"id": self.id, "name": self.name, "n": self.n, "m": self.m, "dt": self.dt,
+                "radius": self.radius, "basis": self.basis, "created": self.created,
+                "file_size": self.file_size, "error": self.error}
+
+
+def canonical_spec(spec_json: str) -> str:
+    """Sorted, compact JSON of a spec document (idempotent on ModelSpec.canonical_json())."""
+    try:
+        doc = json.loads(spec_json)
+    except (TypeError, ValueError) as exc:
+        raise StoreError("spec_json", f"not valid JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise StoreError("spec_json", "must be a JSON object")
+    return json.dumps(doc, sort_keys=True, separators=(",", ":"))
+
+
+def model_id(spec_json: str) -> str:
+    """Content hash of the canonical spec JSON and the format version."""
+    text = f"yauyau-model/{FORMAT_VERSION}\n{canonical_spec(spec_json)}"
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:ID_LENGTH]
+
+
+def library_versions() -> dict[str, str | None]:
+    out: dict[str, str | None] = {}
+    for name in _LIBRARIES:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def _meta_digest(spec: str, attrs: str, created: str, versions: str, layout: list) -> str:
+    doc = json.dumps([FORMAT_VERSION, spec, attrs, created, versions, layout], separators=(",", ":"))
+    return hashlib.sha256(doc.encode("utf-8")).hexdigest()
+
+
+def _layout(arrays: dict[str, np.ndarray]) -> list:
+    return [[name, list(arr.shape), arr.dtype.str] for name, arr in sorted(arrays.items())]
+
+
+def _checked_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
+    if not isinstance(arrays, dict):
+        raise StoreError("arrays", "must be a mapping of names to arrays")
+    out = {}
+    for name, value in arrays.items():
+        if not isinstance(name, str) or not _ARRAY_NAME.match(name):
+            raise StoreError("arrays", f"invalid array name {name!r} (letters, digits, _)")
+        arr = np.asarray(value)
+        if arr.dtype.kind not in "biufc":
+            raise StoreError(f"arrays.{name}", f"must be numeric, got dtype {arr.dtype}")
+        if arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+            raise StoreError(f"arrays.{name}", "contains NaN or inf")
+        out[name] = arr if arr.flags.c_contiguous else arr.copy(order="C")
+    return out
+
+
+def _attrs_json(attrs: Any) -> str:
+    if attrs is None:
+        attrs = {}
+    if not isinstance(attrs, dict):
+        raise StoreError("attrs", "must be a mapping")
+    try:
+        return json.dumps(attrs, sort_keys=True, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise StoreError("attrs", f"must be JSON-serialisable finite values: {exc}") from None
+
+
+def _write_dataset(group: h5py.Group, name: str, arr: np.ndarray) -> None:
+    # fletcher32 needs chunked storage, impossible for 0-d and empty arrays: store those as
+    # a (1,)-shaped / plain dataset and remember the shape.
+    stored = arr.reshape(1) if arr.ndim == 0 else arr
+    if stored.size == 0:
+        dset = group.create_dataset(name, data=stored)
+    else:
+        compress = stored.dtype.kind in _COMPRESS_KINDS
+        dset = group.create_dataset(name, data=stored, fletcher32=True, chunks=True,
+                                    shuffle=compress, compression="gzip" if compress else None,
+                                    compression_opts=4 if compress else None)
+    dset.attrs["shape"] = np.asarray(arr.shape, dtype=np.int64)
+
+
+def _read_dataset(dset: h5py.Dataset) -> np.ndarray:
+    shape = tuple(int(s) for s in dset.attrs["shape"])
+    return np.asarray(dset[()]).reshape(shape)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _fsync_directory(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return  # not supported on this platform/filesystem
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+class ModelStore:
+    """A directory of ``<id>.h5`` model files (other names are ignored)."""
+
+    def __init__(self, directory: str | os.PathLike):
+        self.directory = Path(directory)
+
+    # -- names ----------------------------------------------------------------------
+    def path(self, model_id_: str) -> Path:
+        if not isinstance(model_id_, str) or not _ID.match(model_id_):
+            raise NotFound("model_id", f"{model_id_!r} is not a model id ({ID_LENGTH} hex digits)")
+        return self.directory / f"{model_id_}{SUFFIX}"
+
+    def exists(self, model_id_: str) -> bool:
+        try:
+            return self.path(model_id_).is_file()
+        except NotFound:
+            return False
+
+    def ids(self) -> list[str]:
+        if not self.directory.is_dir():
+            return []
+        names = (p.name for p in self.directory.iterdir())
+        return sorted(n[: -len(SUFFIX)] for n in names if n.endswith(SUFFIX) and _ID.match(n[: -len(SUFFIX)]))
+
+    # -- writing --------------------------------------------------------------------
+    def save(self, spec_json: str, arrays: dict[str, Any], attrs: dict[str, Any] | None = None) -> str:
+        """Write the model atomically and return its id (an existing file is replaced)."""
+        spec = canonical_spec(spec_json)
+        mid = model_id(spec)
+        checked = _checked_arrays(arrays)
+        attrs_text = _attrs_json(attrs)
+        self._prepare_directory()
+        self.clean_stale_temporaries()
+        tmp = self.directory / f"{TMP_PREFIX}{mid}-{os.getpid()}-{secrets.token_hex(4)}{SUFFIX}"
+        try:
+            self._write_file(tmp, mid, spec, checked, attrs_text)
+            os.replace(tmp, self.path(mid))
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise StoreError("store", f"cannot write model to {self.directory}: {exc}") from None
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        _fsync_directory(self.directory)
+        return mid
+
+    def _prepare_directory(self) -> None:
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError("store", f"cannot create directory {self.directory}: {exc}") from None
+        if not os.access(self.directory, os.W_OK | os.X_OK):
+            raise StoreError("store", f"directory {self.directory} is not writable")
+
+    def _write_file(self, tmp: Path, mid: str, spec: str, arrays: dict[str, np.ndarray], attrs: str) -> None:
+        created, versions = _utc_now(), json.dumps(library_versions(), sort_keys=True)
+        with h5py.File(tmp, "w-") as h5:
+            h5.attrs["format_version"] = FORMAT_VERSION
+            h5.attrs["model_id"] = mid
+            h5.attrs["spec"] = spec
+            h5.attrs["created"] = created
+            h5.attrs["versions"] = versions
+            h5.attrs["attrs"] = attrs
+            h5.attrs["meta_sha256"] = _meta_digest(spec, attrs, created, versions, _layout(arrays))
+            group = h5.create_group("arrays")
+            for name, arr in arrays.items():
+                _write_dataset(group, name, arr)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # the bytes are on disk before the rename makes them visible
+        finally:
+            os.close(fd)
+
+    def clean_stale_temporaries(self) -> list[str]:
+        """Remove temporary files whose writer process (on this host) no longer runs."""
+        removed = []
+        if not self.directory.is_dir():
+            return removed
+        for entry in self.directory.iterdir():
+            match = _TMP.match(entry.name)
+            if match and not _pid_alive(int(match.group(1))):
+                try:
+                    entry.unlink()
+                    removed.append(entry.name)
+                except OSError:
+                    pass  # another cleaner got there first, or no permission: harmless
+        return removed
+
+    def delete(self, model_id_: str) -> None:
+        path = self.path(model_id_)
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            raise NotFound("model_id", f"no model {model_id_} in {self.directory}") from None
+        except OSError as exc:
+            raise StoreError("store", f"cannot delete {path.name}: {exc}") from None
+
+    # -- reading --------------------------------------------------------------------
+    def load(self, model_id_: str) -> StoredModel:
+        """Read and verify a model: format version, id = hash of the stored spec, checksums."""
+        path = self.path(model_id_)
+        if not path.is_file():
+            raise NotFound("model_id", f"no model {model_id_} in {self.directory}")
+        try:
+            with h5py.File(path, "r") as h5:
+                return _verified(h5, model_id_)
+        except StoreError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+            message = f"model file {path.name} is corrupt or unreadable: {_short(exc)}"
+            raise StoreError("model", message) from None
+
+    def list(self) -> list[ModelSummary]:
+        """Summaries of every stored model, from the file attributes (datasets are not read)."""
+        return [self._summary(mid) for mid in self.ids()]
+
+    def _summary(self, mid: str) -> ModelSummary:
+        path = self.path(mid)
+        try:
+            size = path.stat().st_size
+            with h5py.File(path, "r") as h5:
+                _check_version(h5, mid)
+                spec = json.loads(_text_attr(h5, "spec"))
+                created = _text_attr(h5, "created")
+                basis_shape = _basis_shape(h5)
+        except FileNotFoundError:
+            return ModelSummary(id=mid, error="deleted while listing")
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError, StoreError) as exc:
+            return ModelSummary(id=mid, file_size=_size_or_zero(path), error=_short(exc))
+        return _summary_from_spec(mid, spec, created, size, basis_shape)
+
+
+def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shape) -> ModelSummary:
+    disc = spec.get("discretization") or {}
+    domain = spec.get("domain") or {}
+    basis = int(basis_shape[-1]) if basis_shape else disc.get("basis")
+    state, obs = spec.get("state"), spec.get("observation")
+    return ModelSummary(
+        id=mid, name=spec.get("name"), n=len(state) if isinstance(state, list) else None,
+        m=len(obs) if isinstance(obs, list) else None, dt=disc.get("dt"), radius=domain.get("radius"),
+        basis=basis, created=created, file_size=size)
+
+
+def _basis_shape(h5: h5py.File) -> tuple | None:
+    group = h5.get("arrays")
+    if group is None or "basis" not in group:
+        return None
+    return tuple(int(s) for s in group["basis"].attrs["shape"])
+
+
+def _size_or_zero(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__)[:300]
+
+
+def _text_attr(h5: h5py.File, name: str) -> str:
+    value = h5.attrs[name]
+    if isinstance(value, bytes):
+        value = value.decode("utf-8")
+    if not isinstance(value, str):
+        raise StoreError("model", f"attribute {name!r} is not text")
+    return value
+
+
+def _check_version(h5: h5py.File, mid: str) -> None:
+    version = h5.attrs.get("format_version")
+    if version is None or int(version) != FORMAT_VERSION:
+        raise StoreError("format_version",
+                         f"model {mid} has format version {version}, this library reads {FORMAT_VERSION}")
+
+
+def _verified(h5: h5py.File, mid: str) -> StoredModel:
+    _check_version(h5, mid)
+    spec = _text_attr(h5, "spec")
+    try:
+        actual = model_id(spec)
+    except StoreError:
+        actual = None
+    if actual != mid:
+        raise StoreError("model", f"file {mid}{SUFFIX} does not hold model {mid} (spec hashes to {actual})")
+    attrs_text, created, versions = (_text_attr(h5, k) for k in ("attrs", "created", "versions"))
+    group = h5["arrays"]
+    arrays = {name: _read_dataset(group[name]) for name in group}  # reading verifies fletcher32
+    digest = _meta_digest(spec, attrs_text, created, versions, _layout(arrays))
+    if digest != _text_attr(h5, "meta_sha256"):
+        raise StoreError("model", f"model {mid}: metadata checksum mismatch (file altered)")
+    attrs = dict(json.loads(attrs_text))
+    attrs.update(format_version=FORMAT_VERSION, created=created, versions=json.loads(versions))
+    return StoredModel(id=mid, spec_json=spec, arrays=arrays, attrs=attrs)
