@@ -1,0 +1,72 @@
+"""Run every benchmark side by side and assemble docs/benchmarks.md from their fragments.
+
+    python -m bench            # everything (about 20-30 minutes on 2 cores)
+    python -m bench --quick    # smaller runs, for a smoke test
+    python -m bench --only filters,load
+
+Each topic module bench/<topic>.py has ``main(argv)`` and writes docs/bench-<fragment>.md;
+this driver then concatenates the fragments (in the order below) into docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import platform
+import sys
+import time
+from pathlib import Path
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+# (module, fragment) in reading order
+TOPICS = [
+    ("precompute", "bench-precompute.md"),
+    ("engine_speed", "bench-engine.md"),
+    ("filters", "bench-filters.md"),
+    ("exact_filters", "bench-exact.md"),
+    ("load", "bench-load.md"),
+]
+
+HEADER = """# Benchmarks
+
+All figures are measured on the project's reference machine (2 cores, 24 GiB, shared and noisy), so
+speed is reported as ratios measured side by side in one run. Reproduce everything with
+
+    python -m bench            # or: python -m bench --only filters
+
+Each section below is written by its benchmark (`bench/<topic>.py`); this page is assembled by
+`python -m bench` (or `python -m bench --assemble` to only re-assemble).
+"""
+
+
+def assemble() -> Path:
+    parts = [HEADER, f"_Assembled {time.strftime('%Y-%m-%d')} on {platform.platform()}, Python "
+             f"{platform.python_version()}._\n"]
+    for _, fragment in TOPICS:
+        path = DOCS / fragment
+        if path.exists():
+            parts.append(path.read_text().strip() + "\n")
+    out = DOCS / "benchmarks.md"
+    out.write_text("\n".join(parts))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller runs")
+    parser.add_argument("--only", default="", help="comma-separated topics: " + ",".join(t for t, _ in TOPICS))
+    parser.add_argument("--assemble", action="store_true", help="only re-assemble docs/benchmarks.md")
+    args = parser.parse_args(argv)
+    if not args.assemble:
+        wanted = [t for t in args.only.split(",") if t] or [t for t, _ in TOPICS]
+        for topic, _ in TOPICS:
+            if topic in wanted:
+                print(f"== bench.{topic}", flush=True)
+                module = importlib.import_module(f"bench.{topic}")
+                module.main(["--quick"] if args.quick else [])
+    print(f"wrote {assemble()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
