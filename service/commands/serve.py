@@ -1,9 +1,54 @@
-"""`yauyau serve` (not yet implemented)."""
+"""`yauyau serve`: run the HTTP API with uvicorn (one or several worker processes).
+
+Flags override the ``YAUYAU_*`` environment; the resulting settings are written back into the
+environment so that every worker process (spawned by uvicorn) builds the same application.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
 
 
 def add_arguments(parser):
-    pass
+    parser.add_argument("--store", help="model store directory (env YAUYAU_STORE; default var/store)")
+    parser.add_argument("--host", help="interface to bind (env YAUYAU_HOST; default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="TCP port (env YAUYAU_PORT; default 8000)")
+    parser.add_argument("--workers", type=int, help="worker processes (env YAUYAU_WORKERS; default 1)")
+    parser.add_argument("--session-db", help="SQLite file of the sessions (default <store>/sessions.sqlite3)")
+    parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+
+
+def _settings(args):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+    from solver.errors import InputError
+
+    overrides = {k: v for k, v in {"store": args.store, "host": args.host, "port": args.port,
+                                   "workers": args.workers, "session_db": args.session_db,
+                                   "log_level": args.log_level}.items() if v is not None}
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(".".join(str(p) for p in err["loc"]) or "settings", err["msg"]) from None
 
 
 def run(args):
-    raise SystemExit("yauyau serve: not implemented yet")
+    import uvicorn
+
+    from storage.errors import StoreError
+
+    settings = _settings(args)
+    if not settings.store.is_dir():
+        raise StoreError("store", f"no model store {settings.store} (run `yauyau precompute` first)")
+    if settings.workers > 1 and settings.metrics_dir is None:
+        # prometheus multiprocess mode: must be set before any worker imports prometheus_client
+        settings.metrics_dir = tempfile.mkdtemp(prefix="yauyau-metrics-")
+    os.environ.update(settings.to_env())
+    if settings.metrics_dir is not None:
+        os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(settings.metrics_dir)
+    uvicorn.run("service.app:create_app", factory=True, host=settings.host, port=settings.port,
+                workers=settings.workers, log_level=settings.log_level, access_log=False)
+    return 0

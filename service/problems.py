@@ -1,0 +1,115 @@
+"""RFC 9457 problem details: every error the service returns is ``application/problem+json``.
+
+A problem names the field at fault (``field``, a dotted path such as ``increments[3][0]``) so that a
+client can fix its request; client mistakes are 4xx, never 500.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import Response
+
+from solver.errors import InputError, SpecError
+from storage.errors import Conflict, NotFound, StoreError
+
+PROBLEM_TYPE = "application/problem+json"
+log = logging.getLogger("yauyau.service")
+
+_TITLES = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
+           413: "Request body too large", 415: "Unsupported media type", 422: "Invalid input",
+           500: "Internal error", 503: "Service unavailable"}
+
+
+class Problem(Exception):
+    """An HTTP error with a problem-details body."""
+
+    def __init__(self, status: int, detail: str, field: str | None = None, title: str | None = None):
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.field = field
+        self.title = title or _TITLES.get(status, "Error")
+
+
+def problem_response(status: int, detail: str, field: str | None = None, title: str | None = None,
+                     instance: str | None = None) -> Response:
+    body: dict[str, Any] = {"type": "about:blank", "title": title or _TITLES.get(status, "Error"),
+                            "status": status, "detail": detail}
+    if field is not None:
+        body["field"] = field
+    if instance is not None:
+        body["instance"] = instance
+    return Response(json.dumps(body, allow_nan=False), status_code=status, media_type=PROBLEM_TYPE)
+
+
+def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
+    """('body', 'increments', 3, 0) -> 'increments[3][0]'."""
+    path = ""
+    for part in loc:
+        if part in ("body", "query", "path", "header") and not path:
+            continue
+        if isinstance(part, int):
+            path += f"[{part}]"
+        elif str(part).startswith(("function-", "list[", "nullable[", "union[")):
+            continue  # pydantic inserts the validator kind into union locations
+        else:
+            path += f".{part}" if path else str(part)
+    return path or "body"
+
+
+def _validation_problem(exc: RequestValidationError) -> tuple[int, str, str]:
+    errors = exc.errors()
+    err = errors[0] if errors else {"loc": ("body",), "msg": "invalid request", "type": ""}
+    if err.get("type") == "json_invalid":
+        return 400, "body", "malformed JSON: " + str((err.get("ctx") or {}).get("error", "cannot parse"))
+    if err.get("type") == "missing" and tuple(err.get("loc", ())) == ("body",):
+        return 400, "body", "a JSON request body is required"
+    msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+    return 422, field_path(tuple(err.get("loc", ()))), msg
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Map every error to a problem+json response."""
+
+    @app.exception_handler(Problem)
+    async def _problem(request: Request, exc: Problem) -> Response:
+        return problem_response(exc.status, exc.detail, exc.field, exc.title, request.url.path)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> Response:
+        status, field, detail = _validation_problem(exc)
+        return problem_response(status, detail, field, instance=request.url.path)
+
+    @app.exception_handler(SpecError)
+    @app.exception_handler(InputError)
+    async def _user(request: Request, exc: SpecError | InputError) -> Response:
+        return problem_response(422, exc.message, exc.field, instance=request.url.path)
+
+    @app.exception_handler(NotFound)
+    async def _not_found(request: Request, exc: NotFound) -> Response:
+        return problem_response(404, exc.message, exc.field, instance=request.url.path)
+
+    @app.exception_handler(Conflict)
+    async def _conflict(request: Request, exc: Conflict) -> Response:
+        return problem_response(409, exc.message, exc.field, instance=request.url.path)
+
+    @app.exception_handler(StoreError)
+    async def _store(request: Request, exc: StoreError) -> Response:
+        log.error("store error on %s: %s", request.url.path, exc)
+        return problem_response(503, exc.message, exc.field, instance=request.url.path)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        detail = exc.detail if isinstance(exc.detail, str) else _TITLES.get(exc.status_code, "error")
+        return problem_response(exc.status_code, detail, instance=request.url.path)
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception) -> Response:
+        log.exception("internal error on %s", request.url.path)
+        return problem_response(500, "internal error (logged)", instance=request.url.path)

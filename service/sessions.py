@@ -1,0 +1,167 @@
+"""Filtering sessions over HTTP: create, feed chunks of increments exactly once, read back.
+
+The filter state lives in the :class:`storage.session_store.SessionStore` (SQLite).  A chunk is
+applied inside ``apply_chunk``: the new state and the response are written in the same
+transaction, so a repeated ``seq`` gets the stored response and a gap is refused (409) — a client
+that lost an answer (server killed) re-sends the same chunk and nothing is lost or applied twice.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from solver.errors import InputError, SpecError
+from solver.filtering import Estimate, check_increments
+
+from . import metrics
+from .registry import LoadedModel, Registry
+
+
+def _finite_list(values: np.ndarray) -> list | None:
+    return values.tolist() if np.all(np.isfinite(values)) else None
+
+
+def estimate_row(est: Estimate) -> dict[str, Any]:
+    """One estimate as JSON; a non-finite mean or covariance becomes null (reported degenerate)."""
+    return {"step": int(est.step), "t": float(est.t), "mean": _finite_list(np.asarray(est.mean, float)),
+            "cov": _finite_list(np.asarray(est.cov, float))}
+
+
+def _degeneracy(est: Estimate, row: dict[str, Any]) -> tuple[bool, str | None]:
+    if est.degenerate:
+        return True, est.reason or "degenerate density"
+    if row["mean"] is None or row["cov"] is None or not math.isfinite(est.loglik):
+        return True, "non-finite estimate"
+    return False, None
+
+
+def estimate_full(est: Estimate) -> dict[str, Any]:
+    row = estimate_row(est)
+    degenerate, reason = _degeneracy(est, row)
+    row.update(loglik=float(est.loglik) if math.isfinite(est.loglik) else None,
+               degenerate=degenerate, reason=reason)
+    return row
+
+
+def chunk_response(seq: int, state: Any, estimates: list[Estimate]) -> dict[str, Any]:
+    rows = [estimate_row(e) for e in estimates]
+    flags = [_degeneracy(e, r) for e, r in zip(estimates, rows, strict=True)]
+    bad = [reason for degenerate, reason in flags if degenerate]
+    loglik = float(state.loglik)
+    return {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": rows,
+            "loglik": loglik if math.isfinite(loglik) else None,
+            "degenerate": bool(bad) or bool(state.degenerate) or not math.isfinite(loglik),
+            "reason": bad[-1] if bad else (None if math.isfinite(loglik) else "non-finite log-likelihood")}
+
+
+def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
+    """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
+    out = np.empty((len(rows), m))
+    for i, row in enumerate(rows):
+        if row is None:
+            out[i] = np.nan
+        elif len(row) != m:
+            raise InputError(f"increments[{i}]", f"needs {m} number(s) (one per observation), got {len(row)}")
+        else:
+            out[i] = row
+    return check_increments(out, m)
+
+
+def _record(rec: Any, name: str) -> Any:
+    return rec[name] if isinstance(rec, dict) else getattr(rec, name)
+
+
+class Sessions:
+    """The session operations behind the /v1/sessions routes."""
+
+    def __init__(self, store: Any, registry: Registry, max_chunk_rows: int, max_density_points: int):
+        self.store = store
+        self.registry = registry
+        self.max_chunk_rows = max_chunk_rows
+        self.max_density_points = max_density_points
+
+    def create(self, model_id: str, prior: Any | None, method: str | None) -> dict[str, Any]:
+        loaded = self.registry.get(model_id)
+        filt = loaded.filter(method)
+        state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
+        estimate = estimate_full(filt.estimate(state))
+        response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
+                    "estimate": estimate}
+        session_id = self.store.create(model_id, filt.method, state.to_dict(), response)
+        metrics.SESSIONS.labels(filt.method).inc()
+        return {"id": session_id, **response}
+
+    def _session(self, session_id: str) -> tuple[Any, LoadedModel, Any]:
+        rec = self.store.get(session_id)
+        loaded = self.registry.get(_record(rec, "model_id"), "session.model")
+        return rec, loaded, loaded.filter(_record(rec, "method"))
+
+    def observe(self, session_id: str, seq: int, rows: list[list[float] | None]) -> dict[str, Any]:
+        if len(rows) > self.max_chunk_rows:
+            raise InputError("increments", f"at most {self.max_chunk_rows} rows per chunk, got {len(rows)}")
+        rec, loaded, filt = self._session(session_id)
+        increments = increments_array(rows, loaded.model.m)
+
+        def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+            state, estimates = filt.run(filt.state_from_dict(state_dict), increments)
+            return state.to_dict(), chunk_response(seq, state, estimates)
+
+        response, replayed = self.store.apply_chunk(session_id, seq, compute)
+        metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
+        if not replayed:
+            metrics.OBSERVATIONS.inc(len(rows))
+            if response["degenerate"]:
+                metrics.DEGENERATE.inc()
+        return response
+
+    def info(self, session_id: str) -> dict[str, Any]:
+        rec, loaded, filt = self._session(session_id)
+        state = filt.state_from_dict(_record(rec, "state"))
+        return {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
+                "t": float(state.t), "next_seq": int(_record(rec, "next_seq")),
+                "estimate": estimate_full(filt.estimate(state))}
+
+    def density(self, session_id: str, points: np.ndarray) -> dict[str, Any]:
+        rec, loaded, filt = self._session(session_id)
+        n = loaded.model.n
+        if points.shape[1] != n:
+            raise InputError("points", f"each point needs {n} coordinate(s), got {points.shape[1]}")
+        if len(points) > self.max_density_points:
+            raise InputError("points", f"at most {self.max_density_points} points, got {len(points)}")
+        state = filt.state_from_dict(_record(rec, "state"))
+        values = np.asarray(filt.density(state, points), dtype=float)
+        values = np.where(np.isfinite(values), np.maximum(values, 0.0), 0.0)
+        return {"step": int(state.step), "t": float(state.t), "points": points.tolist(),
+                "density": values.tolist()}
+
+    def delete(self, session_id: str) -> None:
+        self.store.delete(session_id)
+
+
+def _as_prior_error(exc: SpecError) -> SpecError:
+    return SpecError(exc.field.replace("initial", "prior", 1), exc.message)
+
+
+def _checked_prior(prior: Any, loaded: LoadedModel) -> Any:
+    """Check the prior against the model (the spec's own rules), naming the field ``prior.*``."""
+    from pydantic import ValidationError
+
+    from solver.model import compile_model
+    from solver.spec import DensityPrior, ModelSpec
+
+    doc = dict(loaded.spec, initial=prior.model_dump(mode="json"))
+    try:
+        spec = ModelSpec.model_validate(doc)
+        if isinstance(prior, DensityPrior):
+            compile_model(spec)  # parses the expression safely and checks it on the ball
+    except SpecError as exc:
+        raise _as_prior_error(exc) from None
+    except ValidationError as exc:  # pydantic wraps the SpecError of a model validator
+        inner = (exc.errors()[0].get("ctx") or {}).get("error")
+        if isinstance(inner, SpecError):
+            raise _as_prior_error(inner) from None
+        raise SpecError("prior", exc.errors()[0].get("msg", "invalid prior")) from None
+    return prior

@@ -1,0 +1,42 @@
+"""Service configuration: command-line flags and ``YAUYAU_*`` environment variables.
+
+Every field can be set from the environment with the prefix ``YAUYAU_`` (e.g.
+``YAUYAU_STORE=/srv/models``, ``YAUYAU_MAX_CHUNK_ROWS=5000``).  ``yauyau serve`` writes its
+flags into the same variables so that every uvicorn worker process reads one configuration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="YAUYAU_", extra="ignore")
+
+    store: Path = Field(Path("var/store"), description="model store directory (read-only at run time)")
+    session_db: Path | None = Field(
+        None, description="SQLite file of the sessions (default: <store>/sessions.sqlite3)")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    workers: int = Field(1, ge=1, le=64)
+    max_chunk_rows: int = Field(10_000, ge=1, le=10_000_000, description="most increments per request")
+    max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="largest request body accepted")
+    max_density_points: int = Field(100_000, ge=1, description="most points per density request")
+    log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
+    metrics_dir: Path | None = Field(
+        None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")
+
+    def session_path(self) -> Path:
+        return self.session_db if self.session_db is not None else self.store / "sessions.sqlite3"
+
+    def to_env(self) -> dict[str, str]:
+        """The environment variables that reproduce these settings in a worker process."""
+        env = {}
+        for name, value in self.model_dump().items():
+            if value is not None:
+                env[f"YAUYAU_{name.upper()}"] = str(value)
+        return env
