@@ -1,0 +1,270 @@
+"""Finite elements on the ball B_R(c) for the operators of the offline stage.
+
+Weak forms (u = v = 0 on ∂B_R, seed 002 (5.31), seed 001 §3), with a = GQGᵀ constant SPD:
+
+    Fokker–Planck  (L u, v)   = −½ ∫ a∇u·∇v + ∫ u f·∇v              (L u = ½ a:∇²u − div(f u))
+    Kolmogorov     (L_K u, v) = (L u, v) − ∫ q u v,   q = ½ hᵀR⁻¹h     (L_K = L − q)
+
+because −f·∇u − (div f) u = −div(f u): the two operators differ only by the potential q.
+Densities live at the interior degrees of freedom ("nodes"); the mass matrix is lumped
+(row sums), which for P1 (any n) and for P2 on intervals (Simpson weights h/6, 4h/6, h/6)
+gives positive quadrature weights, so pointwise products at the nodes are exact in the
+discrete L² inner product.
+
+Meshes: n = 1 a uniform interval mesh; n = 2 concentric rings of 6i points triangulated by
+Delaunay (near-equilateral triangles, boundary vertices on the circle); n = 3 the
+scikit-fem ball (refined, vertices pushed to the sphere).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sps
+from scipy.spatial import Delaunay
+from skfem import (
+    Basis,
+    BilinearForm,
+    ElementLineP1,
+    ElementLineP2,
+    ElementTetP1,
+    ElementTriP1,
+    Mesh,
+    MeshLine,
+    MeshTet,
+    MeshTri,
+    asm,
+)
+from skfem.helpers import dot, grad
+
+from .errors import SpecError
+
+# Interior degrees of freedom per basis function when the mesh is not given: enough to resolve
+# the highest basis mode with a few nodes per wavelength, and small because the online step
+# costs ~2·Q·N flops per observation.
+NODES_PER_MODE = 2.0
+
+
+@dataclass(frozen=True)
+class FESpace:
+    """A mesh of B_R, its finite-element basis and the interior DOFs where densities live."""
+
+    mesh: Mesh
+    basis: Basis
+    interior: np.ndarray  # (Q,) indices of interior DOFs
+    order: int
+
+    @property
+    def nodes(self) -> np.ndarray:
+        """Coordinates of the interior DOFs, shape (Q, n)."""
+        return self.basis.doflocs[:, self.interior].T
+
+
+def element_for(n: int, order: int):
+    """P2 only on intervals (its lumped mass is Simpson's rule, positive); P1 otherwise."""
+    if n == 1:
+        return ElementLineP2() if order == 2 else ElementLineP1()
+    return ElementTriP1() if n == 2 else ElementTetP1()
+
+
+def effective_order(n: int, order: int) -> int:
+    return order if n == 1 else 1
+
+
+# -- meshes of the ball ------------------------------------------------------------------------
+def interval_mesh(center: np.ndarray, radius: float, cells_per_radius: int) -> MeshLine:
+    x = np.linspace(-radius, radius, 2 * cells_per_radius + 1) + center[0]
+    return MeshLine(x)
+
+
+def ring_points(rings: int) -> np.ndarray:
+    """Unit-disk points on rings r = i/rings with 6i points each (hexagonal-like density)."""
+    pts = [np.zeros((1, 2))]
+    for i in range(1, rings + 1):
+        k = 6 * i
+        angle = 2 * np.pi * (np.arange(k) + 0.5 * (i % 2)) / k
+        pts.append(i / rings * np.column_stack([np.cos(angle), np.sin(angle)]))
+    return np.vstack(pts)
+
+
+def disk_mesh(center: np.ndarray, radius: float, rings: int) -> MeshTri:
+    unit = ring_points(rings)
+    tri = Delaunay(unit).simplices
+    return MeshTri(np.ascontiguousarray((radius * unit + center).T), np.ascontiguousarray(tri.T))
+
+
+def ball_mesh(center: np.ndarray, radius: float, refinements: int) -> MeshTet:
+    """scikit-fem's ball, refined with boundary vertices projected onto the sphere."""
+    mesh = MeshTet.init_ball(0)
+    for _ in range(refinements):
+        mesh = mesh.refined()
+        p = mesh.p.copy()
+        on_boundary = mesh.boundary_nodes()
+        p[:, on_boundary] /= np.linalg.norm(p[:, on_boundary], axis=0)
+        mesh = MeshTet(p, mesh.t)
+    return MeshTet(radius * mesh.p + center[:, None], mesh.t)
+
+
+def interior_count(n: int, order: int, resolution: int) -> int:
+    """Number of interior DOFs of the mesh of the given resolution (no mesh is built for n < 3)."""
+    if n == 1:
+        return (2 * resolution) * order - 1
+    if n == 2:
+        return 3 * resolution * (resolution - 1) + 1
+    mesh = ball_mesh(np.zeros(3), 1.0, resolution)
+    return mesh.p.shape[1] - len(mesh.boundary_nodes())
+
+
+def default_resolution(n: int, order: int, size: int) -> int:
+    """Smallest resolution whose interior DOF count reaches NODES_PER_MODE · N."""
+    target = NODES_PER_MODE * size
+    resolution = 1 if n == 3 else 2
+    while interior_count(n, order, resolution) < target:
+        resolution += 1
+    return resolution
+
+
+def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int) -> FESpace:
+    """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements)."""
+    order = effective_order(n, order)
+    if n == 1:
+        mesh = interval_mesh(center, radius, resolution)
+    elif n == 2:
+        mesh = disk_mesh(center, radius, resolution)
+    elif n == 3:
+        mesh = ball_mesh(center, radius, resolution)
+    else:
+        raise SpecError("state", f"dimension {n} is not supported (1, 2 or 3)")
+    basis = Basis(mesh, element_for(n, order))
+    interior = basis.complement_dofs(basis.get_dofs())
+    return FESpace(mesh=mesh, basis=basis, interior=np.asarray(interior), order=order)
+
+
+def discretise(model, size: int | None = None) -> FESpace:
+    """The discretisation of ``model``'s ball; checks there are at least N interior DOFs."""
+    spec = model.spec.discretization
+    size = spec.basis if size is None else size
+    if model.n == 3 and spec.mesh is not None and spec.mesh > 6:
+        raise SpecError("discretization.mesh", "in 3-D mesh counts refinements of the ball, at most 6")
+    resolution = spec.mesh or default_resolution(model.n, effective_order(model.n, spec.order), size)
+    disc = build(model.n, model.center, model.radius, resolution, spec.order)
+    if len(disc.interior) < size:
+        raise SpecError("discretization.basis",
+                        f"{size} basis functions need at least as many interior mesh nodes; "
+                        f"mesh={resolution} gives {len(disc.interior)}")
+    return disc
+
+
+# -- forms ---------------------------------------------------------------------------------------
+def _at(fn, x: np.ndarray) -> np.ndarray:
+    """Evaluate a (P, n) -> (P, ...) model function at scikit-fem quadrature points x (n, E, q)."""
+    pts = x.reshape(x.shape[0], -1).T
+    values = np.asarray(fn(pts), dtype=float)
+    if values.ndim == 1:
+        return values.reshape(x.shape[1:])
+    return values.T.reshape((values.shape[1],) + x.shape[1:])
+
+
+def stiffness(basis: Basis, a: np.ndarray) -> sps.csr_matrix:
+    """∫ a∇u·∇v."""
+    @BilinearForm
+    def form(u, v, w):
+        return dot(np.einsum("ij,j...->i...", a, grad(u)), grad(v))
+
+    return asm(form, basis).tocsr()
+
+
+def advection(basis: Basis, f) -> sps.csr_matrix:
+    """∫ u f·∇v (the weak form of −div(f u))."""
+    @BilinearForm
+    def form(u, v, w):
+        return u * dot(_at(f, w.x), grad(v))
+
+    return asm(form, basis).tocsr()
+
+
+def reaction(basis: Basis, q) -> sps.csr_matrix:
+    """∫ q u v."""
+    @BilinearForm
+    def form(u, v, w):
+        return _at(q, w.x) * u * v
+
+    return asm(form, basis).tocsr()
+
+
+def lumped_mass(basis: Basis) -> np.ndarray:
+    """Row sums of the mass matrix: ∫φ_i (positive for P1 and interval P2)."""
+    @BilinearForm
+    def form(u, v, w):
+        return u * v
+
+    weights = np.asarray(asm(form, basis).sum(axis=1)).ravel()
+    if np.any(weights <= 0):
+        raise SpecError("discretization.order", "the lumped mass of this element is not positive")
+    return weights
+
+
+@dataclass(frozen=True)
+class Operators:
+    """Interior blocks: lumped mass w, ½ a-stiffness K, Fokker–Planck A_fp and Kolmogorov A_k,
+    so that w ⊙ du/dt = A u is the semi-discrete equation (seed 002 (5.31))."""
+
+    weights: np.ndarray
+    half_stiffness: sps.csr_matrix
+    fokker_planck: sps.csr_matrix
+    kolmogorov: sps.csr_matrix
+
+
+def assemble(model, disc: FESpace) -> Operators:
+    idx = disc.interior
+    basis = disc.basis
+    half_k = 0.5 * stiffness(basis, model.a)
+    fp = -half_k + advection(basis, model.f)
+    kol = fp - reaction(basis, model.half_hRh)
+    sub = lambda mat: mat[idx][:, idx].tocsr()  # noqa: E731 - Dirichlet: keep interior rows/cols
+    return Operators(weights=lumped_mass(basis)[idx], half_stiffness=sub(half_k),
+                     fokker_planck=sub(fp), kolmogorov=sub(kol))
+
+
+# -- rebuilding and point location ---------------------------------------------------------------
+def space_from_arrays(n: int, points: np.ndarray, cells: np.ndarray, order: int) -> FESpace:
+    """The FESpace of stored mesh arrays (the interior DOFs are recomputed the same way)."""
+    mesh_type = {1: MeshLine, 2: MeshTri, 3: MeshTet}[n]
+    mesh = mesh_type(np.asarray(points, float), np.asarray(cells, dtype=np.int64))
+    basis = Basis(mesh, element_for(n, order))
+    interior = basis.complement_dofs(basis.get_dofs())
+    return FESpace(mesh=mesh, basis=basis, interior=np.asarray(interior), order=order)
+
+
+def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (P, k, n+1) of X (P, n) in candidate simplices elem (P, k)."""
+    vert = points[:, cells[:, elem]]  # (n, n+1, P, k)
+    v0 = vert[:, 0]
+    edges = np.moveaxis(vert[:, 1:] - v0[:, None], (0, 1), (-2, -1))  # (P, k, n, n)
+    rhs = np.moveaxis(X.T[:, :, None] - v0, 0, -1)[..., None]  # (P, k, n, 1)
+    lam = np.linalg.solve(edges, rhs)[..., 0]
+    return np.concatenate([1.0 - lam.sum(axis=-1, keepdims=True), lam], axis=-1)
+
+
+def locate(points: np.ndarray, cells: np.ndarray, tree, X: np.ndarray,
+           candidates: tuple[int, ...] = (8, 64)) -> tuple[np.ndarray, np.ndarray]:
+    """Element index (−1 where none: outside the polygonal ball) and barycentrics of each point."""
+    n_cells = cells.shape[1]
+    elem = np.full(len(X), -1)
+    bary = np.zeros((len(X), cells.shape[0]))
+    todo = np.arange(len(X))
+    for k in candidates:
+        if not len(todo):
+            break
+        k = min(k, n_cells)
+        cand = tree.query(X[todo], k=k)[1].reshape(len(todo), k)
+        lam = barycentric(points, cells, cand, X[todo])
+        ok = lam.min(axis=-1) >= -1e-10
+        hit = ok.any(axis=1)
+        first = ok.argmax(axis=1)
+        rows = todo[hit]
+        elem[rows] = cand[hit, first[hit]]
+        bary[rows] = np.clip(lam[hit, first[hit]], 0.0, 1.0)
+        todo = todo[~hit]
+    return elem, bary

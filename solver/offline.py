@@ -1,0 +1,236 @@
+"""The offline stage of the Yau–Yau filter (seed 002 §5, (5.31)–(5.34); seed 001 §3).
+
+For an L²(B_R)-orthonormal basis {φ_k} (solver.basis) it solves, once per model,
+
+    ∂u/∂t = L u    (Fokker–Planck, L u = ½ a:∇²u − div(f u)),          u(0) = φ_k,
+    ∂u/∂t = L_K u  (Kolmogorov, L_K = L − ½hᵀR⁻¹h, seed 002 (5.31)),     u(0) = φ_k,
+
+with u = 0 on ∂B_R, over one observation interval dt, and stores the nodal values of
+e^{dt L}φ_k and e^{dt L_K}φ_k (solver.propagator).  The N independent solves are split in
+fixed column blocks, so ``workers`` processes give bit-identical arrays to one process.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import fem
+from .basis import eigenbasis
+from .errors import InputError, SpecError
+from .model import Model
+from .propagator import SdirkPropagator
+
+ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
+               "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
+Progress = Callable[[int, int], None]
+
+
+# -- the column blocks, in this process or in workers ----------------------------------------------
+@dataclass(frozen=True)
+class _Job:
+    fokker_planck: object
+    kolmogorov: object
+    weights: np.ndarray
+    dt: float
+    substeps: int
+    initial: np.ndarray  # (Q, N) basis values
+
+
+_WORKER: dict = {}
+
+
+def _setup(job: _Job) -> None:
+    """Factor both matrices once per process."""
+    _WORKER["initial"] = job.initial
+    _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps)
+    _WORKER["k"] = SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps)
+
+
+def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
+    start, stop = columns
+    u0 = _WORKER["initial"][:, start:stop]
+    return start, stop, _WORKER["fp"].apply(u0), _WORKER["k"].apply(u0)
+
+
+def column_blocks(size: int, width: int = 32) -> list[tuple[int, int]]:
+    """Fixed blocks of basis columns (independent of the worker count: reproducible output)."""
+    return [(s, min(s + width, size)) for s in range(0, size, width)]
+
+
+def propagate_all(job: _Job, workers: int = 1,
+                  progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+    size = job.initial.shape[1]
+    fp = np.empty_like(job.initial)
+    kol = np.empty_like(job.initial)
+    blocks = column_blocks(size)
+    done = 0
+
+    def store(result):
+        nonlocal done
+        start, stop, a, b = result
+        fp[:, start:stop], kol[:, start:stop] = a, b
+        done += stop - start
+        if progress is not None:
+            progress(done, size)
+
+    if workers <= 1 or len(blocks) == 1:
+        _setup(job)
+        try:
+            for block in blocks:
+                store(_propagate(block))
+        finally:
+            _WORKER.clear()
+    else:
+        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded server process
+        with ProcessPoolExecutor(max_workers=min(workers, len(blocks)), mp_context=ctx,
+                                 initializer=_setup, initargs=(job,)) as pool:
+            for result in pool.map(_propagate, blocks):
+                store(result)
+    return fp, kol
+
+
+# -- the offline model --------------------------------------------------------------------------
+@dataclass(eq=False)
+class OfflineModel:
+    """The arrays of docs/architecture.md, plus ``node_index`` (nodes among the FE DOFs) and
+    ``element_order`` (polynomial degree actually used)."""
+
+    model: Model
+    mesh_points: np.ndarray
+    mesh_cells: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    basis: np.ndarray
+    projector: np.ndarray
+    propagator_fp: np.ndarray
+    propagator_k: np.ndarray
+    eigenvalues: np.ndarray
+    node_index: np.ndarray
+    element_order: np.ndarray
+    _space: fem.FESpace | None = field(default=None, repr=False)
+    _tree: cKDTree | None = field(default=None, repr=False)
+
+    @property
+    def size(self) -> int:
+        """N, the number of basis functions."""
+        return self.basis.shape[1]
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in ARRAY_NAMES}
+
+    @classmethod
+    def from_arrays(cls, model: Model, arrays: dict[str, np.ndarray]) -> "OfflineModel":
+        values = {}
+        for name in ARRAY_NAMES:
+            if name not in arrays:
+                raise InputError(f"arrays.{name}", "is missing")
+            values[name] = np.asarray(arrays[name])
+        _check_shapes(model, values)
+        return cls(model=model, **values)
+
+    # -- evaluation at arbitrary points ----------------------------------------------------
+    def evaluate_basis(self, points: np.ndarray) -> np.ndarray:
+        """Values of the basis functions at points (P, n) -> (P, N); 0 outside the ball."""
+        return self.interpolate(self.basis, points)
+
+    def interpolate(self, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """The finite-element function(s) with these values at ``nodes`` ((Q,) or (Q, k)) at points."""
+        X = _check_points(points, self.model.n)
+        nodal = np.asarray(nodal, dtype=float)
+        full = np.zeros((self.space.basis.N,) + nodal.shape[1:])
+        full[self.node_index] = nodal
+        out = np.zeros((X.shape[0],) + nodal.shape[1:])
+        inside = np.linalg.norm(X - self.model.center, axis=1) <= self.model.radius * (1 + 1e-12)
+        if not inside.any():
+            return out
+        if self.model.n == 1:
+            out[inside] = self.space.basis.probes(X[inside].T) @ full
+        else:
+            out[inside] = self._simplex_values(X[inside], full)
+        return out
+
+    @property
+    def space(self) -> fem.FESpace:
+        if self._space is None:
+            self._space = fem.space_from_arrays(self.model.n, self.mesh_points, self.mesh_cells,
+                                                int(self.element_order))
+        return self._space
+
+    def _simplex_values(self, X: np.ndarray, full: np.ndarray) -> np.ndarray:
+        """P1 interpolation: barycentric coordinates in the element containing each point."""
+        if self._tree is None:
+            self._tree = cKDTree(self.mesh_points[:, self.mesh_cells].mean(axis=1).T)
+        cells = self.mesh_cells
+        elem, bary = fem.locate(self.mesh_points, cells, self._tree, X)
+        found = elem >= 0
+        out = np.zeros((X.shape[0],) + full.shape[1:])
+        vertices = cells[:, elem[found]]  # (n+1, P)
+        out[found] = np.einsum("pv,vp...->p...", bary[found], full[vertices])
+        return out
+
+
+def _check_points(points, n: int) -> np.ndarray:
+    try:
+        X = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("points", "must be an array of numbers") from None
+    if X.ndim == 1 and n == 1:
+        X = X[:, None]
+    if X.ndim != 2 or X.shape[1] != n:
+        raise InputError("points", f"must have shape (P, {n}), got {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise InputError("points", "must be finite")
+    return X
+
+
+def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
+    q, n = a["nodes"].shape if a["nodes"].ndim == 2 else (-1, -1)
+    if n != model.n:
+        raise InputError("arrays.nodes", f"must have shape (Q, {model.n})")
+    size = a["basis"].shape[1] if a["basis"].ndim == 2 else -1
+    expected = {"weights": (q,), "basis": (q, size), "projector": (size, q), "propagator_fp": (q, size),
+                "propagator_k": (q, size), "eigenvalues": (size,), "node_index": (q,), "element_order": ()}
+    for name, shape in expected.items():
+        if a[name].shape != shape:
+            raise InputError(f"arrays.{name}", f"has shape {a[name].shape}, expected {shape}")
+    if a["mesh_points"].ndim != 2 or a["mesh_points"].shape[0] != model.n or a["mesh_cells"].ndim != 2:
+        raise InputError("arrays.mesh_points", f"must be ({model.n}, Np) with cells (k, Nc)")
+    for name in ARRAY_NAMES:
+        if a[name].dtype.kind == "f" and not np.all(np.isfinite(a[name])):
+            raise InputError(f"arrays.{name}", "contains NaN or infinity")
+    if np.any(a["weights"] <= 0):
+        raise InputError("arrays.weights", "must be positive")
+
+
+# -- precompute ---------------------------------------------------------------------------------
+def precompute(model: Model, workers: int = 1, progress: Progress | None = None) -> OfflineModel:
+    """Mesh, basis and propagators of ``model`` (seed 002 §5 offline stage)."""
+    if not isinstance(workers, int) or workers < 1:
+        raise InputError("workers", "must be a positive integer")
+    spec = model.spec.discretization
+    space = fem.discretise(model)
+    ops = fem.assemble(model, space)
+    basis = eigenbasis(ops.half_stiffness, ops.weights, spec.basis)
+    job = _Job(ops.fokker_planck, ops.kolmogorov, ops.weights, model.dt, spec.substeps, basis.values)
+    prop_fp, prop_k = propagate_all(job, workers, progress)
+    for name, arr in (("propagator_fp", prop_fp), ("propagator_k", prop_k)):
+        if not np.all(np.isfinite(arr)):
+            raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")
+    return OfflineModel(
+        model=model, mesh_points=space.mesh.p, mesh_cells=space.mesh.t, nodes=space.nodes,
+        weights=ops.weights, basis=basis.values, projector=basis.projector, propagator_fp=prop_fp,
+        propagator_k=prop_k, eigenvalues=basis.eigenvalues, node_index=space.interior,
+        element_order=np.array(space.order), _space=space)
+
+
+def default_workers() -> int:
+    return max(1, min(4, (multiprocessing.cpu_count() or 1)))
+
+
+__all__ = ["ARRAY_NAMES", "OfflineModel", "default_workers", "precompute"]
