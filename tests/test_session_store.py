@@ -1,0 +1,245 @@
+"""SQLite session store: exactly-once chunks, replays, gaps, retention, and real multi-process use.
+
+The truth a chunk sequence is checked against is the sequential fold of the chunks: the state
+after chunk k holds [0, 1, ..., k] and each response records the state it was computed from.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import random
+import re
+import sqlite3
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from storage.errors import Conflict, NotFound, StoreError
+from storage.session_store import SessionStore
+
+
+def append_seq(seq: int, delay: float = 0.0):
+    """The chunk 'append seq to the list' (a fold whose result reveals a lost or doubled chunk)."""
+    def compute(state: dict) -> tuple[dict, dict]:
+        if delay:
+            time.sleep(delay)
+        values = state["values"] + [seq]
+        return ({"values": values, "step": len(values), "t": 0.5 * len(values), "loglik": -float(seq)},
+                {"seq": seq, "before": state["values"]})
+    return compute
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> SessionStore:
+    return SessionStore(tmp_path / "sessions.sqlite")
+
+
+def test_create_get_count_delete(store: SessionStore):
+    sid = store.create("abc", "yau-yau", {"values": []}, {"estimate": {"mean": [1.0]}})
+    assert re.fullmatch(r"[A-Za-z0-9_-]{20,}", sid)
+    assert sid != store.create("abc", "yau-yau", {"values": []})
+    rec = store.get(sid)
+    assert (rec.model_id, rec.method, rec.state, rec.next_seq, rec.step, rec.version) == (
+        "abc", "yau-yau", {"values": []}, 0, 0, 0)
+    assert rec.initial_response == {"estimate": {"mean": [1.0]}}
+    assert store.count() == 2
+    store.delete(sid)
+    assert store.count() == 1
+    with pytest.raises(NotFound):
+        store.get(sid)
+    with pytest.raises(NotFound):
+        store.delete(sid)
+
+
+def test_wal_mode_and_busy_timeout(store: SessionStore):
+    db = sqlite3.connect(store.path)
+    assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert store._connection().execute("PRAGMA busy_timeout").fetchone()[0] == 30_000
+
+
+def test_chunks_in_order_then_replay_returns_stored_response_without_computing(store: SessionStore):
+    sid = store.create("m", "kalman-bucy", {"values": []})
+    for seq in range(3):
+        response, replayed = store.apply_chunk(sid, seq, append_seq(seq))
+        assert not replayed and response == {"seq": seq, "before": list(range(seq))}
+    rec = store.get(sid)
+    assert rec.state["values"] == [0, 1, 2] and rec.next_seq == 3 and rec.version == 3
+    assert (rec.step, rec.t, rec.loglik) == (3, 1.5, -2.0)
+
+    def must_not_run(state):
+        raise AssertionError("a replayed chunk was recomputed")
+    assert store.apply_chunk(sid, 1, must_not_run) == ({"seq": 1, "before": [0]}, True)
+    assert store.get(sid).state["values"] == [0, 1, 2]
+
+
+def test_gap_is_a_conflict_naming_the_expected_seq_and_changes_nothing(store: SessionStore):
+    sid = store.create("m", "yau-yau", {"values": []})
+    store.apply_chunk(sid, 0, append_seq(0))
+    with pytest.raises(Conflict, match="expected seq 1") as err:
+        store.apply_chunk(sid, 5, append_seq(5))
+    assert err.value.field == "seq"
+    rec = store.get(sid)
+    assert rec.state["values"] == [0] and rec.next_seq == 1 and rec.version == 1
+
+
+def test_unknown_session_and_bad_seq(store: SessionStore):
+    with pytest.raises(NotFound, match="no session"):
+        store.apply_chunk("nope", 0, append_seq(0))
+    sid = store.create("m", "yau-yau", {"values": []})
+    for bad in (-1, 1.0, True, "0"):
+        with pytest.raises(StoreError) as err:
+            store.apply_chunk(sid, bad, append_seq(0))
+        assert err.value.field == "seq"
+
+
+def test_failing_compute_applies_nothing_and_the_chunk_can_be_resent(store: SessionStore):
+    sid = store.create("m", "yau-yau", {"values": []})
+
+    def boom(state):
+        raise ValueError("filter failed")
+    with pytest.raises(ValueError):
+        store.apply_chunk(sid, 0, boom)
+    assert store.get(sid).next_seq == 0
+    assert store.apply_chunk(sid, 0, append_seq(0))[1] is False
+
+
+def test_non_json_state_is_refused_and_nothing_applied(store: SessionStore):
+    sid = store.create("m", "yau-yau", {"values": []})
+    with pytest.raises(StoreError) as err:
+        store.apply_chunk(sid, 0, lambda s: ({"x": float("nan")}, {}))
+    assert err.value.field == "state" and store.get(sid).next_seq == 0
+    with pytest.raises(StoreError) as err:
+        store.create("m", "yau-yau", {"x": object()})
+    assert err.value.field == "state"
+
+
+def test_retention_keeps_the_last_responses_and_refuses_older_ones(tmp_path: Path):
+    store = SessionStore(tmp_path / "s.sqlite", retention=3)
+    sid = store.create("m", "yau-yau", {"values": []})
+    for seq in range(6):
+        store.apply_chunk(sid, seq, append_seq(seq))
+    assert store.apply_chunk(sid, 3, append_seq(3)) == ({"seq": 3, "before": [0, 1, 2]}, True)
+    with pytest.raises(Conflict, match="no longer kept.*oldest kept: 3"):
+        store.apply_chunk(sid, 2, append_seq(2))
+    rows = sqlite3.connect(store.path).execute("SELECT seq FROM chunks WHERE session_id = ?", (sid,))
+    assert sorted(r[0] for r in rows) == [3, 4, 5]
+
+
+def test_version_clash_returns_the_winners_response(store: SessionStore):
+    """While this compute runs, another thread applies the same seq: ours must not be written."""
+    sid = store.create("m", "yau-yau", {"values": []})
+    calls = []
+
+    def slow_loser(state):
+        calls.append("loser")
+        winner = threading.Thread(target=lambda: store.apply_chunk(sid, 0, append_seq(0)))
+        winner.start()
+        winner.join()
+        return {"values": ["loser"]}, {"seq": 0, "from": "loser"}
+    response, replayed = store.apply_chunk(sid, 0, slow_loser)
+    assert replayed and response == {"seq": 0, "before": []} and calls == ["loser"]
+    assert store.get(sid).state["values"] == [0] and store.get(sid).version == 1
+
+
+def test_version_clash_on_a_moved_session_recomputes(store: SessionStore):
+    """A clash where the session moved on by something else than our seq: recompute on the new state."""
+    sid = store.create("m", "yau-yau", {"values": []})
+    seen = []
+
+    def compute(state):
+        seen.append(list(state["values"]))
+        if len(seen) == 1:  # sneak in a concurrent writer that bumps the version only
+            db = sqlite3.connect(store.path)
+            db.execute("UPDATE sessions SET version = version + 1, state = ? WHERE id = ?",
+                       ('{"values":["other"]}', sid))
+            db.commit()
+        return append_seq(0)(state)
+    response, replayed = store.apply_chunk(sid, 0, compute)
+    assert not replayed and seen == [[], ["other"]] and response["before"] == ["other"]
+    assert store.get(sid).state["values"] == ["other", 0]
+
+
+N_CHUNKS = 30
+
+
+def _hammer(path: str, sid: str, worker: int, out) -> None:
+    store = SessionStore(path)
+    rng = random.Random(worker)
+    records = []
+    guess = 0
+    while store.get(sid).next_seq < N_CHUNKS:
+        seq = max(0, min(N_CHUNKS - 1, guess + rng.choice([-2, -1, 0, 0, 0, 1, 2])))
+        try:
+            response, replayed = store.apply_chunk(sid, seq, append_seq(seq, delay=rng.uniform(0, 0.004)))
+        except Conflict as exc:
+            assert "expected seq" in str(exc)
+            guess = store.get(sid).next_seq
+            continue
+        records.append((seq, replayed, response))
+        guess = seq + 1
+    out.put(records)
+
+
+def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(store: SessionStore):
+    sid = store.create("m", "yau-yau", {"values": []})
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    workers = [ctx.Process(target=_hammer, args=(str(store.path), sid, w, out)) for w in range(4)]
+    for p in workers:
+        p.start()
+    results = [out.get(timeout=60) for _ in workers]
+    for p in workers:
+        p.join(timeout=10)
+        assert p.exitcode == 0
+    applied = {}
+    for records in results:
+        for seq, replayed, response in records:
+            assert response == {"seq": seq, "before": list(range(seq))}  # the sequential result
+            if not replayed:
+                applied[seq] = applied.get(seq, 0) + 1
+    assert applied == {seq: 1 for seq in range(N_CHUNKS)}
+    final = store.get(sid)
+    assert final.state["values"] == list(range(N_CHUNKS)) and final.next_seq == N_CHUNKS
+    assert final.version == N_CHUNKS
+    assert sum(len(r) for r in results) > N_CHUNKS  # the workers did collide
+
+
+def _independent(path: str, sids: list[str], out) -> None:
+    store = SessionStore(path)
+    for sid in sids:
+        for seq in range(10):
+            store.apply_chunk(sid, seq, append_seq(seq))
+    out.put("ok")
+
+
+def test_processes_on_different_sessions_do_not_interfere(store: SessionStore):
+    sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(8)]
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    workers = [ctx.Process(target=_independent, args=(str(store.path), sids[i::4], out)) for i in range(4)]
+    for p in workers:
+        p.start()
+    assert [out.get(timeout=60) for _ in workers] == ["ok"] * 4
+    for p in workers:
+        p.join(timeout=10)
+    assert all(store.get(sid).state["values"] == list(range(10)) for sid in sids)
+
+
+def test_threads_share_a_store_object(store: SessionStore):
+    sid = store.create("m", "yau-yau", {"values": []})
+    errors = []
+
+    def run():
+        try:
+            for seq in range(20):
+                store.apply_chunk(sid, seq, append_seq(seq))
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+    threads = [threading.Thread(target=run) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and store.get(sid).state["values"] == list(range(20))
