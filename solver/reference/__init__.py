@@ -1,0 +1,13 @@
+"""Reference filters (pure numpy/scipy) against which the Yau–Yau engine is measured.
+
+``DiscreteKalmanFilter`` (exact for the sampled linear model), ``BenesFilter`` (exact for
+f = tanh x, h = x), ``PointMassFilter`` (fine finite-volume grid, n = 1, 2),
+``BootstrapParticleFilter``, ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter``.
+"""
+
+from .kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
+from .particle import BootstrapParticleFilter
+from .pointmass import PointMassFilter
+
+__all__ = ["BootstrapParticleFilter", "DiscreteKalmanFilter", "PointMassFilter", "affine_coefficients",
+           "van_loan"]

@@ -1,0 +1,167 @@
+"""Reference filters against independent truth: closed forms, quadrature, convergence, Monte Carlo."""
+
+import numpy as np
+import pytest
+
+from solver.errors import SpecError
+from solver.model import compile_model
+from solver.reference import (
+    BootstrapParticleFilter,
+    DiscreteKalmanFilter,
+    PointMassFilter,
+    affine_coefficients,
+    van_loan,
+)
+from solver.simulate import simulate
+from solver.spec import spec_from_dict
+
+OU = {"name": "ou", "state": ["x"], "drift": ["-theta*x + 0.3"], "observation": ["2*x - 0.5"],
+      "parameters": {"theta": 0.8}, "diffusion": [[0.6]], "observation_noise": [[0.5]],
+      "initial": {"kind": "gaussian", "mean": [1.0], "cov": [[0.4]]},
+      "domain": {"radius": 6.0}, "discretization": {"dt": 0.02, "basis": 16}}
+ROT = {"name": "rot", "state": ["x1", "x2"], "drift": ["-0.5*x1 + x2", "-x1 - 0.5*x2"],
+       "observation": ["x1"],
+       "initial": {"kind": "gaussian", "mean": [0.5, 0.0], "cov": [[0.5, 0.1], [0.1, 0.4]]},
+       "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 16}}
+
+
+def _model(base, **over):
+    spec = dict(base)
+    spec.update(over)
+    return compile_model(spec_from_dict(spec))
+
+
+# -- Van Loan and the affine coefficients ---------------------------------------------------
+def test_van_loan_matches_the_ou_closed_form():
+    theta, a, f0, dt = 0.8, 0.6, 0.3, 0.02
+    phi, shift, q = van_loan(np.array([[-theta]]), np.array([[a]]), np.array([f0]), dt)
+    assert phi[0, 0] == pytest.approx(np.exp(-theta * dt), rel=1e-13)
+    assert shift[0] == pytest.approx(f0 * (1 - np.exp(-theta * dt)) / theta, rel=1e-12)
+    assert q[0, 0] == pytest.approx(a * (1 - np.exp(-2 * theta * dt)) / (2 * theta), rel=1e-12)
+
+
+def test_van_loan_matches_the_damped_rotation_closed_form():
+    lam, omega, s2, dt = 0.5, 1.0, 1.3, 0.3
+    F = np.array([[-lam, omega], [-omega, -lam]])
+    phi, _, q = van_loan(F, s2 * np.eye(2), np.zeros(2), dt)
+    rotation = np.array([[np.cos(omega * dt), np.sin(omega * dt)], [-np.sin(omega * dt), np.cos(omega * dt)]])
+    assert np.allclose(phi, np.exp(-lam * dt) * rotation, atol=1e-13)
+    # rotation keeps an isotropic covariance isotropic
+    assert np.allclose(q, s2 * (1 - np.exp(-2 * lam * dt)) / (2 * lam) * np.eye(2), atol=1e-13)
+
+
+def test_affine_coefficients_are_exact_and_nonaffine_is_refused():
+    model = _model(OU)
+    A, b = affine_coefficients(model.drift, model.symbols, "drift")
+    assert A[0, 0] == -0.8 and b[0] == 0.3
+    cubic = _model(OU, observation=["x**3"])
+    with pytest.raises(SpecError) as err:
+        DiscreteKalmanFilter(cubic)
+    assert err.value.field == "observation"
+    with pytest.raises(SpecError) as err:
+        DiscreteKalmanFilter(_model(OU, drift=["sin(x)"]))
+    assert err.value.field == "drift"
+
+
+def test_kalman_step_matches_bayes_by_quadrature():
+    """One step: predictive N(m⁻, P⁻) times the update factor, integrated on a fine grid."""
+    model = _model(OU)
+    kf = DiscreteKalmanFilter(model)
+    dy = np.array([0.07])
+    state, est = kf.step(kf.initial_state(), dy)
+    m_pred = 1.0 * np.exp(-0.8 * 0.02) + 0.3 * (1 - np.exp(-0.8 * 0.02)) / 0.8
+    p_pred = 0.4 * np.exp(-1.6 * 0.02) + 0.6 * (1 - np.exp(-1.6 * 0.02)) / 1.6
+    x = np.linspace(m_pred - 12 * np.sqrt(p_pred), m_pred + 12 * np.sqrt(p_pred), 200001)
+    prior = np.exp(-(x - m_pred) ** 2 / (2 * p_pred)) / np.sqrt(2 * np.pi * p_pred)
+    h = 2 * x - 0.5
+    post = prior * np.exp(h * dy[0] / 0.5 - 0.5 * h**2 / 0.5 * 0.02)
+    z = np.trapezoid(post, x)
+    mean = np.trapezoid(x * post, x) / z
+    var = np.trapezoid((x - mean) ** 2 * post, x) / z
+    assert est.mean[0] == pytest.approx(mean, rel=1e-10)
+    assert est.cov[0, 0] == pytest.approx(var, rel=1e-8)
+    assert est.loglik == pytest.approx(np.log(z), abs=1e-10)
+    # a missing observation only predicts
+    _, est2 = kf.step(state, np.array([np.nan]))
+    q = 0.6 * (1 - np.exp(-1.6 * 0.02)) / 1.6
+    assert est2.loglik_increment == 0.0 and est2.loglik == est.loglik
+    assert est2.cov[0, 0] == pytest.approx(np.exp(-1.6 * 0.02) * est.cov[0, 0] + q, rel=1e-12)
+
+
+def test_kalman_state_round_trips_through_a_dict():
+    model = _model(ROT)
+    kf = DiscreteKalmanFilter(model)
+    sim = simulate(model, 20, np.random.default_rng(3))
+    state, _ = kf.run(kf.initial_state(), sim.increments)
+    again = kf.state_from_dict(state.to_dict())
+    assert np.array_equal(again.mean, state.mean) and again.loglik == state.loglik and again.step == 20
+
+
+# -- point-mass reference: convergence to the exact sampled Kalman filter ----------------------
+def _errors_vs_kalman(model, filt, increments):
+    kf = DiscreteKalmanFilter(model)
+    _, exact = kf.run(kf.initial_state(), increments)
+    _, approx = filt.run(filt.initial_state(), increments)
+    pairs = list(zip(exact, approx, strict=True))
+    mean_err = max(np.abs(a.mean - b.mean).max() for a, b in pairs)
+    cov_err = max(np.abs(a.cov - b.cov).max() / np.abs(a.cov).max() for a, b in pairs)
+    return mean_err, cov_err, abs(exact[-1].loglik - approx[-1].loglik)
+
+
+def test_point_mass_converges_to_kalman_at_second_order_in_1d():
+    model = _model(OU)
+    sim = simulate(model, 200, np.random.default_rng(11))
+    errors = [_errors_vs_kalman(model, PointMassFilter(model, cells=c), sim.increments)
+              for c in (96, 192, 384)]
+    for coarse, fine in zip(errors[:-1], errors[1:], strict=True):
+        for e_c, e_f in zip(coarse, fine, strict=True):
+            assert e_c / e_f > 3.2  # ≈ 4 for a second-order scheme
+    mean_err, cov_err, loglik_err = errors[-1]
+    assert mean_err < 2e-3 and cov_err < 2e-3 and loglik_err < 1e-3
+
+
+def test_point_mass_converges_to_kalman_in_2d():
+    model = _model(ROT)
+    sim = simulate(model, 60, np.random.default_rng(12))
+    coarse = _errors_vs_kalman(model, PointMassFilter(model, cells=40), sim.increments)
+    fine = _errors_vs_kalman(model, PointMassFilter(model, cells=80), sim.increments)
+    assert coarse[0] / fine[0] > 3.0 and coarse[1] / fine[1] > 3.0
+    assert fine[0] < 5e-3 and fine[1] < 1e-2
+
+
+def test_point_mass_density_is_normalised_and_matches_kalman():
+    model = _model(OU)
+    pm = PointMassFilter(model, cells=1024)
+    kf = DiscreteKalmanFilter(model)
+    sim = simulate(model, 50, np.random.default_rng(13))
+    s_pm, _ = pm.run(pm.initial_state(), sim.increments)
+    s_kf, _ = kf.run(kf.initial_state(), sim.increments)
+    x = np.linspace(-6, 6, 4001)[:, None]
+    p, q = pm.density(s_pm, x), kf.density(s_kf, x)
+    assert np.trapezoid(p, x[:, 0]) == pytest.approx(1.0, abs=1e-4)
+    assert np.trapezoid(np.abs(p - q), x[:, 0]) < 1e-3
+
+
+def test_point_mass_refuses_3d():
+    spec = dict(ROT, state=["a", "b", "c"], drift=["-a", "-b", "-c"], observation=["a"],
+                initial={"kind": "gaussian", "mean": [0, 0, 0], "cov": np.eye(3).tolist()})
+    with pytest.raises(SpecError) as err:
+        PointMassFilter(compile_model(spec_from_dict(spec)))
+    assert err.value.field == "state"
+
+
+# -- bootstrap particle filter: Monte-Carlo agreement with the Kalman filter --------------------
+def test_particle_filter_agrees_with_kalman_within_monte_carlo_error():
+    model = _model(OU)
+    sim = simulate(model, 100, np.random.default_rng(21))
+    kf = DiscreteKalmanFilter(model)
+    _, exact = kf.run(kf.initial_state(), sim.increments)
+    n = 20000
+    pf = BootstrapParticleFilter(model, n, np.random.default_rng(22), substeps=4)
+    _, approx = pf.run(pf.initial_state(), sim.increments)
+    z = np.array([(a.mean[0] - b.mean[0]) / np.sqrt(a.cov[0, 0] / (n / 2))
+                  for a, b in zip(exact, approx, strict=True)])
+    assert np.abs(z).max() < 5.0  # ESS ≥ N/2 between resamplings
+    ratio = np.array([b.cov[0, 0] / a.cov[0, 0] for a, b in zip(exact, approx, strict=True)])
+    assert np.abs(ratio - 1).max() < 5 * np.sqrt(2 / (n / 2))
+    assert abs(exact[-1].loglik - approx[-1].loglik) < 0.1
