@@ -1,0 +1,58 @@
+#!/usr/bin/env python3
+"""Developer entry point; needs only python3.
+
+    python3 dev.py serve   # venv + install, precompute the bundled example if missing, serve on :8000
+    python3 dev.py test    # venv + install (with test tools), run the whole test suite
+
+The virtual environment is ``.venv`` beside this file (``YAUYAU_VENV`` overrides); pip runs again
+only when pyproject.toml changed.  The steps are those of scripts/provision.py, which the
+Dockerfile runs too.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT / "scripts"))
+import provision  # noqa: E402
+
+VENV = Path(os.environ.get("YAUYAU_VENV", ROOT / ".venv"))
+STORE = Path(os.environ.get("YAUYAU_STORE", ROOT / "var" / "store"))
+EXAMPLE = ROOT / "examples" / "cubic_sensor.toml"
+EXTRAS = "test,bench"
+
+
+def serve(args: list[str]) -> int:
+    provision.install(VENV, editable=True, extras=EXTRAS)
+    provision.precompute(VENV, STORE, [EXAMPLE])
+    port = int(os.environ.get("YAUYAU_PORT", "8000"))
+    provision.serve(VENV, STORE, os.environ.get("YAUYAU_HOST", "127.0.0.1"), port, None)
+    return 0  # not reached: serve replaces this process
+
+
+def test(args: list[str]) -> int:
+    provision.install(VENV, editable=True, extras=EXTRAS)
+    command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q", *args]
+    return subprocess.run(command, cwd=ROOT).returncode
+
+
+def main() -> int:
+    commands = {"serve": serve, "test": test}
+    if len(sys.argv) < 2 or sys.argv[1] not in commands:
+        print(__doc__, file=sys.stderr)
+        return 2
+    try:
+        return commands[sys.argv[1]](sys.argv[2:])
+    except subprocess.CalledProcessError as exc:
+        print(f"dev.py: step failed with status {exc.returncode}", file=sys.stderr)
+        return exc.returncode or 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
