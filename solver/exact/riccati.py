@@ -1,0 +1,204 @@
+"""Gaussian solutions of the Kolmogorov equation with linear drift and quadratic potential.
+
+    ∂u/∂t = ½ Σ a_ij ∂i∂j u − (Dx + d)·∇u − (tr D + xᵀQx + qᵀx + r) u
+
+has solutions u(x, t) = exp(−xᵀA(t)x − Bᵀ(t)x − C(t)) (A symmetric) whenever
+
+    A' = Q − AD − DᵀA − 2AaA
+    B' = q − 2Ad − (Dᵀ + 2Aa)B
+    C' = r + tr D + tr(aA) − ½BᵀaB − dᵀB
+
+(derived by substitution; tests/test_oracles.py checks it with SymPy).  This is seed 000
+Theorem 3.2, (3.8)–(3.10), and seed 001 Theorem 4.2, (4.14)–(4.16), up to sign conventions:
+the seeds write u = exp(+xᵀAx + Bᵀx + C) and put the potential with the opposite sign.
+
+Two ways to get A, B, C:
+
+* :meth:`GaussianKolmogorov.solve` integrates the ODEs with ``solve_ivp`` (reference);
+* :class:`GaussianFlow` is the exact flow over a fixed step dt: the Riccati equation is
+  linearised as A = Y X⁻¹ with [X; Y]' = [[D, 2a], [Q, −Dᵀ]] [X; Y], so that
+  B(t) = X⁻ᵀ[B0 + ∫(Xᵀq − 2Yᵀd) ds] and ∫tr(aA) = ½(log det X − t tr D); only ∫(½BᵀaB + dᵀB)
+  is left to a Gauss–Legendre rule.  One step costs a few n×n products (Kalman-like).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from ..errors import InputError, SpecError
+
+_GAUSS_NODES = 8  # Gauss–Legendre nodes for ∫(½BᵀaB + dᵀB) over one step
+
+
+def _matrix(value, n: int, field: str) -> np.ndarray:
+    arr = np.zeros((n, n)) if value is None else np.asarray(value, dtype=float)
+    if arr.shape != (n, n) or not np.all(np.isfinite(arr)):
+        raise SpecError(field, f"must be a finite {n}x{n} matrix")
+    return arr
+
+
+def _vector(value, n: int, field: str) -> np.ndarray:
+    arr = np.zeros(n) if value is None else np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise SpecError(field, f"must be {n} finite numbers")
+    return arr
+
+
+@dataclass(frozen=True)
+class GaussianTerms:
+    """Exponent of u = exp(−xᵀAx − Bᵀx − C); arrays carry a leading time axis when solved."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+
+
+def gaussian_to_terms(mean, cov, weight: float = 1.0) -> GaussianTerms:
+    """(A, B, C) of weight·N(mean, cov): A = ½P⁻¹, B = −P⁻¹m, C = ½mᵀP⁻¹m + ½log det(2πP) − log w."""
+    m = np.atleast_1d(np.asarray(mean, dtype=float))
+    P = np.atleast_2d(np.asarray(cov, dtype=float))
+    if weight <= 0:
+        raise InputError("weight", "must be positive")
+    chol = np.linalg.cholesky(P)
+    P_inv = np.linalg.inv(P)
+    log_det = 2.0 * np.log(np.diag(chol)).sum() + len(m) * np.log(2 * np.pi)
+    return GaussianTerms(0.5 * P_inv, -P_inv @ m, 0.5 * m @ P_inv @ m + 0.5 * log_det - np.log(weight))
+
+
+def terms_to_gaussian(A, B, C) -> tuple[np.ndarray, np.ndarray, float]:
+    """Inverse of :func:`gaussian_to_terms`: (mean, cov, log mass) of exp(−xᵀAx − Bᵀx − C).
+
+    Raises InputError when A is not positive definite (u is then not integrable).
+    """
+    A = np.atleast_2d(np.asarray(A, dtype=float))
+    B = np.atleast_1d(np.asarray(B, dtype=float))
+    try:
+        chol = np.linalg.cholesky(2.0 * A)
+    except np.linalg.LinAlgError:
+        raise InputError("A", "not positive definite: the exponential is not integrable") from None
+    cov = np.linalg.inv(2.0 * A)
+    mean = -cov @ B
+    log_det = 2.0 * np.log(np.diag(chol)).sum()
+    # ∫exp(−xᵀAx − Bᵀx − C) dx = (2π)^{n/2} det(2A)^{-1/2} exp(¼Bᵀ A⁻¹ B − C)
+    log_mass = 0.5 * len(B) * np.log(2 * np.pi) - 0.5 * log_det + 0.5 * B @ cov @ B - float(C)
+    return mean, 0.5 * (cov + cov.T), float(log_mass)
+
+
+class GaussianKolmogorov:
+    """The Kolmogorov equation of the module docstring with constant coefficients."""
+
+    def __init__(self, D, d=None, Q=None, q=None, r: float = 0.0, a=None):
+        D = np.atleast_2d(np.asarray(D, dtype=float))
+        n = D.shape[0]
+        self.n = n
+        self.D = _matrix(D, n, "D")
+        self.d = _vector(d, n, "d")
+        Q = _matrix(Q, n, "Q")
+        self.Q = 0.5 * (Q + Q.T)  # only the symmetric part enters xᵀQx
+        self.q = _vector(q, n, "q")
+        if not np.isfinite(r):
+            raise SpecError("r", "must be finite")
+        self.r = float(r)
+        self.a = np.eye(n) if a is None else _matrix(a, n, "a")
+        if not np.allclose(self.a, self.a.T):
+            raise SpecError("a", "must be symmetric")
+
+    # -- the ODEs -------------------------------------------------------------------
+    def rhs(self, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(A', B', C') at (A, B)."""
+        D, a = self.D, self.a
+        dA = self.Q - A @ D - D.T @ A - 2.0 * A @ a @ A
+        dB = self.q - 2.0 * A @ self.d - (D.T + 2.0 * A @ a) @ B
+        dC = self.r + np.trace(D) + np.trace(a @ A) - 0.5 * B @ a @ B - self.d @ B
+        return dA, dB, float(dC)
+
+    def solve(self, A0, B0, C0, t_grid, rtol: float = 1e-11, atol: float = 1e-12) -> GaussianTerms:
+        """Integrate the ODEs from t_grid[0] (arrays of shape (T, n, n), (T, n), (T,))."""
+        n = self.n
+        t_grid = np.asarray(t_grid, dtype=float)
+        y0 = np.concatenate([_matrix(A0, n, "A0").ravel(), _vector(B0, n, "B0"), [float(C0)]])
+
+        def f(_t, y):
+            A = y[: n * n].reshape(n, n)
+            dA, dB, dC = self.rhs(0.5 * (A + A.T), y[n * n: n * n + n])
+            return np.concatenate([dA.ravel(), dB, [dC]])
+
+        sol = solve_ivp(f, (t_grid[0], t_grid[-1]), y0, t_eval=t_grid, method="DOP853",
+                        rtol=rtol, atol=atol)
+        if not sol.success or not np.all(np.isfinite(sol.y)):
+            raise InputError("t_grid", f"Riccati integration failed ({sol.message}); A may blow up")
+        Y = sol.y.T
+        return GaussianTerms(Y[:, : n * n].reshape(-1, n, n), Y[:, n * n: n * n + n], Y[:, -1])
+
+    def u(self, x, terms: GaussianTerms) -> np.ndarray:
+        """u at points x (P, n) for each time of ``terms``: shape (T, P) (or (P,) for one time)."""
+        return np.exp(self.log_u(x, terms))
+
+    def log_u(self, x, terms: GaussianTerms) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(x, dtype=float))
+        A, B, C = np.asarray(terms.A), np.asarray(terms.B), np.asarray(terms.C)
+        if A.ndim == 2:
+            return -np.einsum("pi,ij,pj->p", X, A, X) - X @ B - C
+        return -np.einsum("pi,tij,pj->tp", X, A, X) - B @ X.T - C[:, None]
+
+    def flow(self, dt: float) -> "GaussianFlow":
+        return GaussianFlow(self, dt)
+
+
+class GaussianFlow:
+    """Exact map (A, B, C)(t) -> (A, B, C)(t + dt) of a :class:`GaussianKolmogorov`.
+
+    The potential's linear part q and constant r may change from step to step (the Yau–Hu
+    filter feeds the observation through them); D, a, Q are fixed, so the matrix
+    exponentials are computed once.
+    """
+
+    def __init__(self, eq: GaussianKolmogorov, dt: float):
+        if not (np.isfinite(dt) and dt > 0):
+            raise SpecError("dt", "must be positive")
+        self.eq = eq
+        self.dt = float(dt)
+        n = eq.n
+        M = np.block([[eq.D, 2.0 * eq.a], [eq.Q, -eq.D.T]])
+        nodes, w = np.polynomial.legendre.leggauss(_GAUSS_NODES)
+        self.s = 0.5 * self.dt * (nodes + 1.0)
+        self.w = 0.5 * self.dt * w
+        # Φ(s) = e^{Ms} and Ψ(s) = ∫0^s e^{Mτ}dτ, at the nodes and at dt (Van Loan block trick)
+        big = np.zeros((4 * n, 4 * n))
+        big[: 2 * n, : 2 * n] = M
+        big[: 2 * n, 2 * n:] = np.eye(2 * n)
+        blocks = [expm(big * s) for s in np.append(self.s, self.dt)]
+        self.Phi = np.stack([b[: 2 * n, : 2 * n] for b in blocks])
+        self.Psi = np.stack([b[: 2 * n, 2 * n:] for b in blocks])
+
+    def step(self, A, B, C, q=None, r=None) -> GaussianTerms:
+        """Advance (A, B, C) over dt; A may be (n, n) or a stack (K, n, n) of components."""
+        eq, n = self.eq, self.eq.n
+        q = eq.q if q is None else np.asarray(q, dtype=float)
+        r = eq.r if r is None else float(r)
+        A = np.asarray(A, dtype=float)
+        single = A.ndim == 2
+        A, B, C = np.atleast_3d(A) if not single else A[None], np.atleast_2d(B), np.atleast_1d(C)
+        # X(s) = Φ11 + Φ12 A0, Y(s) = Φ21 + Φ22 A0 and the same with Ψ for ∫X, ∫Y
+        X = self.Phi[:, None, :n, :n] + self.Phi[:, None, :n, n:] @ A[None]
+        Y = self.Phi[:, None, n:, :n] + self.Phi[:, None, n:, n:] @ A[None]
+        IX = self.Psi[:, None, :n, :n] + self.Psi[:, None, :n, n:] @ A[None]
+        IY = self.Psi[:, None, n:, :n] + self.Psi[:, None, n:, n:] @ A[None]
+        sign, log_det = np.linalg.slogdet(X[-1])
+        if np.any(sign <= 0) or not np.all(np.isfinite(log_det)):
+            raise InputError("dt", "the Riccati solution blows up within the step (det X <= 0)")
+        # B(s) = X(s)⁻ᵀ [B0 + ∫0^s (Xᵀq − 2Yᵀd)]
+        forcing = np.swapaxes(IX, -1, -2) @ q - 2.0 * np.swapaxes(IY, -1, -2) @ eq.d
+        Bs = np.linalg.solve(np.swapaxes(X, -1, -2), (B[None] + forcing)[..., None])[..., 0]
+        quad = 0.5 * np.einsum("tki,ij,tkj->tk", Bs[:-1], eq.a, Bs[:-1]) + Bs[:-1] @ eq.d
+        # ∫tr(aA) = ½(log det X − dt tr D), so C gains ½ log det X + (r + ½ tr D) dt
+        C_new = C + 0.5 * log_det + (r + 0.5 * np.trace(eq.D)) * self.dt - self.w @ quad
+        A_new = Y[-1] @ np.linalg.inv(X[-1])
+        A_new = 0.5 * (A_new + np.swapaxes(A_new, -1, -2))
+        if single:
+            return GaussianTerms(A_new[0], Bs[-1, 0], float(C_new[0]))
+        return GaussianTerms(A_new, Bs[-1], C_new)
