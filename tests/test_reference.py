@@ -2,10 +2,12 @@
 
 import numpy as np
 import pytest
+import sympy as sp
 
 from solver.errors import SpecError
 from solver.model import compile_model
 from solver.reference import (
+    BenesFilter,
     BootstrapParticleFilter,
     DiscreteKalmanFilter,
     PointMassFilter,
@@ -13,7 +15,7 @@ from solver.reference import (
     van_loan,
 )
 from solver.simulate import simulate
-from solver.spec import spec_from_dict
+from solver.spec import load_spec, spec_from_dict
 
 OU = {"name": "ou", "state": ["x"], "drift": ["-theta*x + 0.3"], "observation": ["2*x - 0.5"],
       "parameters": {"theta": 0.8}, "diffusion": [[0.6]], "observation_noise": [[0.5]],
@@ -165,3 +167,61 @@ def test_particle_filter_agrees_with_kalman_within_monte_carlo_error():
     ratio = np.array([b.cov[0, 0] / a.cov[0, 0] for a, b in zip(exact, approx, strict=True)])
     assert np.abs(ratio - 1).max() < 5 * np.sqrt(2 / (n / 2))
     assert abs(exact[-1].loglik - approx[-1].loglik) < 0.1
+
+
+# -- Beneš: the closed form verified symbolically, then against the fine grid --------------------
+def test_benes_flow_solves_the_fokker_planck_equation_symbolically():
+    """cosh(x)·e^{−t/2}·N(x; m, P + t) solves ∂p/∂t = ½p'' − (tanh(x) p)'."""
+    x, m = sp.symbols("x m", real=True)
+    t, P = sp.symbols("t P", positive=True)
+    p = sp.cosh(x) * sp.exp(-t / 2) * sp.exp(-(x - m) ** 2 / (2 * (P + t))) / sp.sqrt(2 * sp.pi * (P + t))
+    residual = sp.diff(p, t) - (sp.diff(p, x, 2) / 2 - sp.diff(sp.tanh(x) * p, x))
+    assert sp.simplify((residual / p).rewrite(sp.exp)) == 0
+
+
+def test_benes_update_is_the_kalman_update_symbolically():
+    """cosh(x)N(m,P)·exp(xΔy − ½x²dt) ∝ cosh(x)N(m',P') with 1/P' = 1/P + dt, m' = P'(m/P + Δy)."""
+    x, m, dy = sp.symbols("x m dy", real=True)
+    P, dt = sp.symbols("P dt", positive=True)
+    p_new = 1 / (1 / P + dt)
+    m_new = p_new * (m / P + dy)
+    log_ratio = (-(x - m) ** 2 / (2 * P) + x * dy - x**2 * dt / 2) - (-(x - m_new) ** 2 / (2 * p_new))
+    assert sp.simplify(sp.diff(log_ratio, x)) == 0  # cosh(x) cancels; the ratio does not depend on x
+
+
+def test_benes_moments_and_density_are_normalised_closed_forms():
+    model = compile_model(load_spec("examples/benes.toml"))
+    bf = BenesFilter(model)
+    m, p = 0.7, 0.4
+    state = bf.initial_state().__class__(mean=np.array([m]), cov=np.array([[p]]))
+    x = np.linspace(-12, 12, 200001)
+    dens = bf.density(state, x[:, None])
+    assert np.trapezoid(dens, x) == pytest.approx(1.0, abs=1e-10)
+    mean = np.trapezoid(x * dens, x)
+    assert bf.estimate(state).mean[0] == pytest.approx(mean, abs=1e-10)
+    assert bf.estimate(state).cov[0, 0] == pytest.approx(np.trapezoid((x - mean) ** 2 * dens, x), abs=1e-9)
+
+
+def test_benes_filter_matches_the_fine_grid_on_the_benes_model():
+    model = compile_model(load_spec("examples/benes.toml"))
+    sim = simulate(model, 200, np.random.default_rng(31))
+    bf, pm = BenesFilter(model), PointMassFilter(model, cells=2048)
+    s_b, e_b = bf.run(bf.initial_state(), sim.increments)
+    s_p, e_p = pm.run(pm.initial_state(), sim.increments)
+    x = np.linspace(-10, 10, 8001)[:, None]
+    l1 = np.trapezoid(np.abs(bf.density(s_b, x) - pm.density(s_p, x)), x[:, 0])
+    assert l1 < 2e-4
+    assert max(abs(a.mean[0] - b.mean[0]) for a, b in zip(e_b, e_p, strict=True)) < 1e-4
+    assert abs(e_b[-1].loglik - e_p[-1].loglik) < 1e-4
+
+
+def test_benes_refuses_other_models_naming_the_field():
+    with pytest.raises(SpecError) as err:
+        BenesFilter(_model(OU))
+    assert err.value.field == "drift"
+    benes = load_spec("examples/benes.toml").model_dump()
+    benes["initial"] = {"kind": "mixture", "weights": [0.5, 0.5], "means": [[-1.0], [1.0]],
+                        "covs": [[[0.5]], [[0.5]]]}
+    with pytest.raises(SpecError) as err:
+        BenesFilter(compile_model(spec_from_dict(benes)))
+    assert err.value.field == "initial"

@@ -5,9 +5,10 @@ f = tanh x, h = x), ``PointMassFilter`` (fine finite-volume grid, n = 1, 2),
 ``BootstrapParticleFilter``, ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter``.
 """
 
+from .benes import BenesFilter
 from .kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
 from .particle import BootstrapParticleFilter
 from .pointmass import PointMassFilter
 
-__all__ = ["BootstrapParticleFilter", "DiscreteKalmanFilter", "PointMassFilter", "affine_coefficients",
-           "van_loan"]
+__all__ = ["BenesFilter", "BootstrapParticleFilter", "DiscreteKalmanFilter", "PointMassFilter",
+           "affine_coefficients", "van_loan"]
