@@ -213,7 +213,7 @@ class ModelStore:
         mid = model_id(spec)
         checked = _checked_arrays(arrays)
         attrs_text = _attrs_json(attrs)
-        self._prepare_directory()
+        self.ensure_writable()
         self.clean_stale_temporaries()
         tmp = self.directory / f"{TMP_PREFIX}{mid}-{os.getpid()}-{secrets.token_hex(4)}{SUFFIX}"
         try:
@@ -228,7 +228,8 @@ class ModelStore:
         _fsync_directory(self.directory)
         return mid
 
-    def _prepare_directory(self) -> None:
+    def ensure_writable(self) -> None:
+        """Create the directory if needed; StoreError('store') unless files can be written there."""
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:

@@ -1,9 +1,94 @@
-"""`yauyau precompute` (not yet implemented)."""
+"""`yauyau precompute SPEC --store DIR`: the offline stage, stored as one HDF5 file.
+
+Solves the Fokker–Planck / Kolmogorov propagators of the spec's model over dt for every basis
+function (solver.offline.precompute, seed 002 §5) and saves them in the model store under the
+content hash of the spec.  The model id is the LAST line of stdout (the only one); messages and
+the progress bar go to stderr.  The bar is shown only when stderr is a terminal and --quiet is
+not given.  An id already in the store is not recomputed (its file is verified) unless --force.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+DEFAULT_STORE = "var/store"
 
 
-def add_arguments(parser):
-    pass
+def store_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--store", default=os.environ.get("YAUYAU_STORE", DEFAULT_STORE),
+                        help="model store directory (default: $YAUYAU_STORE or %(default)s)")
 
 
-def run(args):
-    raise SystemExit("yauyau precompute: not implemented yet")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("spec", help="model spec file (.toml or .json)")
+    store_argument(parser)
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes solving the propagators (default: min(4, CPU count))")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar and no messages on stderr")
+    parser.add_argument("--force", action="store_true", help="recompute even if the model is stored")
+
+
+def _say(args: argparse.Namespace, message: str) -> None:
+    if not args.quiet:
+        print(f"yauyau precompute: {message}", file=sys.stderr)
+
+
+def _progress_bar(args: argparse.Namespace, total: int):
+    from tqdm import tqdm
+
+    # disable=None: tqdm turns itself off when stderr is not a terminal
+    return tqdm(total=total, desc="propagators", unit="fn", file=sys.stderr,
+                disable=True if args.quiet else None, leave=False)
+
+
+def _already_stored(args: argparse.Namespace, store, mid: str) -> bool:
+    from storage.errors import StoreError
+
+    if args.force or not store.exists(mid):
+        return False
+    try:
+        store.load(mid)  # verifies format, hash and checksums
+    except StoreError as exc:
+        _say(args, f"stored file of {mid} is unusable ({exc.message}); recomputing")
+        return False
+    _say(args, f"model {mid} is already in {store.directory} (use --force to recompute)")
+    return True
+
+
+def run(args: argparse.Namespace) -> int:
+    from solver import compile_model, load_spec
+    from solver.errors import InputError
+    from solver.offline import default_workers, precompute
+    from storage.model_store import ModelStore, model_id
+
+    spec = load_spec(args.spec)
+    model = compile_model(spec)
+    workers = default_workers() if args.workers is None else args.workers
+    if workers < 1:
+        raise InputError("workers", "must be a positive integer")
+    spec_json = spec.canonical_json()
+    store, mid = ModelStore(args.store), model_id(spec_json)
+    store.ensure_writable()  # fail before the (long) computation, not after
+    if _already_stored(args, store, mid):
+        print(mid)
+        return 0
+
+    total = spec.discretization.basis
+    started = time.perf_counter()
+    with _progress_bar(args, total) as bar:
+        def progress(done: int, of: int) -> None:
+            bar.total = of
+            bar.update(done - bar.n)
+        offline = precompute(model, workers=workers, progress=progress)
+    seconds = time.perf_counter() - started
+
+    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers, "name": spec.name}
+    saved = store.save(spec_json, offline.to_arrays(), attrs)
+    size = store.path(saved).stat().st_size
+    _say(args, f"stored '{spec.name}' ({total} basis functions, {seconds:.1f} s, "
+               f"{size / 1e6:.2f} MB) as {store.path(saved)}")
+    print(saved)
+    return 0
