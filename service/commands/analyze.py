@@ -1,9 +1,34 @@
-"""`yauyau analyze` (not yet implemented)."""
+"""`yauyau analyze SPEC`: Wong matrix, η, conditions, estimation algebra, recommended method.
+
+Prints the report of :func:`solver.analysis.analyze` as text, or as JSON with ``--json``.
+A bad spec raises SpecError, which the dispatcher prints as one line (exit status 2).
+"""
+
+from __future__ import annotations
+
+import json
+
+from solver.analysis import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, analyze
+from solver.errors import SpecError
+from solver.model import compile_model
+from solver.spec import load_spec
 
 
-def add_arguments(parser):
-    pass
+def add_arguments(parser) -> None:
+    parser.add_argument("spec", metavar="SPEC", help="model spec (.toml or .json)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH, metavar="K",
+                        help=f"rounds of Lie brackets before giving up (default {DEFAULT_MAX_DEPTH})")
+    parser.add_argument("--max-dimension", type=int, default=DEFAULT_MAX_DIMENSION, metavar="D",
+                        help=f"largest algebra dimension explored (default {DEFAULT_MAX_DIMENSION})")
 
 
-def run(args):
-    raise SystemExit("yauyau analyze: not implemented yet")
+def run(args) -> int:
+    if not 1 <= args.max_depth <= 20:
+        raise SpecError("--max-depth", "must be between 1 and 20")
+    if not 1 <= args.max_dimension <= 64:
+        raise SpecError("--max-dimension", "must be between 1 and 64")
+    model = compile_model(load_spec(args.spec))
+    report = analyze(model, max_depth=args.max_depth, max_dimension=args.max_dimension)
+    print(json.dumps(report.to_dict(), indent=2) if args.json else report.render())
+    return 0
