@@ -10,7 +10,9 @@ from solver.reference import (
     BenesFilter,
     BootstrapParticleFilter,
     DiscreteKalmanFilter,
+    ExtendedKalmanFilter,
     PointMassFilter,
+    UnscentedKalmanFilter,
     affine_coefficients,
     van_loan,
 )
@@ -225,3 +227,40 @@ def test_benes_refuses_other_models_naming_the_field():
     with pytest.raises(SpecError) as err:
         BenesFilter(compile_model(spec_from_dict(benes)))
     assert err.value.field == "initial"
+
+
+# -- EKF and UKF: exact on linear models; the unscented transform exact for quadratics ------------
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+@pytest.mark.parametrize("base", [OU, ROT])
+def test_gaussian_approximations_equal_kalman_on_linear_models(cls, base):
+    model = _model(base)
+    sim = simulate(model, 100, np.random.default_rng(41))
+    kf, approx = DiscreteKalmanFilter(model), cls(model)
+    _, exact = kf.run(kf.initial_state(), sim.increments)
+    _, got = approx.run(approx.initial_state(), sim.increments)
+    for a, b in zip(exact, got, strict=True):
+        assert np.allclose(a.mean, b.mean, atol=1e-9) and np.allclose(a.cov, b.cov, atol=1e-9)
+    assert exact[-1].loglik == pytest.approx(got[-1].loglik, abs=1e-8)
+
+
+def test_ukf_update_is_exact_for_a_quadratic_sensor_moment():
+    """With h = x², the unscented transform gives E h = m² + P exactly (while the EKF gives m²)."""
+    model = _model(OU, observation=["x**2"], observation_noise=[[1.0]])
+    ukf, ekf = UnscentedKalmanFilter(model), ExtendedKalmanFilter(model)
+    m, p = np.array([0.8]), np.array([[0.3]])
+    y_u, _, c_u = ukf._observation_moments(m, p)
+    y_e, _, _ = ekf._observation_moments(m, p)
+    dt = model.dt
+    assert y_u[0] == pytest.approx((0.8**2 + 0.3) * dt, rel=1e-12)
+    assert c_u[0, 0] == pytest.approx(2 * 0.8 * 0.3 * dt, rel=1e-12)  # Cov(x, x²) = 2mP
+    assert y_e[0] == pytest.approx(0.8**2 * dt, rel=1e-12)
+
+
+def test_ekf_prediction_of_a_nonlinear_drift_matches_the_ode_solution():
+    """f = −x³ with a tiny P: ṁ = −m³ has m(t) = m0/√(1 + 2 m0² t)."""
+    model = _model(OU, drift=["-x**3"], diffusion=[[1e-8]])
+    ekf = ExtendedKalmanFilter(model)
+    state = ekf.initial_state().__class__(mean=np.array([1.5]), cov=np.array([[1e-10]]))
+    state, est = ekf.run(state, np.full((50, 1), np.nan))
+    t = 50 * model.dt
+    assert est[-1].mean[0] == pytest.approx(1.5 / np.sqrt(1 + 2 * 1.5**2 * t), rel=1e-9)

@@ -6,9 +6,10 @@ f = tanh x, h = x), ``PointMassFilter`` (fine finite-volume grid, n = 1, 2),
 """
 
 from .benes import BenesFilter
+from .gaussian_approx import ExtendedKalmanFilter, UnscentedKalmanFilter
 from .kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
 from .particle import BootstrapParticleFilter
 from .pointmass import PointMassFilter
 
-__all__ = ["BenesFilter", "BootstrapParticleFilter", "DiscreteKalmanFilter", "PointMassFilter",
-           "affine_coefficients", "van_loan"]
+__all__ = ["BenesFilter", "BootstrapParticleFilter", "DiscreteKalmanFilter", "ExtendedKalmanFilter",
+           "PointMassFilter", "UnscentedKalmanFilter", "affine_coefficients", "van_loan"]
