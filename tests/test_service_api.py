@@ -1,0 +1,207 @@
+"""The HTTP API in-process: models, sessions, exactly-once chunks, problem+json errors.
+
+Numbers are checked against independent truth: the exact discrete Kalman filter for the
+Ornstein–Uhlenbeck example (linear, so the optimal filter is Gaussian), the Gaussian prior's
+closed-form density and the normalisation ∫p = 1.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.settings import Settings
+from solver.model import compile_model
+from solver.reference.kalman import DiscreteKalmanFilter
+from solver.simulate import simulate
+from solver.spec import load_spec
+
+
+PROBLEM = "application/problem+json"
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+@pytest.fixture(scope="module")
+def api(example_store, tmp_path_factory):
+    store, ids = example_store
+    db = tmp_path_factory.mktemp("db") / "sessions.sqlite3"
+    settings = Settings(store=store, session_db=db, max_chunk_rows=500, max_body_bytes=64 * 1024)
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        client.ids = ids
+        yield client
+
+
+def _session(api, name="cubic_sensor", **extra):
+    r = api.post("/v1/sessions", json={"model": api.ids[name], **extra})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _problem(r, status, field=None):
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM)
+    body = r.json()
+    assert body["status"] == status and body["title"] and body["detail"]
+    if field is not None:
+        assert body.get("field") == field, body
+    return body
+
+
+def test_health_and_metrics(api):
+    assert api.get("/livez").json() == {"status": "ok"}
+    ready = api.get("/readyz")
+    assert ready.status_code == 200 and ready.json()["models"] == 2
+    text = api.get("/metrics").text
+    assert "yauyau_http_requests_total" in text
+
+
+def test_models_describe_the_stored_specs(api):
+    listed = {m["id"]: m for m in api.get("/v1/models").json()}
+    assert set(listed) == set(api.ids.values())
+    cubic = api.get(f"/v1/models/{api.ids['cubic_sensor']}").json()
+    spec = load_spec(EXAMPLES / "cubic_sensor.toml")
+    assert (cubic["name"], cubic["state"], cubic["n"], cubic["m"]) == ("cubic-sensor", ["x"], 1, 1)
+    assert (cubic["dt"], cubic["radius"], cubic["basis"]) == (0.01, 7.0, 128)
+    assert cubic["spec"]["observation"] == spec.observation
+    _problem(api.get("/v1/models/0123456789abcdef0123"), 404, "model")
+
+
+def test_initial_estimate_and_density_are_the_prior(api):
+    created = _session(api)
+    est = created["estimate"]
+    assert created["step"] == 0 and created["t"] == 0.0 and est["degenerate"] is False
+    # prior N(0.5, 1) restricted to |x| < 7: the truncation is below 1e-9
+    assert est["mean"][0] == pytest.approx(0.5, abs=1e-4)
+    assert est["cov"][0][0] == pytest.approx(1.0, abs=1e-3)
+    r = api.get(f"/v1/sessions/{created['id']}/density", params={"points": "-1;0.5;2"})
+    x = np.array([-1.0, 0.5, 2.0])
+    exact = np.exp(-0.5 * (x - 0.5) ** 2) / math.sqrt(2 * math.pi)
+    assert np.allclose(r.json()["density"], exact, rtol=2e-3, atol=1e-4)
+    grid = api.get(f"/v1/sessions/{created['id']}/density", params={"grid": "-7:7:701"}).json()
+    assert len(grid["points"]) == 701
+    assert np.trapezoid(grid["density"], np.linspace(-7, 7, 701)) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_prior_override_and_bad_prior(api):
+    created = _session(api, prior={"kind": "gaussian", "mean": [-1.5], "cov": [[0.25]]})
+    assert created["estimate"]["mean"][0] == pytest.approx(-1.5, abs=1e-3)
+    assert created["estimate"]["cov"][0][0] == pytest.approx(0.25, abs=1e-3)
+    bad = api.post("/v1/sessions", json={"model": api.ids["ou"],
+                                         "prior": {"kind": "gaussian", "mean": [0, 1], "cov": [[1.0]]}})
+    _problem(bad, 422, "prior.mean")
+    _problem(api.post("/v1/sessions", json={"model": "nope"}), 404, "model")
+
+
+def test_ou_session_matches_the_exact_kalman_filter(api):
+    model = compile_model(load_spec(EXAMPLES / "ou.toml"))
+    increments = simulate(model, 200, np.random.default_rng(7)).increments
+    increments[50:60] = np.nan  # a gap without observations: prediction only
+    created = _session(api, "ou")
+    means, covs = [], []
+    for seq, start in enumerate(range(0, 200, 40)):
+        rows = [None if np.isnan(r[0]) else r.tolist() for r in increments[start:start + 40]]
+        r = api.post(f"/v1/sessions/{created['id']}/observations", json={"seq": seq, "increments": rows})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert [e["step"] for e in body["estimates"]] == list(range(start + 1, start + 41))
+        means += [e["mean"][0] for e in body["estimates"]]
+        covs += [e["cov"][0][0] for e in body["estimates"]]
+    kalman = DiscreteKalmanFilter(model)
+    _, exact = kalman.run(kalman.initial_state(), increments)
+    assert np.allclose(means, [e.mean[0] for e in exact], atol=2e-3)
+    assert np.allclose(covs, [e.cov[0, 0] for e in exact], atol=2e-3)
+    assert body["step"] == 200 and body["t"] == pytest.approx(2.0)
+    assert body["loglik"] == pytest.approx(exact[-1].loglik, abs=1e-2)
+
+
+def test_chunks_are_applied_exactly_once(api):
+    sid = _session(api)["id"]
+    url = f"/v1/sessions/{sid}/observations"
+    first = api.post(url, json={"seq": 0, "increments": [[0.01], [0.02]]})
+    again = api.post(url, json={"seq": 0, "increments": [[0.01], [0.02]]})
+    assert again.status_code == 200 and again.json() == first.json()
+    _problem(api.post(url, json={"seq": 2, "increments": [[0.0]]}), 409)
+    info = api.get(f"/v1/sessions/{sid}").json()
+    assert (info["step"], info["next_seq"]) == (2, 1)
+    assert info["estimate"]["mean"] == first.json()["estimates"][-1]["mean"]
+    assert api.post(url, json={"seq": 1, "increments": [[0.0]]}).json()["step"] == 3
+    assert api.delete(f"/v1/sessions/{sid}").status_code == 204
+    _problem(api.get(f"/v1/sessions/{sid}"), 404)
+    _problem(api.delete(f"/v1/sessions/{sid}"), 404)
+
+
+def test_far_out_observations_give_a_degenerate_answer_not_nan(api):
+    sid = _session(api)["id"]
+    r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": [[1e8], [-1e8]]})
+    assert r.status_code == 200
+    body = json.loads(r.text)  # strict JSON: the service never writes NaN
+    for est in body["estimates"]:
+        assert est["mean"] is None or all(math.isfinite(v) for v in est["mean"])
+
+
+@pytest.mark.parametrize("payload, status, field", [
+    ('{"seq": 0, "increments": [[NaN]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": [[1.0], [Infinity]]}', 422, "increments[1][0]"),
+    ('{"seq": 0, "increments": [[1e999]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": [["0.1"]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": [[true]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": [[0.1, 0.2]]}', 422, "increments[0]"),
+    ('{"seq": 0, "increments": [[null]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": []}', 422, "increments"),
+    ('{"seq": -1, "increments": [[0.1]]}', 422, "seq"),
+    ('{"increments": [[0.1]]}', 422, "seq"),
+    ('{"seq": 0, "increments": [[0.1]], "extra": 1}', 422, "extra"),
+    ('{"seq": 0, "increments": [[0.1]', 400, "body"),
+    ('', 400, "body"),
+])
+def test_bad_chunks_are_problems_naming_the_field(api, payload, status, field):
+    sid = _session(api)["id"]
+    r = api.post(f"/v1/sessions/{sid}/observations", content=payload,
+                 headers={"content-type": "application/json"})
+    _problem(r, status, field)
+    assert api.get(f"/v1/sessions/{sid}").json()["next_seq"] == 0  # nothing applied
+
+
+def test_size_limits(api):
+    sid = _session(api)["id"]
+    url = f"/v1/sessions/{sid}/observations"
+    _problem(api.post(url, json={"seq": 0, "increments": [[0.0]] * 501}), 422, "increments")
+    big = json.dumps({"seq": 0, "increments": [[0.001]] * 20000})
+    _problem(api.post(url, content=big, headers={"content-type": "application/json"}), 413, "body")
+
+    def chunks():  # no Content-Length: the limit applies while reading
+        for _ in range(100):
+            yield b" " * 1024
+    _problem(api.post(url, content=chunks(), headers={"content-type": "application/json"}), 413, "body")
+    _problem(api.post("/v1/sessions/nope/observations", json={"seq": 0, "increments": [[0.0]]}), 404)
+
+
+def test_density_query_errors(api):
+    sid = _session(api)["id"]
+    url = f"/v1/sessions/{sid}/density"
+    _problem(api.get(url), 422, "points")
+    _problem(api.get(url, params={"points": "1,2"}), 422, "points")
+    _problem(api.get(url, params={"points": "abc"}), 422, "points")
+    _problem(api.get(url, params={"points": "nan"}), 422, "points")
+    _problem(api.get(url, params={"grid": "0:1"}), 422, "grid")
+    _problem(api.get(url, params={"grid": "0:1:1000000000"}), 422, "grid")
+
+
+def test_analyze(api):
+    spec = load_spec(EXAMPLES / "ou.toml").model_dump(mode="json")
+    r = api.post("/v1/analyze", json=spec)
+    assert r.status_code == 200, r.text
+    assert isinstance(r.json(), dict) and r.json()
+    _problem(api.post("/v1/analyze", json={**spec, "drift": ["x", "x"]}), 422, "drift")
+    _problem(api.post("/v1/analyze", json={**spec, "drift": ["__import__('os')"]}), 422, "drift[0]")
+
+
+def test_unknown_route_and_method_are_problems(api):
+    _problem(api.get("/v1/nothing"), 404)
+    _problem(api.put("/v1/models"), 405)
