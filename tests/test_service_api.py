@@ -22,7 +22,6 @@ from solver.reference.kalman import DiscreteKalmanFilter
 from solver.simulate import simulate
 from solver.spec import load_spec
 
-
 PROBLEM = "application/problem+json"
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
