@@ -161,3 +161,20 @@ def gaussian_prior(model: Model, prior: Any | None = None) -> tuple[np.ndarray, 
     elif isinstance(prior, GaussianPrior):
         return np.asarray(prior.mean, float), np.asarray(prior.cov, float)
     raise SpecError("initial", "a Gaussian filter needs a gaussian (or mixture) prior")
+
+
+class GaussianReferenceFilter(ReferenceFilter):
+    """A filter whose state is a Gaussian N(mean, cov) started from the model's prior moments."""
+
+    def initial_state(self, prior: Any | None = None) -> GaussianState:
+        mean, cov = gaussian_prior(self.model, prior)
+        return GaussianState(mean=mean, cov=cov)
+
+    def estimate(self, state: GaussianState) -> Estimate:
+        return gaussian_estimate(state)
+
+    def density(self, state: GaussianState, points: np.ndarray) -> np.ndarray:
+        return gaussian_density(state.mean, state.cov, points)
+
+    def state_from_dict(self, data: dict[str, Any]) -> GaussianState:
+        return GaussianState.from_dict(data)

@@ -12,22 +12,11 @@ On a linear model both reduce to the exact Kalman filter.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from ..errors import InputError
-from ..filtering import Estimate
 from ..model import Model
-from ._base import (
-    GaussianState,
-    ReferenceFilter,
-    advance,
-    gaussian_density,
-    gaussian_estimate,
-    gaussian_prior,
-    gaussian_update,
-)
+from ._base import GaussianReferenceFilter, GaussianState, advance, gaussian_update
 
 
 def rk4_moments(derivative, mean: np.ndarray, cov: np.ndarray, dt: float, substeps: int):
@@ -44,16 +33,12 @@ def rk4_moments(derivative, mean: np.ndarray, cov: np.ndarray, dt: float, subste
     return mean, cov
 
 
-class _GaussianFilter(ReferenceFilter):
+class _GaussianFilter(GaussianReferenceFilter):
     def __init__(self, model: Model, substeps: int = 4):
         super().__init__(model)
         if not isinstance(substeps, (int, np.integer)) or substeps < 1:
             raise InputError("substeps", "must be an integer >= 1")
         self.substeps = int(substeps)
-
-    def initial_state(self, prior: Any | None = None) -> GaussianState:
-        mean, cov = gaussian_prior(self.model, prior)
-        return GaussianState(mean=mean, cov=cov)
 
     def _moments_rate(self, mean: np.ndarray, cov: np.ndarray):
         raise NotImplementedError
@@ -76,15 +61,6 @@ class _GaussianFilter(ReferenceFilter):
                 return advance(state, self.model.dt, 0.0, mean=mean, cov=cov, degenerate=True,
                                reason="the covariance lost positive definiteness")
         return advance(state, self.model.dt, loglik, mean=mean, cov=cov)
-
-    def estimate(self, state: GaussianState) -> Estimate:
-        return gaussian_estimate(state)
-
-    def density(self, state: GaussianState, points: np.ndarray) -> np.ndarray:
-        return gaussian_density(state.mean, state.cov, points)
-
-    def state_from_dict(self, data: dict[str, Any]) -> GaussianState:
-        return GaussianState.from_dict(data)
 
 
 class ExtendedKalmanFilter(_GaussianFilter):

@@ -9,24 +9,13 @@ Both are exact, so this is the time discretisation the engine approximates, with
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import sympy as sp
 from scipy.linalg import expm
 
 from ..errors import SpecError
-from ..filtering import Estimate
 from ..model import Model
-from ._base import (
-    GaussianState,
-    ReferenceFilter,
-    advance,
-    gaussian_density,
-    gaussian_estimate,
-    gaussian_prior,
-    gaussian_update,
-)
+from ._base import GaussianReferenceFilter, GaussianState, advance, gaussian_update
 
 
 def affine_coefficients(exprs, symbols, field: str) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +50,7 @@ def van_loan(F: np.ndarray, a: np.ndarray, f0: np.ndarray, dt: float):
     return phi, shift, 0.5 * (q + q.T)
 
 
-class DiscreteKalmanFilter(ReferenceFilter):
+class DiscreteKalmanFilter(GaussianReferenceFilter):
     """Exact filter of the sampled linear model: FP flow over dt, then the update at τ_k."""
 
     method = "kalman-discrete"
@@ -71,10 +60,6 @@ class DiscreteKalmanFilter(ReferenceFilter):
         self.F, self.f0 = affine_coefficients(model.drift, model.symbols, "drift")
         self.H, self.h0 = affine_coefficients(model.observation, model.symbols, "observation")
         self.phi, self.shift, self.Q = van_loan(self.F, model.a, self.f0, model.dt)
-
-    def initial_state(self, prior: Any | None = None) -> GaussianState:
-        mean, cov = gaussian_prior(self.model, prior)
-        return GaussianState(mean=mean, cov=cov)
 
     def predict(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.phi @ mean + self.shift, self.phi @ cov @ self.phi.T + self.Q
@@ -90,12 +75,3 @@ class DiscreteKalmanFilter(ReferenceFilter):
             mean, cov, loglik = gaussian_update(self.model, mean, cov, predicted, innovation, cov @ Hd.T,
                                                 increment)
         return advance(state, self.model.dt, loglik, mean=mean, cov=cov)
-
-    def estimate(self, state: GaussianState) -> Estimate:
-        return gaussian_estimate(state)
-
-    def density(self, state: GaussianState, points: np.ndarray) -> np.ndarray:
-        return gaussian_density(state.mean, state.cov, points)
-
-    def state_from_dict(self, data: dict[str, Any]) -> GaussianState:
-        return GaussianState.from_dict(data)
