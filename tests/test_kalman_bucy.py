@@ -1,0 +1,125 @@
+"""Kalman–Bucy filter against closed forms and against the discrete Kalman filter as dt -> 0."""
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from solver.errors import InputError, SpecError
+from solver.exact.kalman_bucy import KalmanBucyFilter
+from solver.filtering import Filter
+from solver.model import compile_model
+from solver.simulate import simulate
+from solver.spec import spec_from_dict
+
+
+def _model(dt=0.05, drift=("-0.8*x + 0.3",), observation=("1.5*x - 0.2",), a=0.6, R=0.4,
+           state=("x",), prior=None):
+    prior = prior or {"kind": "gaussian", "mean": [0.7] * len(state), "cov": np.eye(len(state)).tolist()}
+    spec = {"name": "kb", "state": list(state), "drift": list(drift), "observation": list(observation),
+            "diffusion": (np.eye(len(state)) * a).tolist(),
+            "observation_noise": (np.eye(len(observation)) * R).tolist(),
+            "initial": prior, "domain": {"radius": 10.0}, "discretization": {"dt": dt, "basis": 8}}
+    return compile_model(spec_from_dict(spec))
+
+
+def test_scalar_riccati_closed_form():
+    # P' = 2FP + a − (H²/R)P²: (P − p₊)/(P − p₋) = (P0 − p₊)/(P0 − p₋)·exp(−β(p₊ − p₋)t)
+    F, a, H, R, dt = -0.8, 0.6, 1.5, 0.4, 0.05
+    model = _model(dt=dt)
+    kb = KalmanBucyFilter(model)
+    assert isinstance(kb, Filter) and kb.method == "kalman-bucy"
+    state = kb.initial_state()
+    rng = np.random.default_rng(0)
+    state, ests = kb.run(state, rng.normal(size=(20, 1)) * 0.1)
+    beta = H * H / R
+    root = np.sqrt(F * F + a * beta)
+    p_plus, p_minus = (F + root) / beta, (F - root) / beta
+    t = dt * np.arange(1, 21)
+    ratio = (1.0 - p_plus) / (1.0 - p_minus) * np.exp(-beta * (p_plus - p_minus) * t)
+    P = (p_plus - ratio * p_minus) / (1 - ratio)
+    np.testing.assert_allclose([e.cov[0, 0] for e in ests], P, rtol=1e-10)
+
+
+def test_scalar_mean_and_loglik_closed_form_at_stationary_covariance():
+    # P0 = p₊: P stays constant, m' = κ m + c is linear with a constant observation rate ẏ,
+    # and d log Z/dt = ĥR⁻¹ẏ − ½ĥR⁻¹ĥ − ½H²P/R (mass of the robust DMZ solution)
+    F, f0, a, H, h0, R, dt = -0.8, 0.3, 0.6, 1.5, -0.2, 0.4, 0.05
+    beta = H * H / R
+    p = (F + np.sqrt(F * F + a * beta)) / beta
+    m0, ydot = 0.7, 0.9
+    model = _model(dt=dt, prior={"kind": "gaussian", "mean": [m0], "cov": [[p]]})
+    kb = KalmanBucyFilter(model)
+    state, ests = kb.run(kb.initial_state(), np.full((30, 1), ydot * dt))
+    kappa, c = F - p * beta, f0 + p * H / R * (ydot - h0)
+    m = lambda s: -c / kappa + (m0 + c / kappa) * np.exp(kappa * s)  # noqa: E731
+    t = dt * np.arange(1, 31)
+    np.testing.assert_allclose([e.mean[0] for e in ests], m(t), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose([e.cov[0, 0] for e in ests], p, rtol=1e-10)
+    rate = lambda s: ((H * m(s) + h0) * ydot - 0.5 * (H * m(s) + h0) ** 2 - 0.5 * H * H * p) / R  # noqa: E731
+    assert state.loglik == pytest.approx(quad(rate, 0, t[-1], epsabs=1e-13)[0], abs=1e-9)
+
+
+def test_missing_rows_only_predict():
+    model = _model(dt=0.1)
+    kb = KalmanBucyFilter(model)
+    state, ests = kb.run(kb.initial_state(), np.full((5, 1), np.nan))
+    F, a = -0.8, 0.6
+    t = 0.1 * np.arange(1, 6)
+    P = np.exp(2 * F * t) * 1.0 + a * (np.exp(2 * F * t) - 1) / (2 * F)
+    m = np.exp(F * t) * 0.7 + 0.3 * (np.exp(F * t) - 1) / F
+    np.testing.assert_allclose([e.cov[0, 0] for e in ests], P, rtol=1e-11)
+    np.testing.assert_allclose([e.mean[0] for e in ests], m, rtol=1e-11)
+    assert all(e.loglik_increment == 0.0 for e in ests)
+
+
+def _run_final(model_dt, fine, ratio, kind):
+    """Run on the fine increments summed ``ratio`` at a time (the same path at step model_dt)."""
+    model = _model(dt=model_dt, drift=("-0.5*x + 0.4*y", "-0.6*x - 0.3*y"), observation=("x + 0.5*y",),
+                   state=("x", "y"), a=0.5, R=0.3)
+    kb = KalmanBucyFilter(model, kind=kind)
+    incs = fine.reshape(-1, ratio, fine.shape[1]).sum(axis=1)
+    state, _ = kb.run(kb.initial_state(), incs)
+    return state
+
+
+def test_kalman_bucy_and_discrete_kalman_converge_at_rate_one():
+    fine_dt, K = 0.0025, 320  # a 2-D model, one path on [0, 0.8]
+    sim = simulate(_model(dt=fine_dt, drift=("-0.5*x + 0.4*y", "-0.6*x - 0.3*y"), observation=("x + 0.5*y",),
+                          state=("x", "y"), a=0.5, R=0.3), K, np.random.default_rng(3))
+    gaps = []
+    for ratio in (32, 16, 8):
+        dt = fine_dt * ratio
+        kb, dk = (_run_final(dt, sim.increments, ratio, kind) for kind in ("continuous", "discrete"))
+        gaps.append((np.linalg.norm(kb.mean - dk.mean), np.linalg.norm(kb.cov - dk.cov),
+                     abs(kb.loglik - dk.loglik)))
+    gaps = np.array(gaps)
+    rates = np.log2(gaps[:-1, :2] / gaps[1:, :2])  # mean and covariance gaps: O(dt)
+    assert np.all(rates > 0.9) and np.all(rates < 1.1), rates
+    assert gaps[-1, 0] < 0.01 and gaps[-1, 1] < 0.01
+    # the log-likelihood gap is a sum of random O(dt²) terms (no clean rate on one path): bound it
+    assert np.all(gaps[:, 2] < 0.1 * fine_dt * np.array([32, 16, 8]))
+
+
+def test_errors_name_the_field():
+    with pytest.raises(SpecError, match="^drift"):
+        KalmanBucyFilter(_model(drift=("tanh(x)",)))
+    with pytest.raises(SpecError, match="^observation"):
+        KalmanBucyFilter(_model(observation=("x**3",)))
+    with pytest.raises(SpecError, match="^kind"):
+        KalmanBucyFilter(_model(), kind="extended")
+    kb = KalmanBucyFilter(_model())
+    with pytest.raises(InputError):
+        kb.run(kb.initial_state(), [[np.inf]])
+    with pytest.raises(InputError):
+        kb.state_from_dict({"mean": "x"})
+
+
+def test_state_round_trip_and_density():
+    kb = KalmanBucyFilter(_model())
+    state, _ = kb.run(kb.initial_state(), [[0.1], [np.nan], [-0.05]])
+    again = kb.state_from_dict(state.to_dict())
+    s1, e1 = kb.step(state, np.array([0.02]))
+    s2, e2 = kb.step(again, np.array([0.02]))
+    assert e1.mean == pytest.approx(e2.mean) and s1.loglik == pytest.approx(s2.loglik)
+    x = np.linspace(-8, 8, 4001)[:, None]
+    assert np.sum(kb.density(s1, x)) * (x[1, 0] - x[0, 0]) == pytest.approx(1.0, abs=1e-8)
