@@ -1,0 +1,129 @@
+"""A real `yauyau serve` process: SIGKILL mid-stream loses nothing and applies nothing twice.
+
+Two sessions get the same prior and the same chunks: one uninterrupted, one whose server is
+killed (SIGKILL, no clean shutdown) twice — once while a chunk is in flight, once after a chunk
+was answered but before the client read it — and restarted, the second time with two workers
+sharing the SQLite session store.  The client re-sends the chunk whose answer it lost; the
+interrupted session's estimates must be identical (==) to the uninterrupted one's.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+from conftest import EXAMPLES, free_port
+
+from solver.model import compile_model
+from solver.simulate import simulate
+from solver.spec import load_spec
+
+CHUNK = 50
+CHUNKS = 8
+
+
+class Server:
+    """`python -m service.cli serve` in its own process group (SIGKILL takes the workers too)."""
+
+    def __init__(self, store, db, workers=1):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--session-db", str(db),
+               "--port", str(self.port), "--workers", str(workers), "--log-level", "warning"]
+        self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE)
+        self._wait_ready()
+
+    def _wait_ready(self, timeout=90.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited: {self.proc.stderr.read().decode()[-2000:]}")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=1.0).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        self.kill()
+        raise RuntimeError("server did not become ready")
+
+    def kill(self):
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.proc.wait(timeout=30)
+        self.proc.stderr.close()
+
+
+def _rows(block):
+    return [None if np.isnan(r[0]) else r.tolist() for r in block]
+
+
+def _post_chunk(client, url, sid, seq, rows):
+    r = client.post(f"{url}/v1/sessions/{sid}/observations", json={"seq": seq, "increments": rows},
+                    timeout=30)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+@pytest.mark.slow
+def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store, tmp_path):
+    store, ids = example_store
+    db = tmp_path / "sessions.sqlite3"
+    model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
+    increments = simulate(model, CHUNK * CHUNKS, np.random.default_rng(3)).increments
+    increments[120:130] = np.nan
+    chunks = [_rows(increments[i * CHUNK:(i + 1) * CHUNK]) for i in range(CHUNKS)]
+    body = {"model": ids["cubic_sensor"], "prior": {"kind": "gaussian", "mean": [0.3], "cov": [[0.8]]}}
+
+    server = Server(store, db)
+    try:
+        with httpx.Client() as client:
+            reference = client.post(server.url + "/v1/sessions", json=body).json()["id"]
+            expected = [_post_chunk(client, server.url, reference, k, c) for k, c in enumerate(chunks)]
+            sid = client.post(server.url + "/v1/sessions", json=body).json()["id"]
+            got = [_post_chunk(client, server.url, sid, k, chunks[k]) for k in range(3)]
+
+        # kill 1: while chunk 3 is in flight (it may or may not have been applied)
+        def send_lost_chunk():
+            try:
+                httpx.post(f"{server.url}/v1/sessions/{sid}/observations",
+                           json={"seq": 3, "increments": chunks[3]}, timeout=30)
+            except httpx.TransportError:
+                pass
+        sender = threading.Thread(target=send_lost_chunk)
+        sender.start()
+        time.sleep(0.005)
+        server.kill()
+        sender.join()
+
+        server = Server(store, db)
+        with httpx.Client() as client:
+            got += [_post_chunk(client, server.url, sid, k, chunks[k]) for k in (3, 4)]
+            _post_chunk(client, server.url, sid, 5, chunks[5])  # kill 2: answered, but the answer is lost
+        server.kill()
+
+        server = Server(store, db, workers=2)
+        with httpx.Client() as client:
+            got += [_post_chunk(client, server.url, sid, k, chunks[k]) for k in (5, 6, 7)]
+            assert _post_chunk(client, server.url, sid, 7, chunks[7]) == got[7]  # a replay changes nothing
+            gap = client.post(f"{server.url}/v1/sessions/{sid}/observations",
+                              json={"seq": 9, "increments": chunks[0]})
+            assert gap.status_code == 409
+            assert gap.headers["content-type"].startswith("application/problem+json")
+            info = client.get(f"{server.url}/v1/sessions/{sid}").json()
+    finally:
+        server.kill()
+
+    assert got == expected  # identical floats, not approximately equal
+    assert (info["step"], info["next_seq"]) == (CHUNK * CHUNKS, CHUNKS)
+    assert info["estimate"]["mean"] == expected[-1]["estimates"][-1]["mean"]
