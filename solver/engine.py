@@ -1,0 +1,496 @@
+"""The online Yau–Yau filter: memoryless propagation of the unnormalised conditional density σ.
+
+Seed 002 (5.35)–(5.38), observation times τ_k = k·dt, increments Δy_k = y(τ_k) − y(τ_{k−1}):
+
+    u_k(τ_k) = e^{dt (L − ½hᵀR⁻¹h)} σ(τ_{k−1})             (5.38), the Kolmogorov-type equation (5.31)
+    σ(τ_k)   = exp(hᵀR⁻¹Δy_k) · u_k(τ_k)                     (5.35)
+
+with L the Fokker–Planck operator, on the ball B_R with Dirichlet boundary conditions.  The
+propagators e^{dt·(…)} φ_j of the basis functions are computed offline (``solver/offline.py``).
+
+Two forms of one step (both first order in dt, Lie–Trotter splitting of the same equation):
+
+* ``literal`` — exactly (5.35)/(5.38): the Kolmogorov propagator (−½hᵀR⁻¹h inside) and the
+  factor exp(hᵀR⁻¹Δy).  With a truncated basis this factor is huge at the rim of the ball
+  (e^{70} for the cubic sensor at radius 7) and amplifies the basis' ripples there.
+* ``stable`` (default) — the Fokker–Planck propagator e^{dt L} and the factor
+  exp(hᵀR⁻¹Δy − ½hᵀR⁻¹h·dt) ≤ exp(½ΔyᵀR⁻¹Δy/dt), which never amplifies the rim.
+
+A step works in nodal values (``nodes``/``weights`` of the offline arrays):
+
+    s = P c                       P = propagator_fp (stable) or propagator_k (literal)
+    σ = s · exp(log e − max log e)   (the max goes to the log normaliser: log scale throughout)
+    estimates = moments of σ with the quadrature weights (before projection)
+    c = projector σ,  ∫σ          back onto the basis; the next step divides by ∫σ (renormalises)
+
+A row of NaN increments (missing observation) only predicts: s = propagator_fp c.
+The log-likelihood increment is log ∫σ(τ_k) − log ∫σ(τ_{k−1}), the Girsanov likelihood ratio of
+the increment against pure noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.linalg.blas import dgemv
+
+from .errors import InputError, SpecError
+from .filtering import Estimate, check_increments
+from .model import Model
+
+FORMS = ("stable", "literal")
+# A pre-projection mass outside [_TINY, _HUGE] is recomputed in log scale (rare slow path).
+_TINY = 1e-280
+_HUGE = 1e280
+_RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
+
+
+@dataclass(frozen=True, eq=False)
+class YauYauState:
+    """Filter state after ``step`` steps (time ``t``).
+
+    ``coefficients`` are the basis coefficients of the conditional density at a scale where the
+    (pre-projection) density has mass ``mass``: the normalised coefficients are
+    ``coefficients / mass`` (:attr:`density_coefficients`).  Keeping the pair exactly as the hot
+    loop carries it makes a run split into chunks bit-identical to an uninterrupted one.
+    ``loglik`` is the log normaliser of σ (the cumulative log-likelihood).  ``last`` is the last
+    good estimate; a ``degenerate`` state keeps it and keeps returning it.
+    """
+
+    coefficients: np.ndarray  # (N,)
+    mass: float
+    step: int
+    t: float
+    loglik: float
+    last: Estimate
+    degenerate: bool = False
+    reason: str | None = None
+    form: str = "stable"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe; floats as Python floats (repr round-trips exactly)."""
+        return {"method": "yau-yau", "form": self.form, "step": self.step, "t": self.t,
+                "loglik": self.loglik, "degenerate": self.degenerate, "reason": self.reason,
+                "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
+
+    @property
+    def density_coefficients(self) -> np.ndarray:
+        """Coefficients of the normalised conditional density."""
+        return self.coefficients / self.mass
+
+
+@dataclass(frozen=True)
+class ChunkResult:
+    """Estimates of a chunk as arrays (the fast path of :meth:`YauYauFilter.run`)."""
+
+    step: np.ndarray  # (K,) int
+    t: np.ndarray  # (K,)
+    mean: np.ndarray  # (K, n)
+    cov: np.ndarray  # (K, n, n)
+    mode: np.ndarray  # (K, n)
+    loglik: np.ndarray  # (K,) cumulative
+    loglik_increment: np.ndarray  # (K,)
+    degenerate: np.ndarray  # (K,) bool
+    reason: str | None = None  # of the first degenerate step
+
+    def estimates(self) -> list[Estimate]:
+        reason = self.reason
+        return [Estimate(step=int(self.step[k]), t=float(self.t[k]), mean=self.mean[k], cov=self.cov[k],
+                         loglik=float(self.loglik[k]), loglik_increment=float(self.loglik_increment[k]),
+                         degenerate=bool(self.degenerate[k]), reason=reason if self.degenerate[k] else None,
+                         mode=self.mode[k])
+                for k in range(len(self.step))]
+
+
+class YauYauFilter:
+    """The Yau–Yau filter on precomputed offline arrays (the :class:`solver.filtering.Filter` protocol).
+
+    ``offline`` needs ``nodes`` (Q, n), ``weights`` (Q,), ``projector`` (N, Q), ``propagator_fp`` and
+    ``propagator_k`` (Q, N) and ``evaluate_basis(points) -> (P, N)``.
+    """
+
+    method = "yau-yau"
+
+    def __init__(self, model: Model, offline: Any, form: str = "stable"):
+        if form not in FORMS:
+            raise SpecError("form", f"must be one of {', '.join(FORMS)}, got {form!r}")
+        self.model = model
+        self.offline = offline
+        self.form = form
+        self.nodes = np.ascontiguousarray(offline.nodes, dtype=float)
+        self.weights = np.ascontiguousarray(offline.weights, dtype=float)
+        projector = np.asarray(offline.projector, dtype=float)
+        self.N = projector.shape[0]
+        _check_offline_shapes(self.nodes, self.weights, projector, offline, model.n)
+        # Fortran order: dgemv reads it without a copy.  The weights ride along as an extra row of
+        # the projector, so one call gives the coefficients and the mass ∫σ; the propagators get a
+        # zero column for it, so the next call takes that vector as it is (and 1/∫σ as its alpha).
+        self._project = np.asfortranarray(np.vstack([projector, self.weights]))
+        self._predict = _with_zero_column(offline.propagator_fp)
+        literal = form == "literal"
+        self._observe = _with_zero_column(offline.propagator_k) if literal else self._predict
+        # h(nodes) R⁻¹ (m, Q) and the penalty ½hᵀR⁻¹h·dt (Q,), precomputed once.
+        h_nodes = model.h(self.nodes)
+        self._hR = np.ascontiguousarray((h_nodes @ model.R_inv).T)
+        penalty = 0.5 * model.dt * np.einsum("qi,ij,qj->q", h_nodes, model.R_inv, h_nodes)
+        self._penalty = np.zeros_like(penalty) if literal else penalty  # seed 002 (5.35) vs stable
+        self._features = _moment_features(self.nodes, self.weights)
+        self._rim = _rim_nodes(self.nodes, model.center, model.radius)
+
+    # -- states ------------------------------------------------------------------------
+    def initial_state(self, prior: Any | None = None) -> YauYauState:
+        """σ(0) = σ0: the prior (the model's, or ``prior``, a spec prior or its dict) on the basis."""
+        log_prior = self._log_prior_at_nodes(prior)
+        finite = np.isfinite(log_prior)
+        if not finite.any():
+            raise SpecError("initial", "the prior density vanishes at every node of the domain ball")
+        top = log_prior[finite].max()
+        sigma = np.where(finite, np.exp(np.where(finite, log_prior - top, 0.0)), 0.0)
+        mass = float(self.weights @ sigma)
+        if not mass > 0.0:
+            raise SpecError("initial", "the prior has no mass on the domain ball")
+        sigma = sigma / mass
+        projected = dgemv(1.0, self._project, sigma)
+        mean, cov, mode = self._moments(sigma[None, :], np.ones(1))
+        last = Estimate(step=0, t=0.0, mean=mean[0], cov=cov[0], loglik=0.0, loglik_increment=0.0,
+                        mode=mode[0])
+        return YauYauState(coefficients=projected[: self.N].copy(), mass=projected.item(self.N), step=0,
+                           t=0.0, loglik=0.0, last=last, form=self.form)
+
+    def _log_prior_at_nodes(self, prior: Any | None) -> np.ndarray:
+        if prior is None:
+            return self.model.log_prior(self.nodes)
+        return _override_model(self.model, prior).log_prior(self.nodes)
+
+    def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
+        """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
+        if not isinstance(data, dict):
+            raise InputError("state", "must be an object")
+        if data.get("method") != "yau-yau":
+            raise InputError("state.method", f"is {data.get('method')!r}, this filter is 'yau-yau'")
+        if data.get("form") != self.form:
+            raise InputError("state.form", f"is {data.get('form')!r}, this filter uses {self.form!r}")
+        coefficients = _float_array(data.get("coefficients"), "state.coefficients", (self.N,))
+        step = data.get("step")
+        if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+            raise InputError("state.step", "must be a non-negative integer")
+        reason = data.get("reason")
+        if reason is not None and not isinstance(reason, str):
+            raise InputError("state.reason", "must be a string or null")
+        if not isinstance(data.get("degenerate"), bool):
+            raise InputError("state.degenerate", "must be true or false")
+        mass = _finite_float(data.get("mass"), "state.mass")
+        if not mass > 0.0:
+            raise InputError("state.mass", "must be positive")
+        return YauYauState(coefficients=coefficients, mass=mass, step=step,
+                           t=_finite_float(data.get("t"), "state.t"),
+                           loglik=_finite_float(data.get("loglik"), "state.loglik"),
+                           last=_estimate_from_dict(data.get("last"), self.model.n),
+                           degenerate=data["degenerate"], reason=reason, form=self.form)
+
+    def estimate(self, state: YauYauState) -> Estimate:
+        return state.last
+
+    # -- stepping ----------------------------------------------------------------------
+    def step(self, state: YauYauState, increment: np.ndarray | None) -> tuple[YauYauState, Estimate]:
+        row = np.full((1, self.model.m), np.nan) if increment is None else np.reshape(increment, (1, -1))
+        new_state, estimates = self.run(state, row)
+        return new_state, estimates[0]
+
+    def run(self, state: YauYauState, increments: np.ndarray) -> tuple[YauYauState, list[Estimate]]:
+        new_state, result = self.run_arrays(state, increments)
+        return new_state, result.estimates()
+
+    def run_arrays(self, state: YauYauState, increments: np.ndarray) -> tuple[YauYauState, ChunkResult]:
+        """Advance over a chunk (K, m) of increments; estimates as arrays."""
+        dy = check_increments(increments, self.model.m)
+        K = dy.shape[0]
+        if K == 0:
+            return state, _stack_results(np.empty(0, int), np.empty(0), *self._empty_moments(), np.empty(0),
+                                         np.empty(0), state.last, None)
+        steps = state.step + 1 + np.arange(K)
+        times = steps * self.model.dt
+        if state.degenerate:
+            return self._stay_degenerate(state, steps, times, state.reason)
+        missing = np.isnan(dy[:, 0])
+        log_factor, top = self._update_exponents(dy, missing)
+        initial = np.append(state.coefficients, state.mass)
+        sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
+        done, carried, reason = self._check_rim(sigma, masses, done, carried, reason, initial)
+        masses = masses[:done]
+        increments_ll = np.log(masses) + top[:done]
+        # sequential sums from the carried value: identical however the data are chunked
+        loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+        mean, cov, mode = self._moments(sigma[:done], masses)
+        good = done == K
+        if done:
+            last = Estimate(step=int(steps[done - 1]), t=float(times[done - 1]), mean=mean[-1], cov=cov[-1],
+                            loglik=float(loglik[-1]), loglik_increment=float(increments_ll[-1]),
+                            mode=mode[-1])
+        else:
+            last = state.last
+        new_state = YauYauState(coefficients=carried[: self.N].copy(), mass=carried.item(self.N),
+                                step=int(steps[-1]), t=float(times[-1]),
+                                loglik=last.loglik, last=last, degenerate=not good,
+                                reason=reason, form=self.form)
+        result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
+        return new_state, result
+
+    def _update_exponents(self, dy: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """log e_k = hᵀR⁻¹Δy_k − ½hᵀR⁻¹h·dt at the nodes, minus its row maximum (returned apart).
+
+        Elementwise numpy only (no BLAS): each row's bits do not depend on the chunk length.
+        """
+        dy = np.where(missing[:, None], 0.0, dy)
+        with np.errstate(over="ignore", invalid="ignore"):
+            log_e = dy[:, 0, None] * self._hR[0]
+            for j in range(1, dy.shape[1]):
+                log_e += dy[:, j, None] * self._hR[j]
+            log_e -= self._penalty
+            top = log_e.max(axis=1)
+            top[missing] = 0.0
+            log_e -= top[:, None]
+        return log_e, top
+
+    def _propagate(self, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray, missing: list[bool]):
+        """The hot loop, two BLAS calls per step.  ``carried`` is [coefficients, ∫σ] (N+1,).
+
+        Returns nodal σ_k (pre-projection, K×Q, each relative to a unit-mass σ_{k−1}), ∫σ_k, the
+        final carried vector, the number of good steps and the reason it stopped early (or None).
+        """
+        K, Q = log_factor.shape
+        N = self.N
+        factor = np.exp(log_factor)
+        sigma = np.empty((K, Q))
+        masses = np.empty(K)
+        predict, observe, project = self._predict, self._observe, self._project
+        mass = carried.item(N)
+        for k in range(K):
+            row = sigma[k]
+            if missing[k]:
+                dgemv(1.0 / mass, predict, carried, 0.0, row, overwrite_y=1)
+            else:
+                dgemv(1.0 / mass, observe, carried, 0.0, row, overwrite_y=1)
+                row *= factor[k]
+            projected = dgemv(1.0, project, row)
+            new_mass = projected.item(N)
+            if not _TINY < new_mass < _HUGE:
+                new_mass, reason = self._rescue(carried, mass, log_factor, top, missing[k], k, row)
+                if reason is not None:
+                    return sigma, masses[:k], carried, k, reason
+                projected = dgemv(1.0, project, row)
+                projected[N] = new_mass
+            masses[k] = mass = new_mass
+            carried = projected
+        return sigma, masses, carried, K, None
+
+    def _check_rim(self, sigma, masses, done, carried, reason, initial):
+        """Stop at the first step whose density sits mostly within one element of the boundary.
+
+        The Dirichlet condition forces σ = 0 on ∂B_R, so such a density is an artefact: the data
+        pull the state out of the ball (impossible under the model on this domain).
+        """
+        if not done or not self._rim.size:
+            return done, carried, reason
+        rim = (sigma[:done, self._rim] * self.weights[self._rim]).sum(axis=1) > _RIM_FRACTION * masses[:done]
+        if not rim.any():
+            return done, carried, reason
+        bad = int(np.argmax(rim))
+        reason = ("the conditional density is pushed against the boundary of the domain ball: the data are "
+                  "incompatible with the model on this ball (enlarge domain.radius?)")
+        if bad == 0:
+            return 0, initial, reason
+        carried = dgemv(1.0, self._project, sigma[bad - 1])  # what the loop carried after step bad−1
+        carried[self.N] = masses[bad - 1]
+        return bad, carried, reason
+
+    def _rescue(self, carried, mass, log_factor, top, missing, k, row) -> tuple[float, str | None]:
+        """Recompute step k in log scale when ∫σ under/overflows; writes row, may shift top[k]."""
+        s = dgemv(1.0 / mass, self._predict if missing else self._observe, carried)
+        if not missing and not np.all(np.isfinite(log_factor[k])):
+            return 0.0, "the update factor exp(hᵀR⁻¹Δy) overflows: increment incompatible with the model"
+        prior_mass = float(self.weights @ s)
+        if not prior_mass > 0.0 or not math.isfinite(prior_mass):
+            return 0.0, "all probability mass has left the domain ball"
+        with np.errstate(divide="ignore"):
+            log_abs = np.log(np.abs(s)) + (0.0 if missing else log_factor[k])
+        shift = float(log_abs.max())
+        row[:] = np.sign(s) * np.exp(log_abs - shift)
+        new_mass = float(self.weights @ row)
+        if not _TINY < new_mass < _HUGE:
+            return 0.0, "no positive mass after the update: observation impossible under the model"
+        top[k] += shift
+        return new_mass, None
+
+    def _stay_degenerate(self, state: YauYauState, steps, times, reason):
+        K = len(steps)
+        last = state.last
+        new_state = YauYauState(coefficients=state.coefficients, mass=state.mass,
+                                step=int(steps[-1]) if K else state.step,
+                                t=float(times[-1]) if K else state.t, loglik=state.loglik, last=last,
+                                degenerate=True, reason=reason, form=self.form)
+        result = _stack_results(steps, times, *self._empty_moments(), np.empty(0), np.empty(0), last, reason)
+        return new_state, result
+
+    def _empty_moments(self):
+        n = self.model.n
+        return np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n))
+
+    def _moments(self, sigma: np.ndarray, mass: np.ndarray):
+        """Mean, covariance and mode of each row of nodal σ (K, Q) with ∫σ = mass.
+
+        Elementwise products and row sums: each row's value does not depend on K.
+        """
+        n = self.model.n
+        K = sigma.shape[0]
+        first = np.stack([(sigma * f).sum(axis=1) for f in self._features[0]], axis=1) / mass[:, None]
+        cov = np.empty((K, n, n))
+        for (i, j), f in zip(self._features[2], self._features[1], strict=True):
+            cov[:, i, j] = cov[:, j, i] = (sigma * f).sum(axis=1) / mass - first[:, i] * first[:, j]
+        mode = self.nodes[np.argmax(sigma, axis=1)] if K else np.empty((0, n))
+        return first, cov, mode
+
+    # -- densities -----------------------------------------------------------------------
+    def density(self, state: YauYauState, points: np.ndarray) -> np.ndarray:
+        """Normalised conditional density at points (P, n).
+
+        The truncated basis expansion can ripple below zero: negative values are clipped at 0 and
+        the clipped density is renormalised over the ball (quadrature nodes).  Zero outside the ball.
+        """
+        basis = self.offline.evaluate_basis(points)  # validates points (InputError); 0 outside the ball
+        values = np.clip(basis @ state.density_coefficients, 0.0, None)
+        return values / self._clipped_mass(state)
+
+    def _clipped_mass(self, state: YauYauState) -> float:
+        nodal = np.clip(np.asarray(self.offline.basis) @ state.density_coefficients, 0.0, None)
+        mass = float(self.weights @ nodal)
+        if not mass > 0.0:
+            raise InputError("state", "the density has no positive mass (degenerate state)")
+        return mass
+
+    def marginal(self, state: YauYauState, var_index: int, grid: np.ndarray,
+                 resolution: int = 64) -> np.ndarray:
+        """Marginal density of state variable ``var_index`` at the values ``grid`` (G,).
+
+        The other coordinates are integrated out with the trapezoidal rule on ``resolution`` points
+        per direction across the ball (density clipped at 0 as in :meth:`density`).
+        """
+        n = self.model.n
+        if not isinstance(var_index, (int, np.integer)) or not 0 <= var_index < n:
+            raise InputError("var_index", f"must be an integer in [0, {n})")
+        grid = np.asarray(grid, dtype=float)
+        if grid.ndim != 1 or not np.all(np.isfinite(grid)):
+            raise InputError("grid", "must be a 1-D list of finite numbers")
+        if n == 1:
+            return self.density(state, grid[:, None])
+        center, radius = self.model.center, self.model.radius
+        rest = [i for i in range(n) if i != var_index]
+        axes = [np.linspace(center[i] - radius, center[i] + radius, resolution) for i in rest]
+        others = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n - 1)
+        points = np.empty((len(grid), len(others), n))
+        points[:, :, var_index] = grid[:, None]
+        points[:, :, rest] = others[None, :, :]
+        values = self.density(state, points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
+        for axis in axes[::-1]:
+            values = np.trapezoid(values, axis, axis=-1)
+        return values
+
+    marginals = marginal
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def _rim_nodes(nodes: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
+    """Nodes within about one element of the boundary (twice the gap of the outermost node)."""
+    r = np.linalg.norm(nodes - center, axis=1)
+    return np.flatnonzero(r >= radius - 2.0 * (radius - r.max()))
+
+
+def _with_zero_column(propagator: np.ndarray) -> np.ndarray:
+    matrix = np.asarray(propagator, dtype=float)
+    return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]))
+
+
+def _moment_features(nodes: np.ndarray, weights: np.ndarray):
+    n = nodes.shape[1]
+    first = [np.ascontiguousarray(weights * nodes[:, i]) for i in range(n)]
+    pairs = [(i, j) for i in range(n) for j in range(i, n)]
+    second = [np.ascontiguousarray(weights * nodes[:, i] * nodes[:, j]) for i, j in pairs]
+    return first, second, pairs
+
+
+def _stack_results(steps, times, mean, cov, mode, loglik, increments, last: Estimate, reason):
+    """Pad the good steps' estimates with the last good one for the degenerate tail."""
+    K, done = len(steps), len(loglik)
+    if done < K:
+        tail = K - done
+        mean = np.concatenate([mean, np.repeat(last.mean[None], tail, axis=0)])
+        cov = np.concatenate([cov, np.repeat(last.cov[None], tail, axis=0)])
+        last_mode = last.mode if last.mode is not None else last.mean
+        mode = np.concatenate([mode, np.repeat(last_mode[None], tail, axis=0)])
+        loglik = np.concatenate([loglik, np.full(tail, last.loglik)])
+        increments = np.concatenate([increments, np.zeros(tail)])
+    degenerate = np.arange(K) >= done
+    return ChunkResult(step=steps, t=times, mean=mean, cov=cov, mode=mode, loglik=loglik,
+                       loglik_increment=increments, degenerate=degenerate, reason=reason)
+
+
+def _override_model(model: Model, prior: Any) -> Model:
+    """The model with another prior (validated like the spec's ``initial`` field)."""
+    from .model import compile_model
+    from .spec import spec_from_dict
+
+    data = model.spec.model_dump(mode="json")
+    data["initial"] = prior.model_dump(mode="json") if hasattr(prior, "model_dump") else prior
+    return compile_model(spec_from_dict(data))
+
+
+def _check_offline_shapes(nodes, weights, projector, offline, n: int) -> None:
+    Q, N = len(weights), projector.shape[0]
+    expected = {"nodes": (Q, n), "projector": (N, Q), "propagator_fp": (Q, N), "propagator_k": (Q, N),
+                "basis": (Q, N)}
+    for name, shape in expected.items():
+        array = np.asarray(getattr(offline, name))
+        if array.shape != shape:
+            raise SpecError(f"offline.{name}", f"has shape {array.shape}, expected {shape}")
+        if not np.all(np.isfinite(array)):
+            raise SpecError(f"offline.{name}", "contains non-finite values")
+    if not np.all(weights > 0):
+        raise SpecError("offline.weights", "quadrature weights must be positive")
+
+
+def _finite_float(value: Any, field: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(field, "must be a finite number")
+    return float(value)
+
+
+def _float_array(value: Any, field: str, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "must be a list of numbers") from None
+    if arr.shape != shape:
+        raise InputError(field, f"must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(field, "must be finite")
+    return arr
+
+
+def _estimate_from_dict(data: Any, n: int) -> Estimate:
+    if not isinstance(data, dict):
+        raise InputError("state.last", "must be an estimate object")
+    step = data.get("step")
+    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+        raise InputError("state.last.step", "must be a non-negative integer")
+    mode = data.get("mode")
+    return Estimate(step=step, t=_finite_float(data.get("t"), "state.last.t"),
+                    mean=_float_array(data.get("mean"), "state.last.mean", (n,)),
+                    cov=_float_array(data.get("cov"), "state.last.cov", (n, n)),
+                    loglik=_finite_float(data.get("loglik"), "state.last.loglik"),
+                    loglik_increment=_finite_float(data.get("loglik_increment"),
+                                                   "state.last.loglik_increment"),
+                    degenerate=bool(data.get("degenerate", False)), reason=data.get("reason"),
+                    mode=None if mode is None else _float_array(mode, "state.last.mode", (n,)))
