@@ -38,9 +38,10 @@ _ID = re.compile(rf"^[0-9a-f]{{{ID_LENGTH}}}$")
 _ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 _TMP = re.compile(rf"^{re.escape(TMP_PREFIX)}[0-9a-f]{{{ID_LENGTH}}}-(\d+)-[0-9a-f]+{re.escape(SUFFIX)}$")
 _LIBRARIES = ("numpy", "scipy", "h5py", "scikit-fem")
-# Integer arrays (mesh cells) shrink several-fold under shuffle+gzip; dense float
-# propagators barely do (bench/storage.py), so they are stored uncompressed.
-_COMPRESS_KINDS = "iub"
+# Integer arrays (mesh cells, node indices) shrink 3-15x under shuffle+gzip at no cost.  Dense
+# float arrays shrink by 5-35% but load 20-40x slower (bench/storage.py, docs/bench-storage.md),
+# so they are compressed only on request (ModelStore(compress_floats=True)).
+_INTEGER_KINDS = "iub"
 
 
 @dataclass(frozen=True)
@@ -136,14 +137,14 @@ def _attrs_json(attrs: Any) -> str:
         raise StoreError("attrs", f"must be JSON-serialisable finite values: {exc}") from None
 
 
-def _write_dataset(group: h5py.Group, name: str, arr: np.ndarray) -> None:
+def _write_dataset(group: h5py.Group, name: str, arr: np.ndarray, compress_floats: bool = False) -> None:
     # fletcher32 needs chunked storage, impossible for 0-d and empty arrays: store those as
     # a (1,)-shaped / plain dataset and remember the shape.
     stored = arr.reshape(1) if arr.ndim == 0 else arr
     if stored.size == 0:
         dset = group.create_dataset(name, data=stored)
     else:
-        compress = stored.dtype.kind in _COMPRESS_KINDS
+        compress = compress_floats or stored.dtype.kind in _INTEGER_KINDS
         dset = group.create_dataset(name, data=stored, fletcher32=True, chunks=True,
                                     shuffle=compress, compression="gzip" if compress else None,
                                     compression_opts=4 if compress else None)
@@ -183,10 +184,14 @@ def _utc_now() -> str:
 
 
 class ModelStore:
-    """A directory of ``<id>.h5`` model files (other names are ignored)."""
+    """A directory of ``<id>.h5`` model files (other names are ignored).
 
-    def __init__(self, directory: str | os.PathLike):
+    ``compress_floats``: also gzip the float arrays when saving (smaller, slower to load).
+    """
+
+    def __init__(self, directory: str | os.PathLike, compress_floats: bool = False):
         self.directory = Path(directory)
+        self.compress_floats = bool(compress_floats)
 
     # -- names ----------------------------------------------------------------------
     def path(self, model_id_: str) -> Path:
@@ -249,7 +254,7 @@ class ModelStore:
             h5.attrs["meta_sha256"] = _meta_digest(spec, attrs, created, versions, _layout(arrays))
             group = h5.create_group("arrays")
             for name, arr in arrays.items():
-                _write_dataset(group, name, arr)
+                _write_dataset(group, name, arr, self.compress_floats)
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)  # the bytes are on disk before the rename makes them visible

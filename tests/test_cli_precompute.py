@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -55,14 +56,16 @@ def test_precompute_prints_id_last_and_models_lists_it(tmp_path: Path):
     assert text.returncode == 0 and mid in text.stdout and "ornstein-uhlenbeck" in text.stdout
 
 
-def test_force_recomputes_and_replaces(tmp_path: Path):
+def test_force_recomputes_and_replaces_with_compress(tmp_path: Path):
     spec_path, store = small_ou(tmp_path, basis=4), tmp_path / "store"
     first = yauyau("precompute", str(spec_path), "--store", str(store), "--quiet", "--workers", "1")
     created = ModelStore(store).load(first.stdout.strip()).attrs["precompute_seconds"]
-    forced = yauyau("precompute", str(spec_path), "--store", str(store), "--force", "--workers", "1")
+    forced = yauyau("precompute", str(spec_path), "--store", str(store), "--force", "--compress")
     assert forced.returncode == 0 and forced.stdout.strip() == first.stdout.strip()
     assert "already" not in forced.stderr and created >= 0
     assert [p.name for p in store.iterdir()] == [f"{first.stdout.strip()}.h5"]
+    with h5py.File(store / f"{first.stdout.strip()}.h5", "r") as h5:
+        assert h5["arrays"]["propagator_fp"].compression == "gzip"
 
 
 def _replace(text: str, old: str, new: str) -> str:

@@ -72,6 +72,18 @@ def test_round_trip_preserves_arrays_bitwise_spec_and_attrs(store: ModelStore):
         assert all(h5["arrays"][k].fletcher32 for k in arrays)
 
 
+def test_compressed_floats_round_trip_bitwise_and_are_gzipped(tmp_path: Path):
+    store = ModelStore(tmp_path, compress_floats=True)
+    arrays = _arrays(np.random.default_rng(11))
+    loaded = store.load(store.save(SPEC, arrays))
+    assert all(np.array_equal(loaded.arrays[k], v) for k, v in arrays.items())
+    with h5py.File(store.path(model_id(SPEC)), "r") as h5:
+        assert h5["arrays"]["basis"].compression == "gzip" and h5["arrays"]["basis"].fletcher32
+    plain = ModelStore(tmp_path / "plain")
+    with h5py.File(plain.path(plain.save(SPEC, arrays)), "r") as h5:
+        assert h5["arrays"]["basis"].compression is None and h5["arrays"]["mesh_cells"].compression == "gzip"
+
+
 def test_scalar_and_empty_arrays_round_trip(store: ModelStore):
     mid = store.save(SPEC, {"dt": np.float64(0.25), "none": np.zeros((0, 3))})
     loaded = store.load(mid).arrays
@@ -185,8 +197,8 @@ _KILLED_WRITER = textwrap.dedent("""
     import storage.model_store as ms
 
     original = ms._write_dataset
-    def slow_write(group, name, arr):
-        original(group, name, arr)
+    def slow_write(group, name, arr, *options):
+        original(group, name, arr, *options)
         group.file.flush()
         print("WRITING", flush=True)   # one dataset is on disk, the next one never will be
         time.sleep(60)
