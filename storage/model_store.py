@@ -4,8 +4,9 @@
 
 Layout of ``<id>.h5``: root attributes ``format_version``, ``model_id``, ``spec`` (JSON),
 ``created`` (UTC ISO 8601), ``versions`` (JSON: numpy, scipy, h5py, scikit-fem), ``attrs``
-(JSON, the caller's), ``meta_sha256`` (hash of all of the above plus the array names, shapes
-and dtypes); group ``arrays`` holds one dataset per array, each with a fletcher32 checksum.
+(JSON, the caller's), ``meta_sha256`` (hash of all of the above plus the name, shape, dtype and
+sha256 of every array); group ``arrays`` holds one dataset per array, each with a fletcher32
+checksum (per chunk, checked by HDF5 on read).
 
 Writes go to a hidden temporary file in the same directory which is flushed, fsynced and
 ``os.replace``d, so a killed writer never leaves a half-written file under the final name.
@@ -107,7 +108,10 @@ def _meta_digest(spec: str, attrs: str, created: str, versions: str, layout: lis
 
 
 def _layout(arrays: dict[str, np.ndarray]) -> list:
-    return [[name, list(arr.shape), arr.dtype.str] for name, arr in sorted(arrays.items())]
+    # The content hash of every array catches what fletcher32 cannot: a damaged chunk index
+    # makes HDF5 return the fill value (zeros) for a chunk without any checksum being read.
+    return [[name, list(arr.shape), arr.dtype.str, hashlib.sha256(arr.tobytes()).hexdigest()]
+            for name, arr in sorted(arrays.items())]
 
 
 def _checked_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -380,7 +384,7 @@ def _verified(h5: h5py.File, mid: str) -> StoredModel:
     arrays = {name: _read_dataset(group[name]) for name in group}  # reading verifies fletcher32
     digest = _meta_digest(spec, attrs_text, created, versions, _layout(arrays))
     if digest != _text_attr(h5, "meta_sha256"):
-        raise StoreError("model", f"model {mid}: metadata checksum mismatch (file altered)")
+        raise StoreError("model", f"model {mid}: checksum mismatch of the metadata or arrays (file altered)")
     attrs = dict(json.loads(attrs_text))
     attrs.update(format_version=FORMAT_VERSION, created=created, versions=json.loads(versions))
     return StoredModel(id=mid, spec_json=spec, arrays=arrays, attrs=attrs)
