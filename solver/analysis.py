@@ -134,7 +134,7 @@ def observation_energy(model: Model) -> sp.Expr:
     return sp.expand((h.T * exact_matrix(model.R).inv() * h)[0, 0])
 
 
-def _is_identity(matrix) -> bool:
+def is_identity(matrix) -> bool:
     return exact_matrix(matrix) == sp.eye(len(matrix))
 
 
@@ -550,11 +550,11 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
     """Wong matrix, η, conditions, estimation algebra and the recommended exact/general method."""
     x = model.symbols
     omega = wong_matrix(model)
-    a_is_identity = _is_identity(model.a)
+    a_is_identity = is_identity(model.a)
     omega_a = omega if a_is_identity else whitened_wong_matrix(model)
     e = eta(model)
     notes = []
-    if not _is_identity(model.R):
+    if not is_identity(model.R):
         notes.append("R != I: eta and L0 use h^T R^-1 h")
     if not a_is_identity:
         notes.append("a != I: the seeds assume a = I (g orthogonal); eta here is f^T a^-1 f + div f + "
@@ -565,7 +565,7 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
     c2 = all(polynomial_degree_at_most(hi, x, 1) for hi in model.observation)
     c3 = polynomial_degree_at_most(e, x, 2)
     linear = c2 and all(polynomial_degree_at_most(fi, x, 1) for fi in model.drift)
-    k = _observed_coordinate(model)
+    k = observed_coordinate(model)
     structure = seed004_structure(model, k) if (k is not None and a_is_identity) else None
     seed004 = _seed004_items(model, k) if (k is not None and a_is_identity and model.n > 1) else {}
     conditions = {
@@ -594,7 +594,7 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
         method=method, reason=reason)
 
 
-def _observed_coordinate(model: Model) -> int | None:
+def observed_coordinate(model: Model) -> int | None:
     """The single state coordinate h depends on (x1 of seed 004 §III), if there is one."""
     used = {i for hi in model.observation for i, s in enumerate(model.symbols) if hi.has(s)}
     return next(iter(used)) if len(used) == 1 else None
