@@ -40,11 +40,13 @@ from scipy.linalg.blas import dgemv
 from .errors import InputError, SpecError
 from .filtering import Estimate, check_increments
 from .model import Model
+from .spec import DensityPrior
 
 FORMS = ("stable", "literal")
 # A pre-projection mass outside [_TINY, _HUGE] is recomputed in log scale (rare slow path).
 _TINY = 1e-280
 _HUGE = 1e280
+_MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 _RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
 
 
@@ -143,7 +145,8 @@ class YauYauFilter:
     # -- states ------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauYauState:
         """σ(0) = σ0: the prior (the model's, or ``prior``, a spec prior or its dict) on the basis."""
-        log_prior = self._log_prior_at_nodes(prior)
+        model = self.model if prior is None else _override_model(self.model, prior)
+        log_prior = model.log_prior(self.nodes)
         finite = np.isfinite(log_prior)
         if not finite.any():
             raise SpecError("initial", "the prior density vanishes at every node of the domain ball")
@@ -152,6 +155,11 @@ class YauYauFilter:
         mass = float(self.weights @ sigma)
         if not mass > 0.0:
             raise SpecError("initial", "the prior has no mass on the domain ball")
+        if not isinstance(model.spec.initial, DensityPrior):  # normalised: its mass on the ball is known
+            ball_mass = math.exp(min(top + math.log(mass), 0.0))
+            if ball_mass < _MIN_PRIOR_MASS:
+                raise SpecError("initial", f"only {ball_mass:.3g} of the prior mass lies on the domain ball "
+                                "(move the prior or enlarge domain.radius)")
         sigma = sigma / mass
         projected = dgemv(1.0, self._project, sigma)
         mean, cov, mode = self._moments(sigma[None, :], np.ones(1))
@@ -159,11 +167,6 @@ class YauYauFilter:
                         mode=mode[0])
         return YauYauState(coefficients=projected[: self.N].copy(), mass=projected.item(self.N), step=0,
                            t=0.0, loglik=0.0, last=last, form=self.form)
-
-    def _log_prior_at_nodes(self, prior: Any | None) -> np.ndarray:
-        if prior is None:
-            return self.model.log_prior(self.nodes)
-        return _override_model(self.model, prior).log_prior(self.nodes)
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
