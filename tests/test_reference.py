@@ -264,3 +264,38 @@ def test_ekf_prediction_of_a_nonlinear_drift_matches_the_ode_solution():
     state, est = ekf.run(state, np.full((50, 1), np.nan))
     t = 50 * model.dt
     assert est[-1].mean[0] == pytest.approx(1.5 / np.sqrt(1 + 2 * 1.5**2 * t), rel=1e-9)
+
+
+# -- the update factor and the particle filter's machinery -------------------------------------
+def test_update_factor_is_the_gaussian_likelihood_ratio():
+    """seed 002 (5.35): exp(hᵀR⁻¹Δy − ½hᵀR⁻¹h dt) = N(Δy; h dt, R dt) / N(Δy; 0, R dt)."""
+    from scipy.stats import multivariate_normal
+
+    from solver.reference._base import log_update_factor
+
+    r = [[0.7, 0.2], [0.2, 0.4]]
+    model = _model(ROT, observation=["x1**3", "sin(x2)"], observation_noise=r)
+    X = np.random.default_rng(51).normal(size=(7, 2))
+    dy = np.array([0.03, -0.05])
+    dt = model.dt
+    expected = [multivariate_normal(h * dt, np.array(r) * dt).logpdf(dy)
+                - multivariate_normal(np.zeros(2), np.array(r) * dt).logpdf(dy) for h in model.h(X)]
+    assert np.allclose(log_update_factor(model, X, dy), expected, rtol=1e-10, atol=1e-10)
+
+
+def test_systematic_resampling_keeps_each_count_within_one_of_n_w():
+    from solver.reference.particle import systematic_resample
+
+    w = np.random.default_rng(52).dirichlet(np.ones(50))
+    counts = np.bincount(systematic_resample(w, np.random.default_rng(53)), minlength=50)
+    assert counts.sum() == 50 and np.all(np.abs(counts - 50 * w) < 1.0 + 1e-12)
+
+
+def test_particle_filter_stays_finite_under_a_sharp_cubic_observation():
+    model = _model(OU, observation=["x**3"], observation_noise=[[1.0]])
+    pf = BootstrapParticleFilter(model, 500, np.random.default_rng(54))
+    dy = np.array([[40.0], [np.nan], [-40.0]])  # far outside the prior's reach
+    _, est = pf.run(pf.initial_state(), dy)
+    for e in est:
+        assert np.all(np.isfinite(e.mean)) and np.all(np.isfinite(e.cov)) and np.isfinite(e.loglik)
+    assert est[1].loglik_increment == 0.0
