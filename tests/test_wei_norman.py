@@ -18,7 +18,7 @@ from scipy.integrate import solve_ivp
 from scipy.interpolate import RegularGridInterpolator
 
 from solver.errors import InputError, SpecError
-from solver.exact.wei_norman import WeiNormanFilter
+from solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
 from solver.filtering import Filter
 from solver.model import compile_model
 from solver.spec import spec_from_dict
@@ -117,6 +117,22 @@ def test_linear_model_matches_kalman_bucy_with_loglik():
         assert est.loglik == pytest.approx(truth[2], abs=1e-6)
     again = wn.state_from_dict(state.to_dict())
     assert wn.estimate(again).mean[0] == pytest.approx(estimates[-1].mean[0], abs=1e-12)
+
+
+def test_linear_model_with_the_stored_kolmogorov_propagator():
+    from solver.offline import precompute
+
+    model = make(["x"], [f"-{THETA}*x + {B}"], [f"{C}*x + {D}"], [MEAN0], [[VAR0]], radius=8.0, dt=DT,
+                 observation_noise=[[R]], discretization={"dt": DT, "basis": 120})
+    wn = WeiNormanFilter(model, kolmogorov_flow_from_offline(precompute(model)))
+    increments = np.random.default_rng(3).normal(0.2 * DT, np.sqrt(R * DT), size=(12, 1))
+    _, estimates = wn.run(wn.initial_state(), increments)
+    truth = [MEAN0, VAR0, 0.0]
+    for k, est in enumerate(estimates):
+        truth = kalman_bucy(increments[k, 0] / DT, DT, truth).y[:, -1]
+        assert est.mean[0] == pytest.approx(truth[0], abs=1e-3)
+        assert est.cov[0, 0] == pytest.approx(truth[1], abs=1e-3)
+        assert est.loglik == pytest.approx(truth[2], abs=1e-3)
 
 
 # ---------------------------------------------------------------------------------------------

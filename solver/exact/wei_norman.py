@@ -219,3 +219,23 @@ def _observation_weights(model: Model):
     weights = exact_matrix(model.R).inv() * h
     parts = [vectorize(w, model.symbols) for w in weights]
     return lambda X: np.stack([p(X) for p in parts], axis=1)
+
+
+def kolmogorov_flow_from_offline(offline) -> Callable[[float, np.ndarray], np.ndarray]:
+    """e^{t L0} σ0 from the stored Kolmogorov propagator (``propagator_k``, seed 002 (5.31)).
+
+    σ at the nodes after k intervals is (propagator_k · projector)^k σ0, interpolated at any
+    points by the finite-element space; t must be a multiple of dt (the filter only asks for those).
+    """
+    model = offline.model
+    history = [np.exp(model.log_prior(offline.nodes))]
+
+    def flow(t: float, points: np.ndarray) -> np.ndarray:
+        k = int(round(t / model.dt))
+        if k < 0 or abs(k * model.dt - t) > 1e-9 * max(1.0, t):
+            raise InputError("t", "the stored Kolmogorov flow is known at multiples of dt only")
+        while len(history) <= k:
+            history.append(offline.propagator_k @ (offline.projector @ history[-1]))
+        return offline.interpolate(history[k], points)
+
+    return flow
