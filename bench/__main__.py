@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import platform
 import sys
 import time
@@ -21,6 +22,7 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 # (module, fragment) in reading order
 TOPICS = [
     ("precompute", "bench-precompute.md"),
+    ("storage", "bench-storage.md"),
     ("engine_speed", "bench-engine.md"),
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
@@ -51,10 +53,23 @@ def assemble() -> Path:
     return out
 
 
+def _call_main(module, argv: list[str]) -> None:
+    """Call ``module.main`` with argv whether it takes an argument list or reads sys.argv."""
+    if inspect.signature(module.main).parameters:
+        module.main(argv)
+        return
+    saved, sys.argv = sys.argv, [module.__name__, *argv]
+    try:
+        module.main()
+    finally:
+        sys.argv = saved
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller runs")
-    parser.add_argument("--only", default="", help="comma-separated topics: " + ",".join(t for t, _ in TOPICS))
+    topics = ",".join(t for t, _ in TOPICS)
+    parser.add_argument("--only", default="", help=f"comma-separated topics: {topics}")
     parser.add_argument("--assemble", action="store_true", help="only re-assemble docs/benchmarks.md")
     args = parser.parse_args(argv)
     if not args.assemble:
@@ -63,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             if topic in wanted:
                 print(f"== bench.{topic}", flush=True)
                 module = importlib.import_module(f"bench.{topic}")
-                module.main(["--quick"] if args.quick else [])
+                _call_main(module, ["--quick"] if args.quick else [])
     print(f"wrote {assemble()}")
     return 0
 
