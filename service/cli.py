@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 COMMANDS = {
@@ -41,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     except (YauyauError, StoreError) as exc:
         print(f"yauyau {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `yauyau analyze spec.toml | head`
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print(f"yauyau {args.command}: interrupted", file=sys.stderr)
         return 130
