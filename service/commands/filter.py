@@ -1,9 +1,169 @@
-"""`yauyau filter` (not yet implemented)."""
+"""`yauyau filter MODEL_ID --store DIR --increments IN --out OUT.csv`: run a filter over a file.
+
+The observation increments Δy_k = y(τ_k) − y(τ_{k−1}), one row per step τ_k = k·dt, are read from
+a CSV file (m comma-separated numbers per row; an optional header line; a row of empty fields is a
+missing observation, the filter then only predicts) or a .npy array (K, m) (NaN rows missing).
+The stored model (storage.model_store) is filtered with the method of --method (default: the
+spec's; ``auto`` asks the estimation-algebra analysis) in chunks of --chunk rows, and OUT gets one
+row per step: step, t, mean_<var>…, cov_<var>_<var>… (upper triangle), loglik (cumulative),
+degenerate.  All input is validated before anything is written; OUT appears atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from .precompute import store_argument
+
+DEFAULT_CHUNK = 1000
 
 
-def add_arguments(parser):
-    pass
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from solver.engine import FORMS
+    from solver.spec import METHODS
+
+    parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
+    store_argument(parser)
+    parser.add_argument("--increments", required=True, help="observation increments: .csv or .npy")
+    parser.add_argument("--out", required=True, help="output CSV of the estimates")
+    parser.add_argument("--method", choices=METHODS, default=None, help="filter (default: the spec's method)")
+    parser.add_argument("--form", choices=FORMS, default="stable",
+                        help="yau-yau step: stable (default) or literal seed 002 (5.35)")
+    parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
+                        help="rows per chunk (default %(default)s)")
 
 
-def run(args):
-    raise SystemExit("yauyau filter: not implemented yet")
+def run(args: argparse.Namespace) -> int:
+    from solver.errors import InputError
+
+    if args.chunk < 1:
+        raise InputError("chunk", "must be a positive integer")
+    model, offline = load_stored_model(args.store, args.model_id)
+    increments = read_increments(args.increments, model.m)
+    from solver.methods import make_filter
+
+    flt = make_filter(model, offline, args.method, form=args.form)
+    rows, first_degenerate = filter_rows(flt, increments, args.chunk)
+    write_csv(args.out, header(model), rows)
+    if first_degenerate is not None:
+        print(f"yauyau filter: degenerate from step {first_degenerate.step}: {first_degenerate.reason}",
+              file=sys.stderr)
+    return 0
+
+
+def load_stored_model(store_dir: str, model_id: str):
+    """(Model, OfflineModel) of a stored model."""
+    from solver import compile_model, parse_spec_text
+    from solver.offline import OfflineModel
+    from storage.model_store import ModelStore
+
+    stored = ModelStore(store_dir).load(model_id)
+    model = compile_model(parse_spec_text(stored.spec_json, "json"))
+    return model, OfflineModel.from_arrays(model, stored.arrays)
+
+
+def read_increments(path: str, m: int):
+    """(K, m) floats from .npy or CSV; NaN rows are missing observations."""
+    import numpy as np
+
+    from solver.errors import InputError
+    from solver.filtering import check_increments
+
+    if Path(path).suffix.lower() == ".npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError("increments", f"cannot read {path}: {exc}") from None
+        if data.dtype.kind not in "iuf":
+            raise InputError("increments", f"{path} must hold numbers, not {data.dtype}")
+        return check_increments(data, m)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError("increments", f"cannot read {path}: {exc}") from None
+    return check_increments(parse_csv(text, m), m)
+
+
+def parse_csv(text: str, m: int) -> list[list[float]]:
+    """Rows of m fields; empty fields (or a blank line) are a missing observation (NaN row); the
+    first line may be a header; blank lines at the end are ignored."""
+    from solver.errors import InputError
+
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    rows: list[list[float]] = []
+    for number, line in enumerate(lines, start=1):
+        fields = [f.strip() for f in line.split(",")] if line.strip() else [""] * m
+        values = [_number(f) for f in fields]
+        if number == 1 and any(v is None for v in values):
+            continue  # a header
+        where = f"increments[{len(rows)}]"
+        if len(fields) != m:
+            raise InputError(where, f"line {number}: expected {m} field(s), got {len(fields)}")
+        for j, (field, value) in enumerate(zip(fields, values, strict=True)):
+            if value is None:
+                raise InputError(f"{where}[{j}]", f"line {number}: {field[:40]!r} is not a finite number")
+        rows.append([math.nan if v == "" else v for v in values])
+    return rows
+
+
+def _number(field: str):
+    """A finite float, "" for an empty field, None for anything else (nan/inf included)."""
+    if field == "":
+        return ""
+    try:
+        value = float(field)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def filter_rows(flt, increments, chunk: int):
+    """One output row per step (step, t, means, upper-triangle covariances, loglik, degenerate) and
+    the first degenerate estimate (or None)."""
+    state = flt.initial_state()
+    rows: list[list] = []
+    first_degenerate = None
+    for start in range(0, len(increments), chunk):
+        state, estimates = flt.run(state, increments[start:start + chunk])
+        for e in estimates:
+            n = len(e.mean)
+            cov = [float(e.cov[i][j]) for i in range(n) for j in range(i, n)]
+            mean = [float(v) for v in e.mean]
+            rows.append([int(e.step), float(e.t), *mean, *cov, float(e.loglik), int(e.degenerate)])
+            if e.degenerate and first_degenerate is None:
+                first_degenerate = e
+    return rows, first_degenerate
+
+
+def header(model) -> list[str]:
+    names = model.spec.state
+    n = len(names)
+    cov = [f"cov_{names[i]}_{names[j]}" for i in range(n) for j in range(i, n)]
+    return ["step", "t", *[f"mean_{v}" for v in names], *cov, "loglik", "degenerate"]
+
+
+def write_csv(path: str, columns: list[str], rows: list[list]) -> None:
+    """Write atomically (temporary file in the same directory, then rename)."""
+    from solver.errors import InputError
+
+    target = Path(path)
+    try:
+        handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=target.parent)
+    except OSError as exc:
+        raise InputError("out", f"cannot write {path}: {exc}") from None
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8", newline="") as out:
+            out.write(",".join(columns) + "\n")
+            for row in rows:
+                out.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

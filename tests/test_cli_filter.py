@@ -1,0 +1,173 @@
+"""`yauyau filter` through a real HDF5 model store, and the method choice of solver/methods.py.
+
+Truth: the exact sampled-time Kalman filter (solver.reference) on the same increments; the
+input/output layout and the error contract (one line naming the row/field, exit 2, no file).
+"""
+
+from __future__ import annotations
+
+import csv
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli import main
+from solver import compile_model, load_spec, spec_from_dict
+from solver.engine import YauYauFilter
+from solver.errors import SpecError
+from solver.methods import make_filter, resolve_method
+from solver.offline import precompute
+from solver.reference.kalman import DiscreteKalmanFilter
+from solver.simulate import simulate
+from storage.model_store import ModelStore
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+TWO_D = {"name": "ou-2d-small", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], "observation": ["p", "q"],
+         "initial": {"kind": "gaussian", "mean": [0.2, -0.2], "cov": [[0.5, 0.0], [0.0, 0.5]]},
+         "domain": {"radius": 5.0}, "discretization": {"dt": 0.02, "basis": 30}}
+
+
+def _store(directory: Path, spec) -> str:
+    model = compile_model(spec)
+    arrays = precompute(model).to_arrays()
+    return ModelStore(directory).save(spec.canonical_json(), arrays, {"name": spec.name})
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("store")
+    ou = load_spec(EXAMPLES / "ou.toml")
+    ids = {"ou": _store(directory, ou), "2d": _store(directory, spec_from_dict(TWO_D))}
+    return directory, ids, compile_model(ou)
+
+
+def _filter(store, key, tmp_path, increments_file, *extra) -> tuple[int, Path]:
+    directory, ids, _ = store
+    out = tmp_path / "out.csv"
+    code = main(["filter", ids[key], "--store", str(directory), "--increments", str(increments_file),
+                 "--out", str(out), *extra])
+    return code, out
+
+
+def _read(out: Path) -> tuple[list[str], np.ndarray]:
+    with out.open() as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], np.array(rows[1:], dtype=float)
+
+
+def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
+    _, _, model = store
+    dy = simulate(model, 120, np.random.default_rng(21)).increments
+    dy[[10, 11]] = np.nan
+    lines = ["dy"] + ["" if np.isnan(v) else repr(float(v)) for v in dy[:, 0]]
+    source = tmp_path / "in.csv"
+    source.write_text("\n".join(lines) + "\n\n")  # header, blank lines = missing, trailing blank ignored
+    code, out = _filter(store, "ou", tmp_path, source, "--method", "yau-yau")  # the spec says auto
+    assert code == 0
+    columns, table = _read(out)
+    assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate"]
+    assert np.array_equal(table[:, 0], np.arange(1, 121)) and np.allclose(table[:, 1], 0.01 * table[:, 0])
+    kalman = DiscreteKalmanFilter(model)
+    _, ref = kalman.run(kalman.initial_state(), dy)
+    assert np.max(np.abs(table[:, 2] - [e.mean[0] for e in ref])) < 1e-3
+    assert np.max(np.abs(table[:, 3] / [e.cov[0, 0] for e in ref] - 1)) < 0.01
+    assert np.max(np.abs(table[:, 4] - [e.loglik for e in ref])) < 1e-3
+    assert abs(table[10, 4] - table[9, 4]) < 1e-6  # a missing row adds no likelihood
+    assert not table[:, 5].any()
+    # the same data as .npy, in chunks of 7: the identical file
+    npy = tmp_path / "in.npy"
+    np.save(npy, dy)
+    first = out.read_bytes()
+    code, out = _filter(store, "ou", tmp_path, npy, "--chunk", "7", "--method", "yau-yau")
+    assert code == 0 and out.read_bytes() == first
+
+
+def test_filter_two_dimensional_layout(store, tmp_path):
+    model = compile_model(spec_from_dict(TWO_D))
+    dy = simulate(model, 30, np.random.default_rng(2)).increments
+    source = tmp_path / "in.csv"
+    source.write_text("\n".join(",".join(repr(float(v)) for v in row) for row in dy) + "\n ,\n")
+    code, out = _filter(store, "2d", tmp_path, source, "--method", "yau-yau")
+    assert code == 0
+    columns, table = _read(out)
+    assert columns == ["step", "t", "mean_p", "mean_q", "cov_p_p", "cov_p_q", "cov_q_q", "loglik",
+                       "degenerate"]
+    assert table.shape == (31, 9) and np.all(np.isfinite(table))
+    assert table[-1, 7] == pytest.approx(table[-2, 7], abs=1e-3)  # last row missing (coarse basis)
+
+
+@pytest.mark.parametrize("content, field", [
+    ("dy\n0.1\n0.2,0.3\n", "increments[1]: line 3"),
+    ("0.1\nabc\n", "increments[1][0]: line 2"),
+    ("0.1\n0.2\ninf\n", "increments[2][0]: line 3"),
+    ("0.1\nnan\n", "increments[1][0]: line 2"),
+])
+def test_bad_input_one_line_exit_2_no_output(store, tmp_path, capsys, content, field):
+    source = tmp_path / "bad.csv"
+    source.write_text(content)
+    code, out = _filter(store, "ou", tmp_path, source)
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists()
+    assert err.count("\n") == 1 and field in err
+
+
+def test_bad_2d_rows_and_missing_model(store, tmp_path, capsys):
+    source = tmp_path / "bad.csv"
+    source.write_text("0.1,0.2\n0.1,\n")
+    code, out = _filter(store, "2d", tmp_path, source)
+    assert code == 2 and not out.exists() and "increments[1]" in capsys.readouterr().err
+    directory, _, _ = store
+    code = main(["filter", "0" * 20, "--store", str(directory), "--increments", str(source),
+                 "--out", str(tmp_path / "x.csv")])
+    assert code == 2 and "model" in capsys.readouterr().err
+    npy = tmp_path / "bad.npy"
+    np.save(npy, np.array([[0.1], [np.inf]]))
+    code, out = _filter(store, "ou", tmp_path, npy)
+    assert code == 2 and not out.exists() and "increments[1]" in capsys.readouterr().err
+
+
+def test_exact_method_through_the_cli(store, tmp_path):
+    _, _, model = store
+    dy = simulate(model, 40, np.random.default_rng(4)).increments
+    source = tmp_path / "in.npy"
+    np.save(source, dy)
+    code, out = _filter(store, "ou", tmp_path, source, "--method", "kalman-bucy")
+    assert code == 0
+    _, exact = _read(out)
+    code, out = _filter(store, "ou", tmp_path, source, "--method", "yau-yau")
+    _, engine = _read(out)
+    # continuous Kalman–Bucy vs the sampled-time engine: both O(dt) from each other
+    assert np.max(np.abs(exact[:, 2] - engine[:, 2])) < 5 * model.dt
+
+
+# -- method choice ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cubic():
+    model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
+    return model, precompute(model)
+
+
+def test_make_filter_methods(store, cubic):
+    _, _, ou = store
+    model, offline = cubic
+    assert resolve_method(ou, "auto") == "kalman-bucy"  # linear model, Gaussian prior
+    assert make_filter(ou, None, "auto").method == "kalman-bucy"
+    assert resolve_method(model) == "yau-yau"  # examples/cubic_sensor.toml: method auto
+    flt = make_filter(model, offline)
+    assert isinstance(flt, YauYauFilter) and flt.form == "stable"
+    assert make_filter(model, offline, "yau-yau", form="literal").form == "literal"
+    for method, offline_arg in (("kalman-bucy", offline), ("yau-yau", None), ("magic", offline)):
+        with pytest.raises(SpecError) as err:
+            make_filter(model, offline_arg, method)
+        assert err.value.field == "method"
+
+
+def test_spec_method_is_honoured(cubic):
+    doc = tomllib.loads((EXAMPLES / "ou.toml").read_text())
+    doc["method"] = "yau-yau"
+    model = compile_model(spec_from_dict(doc))
+    assert resolve_method(model) == "yau-yau"
+    with pytest.raises(SpecError):
+        make_filter(model)  # yau-yau without the offline arrays
