@@ -32,6 +32,7 @@ from scipy.linalg import expm
 from ..errors import InputError, SpecError
 
 _GAUSS_NODES = 8  # Gauss–Legendre nodes for ∫(½BᵀaB + dᵀB) over one step
+_BLOW_UP = "the Riccati solution blows up within the step (det X <= 0)"
 
 
 def _matrix(value, n: int, field: str) -> np.ndarray:
@@ -174,31 +175,180 @@ class GaussianFlow:
         blocks = [expm(big * s) for s in np.append(self.s, self.dt)]
         self.Phi = np.stack([b[: 2 * n, : 2 * n] for b in blocks])
         self.Psi = np.stack([b[: 2 * n, 2 * n:] for b in blocks])
+        self._family = None
+
+    @property
+    def family(self) -> "FlowFamily":
+        if self._family is None:
+            self._family = FlowFamily([self])
+        return self._family
 
     def step(self, A, B, C, q=None, r=None) -> GaussianTerms:
         """Advance (A, B, C) over dt; A may be (n, n) or a stack (K, n, n) of components."""
-        eq, n = self.eq, self.eq.n
+        eq = self.eq
         q = eq.q if q is None else np.asarray(q, dtype=float)
         r = eq.r if r is None else float(r)
         A = np.asarray(A, dtype=float)
         single = A.ndim == 2
-        A, B, C = np.atleast_3d(A) if not single else A[None], np.atleast_2d(B), np.atleast_1d(C)
-        # X(s) = Φ11 + Φ12 A0, Y(s) = Φ21 + Φ22 A0 and the same with Ψ for ∫X, ∫Y
-        X = self.Phi[:, None, :n, :n] + self.Phi[:, None, :n, n:] @ A[None]
-        Y = self.Phi[:, None, n:, :n] + self.Phi[:, None, n:, n:] @ A[None]
-        IX = self.Psi[:, None, :n, :n] + self.Psi[:, None, :n, n:] @ A[None]
-        IY = self.Psi[:, None, n:, :n] + self.Psi[:, None, n:, n:] @ A[None]
-        sign, log_det = np.linalg.slogdet(X[-1])
-        if np.any(sign <= 0) or not np.all(np.isfinite(log_det)):
-            raise InputError("dt", "the Riccati solution blows up within the step (det X <= 0)")
-        # B(s) = X(s)⁻ᵀ [B0 + ∫0^s (Xᵀq − 2Yᵀd)]
-        forcing = np.swapaxes(IX, -1, -2) @ q - 2.0 * np.swapaxes(IY, -1, -2) @ eq.d
-        Bs = np.linalg.solve(np.swapaxes(X, -1, -2), (B[None] + forcing)[..., None])[..., 0]
-        quad = 0.5 * np.einsum("tki,ij,tkj->tk", Bs[:-1], eq.a, Bs[:-1]) + Bs[:-1] @ eq.d
-        # ∫tr(aA) = ½(log det X − dt tr D), so C gains ½ log det X + (r + ½ tr D) dt
-        C_new = C + 0.5 * log_det + (r + 0.5 * np.trace(eq.D)) * self.dt - self.w @ quad
-        A_new = Y[-1] @ np.linalg.inv(X[-1])
-        A_new = 0.5 * (A_new + np.swapaxes(A_new, -1, -2))
+        A, B, C = (A[None] if single else A), np.atleast_2d(B), np.atleast_1d(C)
+        once = np.zeros(1, dtype=int)
+        family = self.family
+        A_new = family.path(once, A)[1]
+        B_new, gain = family.batch(once, A[None], q[None], np.array([r])).finish(B[None])
         if single:
-            return GaussianTerms(A_new[0], Bs[-1, 0], float(C_new[0]))
-        return GaussianTerms(A_new, Bs[-1], C_new)
+            return GaussianTerms(A_new[0], B_new[0, 0], float(C[0] + gain[0, 0]))
+        return GaussianTerms(A_new, B_new[0], C + gain[0])
+
+
+class FlowFamily:
+    """Flows over the same dt that share D, d and a (only Q, q, r differ): a step may pick any.
+
+    The filters use two: with the observation potential (an observed step) and without (a
+    missing row).  Their matrices are stacked once so that a chunk of steps is gathered in one go.
+    """
+
+    def __init__(self, flows: list[GaussianFlow]):
+        first = flows[0]
+        for other in flows[1:]:
+            same = other.dt == first.dt and all(np.array_equal(getattr(other.eq, k), getattr(first.eq, k))
+                                                for k in ("D", "d", "a"))
+            if not same:
+                raise SpecError("flows", "a flow family needs one dt and the same D, d and a")
+        self.eq, self.dt, self.w = first.eq, first.dt, first.w
+        self.Phi = np.stack([f.Phi for f in flows])  # (F, S+1, 2n, 2n)
+        self.Psi = np.stack([f.Psi for f in flows])
+        n = first.eq.n
+        at_dt = self.Phi[:, -1]
+        corners = ((0, 0), (0, 1), (1, 0), (1, 1))
+        self._mobius = [at_dt[:, i, j].tolist() for i, j in corners] if n == 1 else None  # scalar Möbius map
+
+    def path(self, choice, A0) -> np.ndarray:
+        """A_k = Y X⁻¹ with [X; Y] = Φ(dt) [I; A_{k−1}], step k by flow choice[k] (exact Riccati flow).
+
+        A0 (J, n, n) are J independent starts; returns (K + 1, J, n, n).  Observation-free: the
+        whole path of a chunk is known before the data enter.  Scalar Python loop for n = 1.
+        """
+        A0 = np.asarray(A0, dtype=float)
+        J, n = A0.shape[0], A0.shape[-1]
+        choice = np.asarray(choice, dtype=int)
+        out = np.empty((len(choice) + 1, J, n, n))
+        out[0] = A0
+        if self._mobius is not None:
+            p11, p12, p21, p22 = self._mobius
+            picks = choice.tolist()
+            for j in range(J):
+                a, path = float(A0[j, 0, 0]), []
+                for f in picks:
+                    x = p11[f] + p12[f] * a
+                    if not x > 0.0:
+                        raise InputError("dt", _BLOW_UP)
+                    a = (p21[f] + p22[f] * a) / x
+                    path.append(a)
+                out[1:, j, 0, 0] = path
+            return out
+        phis, A = self.Phi[:, -1], A0
+        for k, f in enumerate(choice.tolist()):
+            X = phis[f, :n, :n] + phis[f, :n, n:] @ A
+            sign, _ = np.linalg.slogdet(X)
+            if np.any(sign <= 0):
+                raise InputError("dt", _BLOW_UP)
+            A = (phis[f, n:, :n] + phis[f, n:, n:] @ A) @ np.linalg.inv(X)
+            A = out[k + 1] = 0.5 * (A + np.swapaxes(A, -1, -2))
+        return out
+
+    def batch(self, choice, A_prev, q, r) -> "StepBatch":
+        return StepBatch(self, choice, A_prev, q, r)
+
+
+def affine_path(W, v, x0) -> np.ndarray:
+    """x_k = W_k x_{k−1} + v_k for W (K, J, n, n), v (K, J, n), x0 (J, n) -> (K + 1, J, n).
+
+    The only sequential part of a chunk once the Riccati path is known (scalar loop for n = 1).
+    """
+    K, J, n = v.shape
+    out = np.empty((K + 1, J, n))
+    out[0] = x0
+    if n == 1:
+        for j in range(J):
+            x, path = float(x0[j, 0]), []
+            for w, c in zip(W[:, j, 0, 0].tolist(), v[:, j, 0].tolist(), strict=True):
+                x = w * x + c
+                path.append(x)
+            out[1:, j, 0] = path
+        return out
+    x = np.asarray(x0, dtype=float)
+    for k in range(K):
+        x = out[k + 1] = (W[k] @ x[..., None])[..., 0] + v[k]
+    return out
+
+
+class StepBatch:
+    """K steps of a :class:`FlowFamily` at once from known start exponents A_prev (K, J, n, n).
+
+    Step k uses flow choice[k] with the potential's linear part q[k] (n,) and constant r[k].
+    B enters linearly:
+    B_next = W_k B_prev + v_k with W = X(dt)⁻ᵀ (see :class:`GaussianFlow`), so a chunk is the
+    data-free part here, one :func:`affine_path` and :meth:`finish`, all batched but the path.
+    """
+
+    def __init__(self, family: FlowFamily, choice, A_prev, q, r):
+        eq, n = family.eq, family.eq.n
+        self.eq, self.w = eq, family.w
+        choice = np.asarray(choice, dtype=int)
+        Phi = family.Phi[choice][:, :, None]  # (K, S+1, 1, 2n, 2n)
+        Psi = family.Psi[choice][:, :, None]
+        A = np.asarray(A_prev, dtype=float)[:, None]  # (K, 1, J, n, n)
+        X = Phi[..., :n, :n] + Phi[..., :n, n:] @ A
+        IX = Psi[..., :n, :n] + Psi[..., :n, n:] @ A
+        IY = Psi[..., n:, :n] + Psi[..., n:, n:] @ A
+        if n == 1:
+            x_dt = X[:, -1, :, 0, 0]
+            if not np.all(x_dt > 0):
+                raise InputError("dt", _BLOW_UP)
+            log_det = np.log(x_dt)
+            self.XinvT = 1.0 / X
+        else:
+            sign, log_det = np.linalg.slogdet(X[:, -1])
+            if np.any(sign <= 0) or not np.all(np.isfinite(log_det)):
+                raise InputError("dt", _BLOW_UP)
+            self.XinvT = np.swapaxes(np.linalg.inv(X), -1, -2)
+        # B(s) = X(s)⁻ᵀ [B0 + ∫0^s (Xᵀq − 2Yᵀd)]: the forcing integral at the nodes and at dt
+        q = np.asarray(q, dtype=float)[:, None, None, :, None]
+        self.forcing = (np.swapaxes(IX, -1, -2) @ q)[..., 0] - 2.0 * (np.swapaxes(IY, -1, -2) @ eq.d)
+        self.W = self.XinvT[:, -1]
+        self.v = (self.W @ self.forcing[:, -1, ..., None])[..., 0]
+        # ∫tr(aA) = ½(log det X − dt tr D), so C gains ½ log det X + (r + ½ tr D) dt − ∫(½BᵀaB + dᵀB)
+        r = np.asarray(r, dtype=float)[:, None]
+        self.gain0 = 0.5 * log_det + (r + 0.5 * np.trace(eq.D)) * family.dt
+
+    def finish(self, B_prev) -> tuple[np.ndarray, np.ndarray]:
+        """(B at dt (K, J, n), gain of C (K, J)) from the start values B_prev (K, J, n)."""
+        eq = self.eq
+        Bs = (self.XinvT @ (np.asarray(B_prev, dtype=float)[:, None] + self.forcing)[..., None])[..., 0]
+        nodes = Bs[:, :-1]
+        quad = 0.5 * np.einsum("ksji,il,ksjl->ksj", nodes, eq.a, nodes) + nodes @ eq.d
+        return Bs[:, -1], self.gain0 - np.einsum("s,ksj->kj", self.w, quad)
+
+
+def gaussian_terms_batch(A, B, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`terms_to_gaussian` over stacks: A (..., n, n), B (..., n), C (...) -> mean, cov, log mass."""
+    A, B, C = (np.asarray(v, dtype=float) for v in (A, B, C))
+    n = A.shape[-1]
+    if n == 1:
+        two_a = 2.0 * A[..., 0, 0]
+        if not np.all(two_a > 0):
+            raise InputError("A", "not positive definite: the exponential is not integrable")
+        cov = 1.0 / two_a
+        mean = -cov * B[..., 0]
+        log_mass = 0.5 * np.log(2 * np.pi * cov) + 0.5 * cov * B[..., 0] ** 2 - C
+        return mean[..., None], cov[..., None, None], log_mass
+    try:
+        chol = np.linalg.cholesky(2.0 * A)
+    except np.linalg.LinAlgError:
+        raise InputError("A", "not positive definite: the exponential is not integrable") from None
+    cov = np.linalg.inv(2.0 * A)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    mean = -(cov @ B[..., None])[..., 0]
+    log_det = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
+    log_mass = 0.5 * n * np.log(2 * np.pi) - 0.5 * log_det - 0.5 * (mean * B).sum(-1) - C
+    return mean, cov, log_mass
