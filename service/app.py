@@ -14,7 +14,12 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import Body, FastAPI, Path, Query, Request
+from fastapi.openapi.utils import get_openapi
 from starlette.responses import JSONResponse, Response
+
+from solver.analysis import analyze as analyze_model
+from solver.model import compile_model
+from solver.spec import spec_from_dict
 
 from . import metrics
 from .density import parse_points
@@ -41,15 +46,34 @@ log = logging.getLogger("yauyau.service")
 SessionId = Annotated[str, Path(min_length=1, max_length=100, description="session id")]
 ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model id")]
 
-_PROBLEM = {"model": ProblemOut, "content": {"application/problem+json": {}}}
-ERRORS = {code: {**_PROBLEM, "description": text} for code, text in
-          ((400, "malformed request"), (404, "unknown model or session"),
-           (409, "seq gap or concurrent update"), (413, "request body too large"),
-           (422, "invalid input (the field is named)"))}
+ERRORS = {400: "malformed request (e.g. invalid JSON)", 404: "unknown model, session or route",
+          409: "seq gap or concurrent update", 413: "request body too large",
+          422: "invalid input (the field is named)", 503: "models are still loading"}
 
 
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
-    return {code: ERRORS[code] for code in codes}
+    return {code: {"description": ERRORS[code]} for code in codes}
+
+
+def _problem_openapi(app: FastAPI) -> dict[str, Any]:
+    """OpenAPI where every error response is application/problem+json (FastAPI says JSON)."""
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, summary=app.summary,
+                             description=app.description, routes=app.routes)
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        components["Problem"] = ProblemOut.model_json_schema(ref_template="#/components/schemas/{model}")
+        components.pop("HTTPValidationError", None)
+        components.pop("ValidationError", None)
+        problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
+        for operation in (op for item in schema["paths"].values() for op in item.values()):
+            responses = operation["responses"]
+            for code in (400, 404, 413, 422):  # the body limit, routing and validation apply everywhere
+                responses.setdefault(str(code), {"description": ERRORS[code]})
+            for code, response in responses.items():
+                if code[0] in "45":
+                    response["content"] = problem
+        app.openapi_schema = schema
+    return app.openapi_schema
 
 
 def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
@@ -81,6 +105,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.ready = False
     app.state.settings = settings
     install_handlers(app)
+    app.openapi = lambda: _problem_openapi(app)
     _add_routes(app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(metrics.RequestMetrics)
@@ -103,7 +128,7 @@ def _add_routes(app: FastAPI) -> None:
     def livez() -> Response:
         return _json({"status": "ok"})
 
-    @app.get("/readyz", response_model=Health, tags=["health"], responses={503: _PROBLEM})
+    @app.get("/readyz", response_model=Health, tags=["health"], responses=_errors(503))
     def readyz(request: Request) -> Response:
         if not request.app.state.ready:
             raise Problem(503, "models are still loading")
@@ -144,7 +169,7 @@ def _add_routes(app: FastAPI) -> None:
     @app.get("/v1/sessions/{session_id}/density", response_model=DensityOut, tags=["sessions"],
              responses=_errors(404, 422))
     def density(request: Request, session_id: SessionId,
-                points: Annotated[str | None, Query(max_length=1_000_000, description=(
+                points: Annotated[str | None, Query(max_length=100_000, description=(
                     "points separated by ';', coordinates by ',' (e.g. '0.1;0.5' or '0,1;1,0')"))] = None,
                 grid: Annotated[str | None, Query(max_length=1000, description=(
                     "a product grid, one 'lo:hi:count' per coordinate, separated by ','"))] = None,
@@ -163,11 +188,6 @@ def _add_routes(app: FastAPI) -> None:
               responses=_errors(400, 413, 422))
     def analyze(spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
                                                      examples=[_EXAMPLE_SPEC])]) -> Response:
-        from solver.analysis import analyze as analyze_model
-
-        from solver.model import compile_model
-        from solver.spec import spec_from_dict
-
         report = analyze_model(compile_model(spec_from_dict(spec)))
         return _json(report.to_dict())
 

@@ -26,6 +26,9 @@ _TITLES = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 409:
            500: "Internal error", 503: "Service unavailable"}
 
 
+_TAGS = ("gaussian", "mixture", "density")  # discriminator tags of the prior union
+
+
 class Problem(Exception):
     """An HTTP error with a problem-details body."""
 
@@ -56,8 +59,8 @@ def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
             continue
         if isinstance(part, int):
             path += f"[{part}]"
-        elif str(part).startswith(("function-", "list[", "nullable[", "union[")):
-            continue  # pydantic inserts the validator kind into union locations
+        elif str(part).startswith(("function-", "list[", "nullable[", "union[")) or part in _TAGS:
+            continue  # pydantic inserts the validator kind or the union tag into locations
         else:
             path += f".{part}" if path else str(part)
     return path or "body"
