@@ -1,0 +1,66 @@
+"""The Docker image's steps, run here: scripts/provision.py installs this checkout into a FRESH
+virtual environment, precomputes the example model, and serves it; the API then answers.
+
+This is what the Dockerfile runs (install, precompute at build time; serve as the command),
+so a missing dependency or a broken entry point fails here even without a Docker engine.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from conftest import free_port
+
+ROOT = Path(__file__).resolve().parent.parent
+PROVISION = [sys.executable, str(ROOT / "scripts" / "provision.py")]
+
+
+def _wait(url: str, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+        try:
+            if httpx.get(url, timeout=1.0).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise AssertionError(f"{url} never answered")
+
+
+@pytest.mark.slow
+def test_fresh_install_precompute_and_serve(tmp_path):
+    venv, store = tmp_path / "venv", tmp_path / "store"
+    subprocess.run([*PROVISION, "install", "--venv", str(venv)], check=True, cwd=tmp_path, timeout=600)
+    assert (venv / "bin" / "yauyau").exists()
+    spec = str(ROOT / "examples" / "cubic_sensor.toml")
+    subprocess.run([*PROVISION, "precompute", "--venv", str(venv), "--store", str(store), spec],
+                   check=True, cwd=tmp_path, timeout=300)
+    again = subprocess.run([*PROVISION, "precompute", "--venv", str(venv), "--store", str(store), spec],
+                           check=True, cwd=tmp_path, timeout=300, capture_output=True, text=True)
+    assert "already in" in again.stderr  # the build step is idempotent
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("YAUYAU_", "PYTHONPATH"))}
+    serve = [*PROVISION, "serve", "--venv", str(venv), "--store", str(store), "--port", str(port)]
+    proc = subprocess.Popen(serve, cwd=tmp_path, env=env, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        _wait(url + "/livez", proc)
+        _wait(url + "/readyz", proc)
+        models = httpx.get(url + "/v1/models").json()
+        assert [m["name"] for m in models] == ["cubic-sensor"]
+        created = httpx.post(url + "/v1/sessions", json={"model": models[0]["id"]})
+        assert created.status_code == 201
+        assert created.json()["estimate"]["mean"][0] == pytest.approx(0.5, abs=1e-3)  # the prior N(0.5, 1)
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+        proc.stderr.close()
