@@ -24,7 +24,7 @@ Log-likelihood: log ratio of ∫σ (the Brownian-reference convention of KalmanB
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -32,13 +32,14 @@ import sympy as sp
 from scipy.linalg import expm
 from scipy.special import logsumexp
 
+from ..engine import ChunkResult
 from ..errors import InputError, SpecError
-from ..filtering import Estimate
+from ..filtering import Estimate, check_increments
 from ..model import Model
-from ..reference._base import ReferenceFilter, StepState, advance
+from ..reference._base import ReferenceFilter, StepState, observed
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
-from .riccati import GaussianKolmogorov, gaussian_to_terms, terms_to_gaussian
+from .riccati import FlowFamily, GaussianKolmogorov, affine_path, gaussian_terms_batch, gaussian_to_terms
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
 
@@ -178,24 +179,14 @@ class _Step:
         self.n = n
 
     def observation_terms(self, ydot: np.ndarray):
-        """(a, b, c) at dt for the constant rate ẏ (seed 000 (3.3)–(3.5))."""
+        """(a, b, c) at dt for constant rates ẏ (K, m) -> (K, n), (K, n), (K,); seed 000 (3.3)–(3.5)."""
         n = self.n
-        states = self.maps @ ydot
-        b, a, y = states[:, :n], states[:, n:2 * n], states[:, 2 * n:]
+        states = np.einsum("sij,kj->ksi", self.maps, ydot)
+        b, a, y = states[..., :n], states[..., n:2 * n], states[..., 2 * n:]
         bp = a + b @ self.D.T - y @ self.H  # b' from (3.3)
-        cp = (-0.5 * (bp * bp).sum(1) + (a * bp).sum(1) - bp @ self.d
-              + 0.5 * np.einsum("si,ij,sj->s", b, self.E, b) + 0.5 * b @ self.e)  # (3.5)
-        return a[-1], b[-1], float(self.w @ cp[:-1])
-
-    def __call__(self, A, B, C, dy: np.ndarray):
-        """Mixture exponents of v = e^{−F}σ after one interval with increment dy."""
-        new = self.flow.step(A, B, C)
-        a, b, c = self.observation_terms(dy / self.dt)
-        A2 = new.A
-        Ab = A2 @ b
-        B2 = new.B - 2 * Ab + a - self.H.T @ dy
-        C2 = new.C + Ab @ b - new.B @ b + c - a @ b - dy @ self.h0
-        return A2, B2, C2
+        cp = (-0.5 * (bp * bp).sum(-1) + (a * bp).sum(-1) - bp @ self.d
+              + 0.5 * np.einsum("ksi,ij,ksj->ks", b, self.E, b) + 0.5 * b @ self.e)  # (3.5)
+        return a[:, -1], b[:, -1], cp[:, :-1] @ self.w
 
 
 @dataclass(frozen=True)
@@ -231,27 +222,30 @@ class YauHuFilter(ReferenceFilter):
         self._observed = _Step(self.system, Hw, h0w, (0, 0, 0), model.dt)
         # a missing row: the signal alone, η without |h|²
         minus_h = (-Hw.T @ Hw, -2 * Hw.T @ h0w, -float(h0w @ h0w))
-        self._predicted = _Step(self.system, np.zeros_like(Hw), np.zeros_like(h0w), minus_h, model.dt)
+        predicted = _Step(self.system, np.zeros_like(Hw), np.zeros_like(h0w), minus_h, model.dt)
+        flows = [self._observed.flow, predicted.flow]  # choice 0: observed step, 1: missing row
+        self._family = FlowFamily(flows)
+        self._q = np.stack([f.eq.q for f in flows])
+        self._r = np.array([f.eq.r for f in flows])
 
     # -- mixtures of e^{F}·exp(−xᵀAx − Bᵀx − C) ------------------------------------------
     def _components(self, A, B, C):
-        """(log weights, means, covs) of σ = e^{F}v as one flat Gaussian mixture."""
-        logw, means, covs = [], [], []
-        for Ai, Bi, Ci in zip(A, B, C, strict=False):
-            for slope, logc in zip(self.system.exp_F_slopes, self.system.exp_F_logc, strict=False):
-                mean, cov, log_mass = terms_to_gaussian(Ai, Bi - slope, Ci - logc)
-                logw.append(log_mass)
-                means.append(mean)
-                covs.append(cov)
-        return np.array(logw), np.array(means), np.array(covs)
+        """(log weights, means, covs) of σ = e^{F}v as flat Gaussian mixtures.
+
+        A (..., J, n, n), B (..., J, n), C (..., J) -> (..., J·T), (..., J·T, n), (..., J·T, n, n)
+        with e^{F} = Σ_T exp(log c + sᵀx); InputError('A') if a component is not integrable.
+        """
+        slopes, logc = self.system.exp_F_slopes, self.system.exp_F_logc
+        A, B, C = np.asarray(A, float), np.asarray(B, float), np.asarray(C, float)
+        mean, cov, log_mass = gaussian_terms_batch(A[..., None, :, :], B[..., None, :] - slopes,
+                                                   C[..., None] - logc)
+        lead, n = C.shape, self.model.n
+        cov = np.repeat(cov, len(logc), axis=-3)  # A does not depend on the term of e^{F}
+        return (log_mass.reshape(lead[:-1] + (-1,)), mean.reshape(lead[:-1] + (-1, n)),
+                cov.reshape(lead[:-1] + (-1, n, n)))
 
     def _normalised(self, A, B, C):
-        try:
-            logw = self._components(A, B, C)[0]
-        except InputError:
-            raise InputError("increments", "the mixture lost integrability (a component is not "
-                                           "positive definite)") from None
-        log_mass = float(logsumexp(logw))
+        log_mass = float(_log_sum_exp(self._components(A, B, C)[0]))
         return C + log_mass, log_mass
 
     # -- prior -------------------------------------------------------------------------
@@ -295,21 +289,61 @@ class YauHuFilter(ReferenceFilter):
         return best
 
     # -- Filter protocol -----------------------------------------------------------------
-    def _advance(self, state: YauHuState, increment: np.ndarray | None) -> YauHuState:
-        if increment is None:
-            A, B, C = self._predicted(state.A, state.B, state.C, np.zeros(self.model.m))
-        else:
-            A, B, C = self._observed(state.A, state.B, state.C, self.L_inv @ increment)
-        C, log_ratio = self._normalised(A, B, C)
-        return advance(state, self.model.dt, 0.0 if increment is None else log_ratio, A=A, B=B, C=C)
+    def step(self, state: YauHuState, increment: np.ndarray | None):
+        row = observed(increment, self.model.m)
+        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
+        new_state, estimates = self.run(state, rows)
+        return new_state, estimates[0]
+
+    def run(self, state: YauHuState, increments: np.ndarray):
+        new_state, result = self.run_arrays(state, increments)
+        return new_state, result.estimates()
+
+    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "MixtureChunk"]:
+        """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
+
+        The component exponents A_k are observation-free (Riccati path); B is an affine recursion in
+        the data; C and the normaliser log Σ∫σ_i follow in batch (cumulative, renormalised at the end).
+        """
+        dy = check_increments(increments, self.model.m)
+        K, n, dt = len(dy), self.model.n, self.model.dt
+        steps = state.step + 1 + np.arange(K)
+        times = steps * dt
+        if K == 0:
+            return state, MixtureChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
+                                       np.empty(0), np.empty(0), np.zeros(0, bool))
+        missing = np.isnan(dy[:, 0])
+        dyw = np.where(missing[:, None], 0.0, dy) @ self.L_inv.T  # whitened; 0 on missing rows
+        choice = missing.astype(int)
+        A = self._family.path(choice, state.A)  # (K+1, J, n, n)
+        batch = self._family.batch(choice, A[:-1], self._q[choice], self._r[choice])
+        obs = self._observed
+        a, b, c = obs.observation_terms(dyw / dt)  # 0 on missing rows
+        # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (_Step's (a, b, c) shift)
+        Ab = (A[1:] @ b[:, None, :, None])[..., 0]  # (K, J, n)
+        shift = -2.0 * Ab + (a - dyw @ obs.H)[:, None]
+        B = affine_path(batch.W, batch.v + shift, state.B)  # (K+1, J, n)
+        B_flow, gain = batch.finish(B[:-1])
+        dC = gain + ((Ab - B_flow) * b[:, None]).sum(-1) + (c - (a * b).sum(-1) - dyw @ obs.h0)[:, None]
+        C = np.concatenate([state.C[None], state.C + np.cumsum(dC, axis=0)])
+        try:
+            logw, means, covs = self._components(A, B, C)
+        except InputError:
+            raise InputError("increments", "the mixture lost integrability (a component is not "
+                                           "positive definite)") from None
+        log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
+        increments_ll = np.where(missing, 0.0, log_mass[1:] - log_mass[:-1])
+        loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+        mean, cov = _mixture_moments(logw[1:], means[1:], covs[1:])
+        new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
+                            loglik_increment=float(increments_ll[-1]), A=A[-1], B=B[-1],
+                            C=C[-1] + log_mass[-1])
+        return new_state, MixtureChunk(steps, times, mean, cov, None, loglik, increments_ll,
+                                       np.zeros(K, bool))
 
     def estimate(self, state: YauHuState) -> Estimate:
-        logw, means, covs = self._components(state.A, state.B, state.C)
-        w = np.exp(logw - logsumexp(logw))
-        mean = w @ means
-        dev = means - mean
-        cov = np.einsum("k,kij->ij", w, covs) + np.einsum("k,ki,kj->ij", w, dev, dev)
-        return Estimate(step=state.step, t=state.t, mean=mean, cov=0.5 * (cov + cov.T), loglik=state.loglik,
+        mean, cov = _mixture_moments(*self._components(state.A, state.B, state.C))
+        return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
                         loglik_increment=state.loglik_increment, degenerate=state.degenerate,
                         reason=state.reason)
 
@@ -333,6 +367,31 @@ class YauHuFilter(ReferenceFilter):
             return YauHuState(A=A, B=B, C=C, **values)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError("state", f"not a valid yau-hu state: {exc}") from None
+
+
+@dataclass(frozen=True)
+class MixtureChunk(ChunkResult):
+    """The engine's chunk arrays without modes (a mixture's mode is not computed: ``mode`` None)."""
+
+    def estimates(self) -> list[Estimate]:
+        return [Estimate(step=int(s), t=float(t), mean=m, cov=P, loglik=float(ll), loglik_increment=float(i))
+                for s, t, m, P, ll, i in zip(self.step, self.t, self.mean, self.cov, self.loglik,
+                                             self.loglik_increment, strict=True)]
+
+
+def _log_sum_exp(values):
+    """log Σ exp over the last axis (finite values; scipy's logsumexp costs ~10x more per call)."""
+    top = values.max(axis=-1)
+    return top + np.log(np.exp(values - top[..., None]).sum(axis=-1))
+
+
+def _mixture_moments(logw, means, covs):
+    """Mean and covariance of Σ w_i N(means_i, covs_i), w ∝ e^{logw}; leading axes batched."""
+    w = np.exp(logw - _log_sum_exp(logw)[..., None])
+    mean = np.einsum("...i,...ij->...j", w, means)
+    dev = means - mean[..., None, :]
+    cov = np.einsum("...i,...ijk->...jk", w, covs) + np.einsum("...i,...ij,...ik->...jk", w, dev, dev)
+    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
 def _log_normal(X, mean, cov):
