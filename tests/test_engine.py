@@ -280,3 +280,22 @@ def test_bad_increments_and_form_are_rejected(ou):
     assert err.value.field == "form"
     same, estimates = yy.run(state, np.empty((0, 1)))
     assert same is state and estimates == []
+
+
+# -- 2-D: marginals ------------------------------------------------------------------------------
+def test_two_dimensional_marginals_of_the_prior():
+    doc = {"name": "ou-2d", "state": ["x1", "x2"], "drift": ["-x1 + 0.5*x2", "-0.5*x2"],
+           "observation": ["x1", "x2"],
+           "initial": {"kind": "gaussian", "mean": [0.5, -0.8], "cov": [[1.0, 0.3], [0.3, 0.8]]},
+           "domain": {"radius": 5.0}, "discretization": {"dt": 0.02, "basis": 120}}
+    model = compile_model(spec_from_dict(doc))
+    yy = YauYauFilter(model, precompute(model))
+    state = yy.initial_state()
+    grid = np.linspace(-4.0, 4.0, 161)
+    for index, (mean, var) in enumerate(((0.5, 1.0), (-0.8, 0.8))):
+        exact = np.exp(-(grid - mean) ** 2 / (2 * var)) / np.sqrt(2 * np.pi * var)
+        marginal = yy.marginal(state, index, grid)
+        assert np.all(marginal >= 0.0)
+        assert np.trapezoid(np.abs(marginal - exact), grid) < 0.03
+    with pytest.raises(InputError):
+        yy.marginal(state, 2, grid)
