@@ -87,7 +87,7 @@ class Tally:
         return {"rmse": np.sqrt(self.sq_error / self.count), "gap": float(gaps.mean()),
                 "gap_max": float(gaps.max()), "var": self.var_ratio_err,
                 "us1000": float(np.median(self.us_chunk)), "us1": self.us_single,
-                "degenerate": self.degenerate / max(self.steps, 1)}
+                "degenerate": self.degenerate / max(self.steps, 1), "seeds": len(self.gaps)}
 
 
 # -- running a filter -----------------------------------------------------------------------------
@@ -217,12 +217,12 @@ def _fmt(value: float | None, digits: int = 3) -> str:
 def table(result: dict[str, Any]) -> str:
     rows = result["rows"]
     engine = rows.get("Yau–Yau (stable)")
-    lines = ["| filter | RMSE vs truth | mean gap to ref | max gap | max rel. var err | µs/obs (chunk 1000) "
-             "| µs/obs (chunk 1) | time / engine | degenerate |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| filter | seeds | RMSE vs truth | mean gap to ref | max gap | max rel. var err "
+             "| µs/obs (chunk 1000) | µs/obs (chunk 1) | time / engine | degenerate |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
         ratio = r["us1000"] / engine["us1000"] if engine else float("nan")
-        lines.append(f"| {name} | {_fmt(r['rmse'])} | {_fmt(r['gap'])} | {_fmt(r['gap_max'])} "
+        lines.append(f"| {name} | {r['seeds']} | {_fmt(r['rmse'])} | {_fmt(r['gap'])} | {_fmt(r['gap_max'])} "
                      f"| {_fmt(r['var'])} | {_fmt(r['us1000'])} | {_fmt(r['us1'])} | {_fmt(ratio)}× "
                      f"| {r['degenerate']:.0%} |")
     if result["l1"]:
