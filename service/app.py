@@ -84,10 +84,19 @@ def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
     return Sessions(SessionStore(path), registry, settings.max_chunk_rows, settings.max_density_points)
 
 
+def _configure_logging(level: str) -> None:
+    """The service's own logger only (uvicorn configures its loggers; the root logger is left alone)."""
+    if not log.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        log.addHandler(handler)
+    log.setLevel("DEBUG" if level == "trace" else level.upper())
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application; ``settings`` default to the ``YAUYAU_*`` environment (uvicorn factory)."""
     settings = settings or Settings()
-    logging.basicConfig(level=settings.log_level.upper() if settings.log_level != "trace" else "DEBUG")
+    _configure_logging(settings.log_level)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):

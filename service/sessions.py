@@ -20,41 +20,62 @@ from . import metrics
 from .registry import LoadedModel, Registry
 
 
-def _finite_list(values: np.ndarray) -> list | None:
-    return values.tolist() if np.all(np.isfinite(values)) else None
-
-
-def estimate_row(est: Estimate) -> dict[str, Any]:
-    """One estimate as JSON; a non-finite mean or covariance becomes null (reported degenerate)."""
-    return {"step": int(est.step), "t": float(est.t), "mean": _finite_list(np.asarray(est.mean, float)),
-            "cov": _finite_list(np.asarray(est.cov, float))}
-
-
-def _degeneracy(est: Estimate, row: dict[str, Any]) -> tuple[bool, str | None]:
-    if est.degenerate:
-        return True, est.reason or "degenerate density"
-    if row["mean"] is None or row["cov"] is None or not math.isfinite(est.loglik):
-        return True, "non-finite estimate"
-    return False, None
+def estimate_rows(steps, times, mean: np.ndarray, cov: np.ndarray) -> list[dict[str, Any]]:
+    """Estimates as JSON rows; a row with a non-finite mean or covariance gets nulls (degenerate)."""
+    k = len(mean)
+    finite = np.isfinite(mean).reshape(k, -1).all(axis=1) & np.isfinite(cov).reshape(k, -1).all(axis=1)
+    return [{"step": s, "t": t, "mean": mu if ok else None, "cov": c if ok else None}
+            for s, t, mu, c, ok in zip(np.asarray(steps).tolist(), np.asarray(times, float).tolist(),
+                                       mean.tolist(), cov.tolist(), finite.tolist(), strict=True)]
 
 
 def estimate_full(est: Estimate) -> dict[str, Any]:
-    row = estimate_row(est)
-    degenerate, reason = _degeneracy(est, row)
+    """One estimate with its log-likelihood and degeneracy flag."""
+    mean, cov = np.asarray(est.mean, float)[None], np.asarray(est.cov, float)[None]
+    row = estimate_rows([est.step], [est.t], mean, cov)[0]
+    finite = row["mean"] is not None and math.isfinite(est.loglik)
+    if est.degenerate:
+        reason = est.reason or "degenerate density"
+    else:
+        reason = None if finite else "non-finite estimate"
     row.update(loglik=float(est.loglik) if math.isfinite(est.loglik) else None,
-               degenerate=degenerate, reason=reason)
+               degenerate=bool(est.degenerate) or not finite, reason=reason)
     return row
 
 
-def chunk_response(seq: int, state: Any, estimates: list[Estimate]) -> dict[str, Any]:
-    rows = [estimate_row(e) for e in estimates]
-    flags = [_degeneracy(e, r) for e, r in zip(estimates, rows, strict=True)]
-    bad = [reason for degenerate, reason in flags if degenerate]
+def run_chunk(filt: Any, state: Any, increments: np.ndarray) -> tuple[Any, list[dict], bool, str | None]:
+    """Advance the filter; (new state, estimate rows, any row degenerate, reason).
+
+    Filters with ``run_arrays`` (the engine, Kalman–Bucy) return the estimates as arrays: no
+    per-row objects on the hot path."""
+    if hasattr(filt, "run_arrays"):
+        state, res = filt.run_arrays(state, increments)
+        rows = estimate_rows(res.step, res.t, res.mean, res.cov)
+        flagged = bool(np.any(res.degenerate))
+        reason = res.reason
+    else:
+        state, estimates = filt.run(state, increments)
+        mean = np.array([e.mean for e in estimates], float)  # chunks are never empty
+        cov = np.array([e.cov for e in estimates], float)
+        rows = estimate_rows([e.step for e in estimates], [e.t for e in estimates], mean, cov)
+        bad = [e for e in estimates if e.degenerate]
+        flagged, reason = bool(bad), (bad[0].reason if bad else None)
+    if any(r["mean"] is None for r in rows):
+        flagged, reason = True, reason or "non-finite estimate"
+    return state, rows, flagged, reason
+
+
+def chunk_response(seq: int, state: Any, increments: np.ndarray, filt: Any) -> tuple[Any, dict[str, Any]]:
+    state, rows, flagged, reason = run_chunk(filt, state, increments)
     loglik = float(state.loglik)
-    return {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": rows,
-            "loglik": loglik if math.isfinite(loglik) else None,
-            "degenerate": bool(bad) or bool(state.degenerate) or not math.isfinite(loglik),
-            "reason": bad[-1] if bad else (None if math.isfinite(loglik) else "non-finite log-likelihood")}
+    if not math.isfinite(loglik):
+        flagged, reason = True, reason or "non-finite log-likelihood"
+    degenerate = flagged or bool(state.degenerate)
+    if degenerate and reason is None:
+        reason = getattr(state, "reason", None) or "degenerate density"
+    return state, {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": rows,
+                   "loglik": loglik if math.isfinite(loglik) else None, "degenerate": degenerate,
+                   "reason": reason}
 
 
 def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
@@ -106,8 +127,8 @@ class Sessions:
         increments = increments_array(rows, loaded.model.m)
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
-            state, estimates = filt.run(filt.state_from_dict(state_dict), increments)
-            return state.to_dict(), chunk_response(seq, state, estimates)
+            state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt)
+            return state.to_dict(), response
 
         response, replayed = self.store.apply_chunk(session_id, seq, compute)
         metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
