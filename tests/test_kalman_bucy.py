@@ -5,9 +5,10 @@ import pytest
 from scipy.integrate import quad
 
 from solver.errors import InputError, SpecError
-from solver.exact.kalman_bucy import KalmanBucyFilter
+from solver.exact.kalman_bucy import KINDS, KalmanBucyFilter
 from solver.filtering import Filter
 from solver.model import compile_model
+from solver.reference.kalman import DiscreteKalmanFilter
 from solver.simulate import simulate
 from solver.spec import spec_from_dict
 
@@ -123,3 +124,40 @@ def test_state_round_trip_and_density():
     assert e1.mean == pytest.approx(e2.mean) and s1.loglik == pytest.approx(s2.loglik)
     x = np.linspace(-8, 8, 4001)[:, None]
     assert np.sum(kb.density(s1, x)) * (x[1, 0] - x[0, 0]) == pytest.approx(1.0, abs=1e-8)
+
+
+@pytest.mark.parametrize("state", [("x",), ("x", "y")])
+def test_discrete_kind_equals_the_reference_kalman_filter_step_by_step(state):
+    # the chunked discrete kind (covariance path, then one affine mean recursion) against the
+    # step-by-step reference Kalman filter, missing rows included (scalar and matrix paths)
+    two = len(state) == 2
+    drift = ("-0.5*x + 0.4*y", "-0.6*x - 0.3*y") if two else ("-0.8*x + 0.3",)
+    observation = ("x + 0.5*y", "y - 0.1") if two else ("1.5*x - 0.2",)
+    model = _model(dt=0.05, state=state, drift=drift, observation=observation)
+    incs = simulate(model, 80, np.random.default_rng(7)).increments
+    incs[20:25] = np.nan
+    kb, ref = KalmanBucyFilter(model, kind="discrete"), DiscreteKalmanFilter(model)
+    s1, e1 = kb.run(kb.initial_state(), incs)
+    s2 = ref.initial_state()
+    for k, row in enumerate(incs):
+        s2, e2 = ref.step(s2, row)
+        np.testing.assert_allclose(e1[k].mean, e2.mean, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(e1[k].cov, e2.cov, rtol=1e-11, atol=1e-12)
+        assert e1[k].loglik == pytest.approx(e2.loglik, abs=1e-10)
+    assert all(e.loglik_increment == 0.0 for e in e1[20:25])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_chunking_does_not_change_the_estimates(kind):
+    kb = KalmanBucyFilter(_model(), kind=kind)
+    incs = simulate(kb.model, 60, np.random.default_rng(8)).increments
+    incs[30] = np.nan
+    whole, est = kb.run(kb.initial_state(), incs)
+    state, parts = kb.initial_state(), []
+    for piece in (incs[:1], incs[1:31], incs[31:59], incs[59:]):
+        state, part = kb.run(state, piece)
+        parts += part
+    state, last = kb.step(state, np.array([0.01]))
+    whole, again = kb.step(whole, np.array([0.01]))
+    np.testing.assert_allclose([e.mean for e in parts], [e.mean for e in est], rtol=1e-12, atol=1e-14)
+    assert state.loglik == pytest.approx(whole.loglik, abs=1e-12) and last.mean == pytest.approx(again.mean)

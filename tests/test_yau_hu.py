@@ -150,3 +150,31 @@ def test_conditions_are_checked_and_name_the_field():
         yh.state_from_dict({"A": [[[1.0]]], "B": [[0.0]], "C": [np.inf]})
     with pytest.raises(InputError):
         yh.run(yh.initial_state(), [[np.inf]])
+
+
+def test_benes_missing_rows_and_chunks_match_the_exact_benes_filter():
+    # the chunked recursion (Riccati path, affine B, cumulative C renormalised per chunk) against
+    # the closed-form Beneš posterior, with a gap of missing rows and odd chunk boundaries
+    model = compile_model(load_spec("examples/benes.toml"))
+    yh = YauHuFilter(model, n_components=4)
+    incs = simulate(model, 150, np.random.default_rng(9)).increments
+    incs[40:52] = np.nan
+    state, ests = yh.initial_state(), []
+    for piece in (incs[:1], incs[1:45], incs[45:149], incs[149:]):
+        state, part = yh.run(state, piece)
+        ests += part
+    mean, var = _benes_exact(model, incs)
+    np.testing.assert_allclose([e.mean[0] for e in ests], mean, atol=2e-4)
+    np.testing.assert_allclose([e.cov[0, 0] for e in ests], var, atol=2e-4)
+    assert all(e.loglik_increment == 0.0 for e in ests[40:52])
+    # log-likelihood: σ = cosh(x) e^{−t/2} ρ with ρ the DMZ solution of dx = dw, h = x (Kalman–Bucy;
+    # also on missing rows, where ρ_t = ½ρ''), and ∫cosh·N(m, P) = e^{P/2} cosh m, so
+    # log Z(t) = log Z_KB(t) + P/2 + log cosh m − (½ + log cosh 0) − t/2 (prior mass e^{1/2})
+    spec = model.spec.model_dump()
+    spec.update(drift=["0"], initial={"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]})
+    kb = KalmanBucyFilter(compile_model(spec_from_dict(spec)))
+    kb_state, kb_ests = kb.run(kb.initial_state(), incs)
+    m, P = kb_ests[-1].mean[0], kb_ests[-1].cov[0, 0]
+    log_cosh_mass = lambda mu, p: 0.5 * p + np.log(np.cosh(mu))  # noqa: E731
+    expected = kb_state.loglik + log_cosh_mass(m, P) - log_cosh_mass(0.0, 1.0) - 0.5 * kb_state.t
+    assert state.loglik == pytest.approx(expected, abs=1e-6)
