@@ -43,6 +43,9 @@ class _Job:
 
 
 _WORKER: dict = {}
+# fork: no __main__ guard needed by callers and no re-import; workers only run SuperLU solves
+# and sparse products (no thread pools that a fork could leave locked).
+_START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
 
 
 def _setup(job: _Job) -> None:
@@ -87,7 +90,7 @@ def propagate_all(job: _Job, workers: int = 1,
         finally:
             _WORKER.clear()
     else:
-        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded server process
+        ctx = multiprocessing.get_context(_START_METHOD)
         with ProcessPoolExecutor(max_workers=min(workers, len(blocks)), mp_context=ctx,
                                  initializer=_setup, initargs=(job,)) as pool:
             for result in pool.map(_propagate, blocks):
