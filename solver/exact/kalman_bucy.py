@@ -30,13 +30,13 @@ log ∫σ the Yau–Yau engine accumulates, so the two are comparable.  A NaN ro
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..engine import ChunkResult
 from ..errors import SpecError
-from ..filtering import check_increments
+from ..filtering import Estimate, check_increments
 from ..model import Model
 from ..reference._base import GaussianReferenceFilter, GaussianState, observed
 from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients
@@ -88,14 +88,14 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         new_state, result = self.run_arrays(state, increments)
         return new_state, result.estimates()
 
-    def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, ChunkResult]:
+    def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, "ExactChunk"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays."""
         dy = check_increments(increments, self.model.m)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
         if K == 0:
             empty = np.empty((0, n))
-            return state, ChunkResult(steps, steps * 1.0, empty, np.empty((0, n, n)), empty, np.empty(0),
+            return state, ExactChunk(steps, steps * 1.0, empty, np.empty((0, n, n)), empty, np.empty(0),
                                       np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
         dy = np.where(missing[:, None], 0.0, dy)
@@ -106,7 +106,7 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
                             loglik_increment=float(increments_ll[-1]), mean=mean[-1].copy(),
                             cov=cov[-1].copy())
-        return new_state, ChunkResult(step=steps, t=times, mean=mean, cov=cov, mode=mean.copy(),
+        return new_state, ExactChunk(step=steps, t=times, mean=mean, cov=cov, mode=mean.copy(),
                                       loglik=loglik, loglik_increment=increments_ll,
                                       degenerate=np.zeros(K, bool))
 
@@ -140,6 +140,18 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         predicted = (means[:-1] @ kf.phi.T + kf.shift) @ Hd.T + kf.h0 * dt
         ll = _log_normal_batch(dy, predicted, innovation) - _log_normal_batch(dy, np.zeros(m), Rdt[None])
         return means[1:], cov, np.where(missing, 0.0, ll)
+
+
+@dataclass(frozen=True)
+class ExactChunk(ChunkResult):
+    """The engine's chunk arrays; ``mode`` may be None (a mixture's mode is not computed)."""
+
+    def estimates(self) -> list[Estimate]:
+        modes = [None] * len(self.step) if self.mode is None else list(self.mode)
+        columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
+                      self.loglik_increment.tolist(), modes, strict=True)
+        return [Estimate(step=s, t=t, mean=m, cov=P, loglik=ll, loglik_increment=i, mode=mode)
+                for s, t, m, P, ll, i, mode in columns]
 
 
 def _kalman_covariances(phi, Q, Hd, Rdt, P0, missing):

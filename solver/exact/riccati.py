@@ -19,6 +19,12 @@ Two ways to get A, B, C:
   linearised as A = Y X⁻¹ with [X; Y]' = [[D, 2a], [Q, −Dᵀ]] [X; Y], so that
   B(t) = X⁻ᵀ[B0 + ∫(Xᵀq − 2Yᵀd) ds] and ∫tr(aA) = ½(log det X − t tr D); only ∫(½BᵀaB + dᵀB)
   is left to a Gauss–Legendre rule.  One step costs a few n×n products (Kalman-like).
+
+Chunks of steps (the filters' ``run``): A does not depend on the data, B enters linearly, C is
+a sum.  :class:`FlowFamily` holds the flows a step may use (with / without the observation
+potential); ``FlowFamily.path`` is the Riccati path of A (sequential, scalar loop for n = 1),
+:class:`StepBatch` the data-free matrices of all K steps at once, :func:`affine_path` the one
+sequential recursion B_k = W_k B_{k−1} + v_k, and ``StepBatch.finish`` the C gains in batch.
 """
 
 from __future__ import annotations
@@ -298,9 +304,11 @@ class StepBatch:
         Phi = family.Phi[choice][:, :, None]  # (K, S+1, 1, 2n, 2n)
         Psi = family.Psi[choice][:, :, None]
         A = np.asarray(A_prev, dtype=float)[:, None]  # (K, 1, J, n, n)
-        X = Phi[..., :n, :n] + Phi[..., :n, n:] @ A
-        IX = Psi[..., :n, :n] + Psi[..., :n, n:] @ A
-        IY = Psi[..., n:, :n] + Psi[..., n:, n:] @ A
+        # 1×1 matrices: elementwise products (same result, no per-element matmul dispatch)
+        self.mm = mm = np.multiply if n == 1 else np.matmul
+        X = Phi[..., :n, :n] + mm(Phi[..., :n, n:], A)
+        IX = Psi[..., :n, :n] + mm(Psi[..., :n, n:], A)
+        IY = Psi[..., n:, :n] + mm(Psi[..., n:, n:], A)
         if n == 1:
             x_dt = X[:, -1, :, 0, 0]
             if not np.all(x_dt > 0):
@@ -314,9 +322,10 @@ class StepBatch:
             self.XinvT = np.swapaxes(np.linalg.inv(X), -1, -2)
         # B(s) = X(s)⁻ᵀ [B0 + ∫0^s (Xᵀq − 2Yᵀd)]: the forcing integral at the nodes and at dt
         q = np.asarray(q, dtype=float)[:, None, None, :, None]
-        self.forcing = (np.swapaxes(IX, -1, -2) @ q)[..., 0] - 2.0 * (np.swapaxes(IY, -1, -2) @ eq.d)
+        d = eq.d[:, None]
+        self.forcing = (mm(np.swapaxes(IX, -1, -2), q) - 2.0 * mm(np.swapaxes(IY, -1, -2), d))[..., 0]
         self.W = self.XinvT[:, -1]
-        self.v = (self.W @ self.forcing[:, -1, ..., None])[..., 0]
+        self.v = mm(self.W, self.forcing[:, -1, ..., None])[..., 0]
         # ∫tr(aA) = ½(log det X − dt tr D), so C gains ½ log det X + (r + ½ tr D) dt − ∫(½BᵀaB + dᵀB)
         r = np.asarray(r, dtype=float)[:, None]
         self.gain0 = 0.5 * log_det + (r + 0.5 * np.trace(eq.D)) * family.dt
@@ -324,7 +333,7 @@ class StepBatch:
     def finish(self, B_prev) -> tuple[np.ndarray, np.ndarray]:
         """(B at dt (K, J, n), gain of C (K, J)) from the start values B_prev (K, J, n)."""
         eq = self.eq
-        Bs = (self.XinvT @ (np.asarray(B_prev, dtype=float)[:, None] + self.forcing)[..., None])[..., 0]
+        Bs = self.mm(self.XinvT, (np.asarray(B_prev, dtype=float)[:, None] + self.forcing)[..., None])[..., 0]
         nodes = Bs[:, :-1]
         quad = 0.5 * np.einsum("ksji,il,ksjl->ksj", nodes, eq.a, nodes) + nodes @ eq.d
         return Bs[:, -1], self.gain0 - np.einsum("s,ksj->kj", self.w, quad)

@@ -32,13 +32,13 @@ import sympy as sp
 from scipy.linalg import expm
 from scipy.special import logsumexp
 
-from ..engine import ChunkResult
 from ..errors import InputError, SpecError
 from ..filtering import Estimate, check_increments
 from ..model import Model
 from ..reference._base import ReferenceFilter, StepState, observed
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .kalman_bucy import ExactChunk
 from .riccati import FlowFamily, GaussianKolmogorov, affine_path, gaussian_terms_batch, gaussian_to_terms
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
@@ -299,7 +299,7 @@ class YauHuFilter(ReferenceFilter):
         new_state, result = self.run_arrays(state, increments)
         return new_state, result.estimates()
 
-    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "MixtureChunk"]:
+    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ExactChunk"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 
         The component exponents A_k are observation-free (Riccati path); B is an affine recursion in
@@ -310,7 +310,7 @@ class YauHuFilter(ReferenceFilter):
         steps = state.step + 1 + np.arange(K)
         times = steps * dt
         if K == 0:
-            return state, MixtureChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
+            return state, ExactChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
                                        np.empty(0), np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
         dyw = np.where(missing[:, None], 0.0, dy) @ self.L_inv.T  # whitened; 0 on missing rows
@@ -320,7 +320,7 @@ class YauHuFilter(ReferenceFilter):
         obs = self._observed
         a, b, c = obs.observation_terms(dyw / dt)  # 0 on missing rows
         # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (_Step's (a, b, c) shift)
-        Ab = (A[1:] @ b[:, None, :, None])[..., 0]  # (K, J, n)
+        Ab = batch.mm(A[1:], b[:, None, :, None])[..., 0]  # (K, J, n)
         shift = -2.0 * Ab + (a - dyw @ obs.H)[:, None]
         B = affine_path(batch.W, batch.v + shift, state.B)  # (K+1, J, n)
         B_flow, gain = batch.finish(B[:-1])
@@ -338,7 +338,7 @@ class YauHuFilter(ReferenceFilter):
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
                             loglik_increment=float(increments_ll[-1]), A=A[-1], B=B[-1],
                             C=C[-1] + log_mass[-1])
-        return new_state, MixtureChunk(steps, times, mean, cov, None, loglik, increments_ll,
+        return new_state, ExactChunk(steps, times, mean, cov, None, loglik, increments_ll,
                                        np.zeros(K, bool))
 
     def estimate(self, state: YauHuState) -> Estimate:
@@ -367,16 +367,6 @@ class YauHuFilter(ReferenceFilter):
             return YauHuState(A=A, B=B, C=C, **values)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError("state", f"not a valid yau-hu state: {exc}") from None
-
-
-@dataclass(frozen=True)
-class MixtureChunk(ChunkResult):
-    """The engine's chunk arrays without modes (a mixture's mode is not computed: ``mode`` None)."""
-
-    def estimates(self) -> list[Estimate]:
-        return [Estimate(step=int(s), t=float(t), mean=m, cov=P, loglik=float(ll), loglik_increment=float(i))
-                for s, t, m, P, ll, i in zip(self.step, self.t, self.mean, self.cov, self.loglik,
-                                             self.loglik_increment, strict=True)]
 
 
 def _log_sum_exp(values):
