@@ -30,6 +30,7 @@ the increment against pure noise.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -46,6 +47,7 @@ FORMS = ("stable", "literal")
 # A pre-projection mass outside [_TINY, _HUGE] is recomputed in log scale (rare slow path).
 _TINY = 1e-280
 _HUGE = 1e280
+_NEGLIGIBLE = 1e-250  # update factors (relative to their max) below this count as 0
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 _RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
 
@@ -195,7 +197,11 @@ class YauYauFilter:
                            degenerate=data["degenerate"], reason=reason, form=self.form)
 
     def estimate(self, state: YauYauState) -> Estimate:
-        return state.last
+        """The last good estimate; flagged (with the reason) when the state is degenerate."""
+        if not state.degenerate:
+            return state.last
+        return dataclasses.replace(state.last, step=state.step, t=state.t, loglik_increment=0.0,
+                                   degenerate=True, reason=state.reason)
 
     # -- stepping ----------------------------------------------------------------------
     def step(self, state: YauYauState, increment: np.ndarray | None) -> tuple[YauYauState, Estimate]:
@@ -267,6 +273,7 @@ class YauYauFilter:
         K, Q = log_factor.shape
         N = self.N
         factor = np.exp(log_factor)
+        factor[factor < _NEGLIGIBLE] = 0.0  # no subnormal products (slow) in the BLAS calls
         sigma = np.empty((K, Q))
         masses = np.empty(K)
         predict, observe, project = self._predict, self._observe, self._project
