@@ -56,6 +56,12 @@ def _configurations(flt: YauYauFilter, dy: np.ndarray, single_steps: int):
     }
 
 
+def _single_precision(flt: YauYauFilter, dy: np.ndarray):
+    fast = YauYauFilter(flt.model, flt.offline, form=flt.form, precision="single")
+    start = fast.initial_state()
+    return {f"run_arrays() chunk {CHUNK}, single precision": (lambda: fast.run_arrays(start, dy), len(dy))}
+
+
 def measure(example: str, repeats: int, single_steps: int) -> tuple[dict, tuple[int, int]]:
     model = compile_model(load_spec(ROOT / "examples" / example))
     offline = precompute(model)
@@ -65,7 +71,8 @@ def measure(example: str, repeats: int, single_steps: int) -> tuple[dict, tuple[
     configs = {}
     for form in ("stable", "literal"):
         flt = YauYauFilter(model, offline, form=form)
-        for name, job in _configurations(flt, dy, single_steps).items():
+        jobs = {**_configurations(flt, dy, single_steps), **_single_precision(flt, dy)}
+        for name, job in jobs.items():
             if form == "literal" and name.startswith("BLAS"):
                 continue
             configs[(form, name)] = job

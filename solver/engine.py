@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg.blas import dgemv
+from scipy.linalg.blas import dgemv, sgemv
 
 from .errors import InputError, SpecError
 from .filtering import Estimate, check_increments
@@ -44,10 +44,24 @@ from .model import Model
 from .spec import DensityPrior
 
 FORMS = ("stable", "literal")
-# A pre-projection mass outside [_TINY, _HUGE] is recomputed in log scale (rare slow path).
-_TINY = 1e-280
-_HUGE = 1e280
-_NEGLIGIBLE = 1e-250  # update factors (relative to their max) below this count as 0
+PRECISIONS = ("double", "single")
+
+
+@dataclass(frozen=True)
+class _Arithmetic:
+    """Floating point of the hot loop.  A pre-projection mass outside [tiny, huge] is recomputed in
+    log scale (rare slow path); update factors (relative to their max) below ``negligible`` count as 0,
+    so the BLAS calls never work on subnormal numbers (slow)."""
+
+    dtype: type
+    gemv: Any
+    tiny: float
+    huge: float
+    negligible: float
+
+
+_ARITHMETIC = {"double": _Arithmetic(np.float64, dgemv, 1e-280, 1e280, 1e-250),
+               "single": _Arithmetic(np.float32, sgemv, 1e-30, 1e30, 1e-25)}
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 _RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
 
@@ -73,10 +87,12 @@ class YauYauState:
     degenerate: bool = False
     reason: str | None = None
     form: str = "stable"
+    precision: str = "double"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe; floats as Python floats (repr round-trips exactly)."""
-        return {"method": "yau-yau", "form": self.form, "step": self.step, "t": self.t,
+        return {"method": "yau-yau", "form": self.form, "precision": self.precision, "step": self.step,
+                "t": self.t,
                 "loglik": self.loglik, "degenerate": self.degenerate, "reason": self.reason,
                 "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
 
@@ -113,29 +129,35 @@ class YauYauFilter:
     """The Yau–Yau filter on precomputed offline arrays (the :class:`solver.filtering.Filter` protocol).
 
     ``offline`` needs ``nodes`` (Q, n), ``weights`` (Q,), ``projector`` (N, Q), ``propagator_fp`` and
-    ``propagator_k`` (Q, N) and ``evaluate_basis(points) -> (P, N)``.
+    ``propagator_k`` (Q, N) and ``evaluate_basis(points) -> (P, N)``.  ``precision="single"`` runs
+    the two matrix-vector products per step in float32 (about 2.5× faster; relative rounding ~1e-7
+    per step); the moments, log-likelihood and state stay in float64.
     """
 
     method = "yau-yau"
 
-    def __init__(self, model: Model, offline: Any, form: str = "stable"):
+    def __init__(self, model: Model, offline: Any, form: str = "stable", precision: str = "double"):
         if form not in FORMS:
             raise SpecError("form", f"must be one of {', '.join(FORMS)}, got {form!r}")
+        if precision not in PRECISIONS:
+            raise SpecError("precision", f"must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.model = model
         self.offline = offline
         self.form = form
+        self.precision = precision
+        self._arith = arith = _ARITHMETIC[precision]
         self.nodes = np.ascontiguousarray(offline.nodes, dtype=float)
         self.weights = np.ascontiguousarray(offline.weights, dtype=float)
         projector = np.asarray(offline.projector, dtype=float)
         self.N = projector.shape[0]
         _check_offline_shapes(self.nodes, self.weights, projector, offline, model.n)
-        # Fortran order: dgemv reads it without a copy.  The weights ride along as an extra row of
+        # Fortran order: gemv reads it without a copy.  The weights ride along as an extra row of
         # the projector, so one call gives the coefficients and the mass ∫σ; the propagators get a
         # zero column for it, so the next call takes that vector as it is (and 1/∫σ as its alpha).
-        self._project = np.asfortranarray(np.vstack([projector, self.weights]))
-        self._predict = _with_zero_column(offline.propagator_fp)
+        self._project = np.asfortranarray(np.vstack([projector, self.weights]), dtype=arith.dtype)
+        self._predict = _with_zero_column(offline.propagator_fp, arith.dtype)
         literal = form == "literal"
-        self._observe = _with_zero_column(offline.propagator_k) if literal else self._predict
+        self._observe = _with_zero_column(offline.propagator_k, arith.dtype) if literal else self._predict
         # h(nodes) R⁻¹ (m, Q) and the penalty ½hᵀR⁻¹h·dt (Q,), precomputed once.
         h_nodes = model.h(self.nodes)
         self._hR = np.ascontiguousarray((h_nodes @ model.R_inv).T)
@@ -163,12 +185,12 @@ class YauYauFilter:
                 raise SpecError("initial", f"only {ball_mass:.3g} of the prior mass lies on the domain ball "
                                 "(move the prior or enlarge domain.radius)")
         sigma = sigma / mass
-        projected = dgemv(1.0, self._project, sigma)
+        projected = self._arith.gemv(1.0, self._project, sigma.astype(self._arith.dtype))
         mean, cov, mode = self._moments(sigma[None, :], np.ones(1))
         last = Estimate(step=0, t=0.0, mean=mean[0], cov=cov[0], loglik=0.0, loglik_increment=0.0,
                         mode=mode[0])
-        return YauYauState(coefficients=projected[: self.N].copy(), mass=projected.item(self.N), step=0,
-                           t=0.0, loglik=0.0, last=last, form=self.form)
+        return YauYauState(coefficients=projected[: self.N].astype(float), mass=projected.item(self.N),
+                           step=0, t=0.0, loglik=0.0, last=last, form=self.form, precision=self.precision)
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
@@ -176,8 +198,10 @@ class YauYauFilter:
             raise InputError("state", "must be an object")
         if data.get("method") != "yau-yau":
             raise InputError("state.method", f"is {data.get('method')!r}, this filter is 'yau-yau'")
-        if data.get("form") != self.form:
-            raise InputError("state.form", f"is {data.get('form')!r}, this filter uses {self.form!r}")
+        for name in ("form", "precision"):
+            if data.get(name) != getattr(self, name):
+                raise InputError(f"state.{name}",
+                                 f"is {data.get(name)!r}, this filter uses {getattr(self, name)!r}")
         coefficients = _float_array(data.get("coefficients"), "state.coefficients", (self.N,))
         step = data.get("step")
         if not isinstance(step, int) or isinstance(step, bool) or step < 0:
@@ -194,7 +218,8 @@ class YauYauFilter:
                            t=_finite_float(data.get("t"), "state.t"),
                            loglik=_finite_float(data.get("loglik"), "state.loglik"),
                            last=_estimate_from_dict(data.get("last"), self.model.n),
-                           degenerate=data["degenerate"], reason=reason, form=self.form)
+                           degenerate=data["degenerate"], reason=reason, form=self.form,
+                           precision=self.precision)
 
     def estimate(self, state: YauYauState) -> Estimate:
         """The last good estimate; flagged (with the reason) when the state is degenerate."""
@@ -226,7 +251,7 @@ class YauYauFilter:
             return self._stay_degenerate(state, steps, times, state.reason)
         missing = np.isnan(dy[:, 0])
         log_factor, top = self._update_exponents(dy, missing)
-        initial = np.append(state.coefficients, state.mass)
+        initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
         done, carried, reason = self._check_rim(sigma, masses, done, carried, reason, initial)
         masses = masses[:done]
@@ -241,8 +266,8 @@ class YauYauFilter:
                             mode=mode[-1])
         else:
             last = state.last
-        new_state = YauYauState(coefficients=carried[: self.N].copy(), mass=carried.item(self.N),
-                                step=int(steps[-1]), t=float(times[-1]),
+        new_state = YauYauState(coefficients=carried[: self.N].astype(float), mass=carried.item(self.N),
+                                step=int(steps[-1]), t=float(times[-1]), precision=self.precision,
                                 loglik=last.loglik, last=last, degenerate=not good,
                                 reason=reason, form=self.form)
         result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
@@ -272,26 +297,28 @@ class YauYauFilter:
         """
         K, Q = log_factor.shape
         N = self.N
-        factor = np.exp(log_factor)
-        factor[factor < _NEGLIGIBLE] = 0.0  # no subnormal products (slow) in the BLAS calls
-        sigma = np.empty((K, Q))
+        arith = self._arith
+        factor = np.exp(log_factor).astype(arith.dtype, copy=False)
+        factor[factor < arith.negligible] = 0.0
+        sigma = np.empty((K, Q), dtype=arith.dtype)
         masses = np.empty(K)
-        predict, observe, project = self._predict, self._observe, self._project
+        predict, observe, project, gemv = self._predict, self._observe, self._project, arith.gemv
+        tiny, huge = arith.tiny, arith.huge
         mass = carried.item(N)
         for k in range(K):
             row = sigma[k]
             if missing[k]:
-                dgemv(1.0 / mass, predict, carried, 0.0, row, overwrite_y=1)
+                gemv(1.0 / mass, predict, carried, 0.0, row, overwrite_y=1)
             else:
-                dgemv(1.0 / mass, observe, carried, 0.0, row, overwrite_y=1)
+                gemv(1.0 / mass, observe, carried, 0.0, row, overwrite_y=1)
                 row *= factor[k]
-            projected = dgemv(1.0, project, row)
+            projected = gemv(1.0, project, row)
             new_mass = projected.item(N)
-            if not _TINY < new_mass < _HUGE:
+            if not tiny < new_mass < huge:
                 new_mass, reason = self._rescue(carried, mass, log_factor, top, missing[k], k, row)
                 if reason is not None:
                     return sigma, masses[:k], carried, k, reason
-                projected = dgemv(1.0, project, row)
+                projected = gemv(1.0, project, row)
                 projected[N] = new_mass
             masses[k] = mass = new_mass
             carried = projected
@@ -313,13 +340,13 @@ class YauYauFilter:
                   "incompatible with the model on this ball (enlarge domain.radius?)")
         if bad == 0:
             return 0, initial, reason
-        carried = dgemv(1.0, self._project, sigma[bad - 1])  # what the loop carried after step bad−1
+        carried = self._arith.gemv(1.0, self._project, sigma[bad - 1])  # as the loop carried after bad−1
         carried[self.N] = masses[bad - 1]
         return bad, carried, reason
 
     def _rescue(self, carried, mass, log_factor, top, missing, k, row) -> tuple[float, str | None]:
         """Recompute step k in log scale when ∫σ under/overflows; writes row, may shift top[k]."""
-        s = dgemv(1.0 / mass, self._predict if missing else self._observe, carried)
+        s = self._arith.gemv(1.0 / mass, self._predict if missing else self._observe, carried)
         if not missing and not np.all(np.isfinite(log_factor[k])):
             return 0.0, "the update factor exp(hᵀR⁻¹Δy) overflows: increment incompatible with the model"
         prior_mass = float(self.weights @ s)
@@ -330,7 +357,7 @@ class YauYauFilter:
         shift = float(log_abs.max())
         row[:] = np.sign(s) * np.exp(log_abs - shift)
         new_mass = float(self.weights @ row)
-        if not _TINY < new_mass < _HUGE:
+        if not self._arith.tiny < new_mass < self._arith.huge:
             return 0.0, "no positive mass after the update: observation impossible under the model"
         top[k] += shift
         return new_mass, None
@@ -338,7 +365,7 @@ class YauYauFilter:
     def _stay_degenerate(self, state: YauYauState, steps, times, reason):
         K = len(steps)
         last = state.last
-        new_state = YauYauState(coefficients=state.coefficients, mass=state.mass,
+        new_state = YauYauState(coefficients=state.coefficients, mass=state.mass, precision=self.precision,
                                 step=int(steps[-1]) if K else state.step,
                                 t=float(times[-1]) if K else state.t, loglik=state.loglik, last=last,
                                 degenerate=True, reason=reason, form=self.form)
@@ -418,9 +445,9 @@ def _rim_nodes(nodes: np.ndarray, center: np.ndarray, radius: float) -> np.ndarr
     return np.flatnonzero(r >= radius - 2.0 * (radius - r.max()))
 
 
-def _with_zero_column(propagator: np.ndarray) -> np.ndarray:
+def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     matrix = np.asarray(propagator, dtype=float)
-    return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]))
+    return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
 
 
 def _moment_features(nodes: np.ndarray, weights: np.ndarray):

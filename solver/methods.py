@@ -42,9 +42,10 @@ def resolve_method(model: Model, method: str | None = None) -> str:
 
 
 def make_filter(model: Model, offline: Any | None = None, method: str | None = None,
-                form: str = "stable") -> Filter:
+                form: str = "stable", precision: str = "double") -> Filter:
     """A filter for ``model``; ``offline`` (solver.offline.OfflineModel) is needed by yau-yau and
-    wei-norman.  An exact method that is unavailable or does not apply raises SpecError('method')."""
+    wei-norman.  ``form``/``precision`` are the yau-yau engine's options (solver.engine).  An exact
+    method that is unavailable or does not apply raises SpecError('method')."""
     requested = method
     method = resolve_method(model, method)
     if method == "yau-yau":
@@ -52,7 +53,7 @@ def make_filter(model: Model, offline: Any | None = None, method: str | None = N
             raise SpecError("method", "yau-yau needs the precomputed propagators (run yauyau precompute)")
         from .engine import YauYauFilter
 
-        return YauYauFilter(model, offline, form=form)
+        return YauYauFilter(model, offline, form=form, precision=precision)
     cls = _exact_class(method)
     try:
         if method == "wei-norman":
@@ -66,7 +67,7 @@ def make_filter(model: Model, offline: Any | None = None, method: str | None = N
         if (requested or model.spec.method) == "auto" and offline is not None:
             from .engine import YauYauFilter  # the analysis was too optimistic: the general engine
 
-            return YauYauFilter(model, offline, form=form)
+            return YauYauFilter(model, offline, form=form, precision=precision)
         raise SpecError("method", f"{method} does not apply to this model: {exc}") from None
 
 

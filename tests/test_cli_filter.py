@@ -82,6 +82,9 @@ def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
     first = out.read_bytes()
     code, out = _filter(store, "ou", tmp_path, npy, "--chunk", "7", "--method", "yau-yau")
     assert code == 0 and out.read_bytes() == first
+    code, out = _filter(store, "ou", tmp_path, npy, "--method", "yau-yau", "--precision", "single")
+    _, single = _read(out)
+    assert code == 0 and np.max(np.abs(single[:, 2] - [e.mean[0] for e in ref])) < 1e-3
 
 
 def test_filter_two_dimensional_layout(store, tmp_path):

@@ -94,11 +94,13 @@ def _literal_exact(model, dy):
     return np.array(means), np.array(variances), np.array(logliks)
 
 
-@pytest.mark.parametrize("form, exact", [("stable", _kalman), ("literal", _literal_exact)])
-def test_ou_matches_exact_time_discrete_filter(ou, form, exact):
+@pytest.mark.parametrize("form, precision, exact", [("stable", "double", _kalman),
+                                                     ("stable", "single", _kalman),
+                                                     ("literal", "double", _literal_exact)])
+def test_ou_matches_exact_time_discrete_filter(ou, form, precision, exact):
     model, offline = ou
     sim = simulate(model, 400, np.random.default_rng(11))
-    yy = YauYauFilter(model, offline, form=form)
+    yy = YauYauFilter(model, offline, form=form, precision=precision)
     assert isinstance(yy, Filter)
     _, estimates = yy.run(yy.initial_state(), sim.increments)
     ref_mean, ref_var, ref_loglik = exact(model, sim.increments)
@@ -235,16 +237,17 @@ def test_impossible_data_flags_degenerate_and_keeps_last_estimate(cubic, impossi
 
 
 # -- state round trip ----------------------------------------------------------------------------
-@pytest.mark.parametrize("form", ["stable", "literal"])
-def test_state_round_trip_continues_bit_identically(cubic, form):
+@pytest.mark.parametrize("form, precision", [("stable", "double"), ("literal", "double"),
+                                             ("stable", "single")])
+def test_state_round_trip_continues_bit_identically(cubic, form, precision):
     model, offline = cubic
     dy = simulate(model, 300, np.random.default_rng(8)).increments
     dy[[20, 150, 151]] = np.nan
-    yy = YauYauFilter(model, offline, form=form)
+    yy = YauYauFilter(model, offline, form=form, precision=precision)
     start = yy.initial_state()
     whole, all_estimates = yy.run_arrays(start, dy)
     state, first = yy.run_arrays(start, dy[:70])
-    restored = YauYauFilter(model, offline, form=form).state_from_dict(
+    restored = YauYauFilter(model, offline, form=form, precision=precision).state_from_dict(
         json.loads(json.dumps(state.to_dict(), allow_nan=False)))
     state, second = yy.run_arrays(restored, dy[70:])
     for name in ("mean", "cov", "mode", "loglik", "loglik_increment"):
@@ -261,6 +264,7 @@ def test_state_from_dict_names_the_bad_field(ou):
     for change, field in ((("coefficients", [1.0, 2.0]), "state.coefficients"),
                           (("method", "kalman-bucy"), "state.method"),
                           (("form", "literal"), "state.form"),
+                          (("precision", "single"), "state.precision"),
                           (("mass", -1.0), "state.mass"),
                           (("step", -3), "state.step"),
                           (("loglik", "x"), "state.loglik"),

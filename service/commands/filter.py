@@ -24,7 +24,7 @@ DEFAULT_CHUNK = 1000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from solver.engine import FORMS
+    from solver.engine import FORMS, PRECISIONS
     from solver.spec import METHODS
 
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, default=None, help="filter (default: the spec's method)")
     parser.add_argument("--form", choices=FORMS, default="stable",
                         help="yau-yau step: stable (default) or literal seed 002 (5.35)")
+    parser.add_argument("--precision", choices=PRECISIONS, default="double",
+                        help="yau-yau matrix-vector products in double (default) or single precision")
     parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
                         help="rows per chunk (default %(default)s)")
 
@@ -47,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     increments = read_increments(args.increments, model.m)
     from solver.methods import make_filter
 
-    flt = make_filter(model, offline, args.method, form=args.form)
+    flt = make_filter(model, offline, args.method, form=args.form, precision=args.precision)
     rows, first_degenerate = filter_rows(flt, increments, args.chunk)
     write_csv(args.out, header(model), rows)
     if first_degenerate is not None:
