@@ -42,13 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from solver.errors import InputError
+    from solver.methods import make_filter
 
     if args.chunk < 1:
         raise InputError("chunk", "must be a positive integer")
     model, offline = load_stored_model(args.store, args.model_id)
     increments = read_increments(args.increments, model.m)
-    from solver.methods import make_filter
-
     flt = make_filter(model, offline, args.method, form=args.form, precision=args.precision)
     rows, first_degenerate = filter_rows(flt, increments, args.chunk)
     write_csv(args.out, header(model), rows)
