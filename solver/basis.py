@@ -14,6 +14,8 @@ posteriors sit far from the centre, where h' = 3x² is large).  A potential V (e
 
 from __future__ import annotations
 
+import ctypes
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +45,8 @@ def eigenbasis(half_stiffness: sps.spmatrix, weights: np.ndarray, size: int,
     symmetric = scale[:, None] * operator * scale[None, :]
     symmetric = 0.5 * (symmetric + symmetric.T)  # remove assembly rounding asymmetry
     # the full divide-and-conquer solve beat the subset drivers (evr, evx) for N ≳ Q/4 in 2-D
-    lam, psi = sla.eigh(symmetric, driver="evd")
+    with blas_threads(1) if q < SINGLE_THREAD_BELOW else nullcontext():
+        lam, psi = sla.eigh(symmetric, driver="evd")
     lam, psi = lam[:size], psi[:, :size]
     psi = _fix_signs(psi)
     values = scale[:, None] * psi
@@ -54,3 +57,44 @@ def _fix_signs(psi: np.ndarray) -> np.ndarray:
     """Make each eigenvector's largest-magnitude entry positive (reproducible output)."""
     pivot = psi[np.argmax(np.abs(psi), axis=0), np.arange(psi.shape[1])]
     return psi * np.where(pivot < 0, -1.0, 1.0)
+
+
+# -- BLAS threads ------------------------------------------------------------------------------------
+# Measured on the shared 2-core machine: the dense eigensolve of Q = 259 took 0.15–0.54 s with two
+# OpenBLAS threads under load and 0.01–0.02 s with one; threads only pay off for large Q.
+SINGLE_THREAD_BELOW = 1500
+
+
+def _openblas_libraries() -> list:
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.lower()})
+    except OSError:
+        return []
+    libs = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for suffix in ("64_", ""):
+            get = getattr(lib, f"scipy_openblas_get_num_threads{suffix}", None)
+            put = getattr(lib, f"scipy_openblas_set_num_threads{suffix}", None)
+            if get is not None and put is not None:
+                libs.append((get, put))
+                break
+    return libs
+
+
+@contextmanager
+def blas_threads(count: int):
+    """Temporarily set the thread count of the loaded scipy-openblas libraries (no-op elsewhere)."""
+    libs = _openblas_libraries()
+    saved = [get() for get, _ in libs]
+    try:
+        for _, put in libs:
+            put(count)
+        yield
+    finally:
+        for (_, put), value in zip(libs, saved, strict=True):
+            put(value)
