@@ -9,6 +9,7 @@ that lost an answer (server killed) re-sends the same chunk and nothing is lost 
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import numpy as np
@@ -103,6 +104,10 @@ class Sessions:
         self.registry = registry
         self.max_chunk_rows = max_chunk_rows
         self.max_density_points = max_density_points
+        # One chunk at a time per process: threads of one worker would otherwise queue on SQLite's
+        # write lock, whose busy handler sleeps (up to 100 ms a try); the GIL serialises the
+        # filter arithmetic anyway.  Several workers still share the store through SQLite.
+        self._write_lock = threading.Lock()
 
     def create(self, model_id: str, prior: Any | None, method: str | None) -> dict[str, Any]:
         loaded = self.registry.get(model_id)
@@ -130,7 +135,8 @@ class Sessions:
             state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt)
             return state.to_dict(), response
 
-        response, replayed = self.store.apply_chunk(session_id, seq, compute)
+        with self._write_lock:
+            response, replayed = self.store.apply_chunk(session_id, seq, compute)
         metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
         if not replayed:
             metrics.OBSERVATIONS.inc(len(rows))
