@@ -163,7 +163,11 @@ class YauYauFilter:
         self._hR = np.ascontiguousarray((h_nodes @ model.R_inv).T)
         penalty = 0.5 * model.dt * np.einsum("qi,ij,qj->q", h_nodes, model.R_inv, h_nodes)
         self._penalty = np.zeros_like(penalty) if literal else penalty  # seed 002 (5.35) vs stable
-        self._features = _moment_features(self.nodes, self.weights)
+        self._pairs = [(i, j) for i in range(model.n) for j in range(i, model.n)]
+        # rows: w·x_i (i < n), then w·x_i·x_j for the pairs i ≤ j
+        w, x = self.weights, self.nodes
+        self._features = np.vstack([w * x[:, i] for i in range(model.n)]
+                                   + [w * x[:, i] * x[:, j] for i, j in self._pairs])
         self._rim = _rim_nodes(self.nodes, model.center, model.radius)
 
     # -- states ------------------------------------------------------------------------
@@ -379,14 +383,15 @@ class YauYauFilter:
     def _moments(self, sigma: np.ndarray, mass: np.ndarray):
         """Mean, covariance and mode of each row of nodal σ (K, Q) with ∫σ = mass.
 
-        Elementwise products and row sums: each row's value does not depend on K.
+        One einsum (numpy's own loops, no BLAS): each row's value does not depend on K.
         """
         n = self.model.n
         K = sigma.shape[0]
-        first = np.stack([(sigma * f).sum(axis=1) for f in self._features[0]], axis=1) / mass[:, None]
+        moments = np.einsum("kq,fq->kf", sigma, self._features) / mass[:, None]
+        first = moments[:, :n]
         cov = np.empty((K, n, n))
-        for (i, j), f in zip(self._features[2], self._features[1], strict=True):
-            cov[:, i, j] = cov[:, j, i] = (sigma * f).sum(axis=1) / mass - first[:, i] * first[:, j]
+        for p, (i, j) in enumerate(self._pairs):
+            cov[:, i, j] = cov[:, j, i] = moments[:, n + p] - first[:, i] * first[:, j]
         mode = self.nodes[np.argmax(sigma, axis=1)] if K else np.empty((0, n))
         return first, cov, mode
 
@@ -448,14 +453,6 @@ def _rim_nodes(nodes: np.ndarray, center: np.ndarray, radius: float) -> np.ndarr
 def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     matrix = np.asarray(propagator, dtype=float)
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
-
-
-def _moment_features(nodes: np.ndarray, weights: np.ndarray):
-    n = nodes.shape[1]
-    first = [np.ascontiguousarray(weights * nodes[:, i]) for i in range(n)]
-    pairs = [(i, j) for i in range(n) for j in range(i, n)]
-    second = [np.ascontiguousarray(weights * nodes[:, i] * nodes[:, j]) for i, j in pairs]
-    return first, second, pairs
 
 
 def _stack_results(steps, times, mean, cov, mode, loglik, increments, last: Estimate, reason):
