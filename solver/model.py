@@ -65,7 +65,7 @@ class Model:
     # -- symbolic derived quantities --------------------------------------------------
     @cached_property
     def div_drift(self) -> sp.Expr:
-        return sp.simplify(sum(sp.diff(fi, xi) for fi, xi in zip(self.drift, self.symbols)))
+        return sp.simplify(sum(sp.diff(fi, xi) for fi, xi in zip(self.drift, self.symbols, strict=True)))
 
     @cached_property
     def jacobian_drift(self) -> sp.Matrix:
@@ -122,7 +122,7 @@ class Model:
         if isinstance(prior, MixturePrior):
             w = np.asarray(prior.weights, float) / np.sum(prior.weights)
             logs = np.stack([np.log(wi) + _log_gaussian(X, np.asarray(mu), np.asarray(c))
-                             for wi, mu, c in zip(w, prior.means, prior.covs) if wi > 0])
+                             for wi, mu, c in zip(w, prior.means, prior.covs, strict=True) if wi > 0])
             top = logs.max(axis=0)
             return top + np.log(np.exp(logs - top).sum(axis=0))
         with np.errstate(divide="ignore"):
@@ -162,7 +162,7 @@ def compile_model(spec: ModelSpec) -> Model:
     """Parse every expression of ``spec`` (safely) and build the :class:`Model`."""
     symbols = state_symbols(spec.n)
     names: dict[str, sp.Expr] = {name: number(float(v)) for name, v in spec.parameters.items()}
-    names.update(dict(zip(spec.state, symbols)))
+    names.update(dict(zip(spec.state, symbols, strict=True)))
     drift = tuple(parse_expression(e, names, f"drift[{i}]") for i, e in enumerate(spec.drift))
     obs = tuple(parse_expression(e, names, f"observation[{i}]") for i, e in enumerate(spec.observation))
     prior_expr = None

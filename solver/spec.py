@@ -206,7 +206,7 @@ def _check_prior(prior: GaussianPrior | MixturePrior | DensityPrior, n: int) -> 
         k = len(prior.weights)
         if len(prior.means) != k or len(prior.covs) != k:
             raise SpecError("initial", f"weights, means and covs need the same length ({k})")
-        for i, (mean, cov) in enumerate(zip(prior.means, prior.covs)):
+        for i, (mean, cov) in enumerate(zip(prior.means, prior.covs, strict=True)):
             if len(mean) != n:
                 raise SpecError(f"initial.means[{i}]", f"needs {n} numbers, got {len(mean)}")
             _finite_or_raise(mean, f"initial.means[{i}]")
