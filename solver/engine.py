@@ -257,12 +257,16 @@ class YauYauFilter:
         log_factor, top = self._update_exponents(dy, missing)
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
-        done, carried, reason = self._check_rim(sigma, masses, done, carried, reason, initial)
+        mean, cov, mode = self._moments(sigma[:done], masses[:done])
+        bad, why = self._first_implausible(sigma[:done], masses[:done], cov)
+        if bad is not None:
+            done, reason = bad, why
+            carried = self._carried_after(sigma, masses, bad, initial)
+            mean, cov, mode = mean[:done], cov[:done], mode[:done]
         masses = masses[:done]
         increments_ll = np.log(masses) + top[:done]
         # sequential sums from the carried value: identical however the data are chunked
         loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
-        mean, cov, mode = self._moments(sigma[:done], masses)
         good = done == K
         if done:
             last = Estimate(step=int(steps[done - 1]), t=float(times[done - 1]), mean=mean[-1], cov=cov[-1],
@@ -328,25 +332,35 @@ class YauYauFilter:
             carried = projected
         return sigma, masses, carried, K, None
 
-    def _check_rim(self, sigma, masses, done, carried, reason, initial):
-        """Stop at the first step whose density sits mostly within one element of the boundary.
+    def _first_implausible(self, sigma, masses, cov) -> tuple[int | None, str | None]:
+        """The first step whose density cannot be right, and why (None, None if every step is fine).
 
-        The Dirichlet condition forces σ = 0 on ∂B_R, so such a density is an artefact: the data
-        pull the state out of the ball (impossible under the model on this domain).
+        * mostly within one element of the boundary: the Dirichlet condition forces σ = 0 on ∂B_R,
+          so the data pull the state out of the ball (impossible under the model on this domain);
+        * a variance ≤ 0 (or not finite): the basis' ripples dominate, it cannot resolve the density.
         """
-        if not done or not self._rim.size:
-            return done, carried, reason
-        rim = (sigma[:done, self._rim] * self.weights[self._rim]).sum(axis=1) > _RIM_FRACTION * masses[:done]
-        if not rim.any():
-            return done, carried, reason
-        bad = int(np.argmax(rim))
-        reason = ("the conditional density is pushed against the boundary of the domain ball: the data are "
-                  "incompatible with the model on this ball (enlarge domain.radius?)")
-        if bad == 0:
-            return 0, initial, reason
-        carried = self._arith.gemv(1.0, self._project, sigma[bad - 1])  # as the loop carried after bad−1
-        carried[self.N] = masses[bad - 1]
-        return bad, carried, reason
+        variances = np.diagonal(cov, axis1=1, axis2=2)
+        unresolved = ~np.all(np.isfinite(cov.reshape(len(cov), -1)) & np.isfinite(masses)[:, None], axis=1)
+        unresolved |= np.any(variances <= 0.0, axis=1)
+        rim = np.zeros(len(masses), dtype=bool)
+        if self._rim.size:
+            rim = (sigma[:, self._rim] * self.weights[self._rim]).sum(axis=1) > _RIM_FRACTION * masses
+        if not (rim.any() or unresolved.any()):
+            return None, None
+        bad = int(np.argmax(rim | unresolved))
+        if rim[bad]:
+            return bad, ("the conditional density is pushed against the boundary of the domain ball: the "
+                         "data are incompatible with the model on this ball (enlarge domain.radius?)")
+        return bad, ("the covariance is not positive: the basis cannot resolve the conditional density "
+                     "(refine discretization.basis / mesh)")
+
+    def _carried_after(self, sigma, masses, step: int, initial: np.ndarray) -> np.ndarray:
+        """[coefficients, ∫σ] as the hot loop carried them after row ``step`` − 1 (bit for bit)."""
+        if step == 0:
+            return initial
+        carried = self._arith.gemv(1.0, self._project, sigma[step - 1])
+        carried[self.N] = masses[step - 1]
+        return carried
 
     def _rescue(self, carried, mass, log_factor, top, missing, k, row) -> tuple[float, str | None]:
         """Recompute step k in log scale when ∫σ under/overflows; writes row, may shift top[k]."""
