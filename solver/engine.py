@@ -339,6 +339,8 @@ class YauYauFilter:
           so the data pull the state out of the ball (impossible under the model on this domain);
         * a variance ≤ 0 (or not finite): the basis' ripples dominate, it cannot resolve the density.
         """
+        if not len(masses):
+            return None, None
         variances = np.diagonal(cov, axis1=1, axis2=2)
         unresolved = ~np.all(np.isfinite(cov.reshape(len(cov), -1)) & np.isfinite(masses)[:, None], axis=1)
         unresolved |= np.any(variances <= 0.0, axis=1)

@@ -236,6 +236,18 @@ def test_impossible_data_flags_degenerate_and_keeps_last_estimate(cubic, impossi
     json.dumps(later.to_dict(), allow_nan=False)
 
 
+def test_a_non_positive_variance_is_degenerate(ou):
+    """Ripples of a basis too small for the density can give a variance ≤ 0: flagged, not returned."""
+    model, offline = ou
+    yy = YauYauFilter(model, offline)
+    sigma = np.tile(offline.weights * 0 + 1e-3, (4, 1))
+    cov = np.ones((4, 1, 1))
+    cov[2, 0, 0] = -1e-3
+    bad, reason = yy._first_implausible(sigma, np.ones(4), cov)
+    assert bad == 2 and "covariance" in reason
+    assert yy._first_implausible(sigma, np.ones(4), np.ones((4, 1, 1))) == (None, None)
+
+
 # -- state round trip ----------------------------------------------------------------------------
 @pytest.mark.parametrize("form, precision", [("stable", "double"), ("literal", "double"),
                                              ("stable", "single")])
