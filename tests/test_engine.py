@@ -236,6 +236,16 @@ def test_impossible_data_flags_degenerate_and_keeps_last_estimate(cubic, impossi
     json.dumps(later.to_dict(), allow_nan=False)
 
 
+def test_impossible_first_row_keeps_the_initial_state(cubic):
+    model, offline = cubic
+    yy = YauYauFilter(model, offline)
+    start = yy.initial_state()
+    state, estimates = yy.run(start, [[1e307], [0.01]])
+    assert state.degenerate and "overflows" in state.reason and state.step == 2
+    assert np.array_equal(state.coefficients, start.coefficients) and state.mass == start.mass
+    assert all(e.degenerate and np.array_equal(e.mean, start.last.mean) for e in estimates)
+
+
 def test_a_non_positive_variance_is_degenerate(ou):
     """Ripples of a basis too small for the density can give a variance ≤ 0: flagged, not returned."""
     model, offline = ou
