@@ -92,12 +92,13 @@ def test_evaluate_basis_matches_sines_in_1d():
     np.testing.assert_allclose(values * signs, exact, atol=2e-4)
 
 
-def test_default_mesh_gives_about_two_nodes_per_mode():
-    model = compile_model(load_spec("examples/cubic_sensor.toml"))
-    off = precompute(model)
-    q = off.nodes.shape[0]
-    assert 2 * off.size <= q <= 2 * off.size + 8
+def test_default_mesh_sizes():
+    """About two interior nodes per basis function (1-D P2: Q = 4·mesh − 1; 2-D rings)."""
+    off = precompute(compile_model(load_spec("examples/cubic_sensor.toml")))
+    assert 2 * off.size <= off.nodes.shape[0] < 2 * off.size + 4
     assert int(off.element_order) == 2
+    q = precompute(make_model(2, basis=50)).nodes.shape[0]
+    assert 100 <= q <= 140
 
 
 def test_small_3d():
