@@ -26,6 +26,10 @@ A step works in nodal values (``nodes``/``weights`` of the offline arrays):
 A row of NaN increments (missing observation) only predicts: s = propagator_fp c.
 The log-likelihood increment is log ∫σ(τ_k) − log ∫σ(τ_{k−1}), the Girsanov likelihood ratio of
 the increment against pure noise.
+
+A step is degenerate (flagged with a reason; the state keeps the last good coefficients and
+estimate) when its update factor overflows, when ∫σ is not positive even in log scale, when most
+of σ sits within one element of ∂B_R, or when a variance comes out ≤ 0 (unresolved by the basis).
 """
 
 from __future__ import annotations
