@@ -15,7 +15,7 @@ posteriors sit far from the centre, where h' = 3x² is large).  A potential V (e
 from __future__ import annotations
 
 import ctypes
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +45,7 @@ def eigenbasis(half_stiffness: sps.spmatrix, weights: np.ndarray, size: int,
     symmetric = scale[:, None] * operator * scale[None, :]
     symmetric = 0.5 * (symmetric + symmetric.T)  # remove assembly rounding asymmetry
     # the full divide-and-conquer solve beat the subset drivers (evr, evx) for N ≳ Q/4 in 2-D
-    with blas_threads(1) if q < SINGLE_THREAD_BELOW else nullcontext():
+    with blas_threads(1):
         lam, psi = sla.eigh(symmetric, driver="evd")
     lam, psi = lam[:size], psi[:, :size]
     psi = _fix_signs(psi)
@@ -60,9 +60,9 @@ def _fix_signs(psi: np.ndarray) -> np.ndarray:
 
 
 # -- BLAS threads ------------------------------------------------------------------------------------
-# Measured on the shared 2-core machine: the dense eigensolve of Q = 259 took 0.15–0.54 s with two
-# OpenBLAS threads under load and 0.01–0.02 s with one; threads only pay off for large Q.
-SINGLE_THREAD_BELOW = 1500
+# Measured on the shared 2-core machine under load: the dense eigensolve of Q = 259 took 0.15–0.54 s
+# with two OpenBLAS threads and 0.01–0.02 s with one; for Q = 2107 (2-D, N = 1000) 6.5–12.9 s with
+# two and 1.2–2.7 s with one.  So the solve runs on one thread.
 
 
 def _openblas_libraries() -> list:
