@@ -46,6 +46,10 @@ from .errors import SpecError
 # (mesh = 40) → ≤ 4.2e-3, Q = 131 (mesh = 33) → ≤ 5.3e-3: a spec may set ``mesh`` to trade
 # accuracy for speed; the default keeps a wide margin (densities, covariances to ~1e-5).
 NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
+# The basis comes from a dense eigensolve, O(Q²) memory and O(Q³) time: 12000 nodes is ~1.1 GiB.
+MAX_NODES = 12000
+# Interior vertices of the ball refined r times (r = 5 would exceed MAX_NODES: ~4e4).
+BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991}
 
 
 @dataclass(frozen=True)
@@ -114,16 +118,19 @@ def interior_count(n: int, order: int, resolution: int) -> int:
         return (2 * resolution) * order - 1
     if n == 2:
         return 3 * resolution * (resolution - 1) + 1
-    mesh = ball_mesh(np.zeros(3), 1.0, resolution)
-    return mesh.p.shape[1] - len(mesh.boundary_nodes())
+    return BALL_INTERIOR.get(resolution, MAX_NODES + 1)
 
 
 def default_resolution(n: int, order: int, size: int) -> int:
-    """Smallest resolution whose interior DOF count reaches NODES_PER_MODE[n] · N."""
+    """Smallest resolution whose interior DOF count reaches NODES_PER_MODE[n] · N; if that one is
+    too large for the eigensolver, the previous one when it still has N nodes (coarse 3-D steps)."""
     target = NODES_PER_MODE[n] * size
     resolution = 1 if n == 3 else 2
     while interior_count(n, order, resolution) < target:
         resolution += 1
+    if interior_count(n, order, resolution) > MAX_NODES and resolution > 1:
+        if interior_count(n, order, resolution - 1) >= size:
+            resolution -= 1
     return resolution
 
 
@@ -147,9 +154,16 @@ def discretise(model, size: int | None = None) -> FESpace:
     """The discretisation of ``model``'s ball; checks there are at least N interior DOFs."""
     spec = model.spec.discretization
     size = spec.basis if size is None else size
-    if model.n == 3 and spec.mesh is not None and spec.mesh > 6:
-        raise SpecError("discretization.mesh", "in 3-D mesh counts refinements of the ball, at most 6")
-    resolution = spec.mesh or default_resolution(model.n, effective_order(model.n, spec.order), size)
+    order = effective_order(model.n, spec.order)
+    if model.n == 3 and spec.mesh is not None and spec.mesh > max(BALL_INTERIOR):
+        raise SpecError("discretization.mesh",
+                        f"in 3-D mesh counts refinements of the ball, at most {max(BALL_INTERIOR)}")
+    resolution = spec.mesh or default_resolution(model.n, order, size)
+    nodes = interior_count(model.n, order, resolution)
+    if nodes > MAX_NODES:
+        field = "discretization.mesh" if spec.mesh else "discretization.basis"
+        raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} the dense "
+                               "eigensolver allows; use a smaller basis or mesh")
     disc = build(model.n, model.center, model.radius, resolution, spec.order)
     if len(disc.interior) < size:
         raise SpecError("discretization.basis",

@@ -131,3 +131,9 @@ def test_bad_input(disk):
     with pytest.raises(SpecError) as err:
         precompute(make_model(1, basis=100, mesh=4))
     assert err.value.field == "discretization.basis"
+    with pytest.raises(SpecError) as err:  # rejected before any mesh is built
+        precompute(make_model(2, basis=10, mesh=4000))
+    assert err.value.field == "discretization.mesh"
+    with pytest.raises(SpecError) as err:
+        precompute(make_model(3, basis=10, mesh=5))
+    assert err.value.field == "discretization.mesh"
