@@ -100,6 +100,28 @@ def test_fokker_planck_is_kolmogorov_without_potential_2d():
     assert np.all((ratio > 3.0) & (ratio < 5.0)), (errors, ratio)
 
 
+def test_kolmogorov_anisotropic_diffusion_and_noise_2d():
+    """a = GQGᵀ non-diagonal and R = 2: L_K = ½ a:∇² − f·∇ − (div f + ½ hᵀR⁻¹h), seed 002 (5.27)/(5.31).
+    Exact: the Gaussian solution with Q = ½HᵀR⁻¹H, q = HᵀR⁻¹h0, r = ½h0ᵀR⁻¹h0."""
+    a = np.array([[1.2, 0.4], [0.4, 0.6]])
+    D = np.array([[-0.6, 0.5], [-0.5, -0.4]])
+    H, h0, r_noise = np.array([[1.0, -0.5]]), np.array([0.3]), 2.0
+    eq = oracles.GaussianKolmogorov(D, d=[0.1, -0.2], Q=0.5 * H.T @ H / r_noise, q=H.T @ h0 / r_noise,
+                                    r=0.5 * h0 @ h0 / r_noise, a=a)
+    t0 = gaussian_to_terms([0.3, -0.2], [[0.3, 0.05], [0.05, 0.4]])
+    exact_t = eq.solve(t0.A, t0.B, t0.C, [0.0, 0.1])
+    errors = []
+    for rings in (10, 20):
+        model = compile_model(spec_from_dict(dict(
+            name="aniso", state=["x", "y"], drift=["-0.6*x + 0.5*y + 0.1", "-0.5*x - 0.4*y - 0.2"],
+            observation=["x - 0.5*y + 0.3"], diffusion=a.tolist(), observation_noise=[[r_noise]],
+            initial=dict(kind="gaussian", mean=[0.0, 0.0], cov=np.eye(2).tolist()),
+            domain=dict(radius=4.5), discretization=dict(dt=0.1, basis=8, mesh=rings, order=1, substeps=16))))
+        x, w, u = propagate(model, lambda X: eq.u(X, t0), "k")
+        errors.append(l2(w, u - eq.u(x, exact_t)[-1]))
+    assert errors[1] < 4e-3 and 3.0 < errors[0] / errors[1] < 5.0, errors
+
+
 # -- (b) seed 003 cubic sensor: u = exp(x⁴/12 − x²/2 + t/2) --------------------------------------
 def test_cubic_sensor_closed_form_seed003():
     sol = oracles.cubic_family(a=-1.0, b=0.0)  # h = −x³/3, f = −x
