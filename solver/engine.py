@@ -313,28 +313,31 @@ class YauYauFilter:
         factor = np.exp(log_factor).astype(arith.dtype, copy=False)
         factor[factor < arith.negligible] = 0.0
         sigma = np.empty((K, Q), dtype=arith.dtype)
-        masses = np.empty(K)
+        masses = [0.0] * K
         predict, observe, project, gemv = self._predict, self._observe, self._project, arith.gemv
-        tiny, huge = arith.tiny, arith.huge
+        tiny, huge, multiply = arith.tiny, arith.huge, np.multiply
+        rows, factors = list(sigma), list(factor)  # views made once, not per step
         mass = carried.item(N)
         for k in range(K):
-            row = sigma[k]
+            row = rows[k]
+            # positional gemv arguments (alpha, a, x, beta, y, offx, incx, offy, incy, trans,
+            # overwrite_y): keyword parsing costs as much as a small product
             if missing[k]:
-                gemv(1.0 / mass, predict, carried, 0.0, row, overwrite_y=1)
+                gemv(1.0 / mass, predict, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
             else:
-                gemv(1.0 / mass, observe, carried, 0.0, row, overwrite_y=1)
-                row *= factor[k]
+                gemv(1.0 / mass, observe, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
+                multiply(row, factors[k], out=row)
             projected = gemv(1.0, project, row)
             new_mass = projected.item(N)
             if not tiny < new_mass < huge:
                 new_mass, reason = self._rescue(carried, mass, log_factor, top, missing[k], k, row)
                 if reason is not None:
-                    return sigma, masses[:k], carried, k, reason
+                    return sigma, np.array(masses[:k]), carried, k, reason
                 projected = gemv(1.0, project, row)
                 projected[N] = new_mass
             masses[k] = mass = new_mass
             carried = projected
-        return sigma, masses, carried, K, None
+        return sigma, np.array(masses), carried, K, None
 
     def _first_implausible(self, sigma, masses, cov) -> tuple[int | None, str | None]:
         """The first step whose density cannot be right, and why (None, None if every step is fine).
