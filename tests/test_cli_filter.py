@@ -167,6 +167,12 @@ def test_make_filter_methods(store, cubic):
         assert err.value.field == "method"
 
 
+def test_auto_picks_the_exact_yau_hu_filter_for_benes():
+    """Beneš (f = tanh x, h = x, a = 1) is a Yau filtering system (seed 000): exact filter, no offline."""
+    model = compile_model(load_spec(EXAMPLES / "benes.toml"))
+    assert make_filter(model, None, "auto").method == "yau-hu"
+
+
 def test_spec_method_is_honoured(cubic):
     doc = tomllib.loads((EXAMPLES / "ou.toml").read_text())
     doc["method"] = "yau-yau"
