@@ -8,6 +8,7 @@ them and a restarted server continues where it stopped.  Every error is RFC 9457
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -81,7 +82,8 @@ def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
 
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    return Sessions(SessionStore(path), registry, settings.max_chunk_rows, settings.max_density_points)
+    store = SessionStore(path, synchronous=settings.session_synchronous)
+    return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points)
 
 
 def _configure_logging(level: str) -> None:
@@ -106,6 +108,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.ready = True
         yield
         app.state.ready = False
+        app.state.sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
 
     app = FastAPI(title="yauyau", version="0.1.0", lifespan=lifespan,
                   summary="Real-time optimal nonlinear filtering (the Yau–Yau algorithm) as a service",
@@ -167,8 +170,12 @@ def _add_routes(app: FastAPI) -> None:
 
     @app.post("/v1/sessions/{session_id}/observations", response_model=ChunkResult, tags=["sessions"],
               responses=_errors(400, 404, 409, 413, 422))
-    def observe(request: Request, session_id: SessionId, body: Observations) -> Response:
-        return _json(_sessions(request).observe(session_id, body.seq, body.increments))
+    async def observe(request: Request, session_id: SessionId, body: Observations) -> Response:
+        # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
+        sessions = _sessions(request)
+        text = await asyncio.get_running_loop().run_in_executor(
+            sessions.chunk_executor, sessions.observe, session_id, body.seq, body.increments, True)
+        return Response(text, media_type="application/json")
 
     @app.get("/v1/sessions/{session_id}", response_model=SessionInfo, tags=["sessions"],
              responses=_errors(404))

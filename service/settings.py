@@ -20,6 +20,9 @@ class Settings(BaseSettings):
     store: Path = Field(Path("var/store"), description="model store directory (read-only at run time)")
     session_db: Path | None = Field(
         None, description="SQLite file of the sessions (default: <store>/sessions.sqlite3)")
+    session_synchronous: Literal["normal", "full"] = Field(
+        "normal", description="SQLite durability of a chunk: 'normal' survives a killed process (WAL, no "
+                              "fsync per chunk), 'full' also an OS crash or power loss (one fsync per chunk)")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, le=64)

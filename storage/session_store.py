@@ -12,6 +12,14 @@ carry; the first chunk is seq 0) and a ``version``.  ``apply_chunk(id, seq, comp
 
 Responses of the last ``retention`` chunks per session are kept.  The file is shared by several
 processes (WAL mode, busy timeout); each thread of each process has its own connection.
+``apply_chunk(..., encoded=True)`` returns the response as the JSON text stored, so that a server
+can send it as is (one encoding per chunk, not two).
+
+Durability (``synchronous``): ``"normal"`` (default) — in WAL mode a commit is appended to the
+log without an fsync; it survives the process being killed (SIGKILL, crash) because the log is in
+the OS page cache, and only an OS crash or power loss can lose the last commits (never corrupt
+the file).  ``"full"`` fsyncs the log on every commit: an acknowledged chunk also survives power
+loss, at the price of one fsync per chunk.
 Storage knows files, not math: it never imports solver or service.
 """
 
@@ -55,6 +63,7 @@ CREATE TABLE IF NOT EXISTS chunks (
 ) WITHOUT ROWID;
 """
 _MAX_ATTEMPTS = 100
+_SYNCHRONOUS = ("normal", "full")
 
 
 @dataclass(frozen=True)
@@ -101,9 +110,13 @@ def _progress(new_state: dict[str, Any], response: dict[str, Any], default: tupl
 class SessionStore:
     """Sessions in one SQLite file; safe to share between threads and processes."""
 
-    def __init__(self, path: str | os.PathLike, retention: int = 256, busy_timeout_ms: int = 30_000):
+    def __init__(self, path: str | os.PathLike, retention: int = 256, busy_timeout_ms: int = 30_000,
+                 synchronous: str = "normal"):
         if not isinstance(retention, int) or retention < 1:
             raise StoreError("retention", "must be a positive integer")
+        if synchronous not in _SYNCHRONOUS:
+            raise StoreError("synchronous", f"must be one of {', '.join(_SYNCHRONOUS)}, got {synchronous!r}")
+        self.synchronous = synchronous
         self.path = Path(path)
         self.retention = retention
         self.busy_timeout_ms = int(busy_timeout_ms)
@@ -127,7 +140,7 @@ class SessionStore:
             db.execute(f"PRAGMA busy_timeout = {self.busy_timeout_ms}")
             if db.execute("PRAGMA journal_mode = WAL").fetchone()[0].lower() != "wal":
                 raise StoreError("sessions", f"{self.path}: the filesystem does not support WAL mode")
-            db.execute("PRAGMA synchronous = NORMAL")  # durable across process crashes in WAL mode
+            db.execute(f"PRAGMA synchronous = {self.synchronous.upper()}")  # see the module docstring
         except sqlite3.Error as exc:
             raise StoreError("sessions", f"cannot open session database {self.path}: {exc}") from None
         db.row_factory = sqlite3.Row
@@ -193,6 +206,9 @@ class SessionStore:
     # -- chunks ---------------------------------------------------------------------
     def stored_response(self, session_id: str, seq: int) -> dict[str, Any]:
         """The response of an applied chunk (Conflict if it is older than the retention window)."""
+        return json.loads(self._stored_text(session_id, seq))
+
+    def _stored_text(self, session_id: str, seq: int) -> str:
         row = self._connection().execute("SELECT response FROM chunks WHERE session_id = ? AND seq = ?",
                                          (str(session_id), seq)).fetchone()
         if row is None:
@@ -200,25 +216,31 @@ class SessionStore:
                                                 (str(session_id),)).fetchone()[0]
             raise Conflict("seq", f"chunk {seq} was applied but its response is no longer kept "
                                   f"(the last {self.retention} are; oldest kept: {oldest})")
-        return json.loads(row[0])
+        return row[0]
 
-    def apply_chunk(self, session_id: str, seq: int, compute: Compute) -> tuple[dict[str, Any], bool]:
-        """Apply chunk ``seq`` exactly once; returns (response, replayed)."""
+    def apply_chunk(self, session_id: str, seq: int, compute: Compute,
+                    encoded: bool = False) -> tuple[Any, bool]:
+        """Apply chunk ``seq`` exactly once; returns (response, replayed).
+
+        ``encoded``: the response as the JSON text that is stored (a replay sends the same bytes)."""
         if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
             raise StoreError("seq", f"must be a non-negative integer, got {seq!r}")
         for _ in range(_MAX_ATTEMPTS):
             record = self.get(session_id)
             if seq < record.next_seq:
-                return self.stored_response(session_id, seq), True
+                text = self._stored_text(session_id, seq)
+                return (text if encoded else json.loads(text)), True
             if seq > record.next_seq:
                 raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
                                       "nothing was applied")
             new_state, response = compute(record.state)  # outside any lock: sessions run in parallel
-            if self._commit(record, seq, new_state, response):
-                return response, False
+            text = self._commit(record, seq, new_state, response)
+            if text is not None:
+                return (text if encoded else response), False
         raise Conflict("session", f"session {session_id} is updated too often concurrently; retry")
 
-    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict) -> bool:
+    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict) -> str | None:
+        """The stored response text, or None when another writer moved the session on."""
         state_text, response_text = _dumps(new_state, "state"), _dumps(response, "response")
         step, t, loglik = _progress(new_state, response, (old.step, old.t, old.loglik))
         with self._transaction() as db:
@@ -228,10 +250,10 @@ class SessionStore:
                 (state_text, seq + 1, step, t, loglik, _utc_now(), old.id, old.version),
             ).rowcount
             if not changed:
-                return False  # someone else moved the session on: re-read
+                return None  # someone else moved the session on: re-read
             db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?)", (old.id, seq, response_text))
             db.execute("DELETE FROM chunks WHERE session_id = ? AND seq <= ?", (old.id, seq - self.retention))
-        return True
+        return response_text
 
 
 class _Transaction:

@@ -16,6 +16,9 @@ def add_arguments(parser):
     parser.add_argument("--port", type=int, help="TCP port (env YAUYAU_PORT; default 8000)")
     parser.add_argument("--workers", type=int, help="worker processes (env YAUYAU_WORKERS; default 1)")
     parser.add_argument("--session-db", help="SQLite file of the sessions (default <store>/sessions.sqlite3)")
+    parser.add_argument("--session-synchronous", choices=["normal", "full"],
+                        help="durability of each chunk: normal (default) survives a killed server, full also "
+                             "an OS crash or power loss (an fsync per chunk; env YAUYAU_SESSION_SYNCHRONOUS)")
     parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
 
 
@@ -27,6 +30,7 @@ def _settings(args):
 
     overrides = {k: v for k, v in {"store": args.store, "host": args.host, "port": args.port,
                                    "workers": args.workers, "session_db": args.session_db,
+                                   "session_synchronous": args.session_synchronous,
                                    "log_level": args.log_level}.items() if v is not None}
     try:
         return Settings(**overrides)
