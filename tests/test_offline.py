@@ -101,6 +101,21 @@ def test_default_mesh_sizes():
     assert 100 <= q <= 140
 
 
+def test_off_centre_disk():
+    """B_R(c) with c ≠ 0: nodes inside, the first mode is the Bessel mode J0(j₀,₁|x − c|/R) (up to scale)."""
+    from scipy.special import j0, jn_zeros
+
+    centre = np.array([1.5, -2.0])
+    off = precompute(make_model(2, radius=2.0, basis=6, mesh=16, center=centre.tolist()))
+    r = np.linalg.norm(off.nodes - centre, axis=1)
+    assert r.max() < 2.0
+    profile = j0(jn_zeros(0, 1)[0] * r / 2.0)
+    first = off.basis[:, 0] / np.sqrt(off.weights @ off.basis[:, 0] ** 2)
+    profile /= np.sqrt(off.weights @ profile**2)
+    assert np.sqrt(off.weights @ (first - profile) ** 2) < 0.02
+    assert np.all(off.evaluate_basis(np.array([[0.0, 0.0], [3.6, -2.0]])) == 0.0)
+
+
 def test_small_3d():
     off = precompute(make_model(3, radius=2.0, basis=20, mesh=2))
     np.testing.assert_allclose(off.projector @ off.basis, np.eye(20), atol=1e-10)
