@@ -1,11 +1,22 @@
 """HTTP load benchmark: observations/s and latency per 100-observation chunk over loopback.
 
-    python -m bench.load [--quick] [--seconds S] [--workers K]
+    python -m bench.load [--quick] [--seconds S] [--workers K] [--baseline REV] [--rounds R]
 
 Starts `yauyau serve` itself (the 1-D cubic-sensor example, precomputed into a temporary store),
 then drives 1, 8 and 64 concurrent sessions, each posting chunks of 100 increments back to back
-(httpx, asyncio) for a bounded time.  The engine alone on the same chunks is timed in the same run
-so that the HTTP + SQLite overhead shows as a ratio.  Writes docs/bench-load.md.
+for a bounded time (and at most ``MAX_CHUNKS`` chunks per stream).  The client runs in its own
+process so that its CPU is measured apart from the server's (both share the machine's cores):
+
+* ``lean``: one thread per stream, each with a keep-alive ``http.client`` connection and the
+  request bodies encoded once (what a production client can do);
+* ``httpx``: httpx's asyncio client in the same style as a typical Python application (the
+  client the first version of this benchmark used).
+
+``--baseline REV`` also serves the service/ and storage/ packages of git revision REV (with the
+current solver) in the same run, interleaved with the working tree, so that before/after figures
+share the machine's load.  The server's CPU time per chunk (from /proc) is reported too: on a
+noisy shared machine it varies far less than wall-clock rates.  The engine alone on the same
+chunks is timed in the same run.  Writes docs/bench-load.md.
 Targets: >= 20 000 observations/s with one worker, p99 <= 10 ms per 100-observation chunk.
 """
 
@@ -13,22 +24,27 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import http.client
+import json
 import os
+import resource
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "examples" / "cubic_sensor.toml"
 DOC = ROOT / "docs" / "bench-load.md"
 CHUNK = 100
+MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the server is
+STREAMS = (1, 8, 64)
 TARGET_RATE, TARGET_P99_MS = 20_000, 10.0
 
 
@@ -53,50 +69,165 @@ def _prepare_store(store: Path):
     return model, offline, model_id, increments
 
 
-def _start_server(store: Path, workers: int) -> tuple[subprocess.Popen, str]:
-    port = _free_port()
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(port),
-           "--workers", str(workers), "--log-level", "warning"]
-    proc = subprocess.Popen(cmd, start_new_session=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
+def _baseline_tree(rev: str, into: Path) -> Path:
+    """service/ and storage/ of git revision ``rev`` next to a link to the current solver/."""
+    into.mkdir(parents=True)
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "service", "storage"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
+    (into / "solver").symlink_to(ROOT / "solver")
+    return into
+
+
+class Server:
+    """`python -m service.cli serve` run from ``tree`` (its service/ and storage/ come first)."""
+
+    def __init__(self, tree: Path, store: Path, db: Path, workers: int):
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(self.port),
+               "--session-db", str(db), "--workers", str(workers), "--log-level", "warning"]
+        env = dict(os.environ, PYTHONPATH=str(tree))
+        self.proc = subprocess.Popen(cmd, cwd=tree, env=env, start_new_session=True)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server in {tree} exited with {self.proc.returncode}")
+            try:
+                if _get(self.port, "/readyz")[0] == 200:
+                    return
+            except OSError:
+                time.sleep(0.2)
+        self.stop()
+        raise RuntimeError("server did not start")
+
+    def stop(self) -> None:
         try:
-            if httpx.get(url + "/readyz", timeout=1).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGKILL)
-    raise RuntimeError("server did not start")
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            self.proc.wait(timeout=30)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=30)
 
 
-async def _stream(client, url, model_id, chunks, stop_at, latencies):
-    sid = (await client.post(url + "/v1/sessions", json={"model": model_id})).json()["id"]
-    seq = 0
-    while time.perf_counter() < stop_at:
-        rows = chunks[seq % len(chunks)]
+def _get(port: int, path: str) -> tuple[int, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
+    try:
+        conn.request("GET", path)
+        response = conn.getresponse()
+        return response.status, response.read()
+    finally:
+        conn.close()
+
+
+def _group_cpu_seconds(pgid: int) -> float:
+    """User + system CPU of every process in the process group (the server and its workers)."""
+    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid:  # fields after the name: state ppid pgrp ...
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
+# -- the clients (run in a process of their own: python -m bench.load --drive ...) ------------
+def _lean_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float]) -> None:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
+    headers = {"Content-Type": "application/json"}
+    conn.request("POST", "/v1/sessions", json.dumps({"model": model_id}), headers)
+    sid = json.loads(conn.getresponse().read())["id"]
+    path = f"/v1/sessions/{sid}/observations"
+    for seq in range(MAX_CHUNKS):
+        if time.perf_counter() >= stop_at:
+            break
+        body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
         start = time.perf_counter()
-        r = await client.post(f"{url}/v1/sessions/{sid}/observations", json={"seq": seq, "increments": rows})
-        latencies.append(time.perf_counter() - start)
+        conn.request("POST", path, body, headers)
+        response = conn.getresponse()
+        text = response.read()
+        out.append(time.perf_counter() - start)
+        if response.status != 200:
+            raise RuntimeError(f"chunk {seq}: {response.status} {text[:200]!r}")
+    conn.request("DELETE", f"/v1/sessions/{sid}")
+    conn.getresponse().read()
+    conn.close()
+
+
+def _drive_lean(port, model_id, chunks, streams, stop_at) -> list[list[float]]:
+    bodies = [json.dumps(c, separators=(",", ":")).encode() for c in chunks]
+    outs: list[list[float]] = [[] for _ in range(streams)]
+    threads = [threading.Thread(target=_lean_stream, args=(port, model_id, bodies, stop_at, out))
+               for out in outs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return outs
+
+
+async def _httpx_stream(client, url, model_id, chunks, stop_at, out):
+    sid = (await client.post(url + "/v1/sessions", json={"model": model_id})).json()["id"]
+    for seq in range(MAX_CHUNKS):
+        if time.perf_counter() >= stop_at:
+            break
+        start = time.perf_counter()
+        r = await client.post(f"{url}/v1/sessions/{sid}/observations",
+                              json={"seq": seq, "increments": chunks[seq % len(chunks)]})
+        out.append(time.perf_counter() - start)
         if r.status_code != 200:
             raise RuntimeError(f"chunk {seq}: {r.status_code} {r.text[:200]}")
-        seq += 1
     await client.delete(f"{url}/v1/sessions/{sid}")
 
 
-async def _drive(url, model_id, chunks, streams, seconds) -> dict:
-    latencies: list[float] = []
+async def _drive_httpx(port, model_id, chunks, streams, stop_at) -> list[list[float]]:
+    import httpx
+
+    url = f"http://127.0.0.1:{port}"
+    outs: list[list[float]] = [[] for _ in range(streams)]
     limits = httpx.Limits(max_connections=streams, max_keepalive_connections=streams)
-    async with httpx.AsyncClient(limits=limits, timeout=60) as client:
-        await _stream(client, url, model_id, chunks[:1], time.perf_counter() + 0.5, [])  # warm-up
-        start = time.perf_counter()
-        stop_at = start + seconds
-        await asyncio.gather(*(_stream(client, url, model_id, chunks, stop_at, latencies)
-                               for _ in range(streams)))
-        elapsed = time.perf_counter() - start
-    lat = np.array(latencies) * 1e3
-    return {"streams": streams, "chunks": len(lat), "rate": len(lat) * CHUNK / elapsed,
-            "p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}
+    async with httpx.AsyncClient(limits=limits, timeout=120) as client:
+        await asyncio.gather(*(_httpx_stream(client, url, model_id, chunks, stop_at, out) for out in outs))
+    return outs
+
+
+def _drive(args) -> None:
+    """Client process: warm up, drive the streams, print one JSON line of results."""
+    chunks = json.loads(Path(args.chunks).read_text())
+    drive = {"lean": _drive_lean, "httpx": lambda *a: asyncio.run(_drive_httpx(*a))}[args.client]
+    drive(args.port, args.model, chunks[:1], 1, time.perf_counter() + 0.3)  # warm-up
+    cpu0, server0 = resource.getrusage(resource.RUSAGE_SELF), _group_cpu_seconds(args.server_pgid)
+    start = time.perf_counter()
+    outs = drive(args.port, args.model, chunks, args.streams, start + args.seconds)
+    elapsed = time.perf_counter() - start
+    cpu1, server1 = resource.getrusage(resource.RUSAGE_SELF), _group_cpu_seconds(args.server_pgid)
+    latencies = [x for out in outs for x in out]
+    client_cpu = cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime
+    print(json.dumps({"chunks": len(latencies), "elapsed": elapsed, "latencies": latencies,
+                      "client_cpu": client_cpu, "server_cpu": server1 - server0}))
+
+
+def _run_client(server: Server, kind: str, model_id: str, chunks_file: Path, streams: int,
+                seconds: float) -> dict:
+    cmd = [sys.executable, "-m", "bench.load", "--drive", "--client", kind, "--port", str(server.port),
+           "--model", model_id, "--chunks", str(chunks_file), "--streams", str(streams),
+           "--seconds", str(seconds), "--server-pgid", str(server.proc.pid)]
+    out = subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _summary(runs: list[dict]) -> dict:
+    lat = np.array([x for r in runs for x in r["latencies"]]) * 1e3
+    elapsed = sum(r["elapsed"] for r in runs)
+    chunks = len(lat)
+    return {"chunks": chunks, "rate": chunks * CHUNK / elapsed, "p50": float(np.percentile(lat, 50)),
+            "p99": float(np.percentile(lat, 99)),
+            "server_ms": sum(r["server_cpu"] for r in runs) / chunks * 1e3,
+            "client_cores": sum(r["client_cpu"] for r in runs) / elapsed}
 
 
 def _engine_ms(model, offline, increments) -> float:
@@ -115,52 +246,103 @@ def _engine_ms(model, offline, increments) -> float:
     return float(np.median(times) * 1e3)
 
 
-def _write_doc(rows, engine_ms, workers, seconds, load, command) -> None:
+def _write_doc(rows, engine_ms, args, load, command) -> None:
     lines = ["## HTTP load (`yauyau serve`)", "", f"`{command}`", "",
-             f"1-D cubic sensor (N = 128), chunks of {CHUNK} observations, {workers} uvicorn worker(s), "
-             f"{seconds:g} s per row; client (httpx asyncio) and server share the 2 cores; "
-             f"load average at the start {load:.1f}. The filter alone takes {engine_ms:.2f} ms per chunk "
-             f"({CHUNK / engine_ms * 1e3:,.0f} obs/s) in the same run.", "",
-             "| concurrent streams | chunks | observations/s | p50 ms / chunk | p99 ms / chunk "
-             "| × filter alone (p50) |",
-             "|---:|---:|---:|---:|---:|---:|"]
+             f"1-D cubic sensor (N = 128), chunks of {CHUNK} observations, {args.workers} uvicorn worker(s), "
+             f"{args.seconds:g} s per row × {args.rounds} round(s), configurations interleaved; client "
+             f"(its own process) and server share the machine's {os.cpu_count()} cores; load average at "
+             f"the start {load:.1f}. The filter alone takes {engine_ms:.2f} ms per chunk "
+             f"({CHUNK / engine_ms * 1e3:,.0f} obs/s) in the same run. Server CPU: ms of CPU time "
+             "(all threads) per chunk; client CPU: cores the client process used.", "",
+             "| server | client | streams | chunks | observations/s | p50 ms | p99 ms "
+             "| server CPU ms / chunk | client CPU cores |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['streams']} | {r['chunks']} | {r['rate']:,.0f} | {r['p50']:.2f} "
-                     f"| {r['p99']:.2f} | {r['p50'] / engine_ms:.1f} |")
-    best = max(r["rate"] for r in rows)
-    single = rows[0]
-    lines += ["", f"Targets (one worker): ≥ {TARGET_RATE:,} obs/s — best {best:,.0f} "
-              f"({best / TARGET_RATE:.0%} of target); p99 ≤ {TARGET_P99_MS:g} ms per chunk — "
-              f"{single['p99']:.2f} ms with one stream ({single['p99'] / TARGET_P99_MS:.0%} of the budget)."]
+        lines.append(f"| {r['server']} | {r['client']} | {r['streams']} | {r['chunks']} | {r['rate']:,.0f} "
+                     f"| {r['p50']:.2f} | {r['p99']:.2f} | {r['server_ms']:.2f} | {r['client_cores']:.2f} |")
+    ours = [r for r in rows if r["server"] == "working tree" and r["client"] == "lean"]
+    best = max(ours, key=lambda r: r["rate"])
+    single = next(r for r in ours if r["streams"] == 1)
+    lines += ["", f"Targets (one worker, working tree, lean client): ≥ {TARGET_RATE:,} obs/s — best "
+              f"{best['rate']:,.0f} at {best['streams']} stream(s) "
+              f"({best['rate'] / TARGET_RATE:.0%} of target); "
+              f"p99 ≤ {TARGET_P99_MS:g} ms per chunk — {single['p99']:.2f} ms with one stream "
+              f"({single['p99'] / TARGET_P99_MS:.0%} of the budget)."]
     DOC.write_text("\n".join(lines) + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parse(argv):
     parser = argparse.ArgumentParser(prog="python -m bench.load", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1 s per row")
-    parser.add_argument("--seconds", type=float, default=None, help="duration per concurrency (default 5)")
+    parser.add_argument("--seconds", type=float, default=None, help="duration per row (default 5)")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--rounds", type=int, default=1, help="repeat every configuration (interleaved)")
+    parser.add_argument("--baseline", metavar="REV",
+                        help="also serve service/ and storage/ of this git revision")
+    parser.add_argument("--clients", default="lean,httpx", help="comma-separated: lean, httpx")
+    parser.add_argument("--no-doc", action="store_true", help="print only; leave docs/bench-load.md")
+    # the client process (internal)
+    parser.add_argument("--drive", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--client", help=argparse.SUPPRESS)
+    parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--model", help=argparse.SUPPRESS)
+    parser.add_argument("--chunks", help=argparse.SUPPRESS)
+    parser.add_argument("--streams", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--server-pgid", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    seconds = args.seconds or (1.0 if args.quick else 5.0)
+    args.seconds = args.seconds or (1.0 if args.quick else 5.0)
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse(argv)
+    if args.drive:
+        _drive(args)
+        return 0
     load = os.getloadavg()[0]
+    clients = [c for c in args.clients.split(",") if c]
     with tempfile.TemporaryDirectory(prefix="yauyau-load-") as tmp:
-        store = Path(tmp) / "store"
-        model, offline, model_id, increments = _prepare_store(store)
+        tmp = Path(tmp)
+        model, offline, model_id, increments = _prepare_store(tmp / "store")
         chunks = [[[float(v) for v in row] for row in increments[i:i + CHUNK]]
                   for i in range(0, len(increments), CHUNK)]
+        chunks_file = tmp / "chunks.json"
+        chunks_file.write_text(json.dumps(chunks))
         engine_ms = _engine_ms(model, offline, increments)
-        proc, url = _start_server(store, args.workers)
+        trees = {"working tree": ROOT}
+        if args.baseline:
+            trees = {f"baseline {args.baseline}": _baseline_tree(args.baseline, tmp / "baseline"), **trees}
+        servers = {}
         try:
-            rows = [asyncio.run(_drive(url, model_id, chunks, streams, seconds)) for streams in (1, 8, 64)]
+            for k, (name, tree) in enumerate(trees.items()):
+                servers[name] = Server(tree, tmp / "store", tmp / f"sessions{k}.sqlite3", args.workers)
+            runs: dict[tuple, list[dict]] = {}
+            for _ in range(args.rounds):
+                for streams in STREAMS:
+                    for name, server in servers.items():
+                        for kind in clients:
+                            result = _run_client(server, kind, model_id, chunks_file, streams, args.seconds)
+                            runs.setdefault((name, kind, streams), []).append(result)
         finally:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(timeout=30)
+            for server in servers.values():
+                server.stop()
+    rows = [{"server": name, "client": kind, "streams": streams, **_summary(r)}
+            for (name, kind, streams), r in runs.items()]
+    rows.sort(key=lambda r: (r["client"] != "lean", r["streams"], r["server"] == "working tree"))
     for r in rows:
-        print(f"{r['streams']:>3} streams: {r['rate']:>9,.0f} obs/s  "
-              f"p50 {r['p50']:.2f} ms  p99 {r['p99']:.2f} ms")
-    command = "python -m bench.load" + (f" --workers {args.workers}" if args.workers != 1 else "")
-    _write_doc(rows, engine_ms, args.workers, seconds, load, command)
-    print(f"filter alone: {engine_ms:.2f} ms per chunk; wrote {DOC}")
+        print(f"{r['server'][:22]:>22} {r['client']:>5} {r['streams']:>3} streams: {r['rate']:>9,.0f} obs/s  "
+              f"p50 {r['p50']:7.2f} ms  p99 {r['p99']:7.2f} ms  server {r['server_ms']:.2f} ms CPU/chunk  "
+              f"client {r['client_cores']:.2f} cores")
+    command = "python -m bench.load" + "".join(
+        f" {flag}" for flag, on in ((f"--workers {args.workers}", args.workers != 1),
+                                    (f"--seconds {args.seconds:g}", args.seconds != 5.0 and not args.quick),
+                                    ("--quick", args.quick), (f"--rounds {args.rounds}", args.rounds != 1),
+                                    (f"--baseline {args.baseline}", bool(args.baseline)),
+                                    (f"--clients {args.clients}", args.clients != "lean,httpx")) if on)
+    if not args.no_doc and "lean" in clients:
+        _write_doc(rows, engine_ms, args, load, command)
+        print(f"wrote {DOC}")
+    print(f"filter alone: {engine_ms:.2f} ms per chunk")
     return 0
 
 

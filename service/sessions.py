@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
+import orjson
 
 from solver.errors import InputError, SpecError
 from solver.filtering import Estimate, check_increments
@@ -80,6 +81,14 @@ def chunk_response(seq: int, state: Any, increments: np.ndarray, filt: Any) -> t
                    "reason": reason}
 
 
+def encode_response(response: dict[str, Any]) -> str:
+    """JSON text of a chunk response (orjson: the floats are formatted ~10x faster than by json).
+
+    Every number in it already passed a finiteness check (``estimate_rows`` nulls a non-finite
+    row; ``chunk_response`` the log-likelihood), and orjson never writes a NaN token anyway."""
+    return orjson.dumps(response).decode()
+
+
 def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
     """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
     out = np.empty((len(rows), m))
@@ -139,10 +148,10 @@ class Sessions:
         increments = increments_array(rows, loaded.model.m)
         applied: list[dict[str, Any]] = []
 
-        def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+        def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
             state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt)
             applied.append(response)
-            return state.to_dict(), response
+            return state.to_dict(), encode_response(response)
 
         with self._write_lock:
             response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded)

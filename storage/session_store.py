@@ -13,7 +13,8 @@ carry; the first chunk is seq 0) and a ``version``.  ``apply_chunk(id, seq, comp
 Responses of the last ``retention`` chunks per session are kept.  The file is shared by several
 processes (WAL mode, busy timeout); each thread of each process has its own connection.
 ``apply_chunk(..., encoded=True)`` returns the response as the JSON text stored, so that a server
-can send it as is (one encoding per chunk, not two).
+can send it as is (one encoding per chunk, not two); ``compute`` may also return the response
+already encoded (a ``str`` of a JSON object with finite numbers, stored as given).
 
 Durability (``synchronous``): ``"normal"`` (default) — in WAL mode a commit is appended to the
 log without an fsync; it survives the process being killed (SIGKILL, crash) because the log is in
@@ -26,7 +27,6 @@ Storage knows files, not math: it never imports solver or service.
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import math
 import os
 import secrets
@@ -36,9 +36,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import orjson
+
 from .errors import Conflict, NotFound, StoreError
 
-Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any]]]
+Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -86,12 +88,39 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def _finite(value: Any) -> bool:
+    """No NaN or ±inf anywhere in a JSON-like value (orjson would write them as null, not refuse)."""
+    if isinstance(value, float):
+        return value - value == 0.0
+    if isinstance(value, (list, tuple)):
+        try:
+            total = sum(value)  # one C loop over a list of numbers: NaN and inf propagate
+        except TypeError:
+            return all(map(_finite, value))
+        return total - total == 0.0 or all(map(_finite, value))  # finite values may overflow the sum
+    if isinstance(value, dict):
+        return all(map(_finite, value.values()))
+    return True
+
+
+def _default(value: Any) -> Any:
+    """What orjson does not take itself: subclasses of float and int (e.g. numpy.float64)."""
+    if isinstance(value, float):
+        return float(value)
+    if isinstance(value, int):
+        return int(value)
+    raise TypeError(f"type {type(value).__name__} is not JSON serializable")
+
+
 def _dumps(value: Any, field: str) -> str:
+    """Compact JSON of a dict with finite numbers (orjson: ~10x faster than json on float lists)."""
     if not isinstance(value, dict):
         raise StoreError(field, f"must be a JSON object (dict), got {type(value).__name__}")
+    if not _finite(value):
+        raise StoreError(field, "is not JSON-serialisable with finite numbers: it holds NaN or infinity")
     try:
-        return json.dumps(value, separators=(",", ":"), allow_nan=False)
-    except (TypeError, ValueError) as exc:
+        return orjson.dumps(value, default=_default, option=orjson.OPT_NON_STR_KEYS).decode()
+    except TypeError as exc:  # orjson.JSONEncodeError is a TypeError
         raise StoreError(field, f"is not JSON-serialisable with finite numbers: {exc}") from None
 
 
@@ -185,8 +214,9 @@ class SessionStore:
         if row is None:
             return None
         return SessionRecord(
-            id=row["id"], model_id=row["model_id"], method=row["method"], state=json.loads(row["state"]),
-            initial_response=json.loads(row["initial_response"]), next_seq=row["next_seq"], step=row["step"],
+            id=row["id"], model_id=row["model_id"], method=row["method"], state=orjson.loads(row["state"]),
+            initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
+            step=row["step"],
             t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
             version=row["version"])
 
@@ -206,7 +236,7 @@ class SessionStore:
     # -- chunks ---------------------------------------------------------------------
     def stored_response(self, session_id: str, seq: int) -> dict[str, Any]:
         """The response of an applied chunk (Conflict if it is older than the retention window)."""
-        return json.loads(self._stored_text(session_id, seq))
+        return orjson.loads(self._stored_text(session_id, seq))
 
     def _stored_text(self, session_id: str, seq: int) -> str:
         row = self._connection().execute("SELECT response FROM chunks WHERE session_id = ? AND seq = ?",
@@ -229,19 +259,25 @@ class SessionStore:
             record = self.get(session_id)
             if seq < record.next_seq:
                 text = self._stored_text(session_id, seq)
-                return (text if encoded else json.loads(text)), True
+                return (text if encoded else orjson.loads(text)), True
             if seq > record.next_seq:
                 raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
                                       "nothing was applied")
             new_state, response = compute(record.state)  # outside any lock: sessions run in parallel
             text = self._commit(record, seq, new_state, response)
             if text is not None:
-                return (text if encoded else response), False
+                if encoded:
+                    return text, False
+                return (orjson.loads(text) if isinstance(response, str) else response), False
         raise Conflict("session", f"session {session_id} is updated too often concurrently; retry")
 
-    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict) -> str | None:
+    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict | str) -> str | None:
         """The stored response text, or None when another writer moved the session on."""
-        state_text, response_text = _dumps(new_state, "state"), _dumps(response, "response")
+        state_text = _dumps(new_state, "state")
+        if isinstance(response, str):
+            response_text, response = response, {}  # encoded by the caller, who vouches for it
+        else:
+            response_text = _dumps(response, "response")
         step, t, loglik = _progress(new_state, response, (old.step, old.t, old.loglik))
         with self._transaction() as db:
             changed = db.execute(
