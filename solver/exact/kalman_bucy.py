@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..engine import ChunkResult
-from ..errors import SpecError
+from ..errors import InputError, SpecError
 from ..filtering import Estimate, check_increments
 from ..model import Model
 from ..reference._base import GaussianReferenceFilter, GaussianState, observed
@@ -68,6 +68,7 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         predicted_eq = GaussianKolmogorov(self.F, self.f0, a=model.a)
         self._flows = FlowFamily([observed_eq.flow(model.dt), predicted_eq.flow(model.dt)])
         self._discrete = DiscreteKalmanFilter(model) if kind == "discrete" else None
+        self._positions: dict[bytes, tuple[_Schedule, int]] = {}  # covariance -> (schedule, step index)
 
     def potential_terms(self, increment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(q, r) of the observation potential ½hᵀR⁻¹h − hᵀR⁻¹ẏ for ẏ = Δy/dt; rows for (K, m)."""
@@ -98,9 +99,18 @@ class KalmanBucyFilter(GaussianReferenceFilter):
             return state, ExactChunk(steps, steps * 1.0, empty, np.empty((0, n, n)), empty, np.empty(0),
                                       np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
-        dy = np.where(missing[:, None], 0.0, dy)
-        chunk = self._discrete_chunk if self._discrete is not None else self._continuous_chunk
-        mean, cov, increments_ll = chunk(state, dy, missing)
+        scheduled = None
+        if not missing.any():
+            if K == 1 and dy.shape[1] == 1 and n == 1:
+                lean = self._one_row(state, float(dy[0, 0]))
+                if lean is not None:
+                    return _one_row_result(state, self.model.dt, *lean)
+            scheduled = self._scheduled_chunk(state, dy)
+        if scheduled is None:  # missing rows or an unsettled long path: the general chunk code
+            dy = np.where(missing[:, None], 0.0, dy)
+            chunk = self._discrete_chunk if self._discrete is not None else self._continuous_chunk
+            scheduled = chunk(state, dy, missing)
+        mean, cov, increments_ll = scheduled
         loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]  # sequential sums
         times = steps * self.model.dt
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
@@ -109,6 +119,93 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         return new_state, ExactChunk(step=steps, t=times, mean=mean, cov=cov, mode=mean.copy(),
                                       loglik=loglik, loglik_increment=increments_ll,
                                       degenerate=np.zeros(K, bool))
+
+    # -- scheduled chunks (observed rows from a remembered covariance) ------------------------
+    def _schedule_at(self, state: GaussianState) -> tuple["_Schedule", int]:
+        """The schedule and position whose covariance is ``state.cov`` (a new schedule if unseen)."""
+        key = np.ascontiguousarray(state.cov, dtype=float).tobytes()
+        found = self._positions.get(key)
+        if found is not None:
+            return found
+        if self._discrete is not None:
+            start = np.array(state.cov, dtype=float)
+        else:
+            start = gaussian_to_terms(state.mean, state.cov).A
+        if len(self._positions) >= _MAX_KEYS:
+            self._positions.clear()
+        found = self._positions[key] = (_Schedule(start=start, end=start), 0)
+        return found
+
+    def _extend(self, schedule: "_Schedule", count: int) -> None:
+        """Append ``count`` observed steps to an unsettled schedule (fewer if the path settles)."""
+        zeros = np.zeros(count, dtype=bool)
+        if self._discrete is None:
+            path = self._flows.path(zeros.astype(int), schedule.end[None])[:, 0]
+            keep, settled = _settle(path)
+            parts = _continuous_coefficients(self, path[:keep], path[1:keep + 1])
+        else:
+            kf, dt = self._discrete, self.model.dt
+            pieces = _kalman_covariances(kf.phi, kf.Q, kf.H * dt, self.model.R * dt, schedule.end, zeros)
+            path = np.concatenate([schedule.end[None], pieces[-1]])
+            keep, settled = _settle(path)
+            parts = _discrete_coefficients(self, path[:keep], *(p[:keep] for p in pieces))
+        schedule.append(parts, settled, path[keep])
+
+    def _scheduled_chunk(self, state: GaussianState, dy: np.ndarray):
+        """(mean, cov, ll) of an all-observed chunk from cached coefficients, or None (path unsettled)."""
+        schedule, j = self._schedule_at(state)
+        K = len(dy)
+        if not schedule.settled and j + K > schedule.length:
+            if j + K > _MAX_STEPS:
+                return None
+            self._extend(schedule, max(j + K - schedule.length, _EXTEND))
+        L = schedule.length
+        idx = np.minimum(np.arange(j, j + K), L - 1) if schedule.settled and j + K > L else slice(j, j + K)
+        first = min(j, L - 1)
+        x0 = state.mean if self._discrete is not None else -2.0 * schedule.prev[first] @ state.mean
+        W, Vy, cov = schedule.W[idx], schedule.Vy[idx], schedule.cov[idx]
+        if Vy.shape[1:] == (1, 1):
+            b = schedule.v0[idx] + Vy[:, 0] * dy
+        else:
+            b = schedule.v0[idx] + (Vy @ dy[..., None])[..., 0]
+        x = _linear_recursion(W, b, x0)
+        u = np.concatenate([x[:-1], dy], axis=1)
+        ll = _quadratic(schedule.kappa[idx], schedule.ell[idx], schedule.M[idx], u)
+        if self._discrete is not None:
+            mean = x[1:]
+        elif self.model.n == 1:
+            mean = -cov[:, 0] * x[1:]
+        else:
+            mean = -(cov @ x[1:, :, None])[..., 0]
+        self._remember(cov[-1], schedule, j + K)
+        return mean, cov, ll
+
+    def _remember(self, cov: np.ndarray, schedule: "_Schedule", position: int) -> None:
+        if len(self._positions) >= _MAX_KEYS:
+            self._positions.clear()
+        self._positions[np.ascontiguousarray(cov).tobytes()] = (schedule, position)
+
+    def _one_row(self, state: GaussianState, dy: float):
+        """One observed row of a scalar model in plain floats (the service's chunk of 1), or None."""
+        schedule, j = self._schedule_at(state)
+        if not schedule.settled and j >= schedule.length:
+            if j + 1 > _MAX_STEPS:
+                return None
+            self._extend(schedule, _EXTEND)
+        if schedule.scalars is None:
+            names = ("W", "Vy", "v0", "kappa", "ell", "M", "prev", "cov")
+            schedule.scalars = list(zip(*(getattr(schedule, k).reshape(schedule.length, -1).tolist()
+                                         for k in names), strict=True))
+        (w,), (vy,), (v0,), (kappa,), (l0, l1), (m00, m01, _, m11), (prev,), (p,) = \
+            schedule.scalars[min(j, schedule.length - 1)]
+        mean0 = float(state.mean[0])
+        x0 = mean0 if self._discrete is not None else -2.0 * prev * mean0
+        x = w * x0 + vy * dy + v0
+        ll = kappa + l0 * x0 + l1 * dy + 0.5 * (m00 * x0 * x0 + m11 * dy * dy) + m01 * x0 * dy
+        mean = x if self._discrete is not None else -p * x
+        cov = np.array([[p]])
+        self._remember(cov, schedule, j + 1)
+        return mean, cov, ll
 
     # -- the two kinds ---------------------------------------------------------------------
     def _continuous_chunk(self, state: GaussianState, dy: np.ndarray, missing: np.ndarray):
@@ -154,6 +251,17 @@ class ExactChunk(ChunkResult):
                 for s, t, m, P, ll, i, mode in columns]
 
 
+def _one_row_result(state: GaussianState, dt: float, mean: float, cov: np.ndarray, ll: float):
+    """The new state and the one-row ExactChunk of a scalar step (plain floats in, arrays out)."""
+    step = state.step + 1
+    t, loglik = step * dt, state.loglik + ll
+    new_state = replace(state, step=step, t=t, loglik=loglik, loglik_increment=ll, mean=np.array([mean]),
+                        cov=cov)
+    return new_state, ExactChunk(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
+                                 cov=cov[None].copy(), mode=np.array([[mean]]), loglik=np.array([loglik]),
+                                 loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool))
+
+
 def _kalman_covariances(phi, Q, Hd, Rdt, P0, missing):
     """Predicted covariances, gains, innovation covariances and filtered covariances (K, ·, ·)."""
     K, n, m = len(missing), phi.shape[0], Hd.shape[0]
@@ -193,3 +301,161 @@ def _log_normal_batch(x, mean, cov) -> np.ndarray:
     z = np.linalg.solve(chol, (x - mean)[..., None])[..., 0]
     log_det = np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
     return -0.5 * (z * z).sum(-1) - log_det - 0.5 * x.shape[-1] * np.log(2 * np.pi)
+
+
+# -- cached schedules: the data-free coefficients of consecutive observed steps ---------------
+# For a time-invariant model the covariance path from a given start does not depend on the data
+# and converges geometrically to the steady state.  A schedule stores, step by step, the
+# recursion x_k = W_k x_{k−1} + Vy_k Δy_k + v0_k of the data-carrying variable x (B of the
+# exponent for the continuous kind, the mean for the discrete one), the covariance P_k, and
+# the log-likelihood increment as one quadratic form ll_k = κ_k + ℓ_kᵀu + ½uᵀ𝕄_k u in
+# u = (x_{k−1}, Δy_k).  Once the path stops moving (to rounding) the last entry is the steady
+# step and is reused for every later step.
+
+_EXTEND = 512  # steps added to a schedule at a time (one-row chunks share the cost)
+_MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
+_MAX_KEYS = 4096  # covariances remembered as schedule positions
+
+
+@dataclass
+class _Schedule:
+    """Coefficient arrays (leading axis: step) from one start; ``settled``: last entry is steady."""
+
+    start: np.ndarray  # covariance-type variable before the first step (A or P), (n, n)
+    end: np.ndarray  # the same after the last stored step (where an extension starts)
+    W: np.ndarray | None = None  # (L, n, n)
+    Vy: np.ndarray | None = None  # (L, n, m)
+    v0: np.ndarray | None = None  # (L, n)
+    kappa: np.ndarray | None = None  # (L,)
+    ell: np.ndarray | None = None  # (L, n + m)
+    M: np.ndarray | None = None  # (L, n + m, n + m)
+    prev: np.ndarray | None = None  # (L, n, n) A or P before each step
+    cov: np.ndarray | None = None  # (L, n, n) filtered covariance after each step
+    settled: bool = False
+    scalars: list | None = None  # per-step plain floats for the one-row path (n = m = 1)
+
+    @property
+    def length(self) -> int:
+        return 0 if self.W is None else len(self.W)
+
+    def append(self, parts: dict, settled: bool, end: np.ndarray) -> None:
+        for name, value in parts.items():
+            old = getattr(self, name)
+            setattr(self, name, value if old is None else np.concatenate([old, value]))
+        self.settled, self.end, self.scalars = settled, end, None
+
+
+def _settle(path: np.ndarray) -> tuple[int, bool]:
+    """Steps of ``path`` (L+1, n, n) to keep: up to the first step that no longer moves it."""
+    moved = np.abs(np.diff(path, axis=0)).max(axis=(1, 2))
+    still = moved <= 4.0 * np.finfo(float).eps * np.abs(path[1:]).max(axis=(1, 2))
+    if still.any():
+        return int(np.argmax(still)) + 1, True
+    return len(path) - 1, False
+
+
+def _linear_recursion(W: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """x_k = W_k x_{k−1} + b_k for W (K, n, n), b (K, n) -> (K + 1, n), without a per-step loop.
+
+    n = 1: x_k = Π_k (x_0 + Σ_{j≤k} b_j / Π_j) with Π_k = w_1⋯w_k (cumulative products, in
+    blocks short enough that Π stays far from overflow); n > 1: a prefix scan of the affine maps
+    (log₂ K rounds of batched products).
+    """
+    K, n = b.shape
+    out = np.empty((K + 1, n))
+    out[0] = x0
+    if n == 1:
+        w, c = W[:, 0, 0], b[:, 0]
+        if np.all(w > 0.0):  # W = X⁻ᵀ > 0 (continuous) and (1 − G Hd)Φ > 0 (discrete) for n = 1
+            span = max(1, int(500.0 / max(float(np.abs(np.log(w)).max()), 1e-300)))
+            x = float(x0[0])
+            for start in range(0, K, span):
+                prod = np.cumprod(w[start:start + span])
+                segment = prod * (x + np.cumsum(c[start:start + span] / prod))
+                out[start + 1:start + 1 + len(segment), 0] = segment
+                x = float(segment[-1])
+            return out
+        return affine_path(W[:, None], b[:, None], out[:1])[:, 0]
+    Wc, bc, shift = W.copy(), b.copy(), 1
+    while shift < K:  # after a round, (Wc_k, bc_k) maps x_{k−2·shift} (or x_0) to x_k
+        bc[shift:] = (Wc[shift:] @ bc[:-shift, :, None])[..., 0] + bc[shift:]
+        Wc[shift:] = Wc[shift:] @ Wc[:-shift]
+        shift *= 2
+    out[1:] = (Wc @ x0) + bc
+    return out
+
+
+def _quadratic(kappa, ell, M, u) -> np.ndarray:
+    """κ_k + ℓ_kᵀu_k + ½u_kᵀ𝕄_k u_k for rows u (K, n + m)."""
+    if u.shape[1] == 2:  # n = m = 1: elementwise
+        z, y = u[:, 0], u[:, 1]
+        return kappa + ell[:, 0] * z + ell[:, 1] * y + 0.5 * (M[:, 0, 0] * z * z + M[:, 1, 1] * y * y) \
+            + M[:, 0, 1] * z * y
+    return kappa + (ell * u).sum(-1) + 0.5 * np.einsum("ka,kab,kb->k", u, M, u)
+
+
+def _swap(X: np.ndarray) -> np.ndarray:
+    return np.swapaxes(X, -1, -2)
+
+
+def _continuous_coefficients(kb: "KalmanBucyFilter", A_prev: np.ndarray, A_next: np.ndarray) -> dict:
+    """Schedule entries of observed continuous steps from A_prev (L, n, n) (A_next: after each step).
+
+    The flow of riccati.StepBatch written out with the data kept symbolic: B(s) = X(s)⁻ᵀ[B_prev +
+    IX(s)ᵀq − 2IY(s)ᵀd] with q = HᵀR⁻¹(h0 − Δy/dt) is affine in u = (B_prev, Δy), so the C gain
+    (Gauss–Legendre in s) and log ∫σ_k − log ∫σ_{k−1} are quadratic in u.
+    """
+    model, family = kb.model, kb._flows
+    n, dt, eq = model.n, model.dt, family.eq
+    Phi, Psi, w = family.Phi[0], family.Psi[0], family.w  # the observed flow: (S+1, 2n, 2n)
+    A = A_prev[:, None]
+    X = Phi[:, :n, :n] + Phi[:, :n, n:] @ A  # (L, S+1, n, n)
+    IX = Psi[:, :n, :n] + Psi[:, :n, n:] @ A
+    IY = Psi[:, n:, :n] + Psi[:, n:, n:] @ A
+    sign, log_det = np.linalg.slogdet(X[:, -1])
+    if np.any(sign <= 0):
+        raise InputError("dt", "the Riccati solution blows up within the step (det X <= 0)")
+    T = _swap(np.linalg.inv(X))
+    TF = T @ _swap(IX)
+    Ls = np.concatenate([T, TF @ (-kb._HtR / dt)], axis=-1)  # B(s) = Ls u + c(s), (L, S+1, n, n+m)
+    c = TF @ (kb._HtR @ kb.h0) + (T @ (-2.0 * _swap(IY) @ eq.d)[..., None])[..., 0]
+    Ln, cn = Ls[:, :-1], c[:, :-1]  # at the quadrature nodes
+    Mw = np.einsum("s,lsia,ij,lsjb->lab", w, Ln, eq.a, Ln)
+    lw = np.einsum("s,lsia,lsi->la", w, Ln, cn @ eq.a + eq.d)
+    cw = (0.5 * np.einsum("lsi,ij,lsj->ls", cn, eq.a, cn) + cn @ eq.d) @ w
+    G, v0 = Ls[:, -1], c[:, -1]
+    P, P_prev = np.linalg.inv(2.0 * A_next), np.linalg.inv(2.0 * A_prev)
+    P, P_prev = 0.5 * (P + _swap(P)), 0.5 * (P_prev + _swap(P_prev))
+    lam_next, lam_prev = (-0.5 * np.linalg.slogdet(2.0 * A_)[1] for A_ in (A_next, A_prev))
+    R_inv, h0 = model.R_inv, kb.h0
+    g0 = 0.5 * log_det + (0.5 * h0 @ R_inv @ h0 + 0.5 * np.trace(eq.D)) * dt
+    Pv = (P @ v0[..., None])[..., 0]
+    M = _swap(G) @ P @ G + Mw
+    M[:, :n, :n] -= P_prev
+    ell = (_swap(G) @ Pv[..., None])[..., 0] + lw
+    ell[:, n:] += R_inv @ h0  # − ∂gain/∂Δy, the r dt = (½h0ᵀR⁻¹h0 − (R⁻¹h0)ᵀΔy/dt) dt part
+    kappa = lam_next - lam_prev + 0.5 * (v0 * Pv).sum(-1) - g0 + cw
+    return {"W": G[..., :n], "Vy": G[..., n:], "v0": v0, "kappa": kappa, "ell": ell, "M": M,
+            "prev": A_prev, "cov": P}
+
+
+def _discrete_coefficients(kb: "KalmanBucyFilter", P_prev, cov_pred, gain, innovation, cov) -> dict:
+    """Schedule entries of observed discrete Kalman steps (x = the mean).
+
+    ll = log N(Δy; Hd(Φx + shift) + h0 dt, S) − log N(Δy; 0, R dt) with the residual E u + e0.
+    """
+    kf, model = kb._discrete, kb.model
+    n, m, dt = model.n, model.m, model.dt
+    Hd, Rdt = kf.H * dt, model.R * dt
+    I_GH = np.eye(n) - gain @ Hd
+    E = np.concatenate([np.broadcast_to(-Hd @ kf.phi, (len(gain), m, n)),
+                        np.broadcast_to(np.eye(m), (len(gain), m, m))], axis=-1)
+    e0 = -(Hd @ kf.shift + kf.h0 * dt)
+    S_inv = np.linalg.inv(innovation)
+    M = -_swap(E) @ S_inv @ E
+    M[:, n:, n:] += np.linalg.inv(Rdt)
+    ell = -(_swap(E) @ (S_inv @ e0)[..., None])[..., 0]
+    log_det_ratio = np.linalg.slogdet(innovation)[1] - np.linalg.slogdet(Rdt)[1]
+    kappa = -0.5 * np.einsum("i,kij,j->k", e0, S_inv, e0) - 0.5 * log_det_ratio
+    return {"W": I_GH @ kf.phi, "Vy": gain, "v0": (I_GH @ kf.shift) - gain @ (kf.h0 * dt), "kappa": kappa,
+            "ell": ell, "M": M, "prev": P_prev, "cov": cov}
