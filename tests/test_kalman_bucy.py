@@ -161,3 +161,97 @@ def test_chunking_does_not_change_the_estimates(kind):
     whole, again = kb.step(whole, np.array([0.01]))
     np.testing.assert_allclose([e.mean for e in parts], [e.mean for e in est], rtol=1e-12, atol=1e-14)
     assert state.loglik == pytest.approx(whole.loglik, abs=1e-12) and last.mean == pytest.approx(again.mean)
+
+
+# -- cached schedules: long runs that cross the point where the covariance path settles --------
+_TWO_D = {"state": ("x", "y"), "drift": ("-0.5*x + 0.4*y", "-0.6*x - 0.3*y"), "observation": ("x + 0.5*y",),
+          "a": 0.5, "R": 0.3}
+
+
+def _pieces(incs, sizes):
+    """Split rows into chunks of the given sizes (cycled), one-row chunks included."""
+    out, start, k = [], 0, 0
+    while start < len(incs):
+        out.append(incs[start:start + sizes[k % len(sizes)]])
+        start, k = start + sizes[k % len(sizes)], k + 1
+    return out
+
+
+def _kalman_bucy_ode_step(F, f0, a, H, h0, R_inv, m, P, ydot, dt):
+    """m, P, log Z over one step of constant ẏ: the Kalman–Bucy ODEs with the robust-DMZ mass rate
+    d log Z/dt = ĥᵀR⁻¹ẏ − ½ĥᵀR⁻¹ĥ − ½tr(HᵀR⁻¹HP), ĥ = Hm + h0 (integrated by solve_ivp)."""
+    from scipy.integrate import solve_ivp
+    n = len(m)
+
+    def rhs(_t, y):
+        mean, cov = y[:n], y[n:n + n * n].reshape(n, n)
+        hhat = H @ mean + h0
+        dm = F @ mean + f0 + cov @ H.T @ R_inv @ (ydot - hhat)
+        dP = F @ cov + cov @ F.T + a - cov @ H.T @ R_inv @ H @ cov
+        dlog = hhat @ R_inv @ ydot - 0.5 * hhat @ R_inv @ hhat - 0.5 * np.trace(H.T @ R_inv @ H @ cov)
+        return np.concatenate([dm, dP.ravel(), [dlog]])
+
+    y = solve_ivp(rhs, (0, dt), np.concatenate([m, P.ravel(), [0.0]]), method="DOP853", rtol=1e-12,
+                  atol=1e-13).y[:, -1]
+    return y[:n], y[n:n + n * n].reshape(n, n), y[-1]
+
+
+@pytest.mark.parametrize("two", [False, True])
+def test_continuous_kind_against_the_kalman_bucy_odes_across_settling(two):
+    # chunks of 1, 7 and 40 rows over 260 steps: the covariance path settles (to rounding) on the
+    # way, after which the steady step is reused; every estimate is checked against the ODEs
+    kw = _TWO_D if two else {}
+    model = _model(dt=0.05, **kw)
+    kb = KalmanBucyFilter(model)
+    incs = simulate(model, 260, np.random.default_rng(11)).increments
+    state, ests = kb.initial_state(), []
+    for piece in _pieces(incs, (1, 7, 40, 1, 1)):
+        state, part = kb.run(state, piece)
+        ests += part
+    assert any(schedule.settled for schedule, _ in kb._positions.values())
+    F, f0 = kb.F, kb.f0
+    m, P, loglik = np.full(model.n, 0.7), np.eye(model.n), 0.0
+    for k, row in enumerate(incs):
+        m, P, dlog = _kalman_bucy_ode_step(F, f0, model.a, kb.H, kb.h0, model.R_inv, m, P, row / model.dt,
+                                           model.dt)
+        loglik += dlog
+        if k % 13 == 0 or k == len(incs) - 1:
+            np.testing.assert_allclose(ests[k].mean, m, rtol=1e-8, atol=1e-9)
+            np.testing.assert_allclose(ests[k].cov, P, rtol=1e-8, atol=1e-10)
+            assert ests[k].loglik == pytest.approx(loglik, abs=1e-8)
+
+
+def test_settled_covariance_is_the_algebraic_riccati_solution():
+    # P∞ solves FP + PFᵀ + a − PHᵀR⁻¹HP = 0: closed form in 1-D, scipy's CARE solver in 2-D
+    from scipy.linalg import solve_continuous_are
+    F, a, H, R = -0.8, 0.6, 1.5, 0.4
+    beta = H * H / R
+    kb = KalmanBucyFilter(_model(dt=0.05))
+    state, _ = kb.run(kb.initial_state(), np.zeros((400, 1)))
+    assert state.cov[0, 0] == pytest.approx((F + np.sqrt(F * F + a * beta)) / beta, rel=1e-13)
+    kb2 = KalmanBucyFilter(_model(dt=0.05, **_TWO_D))
+    state, _ = kb2.run(kb2.initial_state(), np.zeros((1200, 1)))
+    care = solve_continuous_are(kb2.F.T, kb2.H.T, kb2.model.a, kb2.model.R)
+    np.testing.assert_allclose(state.cov, care, rtol=1e-11)
+
+
+@pytest.mark.parametrize("two", [False, True])
+def test_discrete_kind_long_run_in_odd_chunks_equals_the_reference(two):
+    # scheduled steps (one-row and longer chunks, before and after settling, a missing row after
+    # settling that starts a new schedule) against the step-by-step reference Kalman filter
+    kw = _TWO_D if two else {}
+    model = _model(dt=0.05, **kw)
+    incs = simulate(model, 400, np.random.default_rng(12)).increments
+    incs[300] = np.nan
+    kb, ref = KalmanBucyFilter(model, kind="discrete"), DiscreteKalmanFilter(model)
+    state, ests = kb.initial_state(), []
+    for piece in _pieces(incs, (1, 1, 50, 3)):
+        state, part = kb.run(state, piece)
+        ests += part
+    s2 = ref.initial_state()
+    for k, row in enumerate(incs):
+        s2, e2 = ref.step(s2, row)
+        np.testing.assert_allclose(ests[k].mean, e2.mean, rtol=1e-10, atol=1e-11)
+        np.testing.assert_allclose(ests[k].cov, e2.cov, rtol=1e-10, atol=1e-12)
+        assert ests[k].loglik == pytest.approx(e2.loglik, abs=1e-9)
+    assert ests[300].loglik_increment == 0.0
