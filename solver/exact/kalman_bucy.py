@@ -158,7 +158,7 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         if not schedule.settled and j + K > schedule.length:
             if j + K > _MAX_STEPS:
                 return None
-            self._extend(schedule, max(j + K - schedule.length, _EXTEND))
+            self._extend(schedule, j + K - schedule.length + min(_EXTEND, schedule.length))
         L = schedule.length
         idx = np.minimum(np.arange(j, j + K), L - 1) if schedule.settled and j + K > L else slice(j, j + K)
         first = min(j, L - 1)
@@ -191,7 +191,7 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         if not schedule.settled and j >= schedule.length:
             if j + 1 > _MAX_STEPS:
                 return None
-            self._extend(schedule, _EXTEND)
+            self._extend(schedule, j + 1 - schedule.length + min(_EXTEND, schedule.length))
         if schedule.scalars is None:
             names = ("W", "Vy", "v0", "kappa", "ell", "M", "prev", "cov")
             schedule.scalars = list(zip(*(getattr(schedule, k).reshape(schedule.length, -1).tolist()
@@ -312,7 +312,7 @@ def _log_normal_batch(x, mean, cov) -> np.ndarray:
 # u = (x_{k−1}, Δy_k).  Once the path stops moving (to rounding) the last entry is the steady
 # step and is reused for every later step.
 
-_EXTEND = 512  # steps added to a schedule at a time (one-row chunks share the cost)
+_EXTEND = 512  # most steps added beyond the need (the length doubles up to it: one-row chunks share the cost)
 _MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
 _MAX_KEYS = 4096  # covariances remembered as schedule positions
 
@@ -398,6 +398,13 @@ def _swap(X: np.ndarray) -> np.ndarray:
     return np.swapaxes(X, -1, -2)
 
 
+def _scalar_ops(n: int):
+    """(product, inverse, log det) of stacked n×n matrices; elementwise for n = 1 (no per-matrix calls)."""
+    if n == 1:
+        return np.multiply, np.reciprocal, lambda X: np.log(X[..., 0, 0])
+    return np.matmul, np.linalg.inv, lambda X: np.linalg.slogdet(X)[1]
+
+
 def _continuous_coefficients(kb: "KalmanBucyFilter", A_prev: np.ndarray, A_next: np.ndarray) -> dict:
     """Schedule entries of observed continuous steps from A_prev (L, n, n) (A_next: after each step).
 
@@ -407,34 +414,39 @@ def _continuous_coefficients(kb: "KalmanBucyFilter", A_prev: np.ndarray, A_next:
     """
     model, family = kb.model, kb._flows
     n, dt, eq = model.n, model.dt, family.eq
+    mm, inv, log_det = _scalar_ops(n)
     Phi, Psi, w = family.Phi[0], family.Psi[0], family.w  # the observed flow: (S+1, 2n, 2n)
     A = A_prev[:, None]
-    X = Phi[:, :n, :n] + Phi[:, :n, n:] @ A  # (L, S+1, n, n)
-    IX = Psi[:, :n, :n] + Psi[:, :n, n:] @ A
-    IY = Psi[:, n:, :n] + Psi[:, n:, n:] @ A
-    sign, log_det = np.linalg.slogdet(X[:, -1])
-    if np.any(sign <= 0):
+    X = Phi[:, :n, :n] + mm(Phi[:, :n, n:], A)  # (L, S+1, n, n)
+    IX = Psi[:, :n, :n] + mm(Psi[:, :n, n:], A)
+    IY = Psi[:, n:, :n] + mm(Psi[:, n:, n:], A)
+    X_dt = X[:, -1]
+    if n == 1 and not np.all(X_dt > 0) or n > 1 and np.any(np.linalg.slogdet(X_dt)[0] <= 0):
         raise InputError("dt", "the Riccati solution blows up within the step (det X <= 0)")
-    T = _swap(np.linalg.inv(X))
-    TF = T @ _swap(IX)
-    Ls = np.concatenate([T, TF @ (-kb._HtR / dt)], axis=-1)  # B(s) = Ls u + c(s), (L, S+1, n, n+m)
-    c = TF @ (kb._HtR @ kb.h0) + (T @ (-2.0 * _swap(IY) @ eq.d)[..., None])[..., 0]
-    Ln, cn = Ls[:, :-1], c[:, :-1]  # at the quadrature nodes
-    Mw = np.einsum("s,lsia,ij,lsjb->lab", w, Ln, eq.a, Ln)
-    lw = np.einsum("s,lsia,lsi->la", w, Ln, cn @ eq.a + eq.d)
-    cw = (0.5 * np.einsum("lsi,ij,lsj->ls", cn, eq.a, cn) + cn @ eq.d) @ w
+    T = _swap(inv(X))
+    TF = mm(T, _swap(IX))
+    Ls = np.concatenate([T, mm(TF, -kb._HtR / dt)], axis=-1)  # B(s) = Ls u + c(s), (L, S+1, n, n+m)
+    forcing = mm(TF, (kb._HtR @ kb.h0)[:, None]) - 2.0 * mm(T, mm(_swap(IY), eq.d[:, None]))
+    c = forcing[..., 0]
+    # Σ_s w_s(½B(s)ᵀaB(s) + dᵀB(s)) at the quadrature nodes, as batched products over (s, i)
+    root_w = np.sqrt(w)[:, None, None]  # Gauss–Legendre weights are positive
+    Ln, cn = Ls[:, :-1] * root_w, c[:, :-1]
+    L_flat = _swap(Ln.reshape(len(Ln), -1, Ln.shape[-1]))  # (L, n+m, S·n)
+    Mw = L_flat @ (eq.a @ Ln).reshape(len(Ln), -1, Ln.shape[-1])
+    lw = (L_flat @ ((cn @ eq.a + eq.d) * root_w[..., 0]).reshape(len(Ln), -1, 1))[..., 0]
+    cw = (0.5 * ((cn @ eq.a) * cn).sum(-1) + cn @ eq.d) @ w
     G, v0 = Ls[:, -1], c[:, -1]
-    P, P_prev = np.linalg.inv(2.0 * A_next), np.linalg.inv(2.0 * A_prev)
+    P, P_prev = inv(2.0 * A_next), inv(2.0 * A_prev)
     P, P_prev = 0.5 * (P + _swap(P)), 0.5 * (P_prev + _swap(P_prev))
-    lam_next, lam_prev = (-0.5 * np.linalg.slogdet(2.0 * A_)[1] for A_ in (A_next, A_prev))
     R_inv, h0 = model.R_inv, kb.h0
-    g0 = 0.5 * log_det + (0.5 * h0 @ R_inv @ h0 + 0.5 * np.trace(eq.D)) * dt
-    Pv = (P @ v0[..., None])[..., 0]
-    M = _swap(G) @ P @ G + Mw
+    g0 = 0.5 * log_det(X_dt) + (0.5 * h0 @ R_inv @ h0 + 0.5 * np.trace(eq.D)) * dt
+    Pv = mm(P, v0[..., None])
+    M = mm(mm(_swap(G), P), G) + Mw
     M[:, :n, :n] -= P_prev
-    ell = (_swap(G) @ Pv[..., None])[..., 0] + lw
+    ell = mm(_swap(G), Pv)[..., 0] + lw
     ell[:, n:] += R_inv @ h0  # − ∂gain/∂Δy, the r dt = (½h0ᵀR⁻¹h0 − (R⁻¹h0)ᵀΔy/dt) dt part
-    kappa = lam_next - lam_prev + 0.5 * (v0 * Pv).sum(-1) - g0 + cw
+    # log ∫σ = ½ log det(2πP) + ½BᵀPB: the log det parts of steps k and k−1
+    kappa = 0.5 * (log_det(A_prev) - log_det(A_next)) + 0.5 * (v0 * Pv[..., 0]).sum(-1) - g0 + cw
     return {"W": G[..., :n], "Vy": G[..., n:], "v0": v0, "kappa": kappa, "ell": ell, "M": M,
             "prev": A_prev, "cov": P}
 
