@@ -24,6 +24,7 @@ Log-likelihood: log ratio of ∫σ (the Brownian-reference convention of KalmanB
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -38,7 +39,7 @@ from ..model import Model
 from ..reference._base import ReferenceFilter, StepState, observed
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
-from .kalman_bucy import ExactChunk
+from .kalman_bucy import ExactChunk, _linear_recursion, _settle
 from .riccati import FlowFamily, GaussianKolmogorov, affine_path, gaussian_terms_batch, gaussian_to_terms
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
@@ -178,6 +179,22 @@ class _Step:
         self.maps = np.stack([expm(M * s)[:2 * n + m, 2 * n + m:] for s in np.append(self.s, dt)])
         self.n = n
 
+    def increment_terms(self):
+        """(Ga, Gb, Qc, lc): a = Ga y, b = Gb y, c = yᵀQc y + lcᵀy for the whitened increment y = ẏ dt.
+
+        The maps of :meth:`observation_terms` with the data kept symbolic; seed 000 (3.3)–(3.5).
+        """
+        n = self.n
+        maps = self.maps / self.dt  # y = ẏ dt
+        Mb, Ma, My = maps[:, :n], maps[:, n:2 * n], maps[:, 2 * n:]
+        P = Ma + self.D @ Mb - self.H.T @ My  # b' = P y
+        Mb_, Ma_, P_ = Mb[:-1], Ma[:-1], P[:-1]  # quadrature nodes
+        cross = np.swapaxes(Ma_, -1, -2) @ P_
+        Qs = -0.5 * np.swapaxes(P_, -1, -2) @ P_ + 0.5 * (cross + np.swapaxes(cross, -1, -2)) \
+            + 0.5 * np.swapaxes(Mb_, -1, -2) @ self.E @ Mb_
+        ls = -np.swapaxes(P_, -1, -2) @ self.d + 0.5 * np.swapaxes(Mb_, -1, -2) @ self.e
+        return Ma[-1], Mb[-1], np.einsum("s,sij->ij", self.w, Qs), self.w @ ls
+
     def observation_terms(self, ydot: np.ndarray):
         """(a, b, c) at dt for constant rates ẏ (K, m) -> (K, n), (K, n), (K,); seed 000 (3.3)–(3.5)."""
         n = self.n
@@ -227,6 +244,9 @@ class YauHuFilter(ReferenceFilter):
         self._family = FlowFamily(flows)
         self._q = np.stack([f.eq.q for f in flows])
         self._r = np.array([f.eq.r for f in flows])
+        self._Hw, self._h0w = Hw, h0w
+        self._scalar_whitening = float(self.L_inv[0, 0])  # the one-row path (n = m = 1)
+        self._positions: dict[bytes, tuple[_Schedule, int]] = {}  # exponents A -> (schedule, step index)
 
     # -- mixtures of e^{F}·exp(−xᵀAx − Bᵀx − C) ------------------------------------------
     def _components(self, A, B, C):
@@ -302,23 +322,42 @@ class YauHuFilter(ReferenceFilter):
     def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ExactChunk"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 
-        The component exponents A_k are observation-free (Riccati path); B is an affine recursion in
-        the data; C and the normaliser log Σ∫σ_i follow in batch (cumulative, renormalised at the end).
+        All-observed chunks use the cached schedule of data-free step coefficients (see _Schedule);
+        chunks with missing rows (or a path that never settles) take the general chunk code.
         """
         dy = check_increments(increments, self.model.m)
-        K, n, dt = len(dy), self.model.n, self.model.dt
+        K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
-        times = steps * dt
+        times = steps * self.model.dt
         if K == 0:
             return state, ExactChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
                                        np.empty(0), np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
+        done = None
+        if not missing.any():
+            if K == 1 and n == 1 and self.model.m == 1:
+                lean = self._one_row(state, float(dy[0, 0]) * self._scalar_whitening)
+                if lean is not None:
+                    return _one_row_result(state, self.model.dt, *lean)
+            done = self._scheduled_chunk(state, dy @ self.L_inv.T)  # whitened increments
+        if done is None:
+            done = self._general_chunk(state, dy, missing)
+        (mean, cov, increments_ll), (A, B, C) = done
+        loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+        new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
+                            loglik_increment=float(increments_ll[-1]), A=A, B=B, C=C)
+        return new_state, ExactChunk(steps, times, mean, cov, None, loglik, increments_ll,
+                                       np.zeros(K, bool))
+
+    def _general_chunk(self, state: YauHuState, dy: np.ndarray, missing: np.ndarray):
+        """Any chunk: Riccati path of the A_k, B as an affine recursion in the data, C, the normaliser
+        log Σ∫σ_i and the moments in batch (cumulative, renormalised at the end)."""
         dyw = np.where(missing[:, None], 0.0, dy) @ self.L_inv.T  # whitened; 0 on missing rows
         choice = missing.astype(int)
         A = self._family.path(choice, state.A)  # (K+1, J, n, n)
         batch = self._family.batch(choice, A[:-1], self._q[choice], self._r[choice])
         obs = self._observed
-        a, b, c = obs.observation_terms(dyw / dt)  # 0 on missing rows
+        a, b, c = obs.observation_terms(dyw / self.model.dt)  # 0 on missing rows
         # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (_Step's (a, b, c) shift)
         Ab = batch.mm(A[1:], b[:, None, :, None])[..., 0]  # (K, J, n)
         shift = -2.0 * Ab + (a - dyw @ obs.H)[:, None]
@@ -333,13 +372,176 @@ class YauHuFilter(ReferenceFilter):
                                            "positive definite)") from None
         log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
         increments_ll = np.where(missing, 0.0, log_mass[1:] - log_mass[:-1])
-        loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
         mean, cov = _mixture_moments(logw[1:], means[1:], covs[1:])
-        new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
-                            loglik_increment=float(increments_ll[-1]), A=A[-1], B=B[-1],
-                            C=C[-1] + log_mass[-1])
-        return new_state, ExactChunk(steps, times, mean, cov, None, loglik, increments_ll,
-                                       np.zeros(K, bool))
+        return (mean, cov, increments_ll), (A[-1], B[-1], C[-1] + log_mass[-1])
+
+    # -- scheduled chunks (observed rows from remembered exponents A) -----------------------
+    def _schedule_at(self, state: YauHuState) -> tuple["_Schedule", int]:
+        """The schedule and position whose exponents are ``state.A`` (a new schedule if unseen)."""
+        key = np.ascontiguousarray(state.A, dtype=float).tobytes()
+        found = self._positions.get(key)
+        if found is None:
+            found = self._remember(key, _Schedule(end=np.array(state.A, dtype=float)), 0)
+        return found
+
+    def _remember(self, key: bytes, schedule: "_Schedule", position: int):
+        if len(self._positions) >= _MAX_KEYS:
+            self._positions.clear()
+        found = self._positions[key] = (schedule, position)
+        return found
+
+    def _ready(self, schedule: "_Schedule", j: int, K: int) -> bool:
+        """Extend an unsettled schedule to cover steps j..j+K−1; False if that is past _MAX_STEPS."""
+        if schedule.settled or j + K <= schedule.length:
+            return True
+        if j + K > _MAX_STEPS:
+            return False
+        count = j + K - schedule.length + min(_EXTEND, schedule.length)
+        path = self._family.path(np.zeros(count, dtype=int), schedule.end)  # (count+1, J, n, n)
+        J, n = path.shape[1], path.shape[-1]
+        keep, settled = _settle(path.reshape(len(path), J * n, n))
+        schedule.append(self._coefficients(path[:keep], path[1:keep + 1]), settled, path[keep])
+        return True
+
+    def _coefficients(self, A_prev: np.ndarray, A_next: np.ndarray) -> dict:
+        """Schedule entries of observed steps from A_prev (L, J, n, n) (A_next: after each step).
+
+        The general chunk written out with the data kept symbolic: with u = (B_prev, y) (y the
+        whitened increment) B_next = W B_prev + Vy y + v0 and the C gain is κ + ℓᵀu + ½uᵀ𝕄u.
+        """
+        zeros = np.zeros(len(A_prev), dtype=int)
+        batch = self._family.batch(zeros, A_prev, self._q[zeros], self._r[zeros])
+        T = batch.XinvT  # B(s) = T(s)(B_prev + forcing(s)), (L, S+1, J, n, n)
+        cs = np.einsum("lsjab,lsjb->lsja", T, batch.forcing)
+        Tn, cn, w, d = T[:, :-1], cs[:, :-1], batch.w, self._family.eq.d
+        # gain = gain0 − Σ_s w_s(½|B(s)|² + dᵀB(s)) (a = I)
+        kappa = batch.gain0 - np.einsum("s,lsj->lj", w, 0.5 * (cn * cn).sum(-1) + cn @ d)
+        lx = -np.einsum("s,lsjba,lsjb->lja", w, Tn, cn + d)
+        Mxx = -np.einsum("s,lsjca,lsjcb->ljab", w, Tn, Tn)
+        W, v = batch.W, batch.v
+        Ga, Gb, Qc, lc = self._observed.increment_terms()
+        AGb = A_next @ Gb  # (L, J, n, m)
+        # B_next = B_flow − 2A b + a − Hᵀy;  dC += (A b − B_flow)ᵀb + c − aᵀb − h0ᵀy
+        Vy = -2.0 * AGb + (Ga - self._Hw.T)
+        ly = -v @ Gb + lc - self._h0w
+        Mxy = -np.swapaxes(W, -1, -2) @ Gb
+        GaGb = Ga.T @ Gb
+        Myy = 2.0 * (Gb.T @ AGb) + 2.0 * Qc - (GaGb + GaGb.T)
+        cov = np.linalg.inv(2.0 * A_next)
+        cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+        half_log_det = 0.5 * np.linalg.slogdet(2 * np.pi * cov)[1]
+        return {"A": A_next, "W": W, "Vy": Vy, "v0": v, "kappa": kappa, "lx": lx, "ly": ly, "Mxx": Mxx,
+                "Mxy": Mxy, "Myy": Myy, "cov": cov, "half_log_det": half_log_det}
+
+    def _position(self, state: YauHuState, K: int):
+        """(schedule, start index j, step indices) covering K observed steps from ``state``, or None."""
+        schedule, j = self._schedule_at(state)
+        if not self._ready(schedule, j, K):
+            return None
+        L = schedule.length
+        idx = np.minimum(np.arange(j, j + K), L - 1) if schedule.settled and j + K > L else slice(j, j + K)
+        return schedule, j, idx
+
+    def _scheduled_chunk(self, state: YauHuState, y: np.ndarray):
+        """Outputs of an all-observed chunk (whitened y (K, m)) from cached coefficients, or None."""
+        found = self._position(state, len(y))
+        if found is None:
+            return None
+        schedule, j, idx = found
+        if self.model.n == 1 and self.model.m == 1:
+            outputs, (B, C) = self._scalar_chunk(state, schedule.rows, idx, y[:, 0])
+        else:
+            outputs, (B, C) = self._matrix_chunk(state, schedule.parts, idx, y)
+        A_last = schedule.parts["A"][idx][-1].copy()
+        self._remember(A_last.tobytes(), schedule, j + len(y))
+        return outputs, (A_last, B, C)
+
+    def _matrix_chunk(self, state: YauHuState, parts: dict, idx, y: np.ndarray):
+        """Any n, m: coefficients (K, J, ...) from the schedule, recursion per component."""
+        c = {name: value[idx] for name, value in parts.items()}
+        b = c["v0"] + np.einsum("kjam,km->kja", c["Vy"], y)
+        J = b.shape[1]
+        B = np.stack([_linear_recursion(c["W"][:, i], b[:, i], state.B[i]) for i in range(J)], axis=1)
+        x = B[:-1]
+        dC = (c["kappa"] + (c["lx"] * x).sum(-1) + np.einsum("kjm,km->kj", c["ly"], y)
+              + np.einsum("kja,kjab,kjb->kj", x, 0.5 * c["Mxx"], x)
+              + np.einsum("kja,kjam,km->kj", x, c["Mxy"], y)
+              + np.einsum("km,kjmp,kp->kj", y, 0.5 * c["Myy"], y))
+        C = state.C + np.cumsum(dC, axis=0)
+        logw, means, covs = self._terms(c["cov"], c["half_log_det"], B[1:], C)
+        log_mass = _log_sum_exp(logw)
+        start_mass = _log_sum_exp(self._components(state.A, state.B, state.C)[0])
+        increments_ll = np.diff(log_mass, prepend=start_mass)
+        mean, cov = _mixture_moments(logw, means, covs)
+        return (mean, cov, increments_ll), (B[-1], C[-1] + log_mass[-1])
+
+    def _scalar_chunk(self, state: YauHuState, rows: dict, idx, y: np.ndarray):
+        """n = m = 1: coefficient rows (J, K) (time last, so sums over components are vectorised)."""
+        c = {name: value[:, idx] for name, value in rows.items()}
+        b = c["v0"] + c["Vy"] * y
+        J, K = b.shape
+        B = np.empty((J, K + 1))
+        for i in range(J):
+            B[i] = _linear_recursion(c["W"][i, :, None, None], b[i, :, None], state.B[i])[:, 0]
+        x = B[:, :-1]
+        dC = c["kappa"] + c["lx"] * x + c["ly"] * y + 0.5 * (c["Mxx"] * x * x + c["Myy"] * y * y) \
+            + c["Mxy"] * x * y
+        C = np.cumsum(dC, axis=1) + state.C[:, None]
+        slopes, logc = self.system.exp_F_slopes[:, 0], self.system.exp_F_logc
+        dev = B[:, None, 1:] - slopes[:, None]  # (J, T, K)
+        p = c["cov"][:, None]
+        means = (-p * dev).reshape(J * len(logc), K)
+        logw = (c["half_log_det"][:, None] + 0.5 * p * dev * dev - C[:, None] + logc[:, None]).reshape(-1, K)
+        var = np.broadcast_to(p, dev.shape).reshape(-1, K)
+        if len(logw) == 1:
+            log_mass, mean, cov = logw[0], means[0], var[0]
+        else:
+            top = logw.max(axis=0)
+            w = np.exp(logw - top)
+            total = w.sum(axis=0)
+            mean = (w * means).sum(axis=0) / total
+            cov = (w * (var + (means - mean) ** 2)).sum(axis=0) / total
+            log_mass = top + np.log(total)
+        start_mass = _scalar_mixture((0.5 / state.A[:, 0, 0]).tolist(), None, state.B[:, 0].tolist(),
+                                     state.C.tolist(), slopes.tolist(), logc.tolist())[0]
+        increments_ll = np.diff(log_mass, prepend=start_mass)
+        return (mean[:, None], cov[:, None, None], increments_ll), (B[:, -1:], C[:, -1] + log_mass[-1])
+
+    def _terms(self, cov, half_log_det, B, C):
+        """:meth:`_components` from cached covariances: cov (K, J, n, n), B (K, J, n), C (K, J)."""
+        slopes, logc = self.system.exp_F_slopes, self.system.exp_F_logc
+        dev = B[:, :, None, :] - slopes  # (K, J, T, n)
+        P_dev = np.einsum("kjab,kjtb->kjta", cov, dev)
+        logw = half_log_det[..., None] + 0.5 * (dev * P_dev).sum(-1) - C[..., None] + logc
+        K, J, T, n = dev.shape
+        covs = np.broadcast_to(cov[:, :, None], (K, J, T, n, n)).reshape(K, J * T, n, n)
+        return logw.reshape(K, J * T), -P_dev.reshape(K, J * T, n), covs
+
+    def _one_row(self, state: YauHuState, y: float):
+        """One observed row of a scalar model in plain floats (the service's chunk of 1), or None."""
+        schedule, j = self._schedule_at(state)
+        if not self._ready(schedule, j, 1):
+            return None
+        if schedule.scalars is None:
+            names = ("W", "Vy", "v0", "kappa", "lx", "ly", "Mxx", "Mxy", "Myy", "cov", "half_log_det")
+            columns = [schedule.parts[k].reshape(schedule.length, -1).tolist() for k in names]
+            schedule.scalars = [list(zip(*row, strict=True)) for row in zip(*columns, strict=True)]
+        k = min(j, schedule.length - 1)
+        slopes = self.system.exp_F_slopes[:, 0].tolist()
+        logc = self.system.exp_F_logc.tolist()
+        B_new, C_new, cov_new, hl_new = [], [], [], []
+        for (w, vy, v0, kappa, lx, ly, mxx, mxy, myy, p, hl), x, c in zip(
+                schedule.scalars[k], state.B[:, 0].tolist(), state.C.tolist(), strict=True):
+            B_new.append(w * x + vy * y + v0)
+            C_new.append(c + kappa + lx * x + ly * y + 0.5 * (mxx * x * x + myy * y * y) + mxy * x * y)
+            cov_new.append(p)
+            hl_new.append(hl)
+        cov_old = [0.5 / a for a in state.A[:, 0, 0].tolist()]
+        start_mass = _scalar_mixture(cov_old, None, state.B[:, 0].tolist(), state.C.tolist(), slopes, logc)[0]
+        log_mass, mean, var = _scalar_mixture(cov_new, hl_new, B_new, C_new, slopes, logc)
+        A_last = schedule.parts["A"][k].copy()
+        self._remember(A_last.tobytes(), schedule, j + 1)
+        return mean, var, log_mass - start_mass, A_last, B_new, [c + log_mass for c in C_new]
 
     def estimate(self, state: YauHuState) -> Estimate:
         mean, cov = _mixture_moments(*self._components(state.A, state.B, state.C))
@@ -434,3 +636,76 @@ def _weighted_em(X, w, K, iterations: int = 300):
             dev = X - means[k]
             covs[k] = np.einsum("p,pi,pj->ij", resp[k], dev, dev) / mass[k] + floor
     return mix, means, covs
+
+
+def _one_row_result(state: YauHuState, dt: float, mean: float, var: float, ll: float, A, B: list, C: list):
+    """The new state and the one-row ExactChunk of a scalar step (plain floats in, arrays out)."""
+    step = state.step + 1
+    t, loglik = step * dt, state.loglik + ll
+    new_state = replace(state, step=step, t=t, loglik=loglik, loglik_increment=ll, A=A,
+                        B=np.array(B)[:, None], C=np.array(C))
+    return new_state, ExactChunk(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
+                                 cov=np.array([[[var]]]), mode=None, loglik=np.array([loglik]),
+                                 loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool))
+
+
+def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
+    """(log mass, mean, variance) of σ = e^{F}Σ_j exp(−A_jx² − B_jx − C_j), n = 1, in plain floats.
+
+    Component j, term t: log mass ½log(2πp_j) + ½p_j(B_j − s_t)² − C_j + log c_t, mean −p_j(B_j − s_t).
+    """
+    if half_log_dets is None:
+        half_log_dets = [0.5 * math.log(2 * math.pi * p) for p in covs]
+    logs, means, variances = [], [], []
+    for p, hl, b, c in zip(covs, half_log_dets, Bs, Cs, strict=True):
+        for s, lc in zip(slopes, logc, strict=True):
+            dev = b - s
+            logs.append(hl + 0.5 * p * dev * dev - c + lc)
+            means.append(-p * dev)
+            variances.append(p)
+    if len(logs) == 1:
+        return logs[0], means[0], variances[0]
+    top = max(logs)
+    weights = [math.exp(v - top) for v in logs]
+    total = math.fsum(weights)
+    mean = math.fsum(w * m for w, m in zip(weights, means, strict=True)) / total
+    var = math.fsum(w * (p + (m - mean) ** 2)
+                    for w, p, m in zip(weights, variances, means, strict=True)) / total
+    return top + math.log(total), mean, var
+
+
+# -- cached schedules: the data-free coefficients of consecutive observed steps ---------------
+# The exponents A_k of every component follow an observation-free Riccati path that converges to
+# the steady solution; B enters each step affinely and the C gain quadratically in (B_prev, y).
+# A schedule stores those coefficients step by step from one start until the path stops moving
+# (to rounding), then reuses the last (steady) entry.  Positions are keyed by the bytes of A:
+# the coefficients of a step depend only on the A it starts from.
+
+_EXTEND = 512  # most steps added beyond the need (the length doubles up to it)
+_MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
+_MAX_KEYS = 4096  # exponents remembered as schedule positions
+
+
+@dataclass
+class _Schedule:
+    """Coefficient arrays (leading axis: step, then component) from one start."""
+
+    end: np.ndarray  # (J, n, n) A after the last stored step (where an extension starts)
+    parts: dict = field(default_factory=dict)
+    settled: bool = False
+    scalars: list | None = None  # per step, per component plain floats (n = m = 1)
+    rows: dict | None = None  # n = m = 1: the parts as (J, L) rows
+
+    @property
+    def length(self) -> int:
+        return len(self.parts["A"]) if self.parts else 0
+
+    def append(self, parts: dict, settled: bool, end: np.ndarray) -> None:
+        for name, value in parts.items():
+            old = self.parts.get(name)
+            self.parts[name] = value if old is None else np.concatenate([old, value])
+        self.settled, self.end, self.scalars = settled, end, None
+        J = end.shape[0]
+        if end.shape[-1] == 1 and self.parts["Vy"].shape[-1] == 1:  # n = m = 1: rows (J, L)
+            self.rows = {name: np.ascontiguousarray(value.reshape(self.length, J).T)
+                         for name, value in self.parts.items() if name != "A"}
