@@ -15,6 +15,11 @@ from solver.spec import load_spec, spec_from_dict
 
 t, z, xi, x = sp.symbols("t z xi x", real=True)
 
+LINEAR_2D = {"name": "lin", "state": ["x", "y"], "drift": ["-0.5*x + 0.4*y + 0.1", "-0.4*x - 0.3*y"],
+             "observation": ["x + 0.5*y - 0.2", "y"], "observation_noise": [[0.5, 0.1], [0.1, 0.3]],
+             "initial": {"kind": "gaussian", "mean": [0.5, -0.3], "cov": [[0.8, 0.1], [0.1, 0.5]]},
+             "domain": {"radius": 8.0}, "discretization": {"dt": 0.05, "basis": 8}}
+
 
 def _theorem31_residual(F, ell, h, eta_coeffs, half_b_term=True):
     """Residual of the robust DMZ e^{−yh}L0 e^{yh} for u built from (3.2) with (3.3)–(3.5)."""
@@ -111,11 +116,7 @@ def test_benes_model_matches_exact_benes_filter():
 
 
 def test_linear_model_equals_kalman_bucy_including_loglik_and_missing_rows():
-    spec = {"name": "lin", "state": ["x", "y"], "drift": ["-0.5*x + 0.4*y + 0.1", "-0.4*x - 0.3*y"],
-            "observation": ["x + 0.5*y - 0.2", "y"], "observation_noise": [[0.5, 0.1], [0.1, 0.3]],
-            "initial": {"kind": "gaussian", "mean": [0.5, -0.3], "cov": [[0.8, 0.1], [0.1, 0.5]]},
-            "domain": {"radius": 8.0}, "discretization": {"dt": 0.05, "basis": 8}}
-    model = compile_model(spec_from_dict(spec))
+    model = compile_model(spec_from_dict(LINEAR_2D))
     incs = simulate(model, 60, np.random.default_rng(2)).increments
     incs[10:14] = np.nan
     yh, kb = YauHuFilter(model), KalmanBucyFilter(model)
@@ -178,3 +179,100 @@ def test_benes_missing_rows_and_chunks_match_the_exact_benes_filter():
     log_cosh_mass = lambda mu, p: 0.5 * p + np.log(np.cosh(mu))  # noqa: E731
     expected = kb_state.loglik + log_cosh_mass(m, P) - log_cosh_mass(0.0, 1.0) - 0.5 * kb_state.t
     assert state.loglik == pytest.approx(expected, abs=1e-6)
+
+
+def _in_pieces(filt, increments, sizes):
+    """run_arrays over consecutive chunks of the given sizes (the rest in one chunk)."""
+    state, results, pos = filt.initial_state(), [], 0
+    for size in [*sizes, len(increments)]:
+        if pos >= len(increments):
+            break
+        state, part = filt.run_arrays(state, increments[pos:pos + size])
+        results.append(part)
+        pos += size
+    cat = {k: np.concatenate([getattr(r, k) for r in results]) for k in ("mean", "cov", "loglik")}
+    return state, cat
+
+
+def test_benes_past_the_settled_riccati_path_in_any_chunking():
+    # 1100 observed steps at dt = 0.01 (the cached schedule settles after ~850): one chunk, one-row
+    # chunks (the scalar path) and odd chunks agree to rounding and with the closed-form posterior
+    model = compile_model(load_spec("examples/benes.toml"))
+    incs = simulate(model, 1100, np.random.default_rng(4)).increments
+    mean, var = _benes_exact(model, incs)
+    states = []
+    for sizes in ([], [1] * 40 + [7, 900] + [1] * 30, [333, 1, 1, 500, 2]):
+        yh = YauHuFilter(model, n_components=4)  # a fresh cache each time
+        state, out = _in_pieces(yh, incs, sizes)
+        np.testing.assert_allclose(out["mean"][:, 0], mean, atol=2e-4)
+        np.testing.assert_allclose(out["cov"][:, 0, 0], var, atol=2e-4)
+        states.append((state, out))
+    (s0, first), rest = states[0], states[1:]
+    for state, out in rest:
+        for key in ("mean", "cov", "loglik"):
+            np.testing.assert_allclose(out[key], first[key], rtol=0, atol=1e-11)
+        np.testing.assert_allclose(state.C, s0.C, rtol=0, atol=1e-11)
+    # normaliser: log Z = log Z_KB + P/2 + log cosh m − ½ − t/2 (see the missing-rows test)
+    spec = model.spec.model_dump()
+    spec.update(drift=["0"], initial={"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]})
+    kb = KalmanBucyFilter(compile_model(spec_from_dict(spec)))
+    kb_state, kb_out = kb.run_arrays(kb.initial_state(), incs)
+    m, P = kb_out.mean[-1, 0], kb_out.cov[-1, 0, 0]
+    expected = kb_state.loglik + 0.5 * P + np.log(np.cosh(m)) - 0.5 - 0.5 * kb_state.t
+    assert s0.loglik == pytest.approx(expected, abs=1e-6)
+
+
+def test_mixture_prior_is_the_gaussian_sum_of_kalman_bucy_filters():
+    # F = 0 and a two-component prior: each component is a Kalman–Bucy filter and the posterior
+    # weights are the prior weights times the components' likelihoods (exact Gaussian sum)
+    spec = load_spec("examples/ou.toml").model_dump(mode="json")
+    weights, means, covs = [0.3, 0.7], [-1.0, 2.0], [0.4, 0.9]
+    spec["initial"] = {"kind": "mixture", "weights": weights, "means": [[m] for m in means],
+                       "covs": [[[c]] for c in covs]}
+    model = compile_model(spec_from_dict(spec))
+    incs = simulate(model, 1500, np.random.default_rng(8)).increments  # past the settling (~1350)
+    yh = YauHuFilter(model)
+    state, out = _in_pieces(yh, incs, [1] * 25 + [400, 1, 1, 900] + [1] * 20)
+    assert state.A.shape[0] == 2
+    parts = []
+    for m0, P0 in zip(means, covs, strict=True):
+        spec["initial"] = {"kind": "gaussian", "mean": [m0], "cov": [[P0]]}
+        kb = KalmanBucyFilter(compile_model(spec_from_dict(spec)))
+        parts.append(kb.run_arrays(kb.initial_state(), incs)[1])
+    logw = np.log(weights)[:, None] + np.stack([p.loglik for p in parts])  # (2, K)
+    w = np.exp(logw - logw.max(0))
+    w /= w.sum(0)
+    m = np.stack([p.mean[:, 0] for p in parts])
+    P = np.stack([p.cov[:, 0, 0] for p in parts])
+    mean = (w * m).sum(0)
+    np.testing.assert_allclose(out["mean"][:, 0], mean, atol=1e-9)
+    np.testing.assert_allclose(out["cov"][:, 0, 0], (w * (P + (m - mean) ** 2)).sum(0), atol=1e-9)
+    top = logw.max(0)
+    np.testing.assert_allclose(out["loglik"], top + np.log(np.exp(logw - top).sum(0)), atol=1e-8)
+
+
+def test_two_dimensional_scheduled_chunks_equal_kalman_bucy():
+    model = compile_model(spec_from_dict(LINEAR_2D))
+    incs = simulate(model, 320, np.random.default_rng(3)).increments  # the path settles after ~190
+    kb = KalmanBucyFilter(model)
+    kb_state, ref = kb.run_arrays(kb.initial_state(), incs)
+    for sizes in ([], [1, 1, 150, 1, 17]):
+        state, out = _in_pieces(YauHuFilter(model), incs, sizes)
+        np.testing.assert_allclose(out["mean"], ref.mean, atol=1e-9)
+        np.testing.assert_allclose(out["cov"], ref.cov, atol=1e-9)
+        np.testing.assert_allclose(out["loglik"], ref.loglik, atol=1e-8)
+
+
+def test_one_row_chunks_on_ou_equal_kalman_bucy():
+    # one Gaussian component, one term of e^F (the one-row path's shortcut); offsets in f and h
+    # so that every data term of the step (linear in y, in B_prev·y) is exercised
+    spec = load_spec("examples/ou.toml").model_dump(mode="json")
+    spec.update(drift=["-theta*x + 0.3"], observation=["x - 0.4"], observation_noise=[[0.6]])
+    model = compile_model(spec_from_dict(spec))
+    incs = simulate(model, 1400, np.random.default_rng(6)).increments
+    kb = KalmanBucyFilter(model)
+    _, ref = kb.run_arrays(kb.initial_state(), incs)
+    _, out = _in_pieces(YauHuFilter(model), incs, [1] * 60 + [1250] + [1] * 40)
+    np.testing.assert_allclose(out["mean"], ref.mean, atol=1e-9)
+    np.testing.assert_allclose(out["cov"], ref.cov, atol=1e-9)
+    np.testing.assert_allclose(out["loglik"], ref.loglik, atol=1e-8)
