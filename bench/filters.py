@@ -125,7 +125,7 @@ def _single_step_us(filt, increments) -> float:
 def _engine(model: Model, form: str, offline):
     from solver.engine import YauYauFilter
 
-    return YauYauFilter(model, offline, form=form)
+    return YauYauFilter(model, offline, form=form, precision=model.spec.discretization.precision)
 
 
 def _filters(model: Model, offline, seed: int, with_100k: bool) -> dict[str, Callable[[], Any]]:

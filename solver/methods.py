@@ -42,11 +42,13 @@ def resolve_method(model: Model, method: str | None = None) -> str:
 
 
 def make_filter(model: Model, offline: Any | None = None, method: str | None = None,
-                form: str = "stable", precision: str = "double") -> Filter:
+                form: str = "stable", precision: str | None = None) -> Filter:
     """A filter for ``model``; ``offline`` (solver.offline.OfflineModel) is needed by yau-yau and
     wei-norman.  ``form``/``precision`` are the yau-yau engine's options (solver.engine).  An exact
-    method that is unavailable or does not apply raises SpecError('method')."""
+    method that is unavailable or does not apply raises SpecError('method').  ``precision`` defaults
+    to the spec's ``discretization.precision``."""
     requested = method
+    precision = precision or model.spec.discretization.precision
     method = resolve_method(model, method)
     if method == "yau-yau":
         if offline is None:

@@ -34,8 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, default=None, help="filter (default: the spec's method)")
     parser.add_argument("--form", choices=FORMS, default="stable",
                         help="yau-yau step: stable (default) or literal seed 002 (5.35)")
-    parser.add_argument("--precision", choices=PRECISIONS, default="double",
-                        help="yau-yau matrix-vector products in double (default) or single precision")
+    parser.add_argument("--precision", choices=PRECISIONS, default=None,
+                        help="yau-yau matrix-vector products in double or single precision "
+                             "(default: the spec's discretization.precision)")
     parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
                         help="rows per chunk (default %(default)s)")
 
