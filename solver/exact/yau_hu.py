@@ -15,7 +15,9 @@ Each observation interval restarts the method from the current density (y reset 
 y(s) = s·Δy/dt inside the interval): the mixture stays exact (v = e^{−F}σ is a mixture after
 every step, only the prior needs fitting), and a(t), b(t), which grow like e^{t} for the Beneš
 model, never leave one step.  Per step: one exact Riccati flow per component, one precomputed
-linear map for (a, b), a Gauss–Legendre sum for c — Kalman-like cost.
+linear map for (a, b), a Gauss–Legendre sum for c — Kalman-like cost.  All-observed chunks go
+further: the A path is data-free, so each filter caches the step coefficients (B affine, the C
+gain quadratic in (B_prev, Δy)) until the path settles, and reuses them (see _Schedule).
 
 Moments need ∫e^{F}·Gaussian in closed form: e^{F} must be a finite sum of positive multiples of
 exponentials of affine functions (F = 0, log cosh, ...), found symbolically; otherwise SpecError.
@@ -391,17 +393,29 @@ class YauHuFilter(ReferenceFilter):
         return found
 
     def _ready(self, schedule: "_Schedule", j: int, K: int) -> bool:
-        """Extend an unsettled schedule to cover steps j..j+K−1; False if that is past _MAX_STEPS."""
+        """Extend an unsettled schedule to cover steps j..j+K−1.
+
+        False (the general chunk code takes over, and reports any failure at its step) if that is
+        past the size cap, or the path blows up or leaves the positive-definite exponents first.
+        """
         if schedule.settled or j + K <= schedule.length:
             return True
-        if j + K > _MAX_STEPS:
+        J, n = schedule.end.shape[0], self.model.n
+        cap = min(_MAX_STEPS, _MAX_ENTRIES // (J * (n + self.model.m) ** 2))
+        if j + K > cap:
             return False
         count = j + K - schedule.length + min(_EXTEND, schedule.length)
-        path = self._family.path(np.zeros(count, dtype=int), schedule.end)  # (count+1, J, n, n)
-        J, n = path.shape[1], path.shape[-1]
+        try:
+            path = self._family.path(np.zeros(count, dtype=int), schedule.end)  # (count+1, J, n, n)
+        except InputError:
+            return False
         keep, settled = _settle(path.reshape(len(path), J * n, n))
-        schedule.append(self._coefficients(path[:keep], path[1:keep + 1]), settled, path[keep])
-        return True
+        bad = np.flatnonzero(np.linalg.eigvalsh(path[1:keep + 1]).min(axis=(1, 2)) <= 0.0)
+        if len(bad):  # keep the good steps; a later extension starts at the bad one and fails
+            keep, settled = int(bad[0]), False
+        if keep:
+            schedule.append(self._coefficients(path[:keep], path[1:keep + 1]), settled, path[keep])
+        return j + K <= schedule.length or schedule.settled
 
     def _coefficients(self, A_prev: np.ndarray, A_next: np.ndarray) -> dict:
         """Schedule entries of observed steps from A_prev (L, J, n, n) (A_next: after each step).
@@ -683,6 +697,7 @@ def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
 
 _EXTEND = 512  # most steps added beyond the need (the length doubles up to it)
 _MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
+_MAX_ENTRIES = 1 << 21  # cap on steps × components × (n + m)² stored by one schedule (memory)
 _MAX_KEYS = 4096  # exponents remembered as schedule positions
 
 
