@@ -18,8 +18,12 @@ L0 = ½(Dᵀ a D − η) with D = ∇ − a⁻¹f.
 
 from __future__ import annotations
 
+import contextvars
 import itertools
+import math
 import random
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
@@ -31,10 +35,122 @@ from .model import Model
 
 DEFAULT_MAX_DEPTH = 6  # rounds of brackets
 DEFAULT_MAX_DIMENSION = 24
+DEFAULT_TIME_LIMIT = 60.0  # seconds for the whole analysis (None: unbounded)
+DEFAULT_MAX_SIZE = 4000  # tree nodes of one coefficient of an algebra element
+_PRODUCT_TERMS = 20_000  # most terms of one product expanded in a composition
+_SIMPLIFY_NODES = 60  # sp.simplify only on expressions this small (its cost explodes beyond)
+_ZERO_POINTS = 6  # random points of the numeric zero test
 _DIGITS = 50  # working precision of the numeric rank test
 _TOL = mpmath.mpf(10) ** (-30)
 
 Operator = dict  # tuple[int, ...] (derivative multi-index) -> sp.Expr coefficient
+
+
+# ---------------------------------------------------------------------------------------------
+# bounds: a deadline and an expression-size cap, checked between brackets, reductions, zero tests
+# ---------------------------------------------------------------------------------------------
+class BoundReached(Exception):
+    """The analysis hit one of its bounds; str(self) names it ("time 10 s", "expression size 4000")."""
+
+
+class Budget:
+    """A deadline (monotonic clock) and a cap on the size of one expression."""
+
+    def __init__(self, time_limit: float | None = None, max_size: int | None = None,
+                 start: float | None = None):
+        self.time_limit = time_limit
+        self.max_size = max_size
+        self.start = time.monotonic() if start is None else start
+        self.deadline = math.inf if time_limit is None else self.start + time_limit
+        self.numeric_zero_tests = 0
+
+    def check(self) -> None:
+        if time.monotonic() > self.deadline:
+            raise BoundReached(f"time {self.time_limit:g} s")
+
+    def remaining(self) -> float:
+        return self.deadline - time.monotonic()
+
+    def check_size(self, expr: sp.Expr) -> None:
+        if self.max_size is not None and expression_size(expr, self.max_size) > self.max_size:
+            raise BoundReached(f"expression size {self.max_size}")
+
+
+_UNBOUNDED = Budget()
+_BUDGET: contextvars.ContextVar[Budget] = contextvars.ContextVar("analysis_budget", default=_UNBOUNDED)
+
+
+def _budget() -> Budget:
+    return _BUDGET.get()
+
+
+@contextmanager
+def bounded(budget: Budget):
+    """Run the analysis functions of this module under `budget` (they raise BoundReached)."""
+    token = _BUDGET.set(budget)
+    try:
+        yield budget
+    finally:
+        _BUDGET.reset(token)
+
+
+def expression_size(expr: sp.Expr, cap: int | None = None) -> int:
+    """Number of nodes of the expression tree, counting stops just past `cap`."""
+    count = 0
+    for _ in sp.preorder_traversal(expr):
+        count += 1
+        if cap is not None and count > cap:
+            break
+    return count
+
+
+def _terms(expr: sp.Expr) -> int:
+    return len(sp.Add.make_args(expr))
+
+
+def is_zero(expr: sp.Expr, symbols) -> bool:
+    """expr ≡ 0: exact after expansion for rational polynomials, else at random points (50 digits).
+
+    sp.simplify decides the same identities (e.g. sin² + cos² − 1) but its cost explodes with the
+    size of the expression; the evaluation test is the one the rank test of the algebra uses.
+    """
+    budget = _budget()
+    budget.check()
+    budget.check_size(expr)
+    e = sp.expand(expr)
+    if e == 0:
+        return True
+    variables = sorted(e.free_symbols | set(symbols), key=str)
+    if _rational_polynomial(e, variables) or e.is_Rational:
+        return False
+    budget.numeric_zero_tests += 1
+    return _vanishes_at_random_points(e, variables)
+
+
+def _vanishes_at_random_points(e: sp.Expr, symbols) -> bool:
+    rng = random.Random(271828)
+    points = [[mpmath.mpf(rng.randint(-1900, 1900)) / 1000 for _ in symbols] for _ in range(_ZERO_POINTS)]
+    with mpmath.workdps(_DIGITS):
+        fn = sp.lambdify(list(symbols), e, modules="mpmath")
+        evaluated = 0
+        for point in points:
+            _budget().check()
+            try:
+                value = mpmath.mpmathify(fn(*point))
+            except (ZeroDivisionError, ValueError, OverflowError):
+                continue  # a singular point tells nothing
+            evaluated += 1
+            if not abs(value) <= _TOL:
+                return False
+    return evaluated > 0  # nowhere evaluable: not shown to vanish
+
+
+def tidy(expr: sp.Expr) -> sp.Expr:
+    """A readable exact form: sp.simplify on small expressions, expansion otherwise (never raises)."""
+    e = sp.expand(expr)
+    if expression_size(e, _SIMPLIFY_NODES) <= _SIMPLIFY_NODES and _budget().remaining() > 0:
+        return sp.simplify(e)
+    return e
 
 
 # ---------------------------------------------------------------------------------------------
@@ -81,9 +197,11 @@ def add(A: Operator, B: Operator, scale: sp.Expr | int = 1) -> Operator:
 
 def compose(A: Operator, B: Operator, symbols) -> Operator:
     """The product A∘B by Leibniz: ∂^α (b φ) = Σ_{γ≤α} C(α,γ) (∂^{α−γ} b) ∂^γ φ."""
+    budget = _budget()
     out: dict = {}
     for alpha, a in A.items():
         for beta, b in B.items():
+            budget.check()
             for gamma in itertools.product(*(range(k + 1) for k in alpha)):
                 weight = 1
                 db = b
@@ -93,6 +211,8 @@ def compose(A: Operator, B: Operator, symbols) -> Operator:
                         db = sp.diff(db, symbols[k], ak - gk)
                 if db == 0:
                     continue
+                if _terms(a) * _terms(db) > _PRODUCT_TERMS:  # its expansion alone would be huge
+                    raise BoundReached(f"expression size {budget.max_size or _PRODUCT_TERMS}")
                 target = tuple(bk + gk for bk, gk in zip(beta, gamma, strict=True))
                 _accumulate(out, target, weight * a * db)
     return _clean(out)
@@ -112,10 +232,13 @@ def _accumulate(terms: dict, alpha: tuple, coefficient: sp.Expr) -> None:
 
 
 def _clean(terms: dict) -> Operator:
+    budget = _budget()
     out = {}
     for alpha, c in terms.items():
+        budget.check()
         c = sp.expand(c)
         if c != 0:
+            budget.check_size(c)
             out[alpha] = c
     return out
 
@@ -144,14 +267,20 @@ def is_identity(matrix) -> bool:
 def wong_matrix(model: Model) -> sp.Matrix:
     """ω_ij = ∂f_j/∂x_i − ∂f_i/∂x_j   (seed 004 Def. 4, seed 002 (2.5))."""
     x, f, n = model.symbols, model.drift, model.n
-    return sp.Matrix(n, n, lambda i, j: sp.simplify(sp.diff(f[j], x[i]) - sp.diff(f[i], x[j])))
+    return sp.Matrix(n, n, lambda i, j: _entry(sp.diff(f[j], x[i]) - sp.diff(f[i], x[j]), x))
 
 
 def whitened_wong_matrix(model: Model) -> sp.Matrix:
     """a Jᵀ − J a (J = ∂f/∂x): L Ω̃ Lᵀ for the Wong matrix Ω̃ of z = L⁻¹x, a = LLᵀ; = Ω when a = I."""
     J = sp.Matrix(model.drift).jacobian(model.symbols)
     a = exact_matrix(model.a)
-    return (a * J.T - J * a).applyfunc(sp.simplify)
+    return (a * J.T - J * a).applyfunc(lambda w: _entry(w, model.symbols))
+
+
+def _entry(expr: sp.Expr, symbols) -> sp.Expr:
+    """Expanded, and exactly 0 when it vanishes identically (a zero test, not sp.simplify)."""
+    e = sp.expand(expr)
+    return sp.Integer(0) if e != 0 and is_zero(e, symbols) else e
 
 
 def eta(model: Model) -> sp.Expr:
@@ -159,24 +288,26 @@ def eta(model: Model) -> sp.Expr:
     f = sp.Matrix(model.drift)
     div_f = sum(sp.diff(fi, xi) for fi, xi in zip(model.drift, model.symbols, strict=True))
     a_inv = exact_matrix(model.a).inv()
-    return sp.simplify(sp.expand((f.T * a_inv * f)[0, 0] + div_f + observation_energy(model)))
+    e = sp.expand((f.T * a_inv * f)[0, 0] + div_f + observation_energy(model))
+    _budget().check_size(e)
+    return tidy(e)
 
 
 def is_constant(expr: sp.Expr, symbols) -> bool:
-    return all(sp.simplify(sp.diff(expr, s)) == 0 for s in symbols)
+    return all(is_zero(sp.diff(expr, s), symbols) for s in symbols)
 
 
 def polynomial_degree_at_most(expr: sp.Expr, symbols, degree: int) -> bool:
     """All derivatives of order degree+1 vanish (works for non-polynomial expressions too)."""
     for combo in itertools.combinations_with_replacement(symbols, degree + 1):
-        if sp.simplify(sp.diff(expr, *combo)) != 0:
+        if not is_zero(sp.diff(expr, *combo), symbols):
             return False
     return True
 
 
 @dataclass(frozen=True)
 class Condition:
-    holds: bool
+    holds: bool | None  # None: not decided within the bounds of the analysis
     detail: str
     title: str = ""
 
@@ -197,19 +328,30 @@ def seed004_structure(model: Model, k: int) -> dict[str, Any] | None:
     if any(omega[k, j] != 0 for j in range(n)):
         return None
     e = sp.expand(eta(model))
-    A = sp.simplify(sp.diff(e, xk, 2) / 2)
-    B = sp.simplify(sp.diff(e, xk).subs(xk, 0))
-    if not (polynomial_degree_at_most(e, [xk], 2) and A.free_symbols == set() and B.free_symbols == set()):
+    A = constant_value(sp.diff(e, xk, 2) / 2, x)
+    B = constant_value(sp.diff(e, xk).subs(xk, 0), x)
+    if A is None or B is None or not polynomial_degree_at_most(e, [xk], 2):
         return None
     slopes, offsets = [], []
     for hi in model.observation:
-        c1 = sp.simplify(sp.diff(hi, xk))
-        if c1.free_symbols or any(sp.simplify(sp.diff(hi, s)) != 0 for s in others):
+        c1 = constant_value(sp.diff(hi, xk), x)
+        if c1 is None or not all(is_zero(sp.diff(hi, s), x) for s in others):
             return None
         slopes.append(c1)
-        offsets.append(sp.simplify(hi.subs(xk, 0)))
+        offsets.append(tidy(hi.subs(xk, 0)))
     return {"coordinate": k, "A": A, "B": B, "slopes": slopes, "offsets": offsets,
-            "gamma": sp.simplify(e - A * xk**2 - B * xk)}
+            "gamma": tidy(e - A * xk**2 - B * xk)}
+
+
+def constant_value(expr: sp.Expr, symbols) -> sp.Expr | None:
+    """The number expr equals if it is constant in the symbols (exactly: sin² + cos² -> 1), else None."""
+    e = tidy(expr)
+    if not (e.free_symbols & set(symbols)):
+        return e
+    if not is_constant(e, symbols):
+        return None
+    value = tidy(e.subs({s: 0 for s in symbols}))  # constant: its value anywhere, e.g. at the origin
+    return value if value.is_finite and not value.free_symbols else None
 
 
 def _seed004_items(model: Model, k: int) -> dict[str, Condition]:
@@ -217,21 +359,22 @@ def _seed004_items(model: Model, k: int) -> dict[str, Condition]:
     x, f, n = model.symbols, model.drift, model.n
     xk = x[k]
     others = [s for i, s in enumerate(x) if i != k]
-    affine = all(sp.simplify(sp.diff(fi, xk, 2)) == 0 for fi in f)
-    a_coef = [sp.simplify(sp.diff(fi, xk)) for fi in f]
-    phi = [sp.simplify(fi - ai * xk) for fi, ai in zip(f, a_coef, strict=True)]
-    items = {"(i) f_i = a_i(x') x_k + phi_i(x')": Condition(
-        affine and all(not (ai.free_symbols & {xk}) for ai in a_coef), "f affine in x_k")}
-    ii = affine and all(sp.simplify(sp.diff(phi[k], x[j]) - a_coef[j]) == 0 for j in range(n) if j != k)
+    affine = all(is_zero(sp.diff(fi, xk, 2), x) for fi in f)
+    a_coef = [tidy(sp.diff(fi, xk)) for fi in f]
+    phi = [tidy(fi - ai * xk) for fi, ai in zip(f, a_coef, strict=True)]
+    items = {"(i) f_i = a_i(x') x_k + phi_i(x')": Condition(affine, "f affine in x_k")}
+    ii = affine and all(is_zero(sp.diff(phi[k], x[j]) - a_coef[j], x) for j in range(n) if j != k)
     items["(ii) d phi_k/dx_j = a_j"] = Condition(ii, "")
-    norm2 = sp.simplify(sum(ai**2 for ai in a_coef))
-    iii = affine and not a_coef[k].free_symbols and not norm2.free_symbols and norm2 > 0
-    items["(iii) a_k constant, sum a_i^2 positive constant"] = Condition(bool(iii), f"sum a_i^2 = {norm2}")
-    iv_expr = sp.simplify(2 * sum(ai * pi for ai, pi in zip(a_coef, phi, strict=True))
-                          + sum(sp.diff(a_coef[j], x[j]) for j in range(n) if j != k))
+    norm2 = constant_value(sum(ai**2 for ai in a_coef), x)
+    iii = (affine and constant_value(a_coef[k], x) is not None and norm2 is not None
+           and bool(norm2 > 0))
+    shown = norm2 if norm2 is not None else tidy(sum(ai**2 for ai in a_coef))
+    items["(iii) a_k constant, sum a_i^2 positive constant"] = Condition(bool(iii), f"sum a_i^2 = {shown}")
+    iv_expr = tidy(2 * sum(ai * pi for ai, pi in zip(a_coef, phi, strict=True))
+                   + sum(sp.diff(a_coef[j], x[j]) for j in range(n) if j != k))
     items["(iv) 2 sum a_i phi_i + sum_j d a_j/dx_j constant"] = Condition(
-        affine and not iv_expr.free_symbols, f"= {iv_expr}")
-    v = all(polynomial_degree_at_most(hi, [xk], 1) and all(sp.simplify(sp.diff(hi, s)) == 0 for s in others)
+        affine and is_constant(iv_expr, x), f"= {iv_expr}")
+    v = all(polynomial_degree_at_most(hi, [xk], 1) and all(is_zero(sp.diff(hi, s), x) for s in others)
             for hi in model.observation)
     items["(v) h affine in x_k only"] = Condition(v, "")
     return items
@@ -298,6 +441,7 @@ class _Vectorizer:
     def __call__(self, A: Operator) -> dict:
         vec: dict = {}
         for alpha, c in A.items():
+            _budget().check()
             if self.exact:
                 for monom, coeff in sp.Poly(c, *self.symbols).terms():
                     vec[(alpha, monom)] = Fraction(int(coeff.p), int(coeff.q))
@@ -310,8 +454,11 @@ class _Vectorizer:
         key = sp.srepr(expr)
         if key not in self._cache:
             fn = sp.lambdify(self.symbols, expr, modules="mpmath")
-            self._cache[key] = [_real(fn(*[mpmath.mpf(p.numerator) / p.denominator for p in pt]))
-                                for pt in self.points]
+            values = []
+            for pt in self.points:
+                _budget().check()
+                values.append(_real(fn(*[mpmath.mpf(p.numerator) / p.denominator for p in pt])))
+            self._cache[key] = values
         return self._cache[key]
 
 
@@ -344,7 +491,9 @@ class EstimationAlgebra:
     max_dimension: int
     exact: bool
     generators: int = 0
-    stopped_by: str | None = None  # why the search stopped before closing
+    stopped_by: str | None = None  # the bound that stopped the search before closing
+    time_limit: float | None = None
+    max_size: int | None = None
     _vectorize: Any = field(default=None, repr=False)
     _echelon: Any = field(default=None, repr=False)
 
@@ -355,69 +504,86 @@ class EstimationAlgebra:
 
 
 def estimation_algebra(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
-                       max_dimension: int = DEFAULT_MAX_DIMENSION) -> EstimationAlgebra:
+                       max_dimension: int = DEFAULT_MAX_DIMENSION,
+                       time_limit: float | None = DEFAULT_TIME_LIMIT,
+                       max_size: int | None = DEFAULT_MAX_SIZE) -> EstimationAlgebra:
     """E = ⟨L0, h_1, …, h_m⟩ (seed 002 Def. 2.2) by rounds of brackets, up to the bounds.
 
     Round r brackets each element added in round r−1 with every element found so far; when a
-    round adds nothing the span is closed under brackets, i.e. it is E.
+    round adds nothing the span is closed under brackets, i.e. it is E.  The search also stops,
+    reporting E as not closing within that bound, after `time_limit` seconds or when a
+    coefficient exceeds `max_size` tree nodes.
     """
+    with bounded(Budget(time_limit, max_size)):
+        return _bounded_algebra(model, max_depth, max_dimension)
+
+
+def _bounded_algebra(model: Model, max_depth: int, max_dimension: int) -> EstimationAlgebra:
+    """The algebra under the current budget; a bound reached ends the search (not closed)."""
+    budget = _budget()
+    search = _AlgebraSearch(model, max_dimension)
     with mpmath.workdps(_DIGITS):  # mpf arithmetic of the numeric rank test runs at this precision
-        return _estimation_algebra(model, max_depth, max_dimension)
+        try:
+            stopped_by = search.run(max_depth)
+            rank = _linear_rank(search.echelon, search.vectorize, model.n) if stopped_by is None else None
+        except BoundReached as bound:
+            stopped_by, rank = str(bound), None
+    closed = stopped_by is None
+    return EstimationAlgebra(
+        closed=closed, dimension=len(search.basis) if closed else None, basis=search.basis,
+        labels=search.labels, linear_rank=rank, maximal_rank=None if rank is None else rank == model.n,
+        rounds=search.rounds, max_depth=max_depth, max_dimension=max_dimension, exact=search.exact,
+        generators=search.generators, stopped_by=stopped_by, time_limit=budget.time_limit,
+        max_size=budget.max_size, _vectorize=search.vectorize, _echelon=search.echelon)
 
 
-def _estimation_algebra(model: Model, max_depth: int, max_dimension: int) -> EstimationAlgebra:
-    """E = ⟨L0, h_1, …, h_m⟩ (seed 002 Def. 2.2) by rounds of brackets, up to the bounds.
+class _AlgebraSearch:
+    """Rounds of brackets; basis, labels and rounds stay readable when a bound interrupts it."""
 
-    Round r brackets each element added in round r−1 with every element found so far; when a
-    round adds nothing the span is closed under brackets, i.e. it is E.
-    """
-    x, n = model.symbols, model.n
-    L0 = kolmogorov_operator(model)
-    generators = [(L0, "L0")]
-    generators += [(multiplication(hi, n), f"h{i + 1}") for i, hi in enumerate(model.observation)]
-    exact = all(_rational_polynomial(c, x) for op, _ in generators for c in op.values())
-    vectorize = _Vectorizer(x, exact, points=3 * max_dimension + 8, radius=model.radius,
-                            center=[float(c) for c in model.center])
-    echelon = _Echelon(exact)
-    basis, labels = [], []
+    def __init__(self, model: Model, max_dimension: int):
+        self.model, self.max_dimension = model, max_dimension
+        self.basis: list = []
+        self.labels: list[str] = []
+        self.rounds = self.generators = 0
+        self.exact = False
+        self.vectorize = self.echelon = None
 
-    def admit(op: Operator, label: str) -> bool:
-        if op and echelon.add(vectorize(op)):
-            basis.append(op)
-            labels.append(label)
+    def admit(self, op: Operator, label: str) -> bool:
+        if op and self.echelon.add(self.vectorize(op)):
+            self.basis.append(op)
+            self.labels.append(label)
             return True
         return False
 
-    fresh = [op for op, label in generators if admit(op, label)]
-    n_generators = len(basis)
-    rounds, stopped_by = 0, None
-    while fresh:
-        if len(basis) > max_dimension:
-            stopped_by = f"dimension exceeds {max_dimension}"
-            break
-        if rounds >= max_depth:
-            stopped_by = f"{max_depth} rounds of brackets reached"
-            break
-        rounds += 1
+    def run(self, max_depth: int) -> str | None:
+        """None when the span closes under brackets, else the bound that stopped it."""
+        model, x, n = self.model, self.model.symbols, self.model.n
+        generators = [(kolmogorov_operator(model), "L0")]
+        generators += [(multiplication(hi, n), f"h{i + 1}") for i, hi in enumerate(model.observation)]
+        self.exact = all(_rational_polynomial(c, x) for op, _ in generators for c in op.values())
+        self.vectorize = _Vectorizer(x, self.exact, points=3 * self.max_dimension + 8, radius=model.radius,
+                                     center=[float(c) for c in model.center])
+        self.echelon = _Echelon(self.exact)
+        fresh = [op for op, label in generators if self.admit(op, label)]
+        self.generators = len(self.basis)
+        while fresh:
+            if len(self.basis) > self.max_dimension:
+                return f"dimension {self.max_dimension}"
+            if self.rounds >= max_depth:
+                return f"depth {max_depth}"
+            self.rounds += 1
+            fresh = self._round(fresh, x)
+        return None
+
+    def _round(self, fresh: list, x) -> list:
         new = []
         for A in fresh:
-            for B in list(basis):
-                C = bracket(A, B, x)
-                if admit(C, "bracket"):
-                    new.append(C)
-                if len(basis) > max_dimension:
-                    break
-            if len(basis) > max_dimension:
-                break
-        fresh = new
-    closed = stopped_by is None
-    rank = _linear_rank(echelon, vectorize, n) if closed else None
-    return EstimationAlgebra(closed=closed, dimension=len(basis) if closed else None, basis=basis,
-                             labels=labels, linear_rank=rank,
-                             maximal_rank=None if rank is None else rank == n,
-                             rounds=rounds, max_depth=max_depth, max_dimension=max_dimension, exact=exact,
-                             generators=n_generators, stopped_by=stopped_by, _vectorize=vectorize,
-                             _echelon=echelon)
+            for B in list(self.basis):
+                if self.admit(bracket(A, B, x), "bracket"):
+                    new.append(self.basis[-1])
+                if len(self.basis) > self.max_dimension:
+                    return new
+        return new
 
 
 def _linear_rank(echelon: _Echelon, vectorize, n: int) -> int:
@@ -439,7 +605,7 @@ def _user_names(model: Model) -> dict:
 
 
 def show(expr: sp.Expr, model: Model) -> str:
-    return str(sp.simplify(expr).subs(_user_names(model)))
+    return str(tidy(expr).xreplace(_user_names(model)))
 
 
 def show_operator(A: Operator, model: Model, label: str | None = None) -> str:
@@ -462,7 +628,7 @@ def show_operator(A: Operator, model: Model, label: str | None = None) -> str:
             if c is not None:
                 g = g + c * model.drift[i]
                 parts.append(_scaled(c, f"D_{names[i]}", model))
-        g = sp.simplify(g)
+        g = tidy(g)
         if g != 0 or not parts:
             parts.append(show(g, model))
         return " + ".join(parts).replace("+ -", "- ")
@@ -490,7 +656,7 @@ class AnalysisReport:
     model: str
     state: list[str]
     wong_matrix: list[list[str]]
-    wong_constant: bool
+    wong_constant: bool | None
     eta: str
     notes: list[str]
     conditions: dict[str, Condition]
@@ -499,6 +665,7 @@ class AnalysisReport:
     algebra_basis: list[str]
     method: str
     reason: str
+    elapsed: float = 0.0  # seconds the analysis took
 
     def to_dict(self) -> dict[str, Any]:
         alg = self.algebra
@@ -512,9 +679,10 @@ class AnalysisReport:
                 "closed": alg.closed, "dimension": alg.dimension, "basis": self.algebra_basis,
                 "linear_rank": alg.linear_rank, "maximal_rank": alg.maximal_rank,
                 "rounds": alg.rounds, "max_depth": alg.max_depth, "max_dimension": alg.max_dimension,
-                "stopped_by": alg.stopped_by,
+                "stopped_by": alg.stopped_by, "time_limit": alg.time_limit, "max_size": alg.max_size,
                 "rank_test": "exact over Q" if alg.exact else f"numeric, {_DIGITS} digits at random points"},
             "recommendation": {"method": self.method, "reason": self.reason},
+            "elapsed_s": round(self.elapsed, 3),
         }
 
     def render(self) -> str:
@@ -523,14 +691,15 @@ class AnalysisReport:
         lines = [f"model: {self.model}   state: {', '.join(self.state)}", "",
                  "Wong matrix Omega (omega_ij = df_j/dx_i - df_i/dx_j):"]
         lines += ["  [ " + "  ".join(e.rjust(width) for e in row) + " ]" for row in self.wong_matrix]
-        lines += [f"  constant: {'yes' if self.wong_constant else 'no'}", "", f"eta = {self.eta}"]
+        constant = _mark(self.wong_constant, "yes", "no", "undecided")
+        lines += [f"  constant: {constant}", "", f"eta = {self.eta}"]
         lines += [f"  note: {note}" for note in self.notes]
         lines += ["", "conditions:"]
-        lines += [f"  [{'x' if c.holds else ' '}] {c.title}" + (f"  ({c.detail})" if c.detail else "")
+        lines += [f"  [{_mark(c.holds)}] {c.title}" + (f"  ({c.detail})" if c.detail else "")
                   for c in self.conditions.values()]
         if self.seed004:
             lines += ["  seed 004 class, items:"]
-            lines += [f"    [{'x' if c.holds else ' '}] {k}" + (f"  ({c.detail})" if c.detail else "")
+            lines += [f"    [{_mark(c.holds)}] {k}" + (f"  ({c.detail})" if c.detail else "")
                       for k, c in self.seed004.items()]
         alg = d["estimation_algebra"]
         lines += ["", "estimation algebra E = <L0, h_1, ..., h_m>:"]
@@ -539,20 +708,106 @@ class AnalysisReport:
                       f"{'maximal' if alg['maximal_rank'] else 'non-maximal'} rank  ({alg['rank_test']})"]
             lines += [f"  basis: {{{', '.join(alg['basis'])}}}"]
         else:
-            lines += [f"  does not close within the bound: {alg['stopped_by']} "
+            lines += [f"  does not close within {alg['stopped_by']} "
                       f"({alg['rounds']} rounds of brackets, {len(alg['basis'])} independent elements found)"]
-        lines += ["", f"recommended method: {self.method}", f"  reason: {self.reason}"]
+        lines += ["", f"recommended method: {self.method}", f"  reason: {self.reason}",
+                  f"  (analysis took {self.elapsed:.2f} s)"]
         return "\n".join(lines)
 
 
-def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
-            max_dimension: int = DEFAULT_MAX_DIMENSION) -> AnalysisReport:
-    """Wong matrix, η, conditions, estimation algebra and the recommended exact/general method."""
+def _mark(holds: bool | None, yes: str = "x", no: str = " ", undecided: str = "?") -> str:
+    return undecided if holds is None else (yes if holds else no)
+
+
+def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int = DEFAULT_MAX_DIMENSION,
+            time_limit: float | None = DEFAULT_TIME_LIMIT,
+            max_size: int | None = DEFAULT_MAX_SIZE) -> AnalysisReport:
+    """Wong matrix, η, conditions, estimation algebra and the recommended exact/general method.
+
+    Bounded: the conditions get at most half of `time_limit` (they usually take milliseconds), the
+    algebra the rest; an item that reaches a bound is reported undecided (holds None) and the
+    algebra as not closing within that bound.  A single SymPy call cannot be interrupted, so the
+    size cap keeps each one small; the report may come back a little after the deadline.
+    """
+    start = time.monotonic()
+    half = None if time_limit is None else time_limit / 2
+    with bounded(Budget(half, max_size, start)) as budget:
+        facts = _conditions(model)
+        facts.numeric = budget.numeric_zero_tests
+    with bounded(Budget(time_limit, max_size, start)) as budget:
+        algebra = _bounded_algebra(model, max_depth, max_dimension)
+        basis = [show_operator(op, model, label)
+                 for op, label in zip(algebra.basis, algebra.labels, strict=True)]
+        facts.numeric += budget.numeric_zero_tests
+        report = _report(model, facts, algebra, basis)  # simplifies for display only while time is left
+    report.elapsed = time.monotonic() - start
+    return report
+
+
+@dataclass
+class _Facts:
+    """The structural conditions; None marks an item not decided within the bounds."""
+
+    omega: Any = None
+    omega_a: Any = None
+    eta: Any = None
+    c1: bool | None = None
+    c2: bool | None = None
+    c3: bool | None = None
+    linear: bool | None = None
+    wong_constant: bool | None = None
+    k: int | None = None
+    structure: Any = None
+    structure_holds: bool | None = None
+    seed004: dict = field(default_factory=dict)
+    stopped_by: list = field(default_factory=list)
+    numeric: int = 0
+
+    def decide(self, fn):
+        """fn() under the current budget, or None (recorded) when it reaches a bound."""
+        try:
+            return fn()
+        except BoundReached as bound:
+            if str(bound) not in self.stopped_by:
+                self.stopped_by.append(str(bound))
+            return None
+
+
+def _all(values) -> bool | None:
+    """Three-valued and: False if any is False, None if any is undecided, else True."""
+    values = list(values)
+    return False if False in values else (None if None in values else True)
+
+
+def _conditions(model: Model) -> _Facts:
     x = model.symbols
-    omega = wong_matrix(model)
     a_is_identity = is_identity(model.a)
-    omega_a = omega if a_is_identity else whitened_wong_matrix(model)
-    e = eta(model)
+    facts = _Facts(k=observed_coordinate(model))
+    facts.omega = facts.decide(lambda: wong_matrix(model))
+    facts.omega_a = facts.omega if a_is_identity else facts.decide(lambda: whitened_wong_matrix(model))
+    facts.eta = facts.decide(lambda: eta(model))
+    if facts.omega_a is not None:
+        facts.c1 = _all(facts.decide(lambda w=w: is_constant(w, x)) for w in facts.omega_a)
+    if facts.omega is not None:
+        facts.wong_constant = _all(facts.decide(lambda w=w: is_constant(w, x)) for w in facts.omega)
+    facts.c2 = _all(facts.decide(lambda hi=hi: polynomial_degree_at_most(hi, x, 1))
+                    for hi in model.observation)
+    if facts.eta is not None:
+        facts.c3 = facts.decide(lambda: polynomial_degree_at_most(facts.eta, x, 2))
+    affine_f = _all(facts.decide(lambda fi=fi: polynomial_degree_at_most(fi, x, 1)) for fi in model.drift)
+    facts.linear = _all([facts.c2, affine_f])
+    if facts.k is not None and a_is_identity:
+        facts.structure = facts.decide(lambda: seed004_structure(model, facts.k) or False)
+        facts.structure_holds = None if facts.structure is None else facts.structure is not False
+        if model.n > 1:
+            facts.seed004 = facts.decide(lambda: _seed004_items(model, facts.k)) or {}
+    else:
+        facts.structure_holds = False
+    return facts
+
+
+def _report(model: Model, facts: _Facts, algebra: EstimationAlgebra, basis: list[str]) -> AnalysisReport:
+    a_is_identity = is_identity(model.a)
     notes = []
     if not is_identity(model.R):
         notes.append("R != I: eta and L0 use h^T R^-1 h")
@@ -561,36 +816,46 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH,
                      "h^T R^-1 h and (C'1) is tested on a J^T - J a "
                      "(the Wong matrix of z = L^-1 x, a = L L^T); "
                      "the seed 004 class is only tested for a = I")
-    c1 = all(is_constant(w, x) for w in omega_a)
-    c2 = all(polynomial_degree_at_most(hi, x, 1) for hi in model.observation)
-    c3 = polynomial_degree_at_most(e, x, 2)
-    linear = c2 and all(polynomial_degree_at_most(fi, x, 1) for fi in model.drift)
-    k = observed_coordinate(model)
-    structure = seed004_structure(model, k) if (k is not None and a_is_identity) else None
-    seed004 = _seed004_items(model, k) if (k is not None and a_is_identity and model.n > 1) else {}
+    if facts.numeric:
+        notes.append(f"non-polynomial zero tests are numeric ({_DIGITS} digits at {_ZERO_POINTS} "
+                     "random points)")
+    undecided = ""
+    if facts.stopped_by:
+        undecided = f"not decided within {' / '.join(facts.stopped_by)}"
+        notes.append(f"some conditions were {undecided}")
+    k = facts.k
     conditions = {
         "yau_filtering_system": Condition(
-            c1, "", "(C'1) Omega constant (seed 000), equivalently f = affine + gradient (C1)"),
-        "h_affine": Condition(c2, "", "(C2) h affine"),
-        "eta_quadratic": Condition(c3, "", "(C3) eta a polynomial of degree <= 2"),
-        "linear": Condition(linear, "", "linear model: f and h affine (Kalman-Bucy)"),
+            facts.c1, "" if facts.c1 is not None else undecided,
+            "(C'1) Omega constant (seed 000), equivalently f = affine + gradient (C1)"),
+        "h_affine": Condition(facts.c2, "" if facts.c2 is not None else undecided, "(C2) h affine"),
+        "eta_quadratic": Condition(facts.c3, "" if facts.c3 is not None else undecided,
+                                   "(C3) eta a polynomial of degree <= 2"),
+        "linear": Condition(facts.linear, "" if facts.linear is not None else undecided,
+                            "linear model: f and h affine (Kalman-Bucy)"),
         "seed004_structure": Condition(
-            structure is not None, "" if k is None else f"x_k = {model.spec.state[k]}",
+            facts.structure_holds,
+            ("" if k is None else f"x_k = {model.spec.state[k]}")
+            + ("" if facts.structure_holds is not None else f"; {undecided}"),
             "seed 004 (I), (II), (v): omega_kj = 0, eta quadratic in x_k plus a function of the others, "
             "h affine in x_k only"),
     }
-    if seed004:
-        conditions["seed004_class"] = Condition(all(c.holds for c in seed004.values()), "",
+    if facts.seed004:
+        conditions["seed004_class"] = Condition(all(c.holds for c in facts.seed004.values()), "",
                                                 "seed 004 class: conditions (i)-(v)")
-    algebra = estimation_algebra(model, max_depth, max_dimension)
-    basis = [show_operator(op, model, label) for op, label in zip(algebra.basis, algebra.labels, strict=True)]
-    method, reason = recommend_method_from(model, linear, c1 and c2 and c3, structure is not None,
-                                           a_is_identity)
+    yau = _all([facts.c1, facts.c2, facts.c3])
+    method, reason = recommend_method_from(model, facts.linear is True, yau is True,
+                                           facts.structure_holds is True, a_is_identity)
+    if method == "yau-yau" and undecided:
+        reason += f" (the exact-filter conditions were {undecided}; the general engine is always valid)"
+    n = model.n
+    shown = f"not computed within {' / '.join(facts.stopped_by)}" if facts.stopped_by else "not computed"
     return AnalysisReport(
         model=model.spec.name, state=list(model.spec.state),
-        wong_matrix=[[show(omega[i, j], model) for j in range(model.n)] for i in range(model.n)],
-        wong_constant=all(is_constant(w, x) for w in omega), eta=show(e, model), notes=notes,
-        conditions=conditions, seed004=seed004, algebra=algebra, algebra_basis=basis,
+        wong_matrix=[[show(facts.omega[i, j], model) if facts.omega is not None else shown
+                      for j in range(n)] for i in range(n)],
+        wong_constant=facts.wong_constant, eta=show(facts.eta, model) if facts.eta is not None else shown,
+        notes=notes, conditions=conditions, seed004=facts.seed004, algebra=algebra, algebra_basis=basis,
         method=method, reason=reason)
 
 
