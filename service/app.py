@@ -202,9 +202,11 @@ def _add_routes(app: FastAPI) -> None:
 
     @app.post("/v1/analyze", response_model=AnalyzeReport, tags=["analysis"],
               responses=_errors(400, 413, 422))
-    def analyze(spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
+    def analyze(request: Request,
+                spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
                                                      examples=[_EXAMPLE_SPEC])]) -> Response:
-        report = analyze_model(compile_model(spec_from_dict(spec)))
+        limit = request.app.state.settings.analyze_time_limit  # a request cannot hold a worker longer
+        report = analyze_model(compile_model(spec_from_dict(spec)), time_limit=limit)
         return _json(report.to_dict())
 
 

@@ -29,6 +29,9 @@ class Settings(BaseSettings):
     max_chunk_rows: int = Field(10_000, ge=1, le=10_000_000, description="most increments per request")
     max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="largest request body accepted")
     max_density_points: int = Field(100_000, ge=1, description="most points per density request")
+    analyze_time_limit: float = Field(
+        10.0, gt=0, le=3600, description="seconds one POST /v1/analyze may compute (the report then says "
+                                         "which bound stopped the analysis)")
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
     metrics_dir: Path | None = Field(
         None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")

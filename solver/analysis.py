@@ -57,8 +57,9 @@ class Budget:
     """A deadline (monotonic clock) and a cap on the size of one expression."""
 
     def __init__(self, time_limit: float | None = None, max_size: int | None = None,
-                 start: float | None = None):
+                 start: float | None = None, name: str | None = None):
         self.time_limit = time_limit
+        self.name = name or ("" if time_limit is None else f"time {time_limit:g} s")  # in reports
         self.max_size = max_size
         self.start = time.monotonic() if start is None else start
         self.deadline = math.inf if time_limit is None else self.start + time_limit
@@ -66,7 +67,7 @@ class Budget:
 
     def check(self) -> None:
         if time.monotonic() > self.deadline:
-            raise BoundReached(f"time {self.time_limit:g} s")
+            raise BoundReached(self.name)
 
     def remaining(self) -> float:
         return self.deadline - time.monotonic()
@@ -731,7 +732,8 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int
     """
     start = time.monotonic()
     half = None if time_limit is None else time_limit / 2
-    with bounded(Budget(half, max_size, start)) as budget:
+    name = None if time_limit is None else f"time {time_limit:g} s (half of it for the conditions)"
+    with bounded(Budget(half, max_size, start, name)) as budget:
         facts = _conditions(model)
         facts.numeric = budget.numeric_zero_tests
     with bounded(Budget(time_limit, max_size, start)) as budget:

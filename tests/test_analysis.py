@@ -256,3 +256,63 @@ def test_report_is_json_safe_and_uses_user_names():
     assert data["estimation_algebra"]["dimension"] == 6
     text = report.render()
     assert "pos" in text and "x_0" not in text and "x_1" not in text
+
+
+# ---------------------------------------------------------------------------------------------
+# bounds: the analysis stops in time and says which bound stopped it (issue 5 item 1)
+# ---------------------------------------------------------------------------------------------
+NASTY = (["x", "y", "z"], ["sin(x*y)*exp(z) + tanh(y)", "cos(x+z)**3 - y", "atan(x*y*z)"],
+         ["x**3*y + sin(z)", "exp(-x**2)*y"])
+MARGIN = 1.5  # seconds past the deadline: one uninterruptible SymPy call of bounded size + noise
+
+
+def test_nasty_model_stops_at_the_time_limit_and_says_so():
+    # without a size cap and with room for 64 elements only the deadline can stop it (unbounded it
+    # ran > 5 minutes); the cheap conditions are still decided: h is not affine, so (C2) fails
+    import time
+
+    model = make(*NASTY)
+    start = time.monotonic()
+    report = analyze(model, max_dimension=64, time_limit=1.0, max_size=None)
+    assert time.monotonic() - start < 1.0 + MARGIN
+    alg = report.algebra
+    assert not alg.closed and alg.dimension is None and alg.stopped_by == "time 1 s"
+    assert "does not close within time 1 s" in report.render()
+    assert report.conditions["h_affine"].holds is False and report.conditions["linear"].holds is False
+    assert report.method == "yau-yau"
+
+
+def test_nasty_model_stops_at_the_expression_size_cap():
+    report = analyze(make(*NASTY), time_limit=None, max_size=1000)
+    assert report.algebra.stopped_by == "expression size 1000" and not report.algebra.closed
+    assert "does not close within expression size 1000" in report.render()
+
+
+def test_conditions_beyond_the_budget_are_reported_undecided():
+    report = analyze(make(*NASTY), time_limit=0.001)
+    assert report.elapsed < MARGIN
+    undecided = [c for c in report.conditions.values() if c.holds is None]
+    assert undecided and all("not decided within time 0.001 s" in c.detail for c in undecided)
+    assert any("not decided within time 0.001 s" in note for note in report.notes)
+    assert report.algebra.stopped_by.startswith("time 0.001 s") and report.method == "yau-yau"
+    data = report.to_dict()
+    assert data["conditions"]["yau_filtering_system"]["holds"] is None
+    assert "[?]" in report.render()
+
+
+def test_zero_tests_see_identities_that_expansion_misses():
+    # sin² + cos² − 1 ≡ 0 only by a trigonometric identity (expansion keeps it); 1e-20 x is not 0
+    from solver.analysis import is_zero
+
+    x = sp.Symbol("x", real=True)
+    assert is_zero(sp.sin(x) ** 2 + sp.cos(x) ** 2 - 1, [x])
+    assert not is_zero(sp.sin(x) ** 2 + sp.cos(x) ** 2 - 1 + x / 10**20, [x])
+    assert is_zero(sp.exp(2 * x) - sp.exp(x) ** 2, [x]) and not is_zero(x**3 - x, [x])
+
+
+def test_disguised_ornstein_uhlenbeck_is_still_linear():
+    # f = sin² + cos² − 1 − x/2 is −x/2: linear, observed, n = 1, so E = {L0, x, D, 1} (2n + 2)
+    model = make(["x"], ["sin(x)**2 + cos(x)**2 - 1 - 0.5*x"], ["x"])
+    report = analyze(model)
+    assert report.conditions["linear"].holds and report.method == "kalman-bucy"
+    assert report.algebra.closed and report.algebra.dimension == 4 and not report.algebra.exact

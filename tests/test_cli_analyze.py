@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -15,11 +17,7 @@ def yauyau(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=120)
 
 
-SEED004 = """
-name = "seed004-example"
-state = ["x1", "x2", "x3"]
-drift = ["x1 + x2 - x3", "x1 + x2**2 + x3**2 + x3 - x2 + 1", "-x1 + x2**2 + x3**2"]
-observation = ["x1"]
+PRIOR_AND_GRID = """
 [initial]
 kind = "gaussian"
 mean = [0.0, 0.0, 0.0]
@@ -30,6 +28,13 @@ radius = 3.0
 dt = 0.01
 basis = 20
 """
+
+SEED004 = """
+name = "seed004-example"
+state = ["x1", "x2", "x3"]
+drift = ["x1 + x2 - x3", "x1 + x2**2 + x3**2 + x3 - x2 + 1", "-x1 + x2**2 + x3**2"]
+observation = ["x1"]
+""" + PRIOR_AND_GRID
 
 
 def test_text_report_of_the_seed004_example(tmp_path):
@@ -71,3 +76,51 @@ def test_bad_spec_is_one_line_naming_the_field(tmp_path):
 def test_bad_bound_is_rejected():
     done = yauyau(str(ROOT / "examples" / "ou.toml"), "--max-depth", "0")
     assert done.returncode == 2 and "--max-depth" in done.stderr
+
+
+NASTY = """
+name = "nasty"
+state = ["x", "y", "z"]
+drift = ["sin(x*y)*exp(z) + tanh(y)", "cos(x+z)**3 - y", "atan(x*y*z)"]
+observation = ["x**3*y + sin(z)", "exp(-x**2)*y"]
+""" + PRIOR_AND_GRID
+
+
+def test_time_limit_bounds_the_nasty_model(tmp_path):
+    # unbounded this ran > 5 minutes; size cap lifted so that only the deadline can stop it
+    spec = tmp_path / "nasty.toml"
+    spec.write_text(NASTY)
+    done = yauyau(str(spec), "--time-limit", "1", "--max-size", "1000000", "--max-dimension", "64", "--json")
+    assert done.returncode == 0, done.stderr
+    data = json.loads(done.stdout)
+    assert data["elapsed_s"] < 1 + 1.5
+    assert data["estimation_algebra"]["stopped_by"] == "time 1 s"
+    assert data["conditions"]["h_affine"]["holds"] is False  # the cheap conditions are still decided
+
+
+@pytest.mark.parametrize("flag, value", [("--time-limit", "0"), ("--time-limit", "nan"), ("--max-size", "1")])
+def test_bad_time_or_size_bound_is_rejected(flag, value):
+    done = yauyau(str(ROOT / "examples" / "ou.toml"), flag, value)
+    assert done.returncode == 2 and flag in done.stderr and "Traceback" not in done.stderr
+
+
+def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
+    # the same analysis over HTTP: 200 with the bounded report, 422 naming the field when invalid
+    import tomllib
+
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=1.0)
+    api = TestClient(create_app(settings), raise_server_exceptions=False)  # no lifespan: no models needed
+    spec = tomllib.loads(NASTY)
+    r = api.post("/v1/analyze", json=spec)
+    assert r.status_code == 200
+    data = r.json()
+    assert data["elapsed_s"] < 1 + 1.5 and data["estimation_algebra"]["closed"] is False
+    assert data["estimation_algebra"]["stopped_by"] in ("time 1 s", "expression size 4000")
+    bad = api.post("/v1/analyze", json={**spec, "drift": ["x", "y"]})
+    assert bad.status_code == 422 and bad.headers["content-type"].startswith("application/problem+json")
+    assert "drift" in bad.json()["field"]

@@ -1,6 +1,7 @@
 """`yauyau analyze SPEC`: Wong matrix, η, conditions, estimation algebra, recommended method.
 
 Prints the report of :func:`solver.analysis.analyze` as text, or as JSON with ``--json``.
+Bounded by ``--time-limit`` seconds and ``--max-size`` (see solver.analysis.analyze).
 A bad spec raises SpecError, which the dispatcher prints as one line (exit status 2).
 """
 
@@ -8,7 +9,13 @@ from __future__ import annotations
 
 import json
 
-from solver.analysis import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, analyze
+from solver.analysis import (
+    DEFAULT_MAX_DEPTH,
+    DEFAULT_MAX_DIMENSION,
+    DEFAULT_MAX_SIZE,
+    DEFAULT_TIME_LIMIT,
+    analyze,
+)
 from solver.errors import SpecError
 from solver.model import compile_model
 from solver.spec import load_spec
@@ -21,6 +28,12 @@ def add_arguments(parser) -> None:
                         help=f"rounds of Lie brackets before giving up (default {DEFAULT_MAX_DEPTH})")
     parser.add_argument("--max-dimension", type=int, default=DEFAULT_MAX_DIMENSION, metavar="D",
                         help=f"largest algebra dimension explored (default {DEFAULT_MAX_DIMENSION})")
+    parser.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="T",
+                        help=f"seconds for the whole analysis (default {DEFAULT_TIME_LIMIT:g}); the report "
+                             "then says which conditions or brackets were not decided within it")
+    parser.add_argument("--max-size", type=int, default=DEFAULT_MAX_SIZE, metavar="S",
+                        help="largest coefficient of an algebra element, in expression-tree nodes "
+                             f"(default {DEFAULT_MAX_SIZE})")
 
 
 def run(args) -> int:
@@ -28,7 +41,12 @@ def run(args) -> int:
         raise SpecError("--max-depth", "must be between 1 and 20")
     if not 1 <= args.max_dimension <= 64:
         raise SpecError("--max-dimension", "must be between 1 and 64")
+    if not 0.1 <= args.time_limit <= 3600:  # also refuses nan and inf
+        raise SpecError("--time-limit", "must be between 0.1 and 3600 seconds")
+    if not 10 <= args.max_size <= 1_000_000:
+        raise SpecError("--max-size", "must be between 10 and 1000000")
     model = compile_model(load_spec(args.spec))
-    report = analyze(model, max_depth=args.max_depth, max_dimension=args.max_dimension)
+    report = analyze(model, max_depth=args.max_depth, max_dimension=args.max_dimension,
+                     time_limit=args.time_limit, max_size=args.max_size)
     print(json.dumps(report.to_dict(), indent=2) if args.json else report.render())
     return 0
