@@ -148,10 +148,11 @@ def _vanishes_at_random_points(e: sp.Expr, symbols) -> bool:
 
 def tidy(expr: sp.Expr) -> sp.Expr:
     """A readable exact form: sp.simplify on small expressions, expansion otherwise (never raises)."""
-    e = sp.expand(expr)
-    if expression_size(e, _SIMPLIFY_NODES) <= _SIMPLIFY_NODES and _budget().remaining() > 0:
-        return sp.simplify(e)
-    return e
+    if _budget().remaining() > 0:
+        for candidate in (expr, sp.expand(expr)):  # the form sp.simplify was given before bounds existed
+            if expression_size(candidate, _SIMPLIFY_NODES) <= _SIMPLIFY_NODES:
+                return sp.simplify(candidate)
+    return sp.expand(expr)
 
 
 # ---------------------------------------------------------------------------------------------
