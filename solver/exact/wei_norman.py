@@ -91,27 +91,38 @@ class WeiNormanFilter:
         self.gain = model.R_inv @ slopes  # Y = cᵀR⁻¹y = gain·y
         self._shift_integral = _shift_integral(model, k)
         self._hR = _observation_weights(model)
+        self._box = None if nodes is None else (np.min(nodes, axis=0), np.max(nodes, axis=0))
+        if nodes is None and points_per_axis is None and hasattr(kolmogorov_flow, "nodes"):
+            nodes, weights = kolmogorov_flow.nodes, kolmogorov_flow.weights  # where the flow is known
         if nodes is None:
             nodes, weights = ball_quadrature(model, points_per_axis)
         self.nodes = np.asarray(nodes, dtype=float)
         self.log_weights = np.log(np.asarray(weights, dtype=float))
+        self._step_map = self._van_loan(model.dt)
 
     # -- the ODEs (13), exactly on one interval ------------------------------------------------
+    def _van_loan(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(Φ, G) with z(t + dt) = Φ z(t) and r0 gaining ½ z(t)ᵀ G z(t) over dt, z = (r1, r2, Y, Ẏ, 1).
+
+        Carrying the slope Ẏ in the state makes the flow data-free: Φ and G are computed once per dt.
+        """
+        A, B = self.A, self.B
+        F = np.zeros((5, 5))
+        F[0, 1] = A  # ṙ1 = A r2
+        F[1, 0] = F[1, 2] = 1.0  # ṙ2 = r1 + Y
+        F[2, 3] = 1.0  # Ẏ is constant on the interval (y linear)
+        Q = np.zeros((5, 5))  # ṙ0 = ½ zᵀ Q z = ½ (r1 + Y)² + ½ A r2² + ½ B r2
+        Q[np.ix_([0, 2], [0, 2])] = 1.0
+        Q[1, 1] = A
+        Q[1, 4] = Q[4, 1] = B / 2
+        big = scipy.linalg.expm(np.block([[-F.T, Q], [np.zeros((5, 5)), F]]) * dt)  # Van Loan
+        phi = big[5:, 5:]
+        return phi, phi.T @ big[:5, 5:]  # ∫_0^dt e^{Fᵀs} Q e^{Fs} ds
+
     def advance(self, r: np.ndarray, Y0: float, Y1: float, dt: float) -> np.ndarray:
         """r(t + dt) from r(t) with Y linear from Y0 to Y1 over [t, t + dt]   (seed 004 (13))."""
-        q = (Y1 - Y0) / dt
-        F = np.array([[0.0, self.A, 0.0, 0.0],  # z = (r1, r2, Y, 1)
-                      [1.0, 0.0, 1.0, 0.0],
-                      [0.0, 0.0, 0.0, q],
-                      [0.0, 0.0, 0.0, 0.0]])
-        Q = np.array([[1.0, 0.0, 1.0, 0.0],  # ṙ0 = ½ zᵀ Q z
-                      [0.0, self.A, 0.0, self.B / 2],
-                      [1.0, 0.0, 1.0, 0.0],
-                      [0.0, self.B / 2, 0.0, 0.0]])
-        big = scipy.linalg.expm(np.block([[-F.T, Q], [np.zeros((4, 4)), F]]) * dt)  # Van Loan
-        phi = big[4:, 4:]
-        gram = phi.T @ big[:4, 4:]  # ∫_0^dt e^{Fᵀs} Q e^{Fs} ds
-        z0 = np.array([r[1], r[2], Y0, 1.0])
+        phi, gram = self._step_map if dt == self.model.dt else self._van_loan(dt)
+        z0 = np.array([r[1], r[2], Y0, (Y1 - Y0) / dt, 1.0])
         z1 = phi @ z0
         return np.array([r[0] + 0.5 * z0 @ gram @ z0, z1[0], z1[1]])
 
@@ -131,17 +142,44 @@ class WeiNormanFilter:
         integral = self._shift_integral(np.column_stack([X, np.full(len(X), r2)]))
         return self._hR(X) @ state.y + r0 + r1 * X[:, self.k] + log_v - integral
 
+    def _log_weights_shifted(self, state: WeiNormanState) -> tuple[np.ndarray, np.ndarray]:
+        """(X, log σ(X) + log w) at X = z − r2 e_k for the quadrature nodes z of the flow.
+
+        ∫ g σ dx is taken in z = x + r2 e_k, where v = e^{tL0}σ0 is evaluated: the flow is asked for
+        its own nodes every step (no interpolation at shifted points), and the integrand keeps
+        x = z − r2 e_k inside the domain (B_R, or the box of nodes given), the same integral as before.
+        """
+        r0, r1, r2 = state.r
+        values = np.asarray(self.flow(state.t, self.nodes), dtype=float).reshape(-1)
+        if values.shape != (len(self.nodes),):
+            raise InputError("kolmogorov_flow", f"must return {len(self.nodes)} values, got {values.shape}")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_v = values if self.log_flow else np.log(np.where(values > 0, values, 0.0))
+        log_v = np.where(np.isnan(log_v), -np.inf, log_v)
+        X = self.nodes.copy()
+        X[:, self.k] -= r2
+        log_v[~self._in_domain(X)] = -np.inf
+        integral = self._shift_integral(np.column_stack([X, np.full(len(X), r2)]))
+        return X, self._hR(X) @ state.y + r0 + r1 * X[:, self.k] + log_v - integral + self.log_weights
+
+    def _in_domain(self, X: np.ndarray) -> np.ndarray:
+        """x in the domain of the density: the ball B_R, or the box of nodes given by the caller."""
+        if self._box is not None:
+            return np.all((X >= self._box[0]) & (X <= self._box[1]), axis=1)
+        d = X - self.model.center
+        return np.einsum("ij,ij->i", d, d) <= self.model.radius**2 * (1 + 1e-12)
+
     def _moments(self, state: WeiNormanState) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
-        log_w = self.log_density_unnormalised(state, self.nodes) + self.log_weights
+        X, log_w = self._log_weights_shifted(state)
         top = np.max(log_w)
         if not np.isfinite(top):
             return -np.inf, np.zeros(self.model.n), np.zeros((self.model.n,) * 2), None
         w = np.exp(log_w - top)
         total = w.sum()
-        mean = w @ self.nodes / total
-        d = self.nodes - mean
+        mean = w @ X / total
+        d = X - mean
         cov = (w[:, None] * d).T @ d / total
-        return top + np.log(total), mean, cov, self.nodes[int(np.argmax(log_w - self.log_weights))]
+        return top + np.log(total), mean, cov, X[int(np.argmax(log_w - self.log_weights))]
 
     def _estimate(self, state: WeiNormanState, log_z: float, mean, cov, mode, increment: float) -> Estimate:
         return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
@@ -236,6 +274,9 @@ def kolmogorov_flow_from_offline(offline) -> Callable[[float, np.ndarray], np.nd
             raise InputError("t", "the stored Kolmogorov flow is known at multiples of dt only")
         while len(history) <= k:
             history.append(offline.propagator_k @ (offline.projector @ history[-1]))
+        if points is offline.nodes:  # its own nodes: the nodal values, no element search
+            return history[k]
         return offline.interpolate(history[k], points)
 
+    flow.nodes, flow.weights = offline.nodes, offline.weights  # the filter's default quadrature
     return flow
