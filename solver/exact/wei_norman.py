@@ -19,6 +19,11 @@ Stratonovich DMZ (2) is the right equation); on each interval the linear ODEs fo
 quadratic integral for r0 are solved exactly with a matrix exponential (Van Loan).
 The representation is global in time: r1, r2 grow like e^{√A t}, so the shift r2 leaves the domain
 of a stored flow after a finite horizon; the filter reports that as degeneracy.
+
+A chunk is computed at once (``run_arrays``): (13) is linear, so r1, r2 of every row come from one
+data-free affine recursion; log σ at the flow's nodes is then a (rows × nodes) matrix: a small
+product of per-row coefficients with per-node features (R⁻¹h, x_k, the shift integral as a
+polynomial in r2) plus log e^{tL0}σ0, which does not depend on the data and is cached per step.
 """
 
 from __future__ import annotations
@@ -36,8 +41,14 @@ from ..errors import InputError, SpecError
 from ..expressions import vectorize
 from ..filtering import Estimate, check_increments
 from ..model import Model
+from .kalman_bucy import ExactChunk
 
 DEFAULT_POINTS_PER_AXIS = {1: 801, 2: 161, 3: 61}
+FLOW_CACHE_BYTES = 256 * 2**20  # log e^{tL0}σ0 at the nodes, kept for the first steps up to this size
+# rows handled at once: rows × nodes × 16 under OpenBLAS's threading threshold (2^18 multiply-adds),
+# so the skinny products stay single-threaded (threads cost 4-20x on a loaded machine, measured)
+BLOCK_PRODUCT = 2**18
+MAX_SHIFT_DEGREE = 8  # the shift integral as a polynomial in r2 up to this degree, else pointwise
 
 
 @dataclass
@@ -99,6 +110,11 @@ class WeiNormanFilter:
         self.nodes = np.asarray(nodes, dtype=float)
         self.log_weights = np.log(np.asarray(weights, dtype=float))
         self._step_map = self._van_loan(model.dt)
+        self._features, self._shift_poly = self._node_features()
+        self._r2_range = self._shift_range()
+        self._moment_features = _moment_features(self.nodes - model.center)
+        self._log_v = np.empty((0, len(self.nodes)))  # rows: steps 0, 1, ... of log e^{tL0}σ0
+        self._log_v_count = 0
 
     # -- the ODEs (13), exactly on one interval ------------------------------------------------
     def _van_loan(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -126,6 +142,128 @@ class WeiNormanFilter:
         z1 = phi @ z0
         return np.array([r[0] + 0.5 * z0 @ gram @ z0, z1[0], z1[1]])
 
+    # -- the chunk: r of every row, then log σ at the nodes as one matrix --------------------------
+    def _r_path(self, state: WeiNormanState, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(y, r) after each row: y (K, m), r (K, 3); the affine recursion of (13) row by row."""
+        dt = self.model.dt
+        ys = np.cumsum(np.vstack([state.y[None], dy]), axis=0)  # sequential sums, as step by step
+        Y = ys @ self.gain
+        Ydot = np.diff(Y) / dt
+        phi, gram = self._step_map
+        inputs = np.column_stack([Y[:-1], Ydot, np.ones(len(dy))])  # (Y, Ẏ, 1) of each interval
+        drive = inputs @ phi[:2, 2:].T  # the data part of (r1, r2)' = Φ z
+        (m00, m01), (m10, m11) = phi[:2, :2].tolist()
+        r1, r2 = float(state.r[1]), float(state.r[2])
+        path = np.empty((len(dy) + 1, 2))
+        path[0] = r1, r2
+        for k, (d1, d2) in enumerate(drive.tolist(), start=1):  # 2 × 2 affine map: plain floats
+            r1, r2 = m00 * r1 + m01 * r2 + d1, m10 * r1 + m11 * r2 + d2
+            path[k] = r1, r2
+        z0 = np.column_stack([path[:-1], inputs])
+        gains = 0.5 * np.einsum("ki,ij,kj->k", z0, gram, z0)  # ṙ0 integrated exactly per interval
+        r0 = np.cumsum(np.concatenate([[state.r[0]], gains]))[1:]
+        return ys[1:], np.column_stack([r0, path[1:]])
+
+    def _node_features(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Per-node rows F with log σ(z − r2 e_k) − log v = coefficients(row) @ F.
+
+        log σ(x) − log v(x + r2 e_k) = hᵀR⁻¹y + r0 + r1 x_k − ∫_0^{r2} f_k(x + τ e_k) dτ at
+        x = z − r2 e_k.  h is affine in x_k: R⁻¹h(z − r2 e_k) = R⁻¹h(z) − r2 R⁻¹c.  The shift
+        integral becomes ∫_{−r2}^0 f_k(z + s e_k) ds, expanded in powers of r2 when it is a polynomial.
+        """
+        z, k = self.nodes, self.k
+        rows = [self._hR(z).T, z[:, k][None], np.ones((1, len(z)))]
+        s, r = sp.Symbol("s_", real=True), sp.Symbol("r_", real=True)
+        xk = self.model.symbols[k]
+        shifted = sp.expand(sp.integrate(self.model.drift[k].subs(xk, xk + s), (s, -r, 0)))
+        if not shifted.is_polynomial(r) or sp.degree(shifted, r) > MAX_SHIFT_DEGREE:
+            return np.vstack(rows), None
+        coefficients = sp.Poly(shifted, r).all_coeffs()[::-1]  # c_0 + c_1 r + ...
+        rows.append(np.stack([vectorize(c, self.model.symbols)(z) for c in coefficients]))
+        return np.vstack(rows), np.arange(len(coefficients))
+
+    def _shift_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per node z, the shifts r2 for which x = z − r2 e_k stays in the domain (ball or box)."""
+        zk = self.nodes[:, self.k]
+        if self._box is not None:
+            return zk - self._box[1][self.k], zk - self._box[0][self.k]
+        d = self.nodes - self.model.center
+        room = self.model.radius**2 * (1 + 1e-12) - np.einsum("ij,ij->i", d, d) + d[:, self.k] ** 2
+        half = np.sqrt(np.maximum(room, 0.0))
+        return d[:, self.k] - half, d[:, self.k] + half
+
+    def _log_flow(self, first: int, count: int) -> np.ndarray:
+        """log e^{tL0}σ0 at the nodes for steps first, ..., first + count − 1 (cached, data-free)."""
+        Q = len(self.nodes)
+        limit = max(1, FLOW_CACHE_BYTES // (8 * Q))
+        end = first + count
+        if end > self._log_v_count and self._log_v_count < limit:
+            grow_to = min(limit, end)
+            if grow_to > len(self._log_v):
+                bigger = np.empty((min(limit, max(grow_to, 2 * len(self._log_v))), Q))
+                bigger[:self._log_v_count] = self._log_v[:self._log_v_count]
+                self._log_v = bigger
+            for step in range(self._log_v_count, grow_to):
+                self._log_v[step] = self._log_flow_at(step)
+            self._log_v_count = grow_to
+        if end <= self._log_v_count:
+            return self._log_v[first:end]
+        cached = self._log_v[first:self._log_v_count]
+        rest = [self._log_flow_at(step) for step in range(max(first, self._log_v_count), end)]
+        return np.vstack([cached, *rest]) if len(cached) else np.vstack(rest)
+
+    def _log_flow_at(self, step: int) -> np.ndarray:
+        values = np.asarray(self.flow(step * self.model.dt, self.nodes), dtype=float).reshape(-1)
+        if values.shape != (len(self.nodes),):
+            raise InputError("kolmogorov_flow", f"must return {len(self.nodes)} values, got {values.shape}")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_v = values if self.log_flow else np.log(np.where(values > 0, values, 0.0))
+        return np.where(np.isnan(log_v), -np.inf, log_v)
+
+    def _log_sigma(self, steps: np.ndarray, y: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """log σ(t, z − r2 e_k) at the nodes z, rows × nodes (−inf where x leaves the domain)."""
+        r0, r1, r2 = r.T
+        Y = y @ self.gain
+        columns = [y, r1[:, None], (r0 - r1 * r2 - r2 * Y)[:, None]]
+        if self._shift_poly is not None:
+            columns.append(-(r2[:, None] ** self._shift_poly))
+        log_s = np.column_stack(columns) @ self._features
+        log_s += self._log_flow(int(steps[0]), len(steps))
+        if self._shift_poly is None:  # the shift integral pointwise (not a polynomial in r2)
+            K, Q = log_s.shape
+            X = np.repeat(self.nodes[None], K, axis=0)
+            X[:, :, self.k] -= r2[:, None]
+            points = np.column_stack([X.reshape(K * Q, -1), np.repeat(r2, Q)])
+            log_s -= self._shift_integral(points).reshape(K, Q)
+        lo, hi = self._r2_range
+        log_s[(r2[:, None] < lo) | (r2[:, None] > hi)] = -np.inf
+        return log_s
+
+    def _chunk_moments(self, steps: np.ndarray, y: np.ndarray, r: np.ndarray):
+        """log ∫σ, mean, cov, mode of every row (zeros where σ vanished at every node)."""
+        K, n = len(steps), self.model.n
+        block = max(1, BLOCK_PRODUCT // (16 * len(self.nodes)))
+        log_z, mean, cov, mode = np.empty(K), np.zeros((K, n)), np.zeros((K, n, n)), np.zeros((K, n))
+        for a in range(0, K, block):
+            b = min(K, a + block)
+            log_s = self._log_sigma(steps[a:b], y[a:b], r[a:b])
+            best = np.argmax(log_s, axis=1)
+            log_s += self.log_weights
+            top = np.max(log_s, axis=1)
+            ok = np.isfinite(top)
+            w = np.exp(log_s - np.where(ok, top, 0.0)[:, None])
+            moments = w @ self._moment_features  # Σw, Σw z, Σw z zᵀ (z from the centre)
+            total = np.where(ok, moments[:, 0], 1.0)
+            centred = moments[:, 1:n + 1] / total[:, None]
+            second = moments[:, n + 1:].reshape(-1, n, n) / total[:, None, None]
+            shift = np.zeros((b - a, n))
+            shift[:, self.k] = r[a:b, 2]
+            log_z[a:b] = np.where(ok, top + np.log(total), -np.inf)
+            mean[a:b] = np.where(ok[:, None], centred + self.model.center - shift, 0.0)
+            cov[a:b] = np.where(ok[:, None, None], second - centred[:, :, None] * centred[:, None, :], 0.0)
+            mode[a:b] = np.where(ok[:, None], self.nodes[best] - shift, 0.0)
+        return log_z, mean, cov, mode
+
     # -- density --------------------------------------------------------------------------------
     def log_density_unnormalised(self, state: WeiNormanState, X: np.ndarray) -> np.ndarray:
         """log σ(t, x) = hᵀR⁻¹y + r0 + r1 x_k + log v(t, x + r2 e_k) − ∫_0^{r2} f_k(x + τ e_k) dτ."""
@@ -142,49 +280,9 @@ class WeiNormanFilter:
         integral = self._shift_integral(np.column_stack([X, np.full(len(X), r2)]))
         return self._hR(X) @ state.y + r0 + r1 * X[:, self.k] + log_v - integral
 
-    def _log_weights_shifted(self, state: WeiNormanState) -> tuple[np.ndarray, np.ndarray]:
-        """(X, log σ(X) + log w) at X = z − r2 e_k for the quadrature nodes z of the flow.
-
-        ∫ g σ dx is taken in z = x + r2 e_k, where v = e^{tL0}σ0 is evaluated: the flow is asked for
-        its own nodes every step (no interpolation at shifted points), and the integrand keeps
-        x = z − r2 e_k inside the domain (B_R, or the box of nodes given), the same integral as before.
-        """
-        r0, r1, r2 = state.r
-        values = np.asarray(self.flow(state.t, self.nodes), dtype=float).reshape(-1)
-        if values.shape != (len(self.nodes),):
-            raise InputError("kolmogorov_flow", f"must return {len(self.nodes)} values, got {values.shape}")
-        with np.errstate(divide="ignore", invalid="ignore"):
-            log_v = values if self.log_flow else np.log(np.where(values > 0, values, 0.0))
-        log_v = np.where(np.isnan(log_v), -np.inf, log_v)
-        X = self.nodes.copy()
-        X[:, self.k] -= r2
-        log_v[~self._in_domain(X)] = -np.inf
-        integral = self._shift_integral(np.column_stack([X, np.full(len(X), r2)]))
-        return X, self._hR(X) @ state.y + r0 + r1 * X[:, self.k] + log_v - integral + self.log_weights
-
-    def _in_domain(self, X: np.ndarray) -> np.ndarray:
-        """x in the domain of the density: the ball B_R, or the box of nodes given by the caller."""
-        if self._box is not None:
-            return np.all((X >= self._box[0]) & (X <= self._box[1]), axis=1)
-        d = X - self.model.center
-        return np.einsum("ij,ij->i", d, d) <= self.model.radius**2 * (1 + 1e-12)
-
-    def _moments(self, state: WeiNormanState) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
-        X, log_w = self._log_weights_shifted(state)
-        top = np.max(log_w)
-        if not np.isfinite(top):
-            return -np.inf, np.zeros(self.model.n), np.zeros((self.model.n,) * 2), None
-        w = np.exp(log_w - top)
-        total = w.sum()
-        mean = w @ X / total
-        d = X - mean
-        cov = (w[:, None] * d).T @ d / total
-        return top + np.log(total), mean, cov, X[int(np.argmax(log_w - self.log_weights))]
-
-    def _estimate(self, state: WeiNormanState, log_z: float, mean, cov, mode, increment: float) -> Estimate:
-        return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
-                        loglik_increment=increment, degenerate=state.degenerate, reason=state.reason,
-                        mode=mode)
+    def _state_moments(self, state: WeiNormanState):
+        log_z, mean, cov, mode = self._chunk_moments(np.array([state.step]), state.y[None], state.r[None])
+        return float(log_z[0]), mean[0], cov[0], mode[0]
 
     # -- Filter protocol ---------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> WeiNormanState:
@@ -193,38 +291,56 @@ class WeiNormanFilter:
         return WeiNormanState(step=0, t=0.0, y=np.zeros(self.model.m), r=np.zeros(3), loglik=0.0)
 
     def step(self, state: WeiNormanState, increment: np.ndarray | None) -> tuple[WeiNormanState, Estimate]:
-        if increment is None or np.isnan(np.asarray(increment, dtype=float)).any():
-            raise InputError("increments", "the Wei-Norman representation (12) needs every increment; "
-                                           "missing observations are not supported (use yau-yau)")
-        dy = check_increments(np.reshape(increment, (1, -1)), self.model.m)[0]
-        dt = self.model.dt
-        y1 = state.y + dy
-        r = self.advance(state.r, float(self.gain @ state.y), float(self.gain @ y1), dt)
-        new = WeiNormanState(step=state.step + 1, t=state.t + dt, y=y1, r=r, loglik=state.loglik)
-        log_z, mean, cov, mode = self._moments(new)
-        if not np.isfinite(log_z):
-            new.degenerate = True
-            new.reason = ("the conditional density vanished on the quadrature nodes: the shift r2 = "
-                          f"{r[2]:.3g} moved e^(tL0)sigma0 off its domain")
-            return new, self._estimate(new, log_z, mean, cov, mode, 0.0)
-        new.loglik = log_z
-        return new, self._estimate(new, log_z, mean, cov, mode, log_z - state.loglik)
+        if increment is None:
+            raise InputError("increments", MISSING)
+        new, result = self.run_arrays(state, np.reshape(np.asarray(increment, dtype=float), (1, -1)))
+        return new, result.estimates()[0]
 
     def run(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, list[Estimate]]:
-        rows = check_increments(increments, self.model.m)
-        estimates = []
-        for row in rows:
-            state, est = self.step(state, row)
-            estimates.append(est)
-        return state, estimates
+        new, result = self.run_arrays(state, increments)
+        return new, result.estimates()
+
+    def run_arrays(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, ExactChunk]:
+        """Advance over a chunk (K, m) of increments; estimates as arrays (the engine's ChunkResult)."""
+        dy = check_increments(increments, self.model.m)
+        if np.isnan(dy).any():
+            raise InputError("increments", MISSING)
+        K, n = len(dy), self.model.n
+        steps = state.step + 1 + np.arange(K)
+        times = steps * self.model.dt
+        if K == 0:
+            return state, ExactChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n)),
+                                     np.empty(0), np.empty(0), np.zeros(0, bool))
+        y, r = self._r_path(state, dy)
+        log_z, mean, cov, mode = self._chunk_moments(steps, y, r)
+        degenerate = ~np.isfinite(log_z)
+        # a vanished step keeps the previous log-likelihood (increment 0), as the stepwise filter did
+        loglik = np.where(degenerate, np.nan, log_z)
+        loglik = _carry_forward(np.concatenate([[state.loglik], loglik]))
+        increments_ll = np.diff(loglik)
+        reason = None
+        if degenerate.any():
+            first = int(np.argmax(degenerate))
+            reason = ("the conditional density vanished on the quadrature nodes: the shift r2 = "
+                      f"{r[first, 2]:.3g} moved e^(tL0)sigma0 off its domain")
+        new = WeiNormanState(step=int(steps[-1]), t=float(times[-1]), y=y[-1].copy(), r=r[-1].copy(),
+                             loglik=float(loglik[-1]), degenerate=bool(degenerate[-1]))
+        if new.degenerate:
+            new.reason = ("the conditional density vanished on the quadrature nodes: the shift r2 = "
+                          f"{r[-1, 2]:.3g} moved e^(tL0)sigma0 off its domain")
+        return new, _Chunk(step=steps, t=times, mean=mean, cov=cov, mode=mode, loglik=loglik[1:],
+                           loglik_increment=increments_ll, degenerate=degenerate, reason=reason)
 
     def estimate(self, state: WeiNormanState) -> Estimate:
-        log_z, mean, cov, mode = self._moments(state)
-        return self._estimate(state, log_z, mean, cov, mode, 0.0)
+        log_z, mean, cov, mode = self._state_moments(state)
+        vanished = not np.isfinite(log_z)
+        return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
+                        loglik_increment=0.0, degenerate=state.degenerate or vanished,
+                        reason=state.reason, mode=None if vanished else mode)
 
     def density(self, state: WeiNormanState, points: np.ndarray) -> np.ndarray:
         """Normalised conditional density at points (normaliser from the quadrature nodes)."""
-        log_z = self._moments(state)[0]
+        log_z = self._state_moments(state)[0]
         if not np.isfinite(log_z):
             return np.zeros(np.atleast_2d(points).shape[0])
         return np.exp(self.log_density_unnormalised(state, points) - log_z)
@@ -240,7 +356,37 @@ class WeiNormanFilter:
             raise InputError("state", f"not a Wei-Norman filter state: {exc}") from None
         if not (np.all(np.isfinite(state.y)) and np.all(np.isfinite(state.r))):
             raise InputError("state", "y and r must be finite")
+        if state.step < 0:
+            raise InputError("state", "step must be >= 0")
         return state
+
+
+MISSING = ("the Wei-Norman representation (12) needs every increment; missing observations are not "
+           "supported (use yau-yau)")
+
+
+@dataclass(frozen=True)
+class _Chunk(ExactChunk):
+    """ExactChunk that keeps the degenerate flags and reason in the Estimate objects."""
+
+    def estimates(self) -> list[Estimate]:
+        out = super().estimates()
+        for est, flag in zip(out, self.degenerate.tolist(), strict=True):
+            if flag:
+                est.degenerate, est.reason, est.mode = True, self.reason, None
+        return out
+
+
+def _carry_forward(values: np.ndarray) -> np.ndarray:
+    """NaN entries replaced by the last number before them (values[0] is a number)."""
+    index = np.where(np.isnan(values), 0, np.arange(len(values)))
+    return values[np.maximum.accumulate(index)]
+
+
+def _moment_features(d: np.ndarray) -> np.ndarray:
+    """(Q, 1 + n + n²) columns 1, d_i, d_i d_j of the node offsets d: Σ w · these are the moments."""
+    Q, n = d.shape
+    return np.column_stack([np.ones(Q), d, (d[:, :, None] * d[:, None, :]).reshape(Q, n * n)])
 
 
 def _shift_integral(model: Model, k: int):
