@@ -7,6 +7,9 @@
    log ∫σ = ∫ (E h) R⁻¹ẏ − ½ R⁻¹ E h² dt.
 3. Seed 004's n = 3 example: a finite-difference solution of the DMZ equation ∂σ/∂t = L0σ + ẏ h σ
    (same piecewise-linear y) on a grid, short horizon; mean gap ≤ 0.02.
+4. Beneš (f = tanh x, h = x; η = 1 + x², A = 1, a shift integral log cosh that is no polynomial):
+   σ = cosh(x)·q with q the Kalman–Bucy density of dx = dv (ODEs below), through ``run_arrays``
+   in uneven chunks.
 """
 
 from __future__ import annotations
@@ -118,6 +121,19 @@ def test_linear_model_matches_kalman_bucy_with_loglik():
     again = wn.state_from_dict(state.to_dict())
     assert wn.estimate(again).mean[0] == pytest.approx(estimates[-1].mean[0], abs=1e-12)
 
+    # the same path as arrays, in uneven chunks continued from the returned states
+    state, truth, k = wn.initial_state(), [MEAN0, VAR0, 0.0], 0
+    for size in (5, 1, 10):
+        state, chunk = wn.run_arrays(state, increments[k:k + size])
+        for j in range(size):
+            truth = kalman_bucy(increments[k + j, 0] / DT, DT, truth).y[:, -1]
+            assert chunk.step[j] == k + j + 1 and chunk.t[j] == pytest.approx((k + j + 1) * DT)
+            assert chunk.mean[j, 0] == pytest.approx(truth[0], abs=1e-6)
+            assert chunk.cov[j, 0, 0] == pytest.approx(truth[1], abs=1e-6)
+            assert chunk.loglik[j] == pytest.approx(truth[2], abs=1e-6)
+        k += size
+    assert not chunk.degenerate.any() and state.step == K
+
 
 def test_linear_model_with_the_stored_kolmogorov_propagator():
     from solver.offline import precompute
@@ -209,6 +225,66 @@ def test_seed004_example_matches_finite_difference_dmz():
 
 
 # ---------------------------------------------------------------------------------------------
+# 4. Beneš: σ = cosh(x) q, q the Kalman–Bucy density of dx = dv, dy = x dt + dw
+# ---------------------------------------------------------------------------------------------
+def benes_truth(ydot, t_end, state0):
+    """(m, P, log Z) of q = Z N(m, P): ∂q/∂t = ½q'' − ½q − ½x²q + ẏ x q (f' + f² = 1 for tanh)."""
+    def rhs(_, z):
+        m, P, _logz = z
+        return [P * (ydot - m), 1.0 - P * P, m * ydot - 0.5 * (m * m + P) - 0.5]
+    return solve_ivp(rhs, (0.0, t_end), state0, rtol=1e-11, atol=1e-12, dense_output=True)
+
+
+def log_cosh(x):
+    return np.logaddexp(x, -x) - np.log(2.0)
+
+
+def test_benes_through_run_arrays_in_chunks():
+    m0, p0, dt = 0.3, 0.5, 0.05
+    model = make(["x"], ["tanh(x)"], ["x"], [m0], [[p0]], radius=9.0, dt=dt)
+    start = [m0, p0, -(0.5 * p0 + log_cosh(m0))]  # σ0 = cosh(x) N(m0, P0) / (e^{P0/2} cosh m0)
+    flow = benes_truth(0.0, 1.0, start).sol
+
+    def log_flow(t, X):
+        m, P, logz = flow(t)
+        return logz + log_cosh(X[:, 0]) - 0.5 * (X[:, 0] - m) ** 2 / P - 0.5 * np.log(2 * np.pi * P)
+
+    wn = WeiNormanFilter(model, log_flow, log_flow=True)
+    assert wn.A == 1.0 and wn._shift_poly is None  # the pointwise shift integral is exercised
+    increments = np.random.default_rng(5).normal(1.5 * dt, np.sqrt(dt), size=(18, 1))
+    state, truth, k = wn.initial_state(), start, 0
+    for size in (7, 1, 10):
+        state, chunk = wn.run_arrays(state, increments[k:k + size])
+        for j in range(size):
+            truth = benes_truth(increments[k + j, 0] / dt, dt, truth).y[:, -1]
+            m, P, logz = truth
+            mean, var = m + P * np.tanh(m), P + P * P / np.cosh(m) ** 2
+            assert chunk.mean[j, 0] == pytest.approx(mean, abs=1e-6)
+            assert chunk.cov[j, 0, 0] == pytest.approx(var, abs=1e-6)
+            assert chunk.loglik[j] == pytest.approx(logz + 0.5 * P + log_cosh(m), abs=1e-6)
+        k += size
+    assert abs(state.r[2]) > 0.05  # the shift is exercised (log cosh moves by ~r2: far above 1e-6)
+
+
+def test_a_vanished_step_inside_a_chunk_is_flagged_and_the_rest_continues():
+    dt = 0.1
+
+    def flow(t, X):  # e^{tL0}σ0 reported as zero at step 3 only
+        return np.zeros(len(X)) if round(t / dt) == 3 else np.exp(-0.5 * X[:, 0] ** 2 * (1 + t))
+
+    wn = WeiNormanFilter(ou(), flow)
+    state, chunk = wn.run_arrays(wn.initial_state(), np.full((6, 1), 0.05))
+    assert chunk.degenerate.tolist() == [False, False, True, False, False, False]
+    assert chunk.reason and "r2" in chunk.reason and not state.degenerate
+    assert chunk.loglik[2] == chunk.loglik[1] and chunk.loglik_increment[2] == 0.0
+    assert chunk.loglik_increment[3] == pytest.approx(chunk.loglik[3] - chunk.loglik[1], abs=1e-12)
+    for array in (chunk.mean, chunk.cov, chunk.mode, chunk.loglik):
+        assert np.all(np.isfinite(array))
+    estimates = chunk.estimates()
+    assert estimates[2].degenerate and estimates[2].mode is None and not estimates[3].degenerate
+
+
+# ---------------------------------------------------------------------------------------------
 # refusals, each naming the field
 # ---------------------------------------------------------------------------------------------
 def ou(**extra):
@@ -233,6 +309,9 @@ def test_bad_online_input_is_refused():
     assert err.value.field == "increments"
     with pytest.raises(InputError):
         wn.run(state, [[0.1], [np.inf]])
+    with pytest.raises(InputError) as err:
+        wn.run_arrays(state, [[0.1], [np.nan]])
+    assert err.value.field == "increments"
     with pytest.raises(InputError) as err:
         wn.initial_state(prior={"kind": "gaussian"})
     assert err.value.field == "prior"
