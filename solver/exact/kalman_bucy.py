@@ -46,6 +46,8 @@ from .riccati import (
     affine_path,
     gaussian_terms_batch,
     gaussian_to_terms,
+    linear_recursion,
+    settle,
 )
 
 KINDS = ("continuous", "discrete")
@@ -141,13 +143,13 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         zeros = np.zeros(count, dtype=bool)
         if self._discrete is None:
             path = self._flows.path(zeros.astype(int), schedule.end[None])[:, 0]
-            keep, settled = _settle(path)
+            keep, settled = settle(path)
             parts = _continuous_coefficients(self, path[:keep], path[1:keep + 1])
         else:
             kf, dt = self._discrete, self.model.dt
             pieces = _kalman_covariances(kf.phi, kf.Q, kf.H * dt, self.model.R * dt, schedule.end, zeros)
             path = np.concatenate([schedule.end[None], pieces[-1]])
-            keep, settled = _settle(path)
+            keep, settled = settle(path)
             parts = _discrete_coefficients(self, path[:keep], *(p[:keep] for p in pieces))
         schedule.append(parts, settled, path[keep])
 
@@ -168,7 +170,7 @@ class KalmanBucyFilter(GaussianReferenceFilter):
             b = schedule.v0[idx] + Vy[:, 0] * dy
         else:
             b = schedule.v0[idx] + (Vy @ dy[..., None])[..., 0]
-        x = _linear_recursion(W, b, x0)
+        x = linear_recursion(W, b, x0)
         u = np.concatenate([x[:-1], dy], axis=1)
         ll = _quadratic(schedule.kappa[idx], schedule.ell[idx], schedule.M[idx], u)
         if self._discrete is not None:
@@ -343,46 +345,6 @@ class _Schedule:
             old = getattr(self, name)
             setattr(self, name, value if old is None else np.concatenate([old, value]))
         self.settled, self.end, self.scalars = settled, end, None
-
-
-def _settle(path: np.ndarray) -> tuple[int, bool]:
-    """Steps of ``path`` (L+1, n, n) to keep: up to the first step that no longer moves it."""
-    moved = np.abs(np.diff(path, axis=0)).max(axis=(1, 2))
-    still = moved <= 4.0 * np.finfo(float).eps * np.abs(path[1:]).max(axis=(1, 2))
-    if still.any():
-        return int(np.argmax(still)) + 1, True
-    return len(path) - 1, False
-
-
-def _linear_recursion(W: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
-    """x_k = W_k x_{k−1} + b_k for W (K, n, n), b (K, n) -> (K + 1, n), without a per-step loop.
-
-    n = 1: x_k = Π_k (x_0 + Σ_{j≤k} b_j / Π_j) with Π_k = w_1⋯w_k (cumulative products, in
-    blocks short enough that Π stays far from overflow); n > 1: a prefix scan of the affine maps
-    (log₂ K rounds of batched products).
-    """
-    K, n = b.shape
-    out = np.empty((K + 1, n))
-    out[0] = x0
-    if n == 1:
-        w, c = W[:, 0, 0], b[:, 0]
-        if np.all(w > 0.0):  # W = X⁻ᵀ > 0 (continuous) and (1 − G Hd)Φ > 0 (discrete) for n = 1
-            span = max(1, int(500.0 / max(float(np.abs(np.log(w)).max()), 1e-300)))
-            x = float(x0[0])
-            for start in range(0, K, span):
-                prod = np.cumprod(w[start:start + span])
-                segment = prod * (x + np.cumsum(c[start:start + span] / prod))
-                out[start + 1:start + 1 + len(segment), 0] = segment
-                x = float(segment[-1])
-            return out
-        return affine_path(W[:, None], b[:, None], out[:1])[:, 0]
-    Wc, bc, shift = W.copy(), b.copy(), 1
-    while shift < K:  # after a round, (Wc_k, bc_k) maps x_{k−2·shift} (or x_0) to x_k
-        bc[shift:] = (Wc[shift:] @ bc[:-shift, :, None])[..., 0] + bc[shift:]
-        Wc[shift:] = Wc[shift:] @ Wc[:-shift]
-        shift *= 2
-    out[1:] = (Wc @ x0) + bc
-    return out
 
 
 def _quadratic(kappa, ell, M, u) -> np.ndarray:

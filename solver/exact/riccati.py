@@ -361,3 +361,43 @@ def gaussian_terms_batch(A, B, C) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     log_det = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
     log_mass = 0.5 * n * np.log(2 * np.pi) - 0.5 * log_det - 0.5 * (mean * B).sum(-1) - C
     return mean, cov, log_mass
+
+
+def settle(path: np.ndarray) -> tuple[int, bool]:
+    """Steps of ``path`` (L+1, n, n) to keep: up to the first step that no longer moves it."""
+    moved = np.abs(np.diff(path, axis=0)).max(axis=(1, 2))
+    still = moved <= 4.0 * np.finfo(float).eps * np.abs(path[1:]).max(axis=(1, 2))
+    if still.any():
+        return int(np.argmax(still)) + 1, True
+    return len(path) - 1, False
+
+
+def linear_recursion(W: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """x_k = W_k x_{k−1} + b_k for W (K, n, n), b (K, n) -> (K + 1, n), without a per-step loop.
+
+    n = 1: x_k = Π_k (x_0 + Σ_{j≤k} b_j / Π_j) with Π_k = w_1⋯w_k (cumulative products, in
+    blocks short enough that Π stays far from overflow); n > 1: a prefix scan of the affine maps
+    (log₂ K rounds of batched products).
+    """
+    K, n = b.shape
+    out = np.empty((K + 1, n))
+    out[0] = x0
+    if n == 1:
+        w, c = W[:, 0, 0], b[:, 0]
+        if np.all(w > 0.0):  # W = X⁻ᵀ > 0 (continuous) and (1 − G Hd)Φ > 0 (discrete) for n = 1
+            span = max(1, int(500.0 / max(float(np.abs(np.log(w)).max()), 1e-300)))
+            x = float(x0[0])
+            for start in range(0, K, span):
+                prod = np.cumprod(w[start:start + span])
+                segment = prod * (x + np.cumsum(c[start:start + span] / prod))
+                out[start + 1:start + 1 + len(segment), 0] = segment
+                x = float(segment[-1])
+            return out
+        return affine_path(W[:, None], b[:, None], out[:1])[:, 0]
+    Wc, bc, shift = W.copy(), b.copy(), 1
+    while shift < K:  # after a round, (Wc_k, bc_k) maps x_{k−2·shift} (or x_0) to x_k
+        bc[shift:] = (Wc[shift:] @ bc[:-shift, :, None])[..., 0] + bc[shift:]
+        Wc[shift:] = Wc[shift:] @ Wc[:-shift]
+        shift *= 2
+    out[1:] = (Wc @ x0) + bc
+    return out

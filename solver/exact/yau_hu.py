@@ -41,8 +41,16 @@ from ..model import Model
 from ..reference._base import ReferenceFilter, StepState, observed
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
-from .kalman_bucy import ExactChunk, _linear_recursion, _settle
-from .riccati import FlowFamily, GaussianKolmogorov, affine_path, gaussian_terms_batch, gaussian_to_terms
+from .kalman_bucy import ExactChunk
+from .riccati import (
+    FlowFamily,
+    GaussianKolmogorov,
+    affine_path,
+    gaussian_terms_batch,
+    gaussian_to_terms,
+    linear_recursion,
+    settle,
+)
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
 
@@ -409,7 +417,7 @@ class YauHuFilter(ReferenceFilter):
             path = self._family.path(np.zeros(count, dtype=int), schedule.end)  # (count+1, J, n, n)
         except InputError:
             return False
-        keep, settled = _settle(path.reshape(len(path), J * n, n))
+        keep, settled = settle(path.reshape(len(path), J * n, n))
         bad = np.flatnonzero(np.linalg.eigvalsh(path[1:keep + 1]).min(axis=(1, 2)) <= 0.0)
         if len(bad):  # keep the good steps; a later extension starts at the bad one and fails
             keep, settled = int(bad[0]), False
@@ -475,7 +483,7 @@ class YauHuFilter(ReferenceFilter):
         c = {name: value[idx] for name, value in parts.items()}
         b = c["v0"] + np.einsum("kjam,km->kja", c["Vy"], y)
         J = b.shape[1]
-        B = np.stack([_linear_recursion(c["W"][:, i], b[:, i], state.B[i]) for i in range(J)], axis=1)
+        B = np.stack([linear_recursion(c["W"][:, i], b[:, i], state.B[i]) for i in range(J)], axis=1)
         x = B[:-1]
         dC = (c["kappa"] + (c["lx"] * x).sum(-1) + np.einsum("kjm,km->kj", c["ly"], y)
               + np.einsum("kja,kjab,kjb->kj", x, 0.5 * c["Mxx"], x)
@@ -496,7 +504,7 @@ class YauHuFilter(ReferenceFilter):
         J, K = b.shape
         B = np.empty((J, K + 1))
         for i in range(J):
-            B[i] = _linear_recursion(c["W"][i, :, None, None], b[i, :, None], state.B[i])[:, 0]
+            B[i] = linear_recursion(c["W"][i, :, None, None], b[i, :, None], state.B[i])[:, 0]
         x = B[:, :-1]
         dC = c["kappa"] + c["lx"] * x + c["ly"] * y + 0.5 * (c["Mxx"] * x * x + c["Myy"] * y * y) \
             + c["Mxy"] * x * y
