@@ -38,7 +38,7 @@ from ..engine import ChunkResult
 from ..errors import InputError, SpecError
 from ..filtering import Estimate, check_increments
 from ..model import Model
-from ..reference._base import GaussianReferenceFilter, GaussianState, observed
+from ..reference._base import ChunkedFilter, GaussianReferenceFilter, GaussianState
 from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients
 from .riccati import (
     FlowFamily,
@@ -53,7 +53,7 @@ from .riccati import (
 KINDS = ("continuous", "discrete")
 
 
-class KalmanBucyFilter(GaussianReferenceFilter):
+class KalmanBucyFilter(ChunkedFilter, GaussianReferenceFilter):
     """Filter protocol implementation; state: mean, cov and the accumulated log-likelihood."""
 
     method = "kalman-bucy"
@@ -81,16 +81,6 @@ class KalmanBucyFilter(GaussianReferenceFilter):
         return q, r
 
     # -- Filter protocol -----------------------------------------------------------------
-    def step(self, state: GaussianState, increment: np.ndarray | None):
-        row = observed(increment, self.model.m)
-        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
-        new_state, estimates = self.run(state, rows)
-        return new_state, estimates[0]
-
-    def run(self, state: GaussianState, increments: np.ndarray):
-        new_state, result = self.run_arrays(state, increments)
-        return new_state, result.estimates()
-
     def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, "ExactChunk"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays."""
         dy = check_increments(increments, self.model.m)

@@ -38,7 +38,7 @@ from scipy.special import logsumexp
 from ..errors import InputError, SpecError
 from ..filtering import Estimate, check_increments
 from ..model import Model
-from ..reference._base import ReferenceFilter, StepState, observed
+from ..reference._base import ChunkedFilter, ReferenceFilter, StepState
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .kalman_bucy import ExactChunk
@@ -231,7 +231,7 @@ class YauHuState(StepState):
                 "degenerate": self.degenerate, "reason": self.reason, "fit_error": self.fit_error}
 
 
-class YauHuFilter(ReferenceFilter):
+class YauHuFilter(ChunkedFilter, ReferenceFilter):
     """Filter protocol; exact for Gaussian-mixture e^{−F}σ0, else the prior is fitted."""
 
     method = "yau-hu"
@@ -319,16 +319,6 @@ class YauHuFilter(ReferenceFilter):
         return best
 
     # -- Filter protocol -----------------------------------------------------------------
-    def step(self, state: YauHuState, increment: np.ndarray | None):
-        row = observed(increment, self.model.m)
-        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
-        new_state, estimates = self.run(state, rows)
-        return new_state, estimates[0]
-
-    def run(self, state: YauHuState, increments: np.ndarray):
-        new_state, result = self.run_arrays(state, increments)
-        return new_state, result.estimates()
-
     def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ExactChunk"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 

@@ -114,6 +114,20 @@ class ReferenceFilter:
         return state, estimates
 
 
+class ChunkedFilter:
+    """``step`` and ``run`` of a filter that advances whole chunks with ``run_arrays``."""
+
+    def step(self, state: Any, increment: np.ndarray | None) -> tuple[Any, Estimate]:
+        row = observed(increment, self.model.m)
+        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
+        new_state, result = self.run_arrays(state, rows)
+        return new_state, result.estimates()[0]
+
+    def run(self, state: Any, increments: np.ndarray) -> tuple[Any, list[Estimate]]:
+        new_state, result = self.run_arrays(state, increments)
+        return new_state, result.estimates()
+
+
 def gaussian_estimate(state: GaussianState) -> Estimate:
     return Estimate(step=state.step, t=state.t, mean=state.mean.copy(), cov=state.cov.copy(),
                     loglik=state.loglik, loglik_increment=state.loglik_increment,
