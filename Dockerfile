@@ -5,6 +5,7 @@ FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 PYTHONDONTWRITEBYTECODE=1
 WORKDIR /src
 COPY pyproject.toml README.md ./
+COPY yauyau ./yauyau
 COPY solver ./solver
 COPY storage ./storage
 COPY service ./service

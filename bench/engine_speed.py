@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 from scipy.linalg.blas import dgemv
-
-from solver import compile_model, load_spec
-from solver.engine import YauYauFilter
-from solver.offline import precompute
-from solver.reference.pointmass import PointMassFilter
-from solver.simulate import simulate
+from yauyau.solver import compile_model, load_spec
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.pointmass import PointMassFilter
+from yauyau.solver.simulate import simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-engine.md"

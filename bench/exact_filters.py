@@ -20,16 +20,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from solver.engine import YauYauFilter
-from solver.exact.kalman_bucy import KalmanBucyFilter
-from solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
-from solver.exact.yau_hu import YauHuFilter
-from solver.model import compile_model
-from solver.offline import precompute
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.simulate import simulate
-from solver.spec import load_spec, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+from yauyau.solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
+from yauyau.solver.exact.yau_hu import YauHuFilter
+from yauyau.solver.model import compile_model
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec, spec_from_dict
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench-exact.md"

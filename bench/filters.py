@@ -23,9 +23,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-
-from solver.model import Model, compile_model
-from solver.reference import (
+from yauyau.solver.model import Model, compile_model
+from yauyau.solver.reference import (
     BenesFilter,
     BootstrapParticleFilter,
     DiscreteKalmanFilter,
@@ -33,8 +32,8 @@ from solver.reference import (
     PointMassFilter,
     UnscentedKalmanFilter,
 )
-from solver.simulate import simulate
-from solver.spec import load_spec
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
@@ -123,7 +122,7 @@ def _single_step_us(filt, increments) -> float:
 
 # -- the filters of one case ----------------------------------------------------------------------
 def _engine(model: Model, form: str, offline):
-    from solver.engine import YauYauFilter
+    from yauyau.solver.engine import YauYauFilter
 
     return YauYauFilter(model, offline, form=form, precision=model.spec.discretization.precision)
 
@@ -153,7 +152,7 @@ def _reference(model: Model, case: Case):
 
 def _precompute(model: Model):
     try:
-        from solver.offline import precompute
+        from yauyau.solver.offline import precompute
     except ImportError:  # the engine not landed: the references still run
         return None, float("nan")
     start = time.perf_counter()

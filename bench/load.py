@@ -56,11 +56,11 @@ def _free_port() -> int:
 
 
 def _prepare_store(store: Path):
-    from solver.model import compile_model
-    from solver.offline import precompute
-    from solver.simulate import simulate
-    from solver.spec import load_spec
-    from storage.model_store import ModelStore
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.offline import precompute
+    from yauyau.solver.simulate import simulate
+    from yauyau.solver.spec import load_spec
+    from yauyau.storage.model_store import ModelStore
 
     spec = load_spec(SPEC)
     model = compile_model(spec)
@@ -71,9 +71,10 @@ def _prepare_store(store: Path):
 
 
 def _baseline_tree(rev: str, into: Path) -> Path:
-    """service/ and storage/ of git revision ``rev`` next to a link to the current solver/."""
+    """yauyau/, service/ and storage/ of git revision ``rev`` next to a link to the current solver/
+    (revisions from 0.2 on: before, the packages were top-level and used another import name)."""
     into.mkdir(parents=True)
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "service", "storage"],
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "yauyau", "service", "storage"],
                              check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
     (into / "solver").symlink_to(ROOT / "solver")
@@ -81,13 +82,14 @@ def _baseline_tree(rev: str, into: Path) -> Path:
 
 
 class Server:
-    """`python -m service.cli serve` run from ``tree`` (its service/ and storage/ come first)."""
+    """`python -m yauyau.service.cli serve` run from ``tree`` (its service/ and storage/ come first)."""
 
     def __init__(self, tree: Path, store: Path, db: Path, workers: int):
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--port", str(self.port),
-               "--session-db", str(db), "--workers", str(workers), "--log-level", "warning"]
+        cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
+               "--port", str(self.port), "--session-db", str(db), "--workers", str(workers),
+               "--log-level", "warning"]
         env = dict(os.environ, PYTHONPATH=str(tree))
         self.proc = subprocess.Popen(cmd, cwd=tree, env=env, start_new_session=True)
         deadline = time.monotonic() + 120
@@ -250,7 +252,7 @@ def _summary(runs: list[dict]) -> dict:
 
 def _engine_ms(model, offline, increments) -> float:
     """Median ms of the filter alone on one 100-row chunk (state (de)serialised as the service does)."""
-    from solver.methods import make_filter
+    from yauyau.solver.methods import make_filter
 
     filt = make_filter(model, offline, None)
     state = filt.initial_state().to_dict()
@@ -266,7 +268,7 @@ def _engine_ms(model, offline, increments) -> float:
 
 def _commit_ms(directory: Path, state: dict, response: dict, count: int = 300) -> dict[str, tuple]:
     """p50/p99 ms of one chunk's store round (read, write state + response, commit) per durability."""
-    from storage.session_store import SessionStore
+    from yauyau.storage.session_store import SessionStore
 
     out = {}
     for level in ("normal", "full"):
@@ -282,8 +284,8 @@ def _commit_ms(directory: Path, state: dict, response: dict, count: int = 300) -
 
 
 def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple]:
-    from service.sessions import chunk_response
-    from solver.methods import make_filter
+    from yauyau.service.sessions import chunk_response
+    from yauyau.solver.methods import make_filter
 
     filt = make_filter(model, offline, None)
     state, response = chunk_response(0, filt.initial_state(), increments[:CHUNK], filt)

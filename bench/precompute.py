@@ -34,8 +34,8 @@ QUICK = [CASES[0], CASES[1], CASES[2], CASES[3], ("3-D rotation", "3d", 100, Non
 CHILD = r"""
 import json, resource, sys, time
 import numpy as np
-from solver import compile_model, load_spec, spec_from_dict
-from solver.offline import precompute
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.offline import precompute
 example, basis, mesh, workers = json.loads(sys.argv[1])
 if example == "3d":
     spec = spec_from_dict(dict(name="rotation-3d", state=["x", "y", "z"],
@@ -86,13 +86,12 @@ ACCURACY = [("cubic_sensor.toml", 2000, (3, 4, 5), [(128, 33), (128, 40), (128, 
 def accuracy_table() -> str:
     """Max |mean − point-mass mean| per seed for meshes side by side (stable form, one BLAS thread)."""
     import numpy as np
-
-    from solver import compile_model, load_spec
-    from solver.basis import blas_threads
-    from solver.engine import YauYauFilter
-    from solver.offline import precompute
-    from solver.reference.pointmass import PointMassFilter
-    from solver.simulate import simulate
+    from yauyau.solver import compile_model, load_spec
+    from yauyau.solver.basis import blas_threads
+    from yauyau.solver.engine import YauYauFilter
+    from yauyau.solver.offline import precompute
+    from yauyau.solver.reference.pointmass import PointMassFilter
+    from yauyau.solver.simulate import simulate
 
     lines = ["| example | N | mesh | Q | Q·N | max mean gap per seed | degenerate steps per seed |",
              "|---|---|---|---|---|---|---|"]

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-
-from solver import compile_model, load_spec
-from solver.offline import precompute
-from storage.model_store import ModelStore
-from storage.session_store import SessionStore
+from yauyau.solver import compile_model, load_spec
+from yauyau.solver.offline import precompute
+from yauyau.storage.model_store import ModelStore
+from yauyau.storage.session_store import SessionStore
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-storage.md"

@@ -60,8 +60,8 @@ def install(venv_dir: Path, editable: bool = False, extras: str = "") -> None:
 
 _EXISTS = """
 import sys
-from solver.spec import load_spec
-from storage.model_store import ModelStore, model_id
+from yauyau.solver.spec import load_spec
+from yauyau.storage.model_store import ModelStore, model_id
 spec = load_spec(sys.argv[1])
 print(ModelStore(sys.argv[2]).exists(model_id(spec.canonical_json())))
 """

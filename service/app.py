@@ -17,10 +17,9 @@ import numpy as np
 from fastapi import Body, FastAPI, Path, Query, Request
 from fastapi.openapi.utils import get_openapi
 from starlette.responses import JSONResponse, Response
-
-from solver.analysis import analyze as analyze_model
-from solver.model import compile_model
-from solver.spec import spec_from_dict
+from yauyau.solver.analysis import analyze as analyze_model
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import spec_from_dict
 
 from . import metrics
 from .density import parse_points
@@ -78,7 +77,7 @@ def _problem_openapi(app: FastAPI) -> dict[str, Any]:
 
 
 def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
-    from storage.session_store import SessionStore
+    from yauyau.storage.session_store import SessionStore
 
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="yauyau", description="Real-time optimal nonlinear filtering.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, help_text in COMMANDS.items():
-        module = importlib.import_module(f"service.commands.{name}")
+        module = importlib.import_module(f"yauyau.service.commands.{name}")
         cmd = sub.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(cmd)
         cmd.set_defaults(_module=module)
@@ -33,8 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from solver.errors import YauyauError
-    from storage.errors import StoreError
+    from yauyau.solver.errors import YauyauError
+    from yauyau.storage.errors import StoreError
 
     args = build_parser().parse_args(argv)
     try:

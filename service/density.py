@@ -5,8 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from solver.errors import InputError
+from yauyau.solver.errors import InputError
 
 
 def _number(text: str, field: str) -> float:

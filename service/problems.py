@@ -14,9 +14,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
-
-from solver.errors import InputError, SpecError
-from storage.errors import Conflict, NotFound, StoreError
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.storage.errors import Conflict, NotFound, StoreError
 
 PROBLEM_TYPE = "application/problem+json"
 log = logging.getLogger("yauyau.service")

@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from solver.filtering import Filter
-from solver.model import Model, compile_model
-from solver.spec import spec_from_dict
-from storage.errors import NotFound
-from storage.model_store import ModelStore
+from yauyau.solver.filtering import Filter
+from yauyau.solver.model import Model, compile_model
+from yauyau.solver.spec import spec_from_dict
+from yauyau.storage.errors import NotFound
+from yauyau.storage.model_store import ModelStore
 
 log = logging.getLogger("yauyau.service")
 
@@ -37,7 +37,7 @@ class LoadedModel:
         key = method or self.model.spec.method
         with self._lock:
             if key not in self.filters:
-                from solver.methods import make_filter
+                from yauyau.solver.methods import make_filter
 
                 self.filters[key] = make_filter(self.model, self.offline, key)
             return self.filters[key]
@@ -50,7 +50,7 @@ class LoadedModel:
 
 
 def load_model(store: ModelStore, model_id: str) -> LoadedModel:
-    from solver.offline import OfflineModel
+    from yauyau.solver.offline import OfflineModel
 
     stored = store.load(model_id)
     spec_doc = json.loads(stored.spec_json)

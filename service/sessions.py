@@ -15,9 +15,8 @@ from typing import Any
 
 import numpy as np
 import orjson
-
-from solver.errors import InputError, SpecError
-from solver.filtering import Estimate, check_increments
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.filtering import Estimate, check_increments
 
 from . import metrics
 from .registry import LoadedModel, Registry
@@ -193,9 +192,8 @@ def _as_prior_error(exc: SpecError) -> SpecError:
 def _checked_prior(prior: Any, loaded: LoadedModel) -> Any:
     """Check the prior against the model (the spec's own rules), naming the field ``prior.*``."""
     from pydantic import ValidationError
-
-    from solver.model import compile_model
-    from solver.spec import DensityPrior, ModelSpec
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.spec import DensityPrior, ModelSpec
 
     doc = dict(loaded.spec, initial=prior.model_dump(mode="json"))
     try:

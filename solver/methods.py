@@ -20,9 +20,9 @@ from .model import Model
 from .spec import METHODS
 
 _EXACT = {
-    "kalman-bucy": ("solver.exact.kalman_bucy", "KalmanBucyFilter"),
-    "yau-hu": ("solver.exact.yau_hu", "YauHuFilter"),
-    "wei-norman": ("solver.exact.wei_norman", "WeiNormanFilter"),
+    "kalman-bucy": ("yauyau.solver.exact.kalman_bucy", "KalmanBucyFilter"),
+    "yau-hu": ("yauyau.solver.exact.yau_hu", "YauHuFilter"),
+    "wei-norman": ("yauyau.solver.exact.wei_norman", "WeiNormanFilter"),
 }
 
 
@@ -34,7 +34,7 @@ def resolve_method(model: Model, method: str | None = None) -> str:
     if method != "auto":
         return method
     try:
-        analysis = importlib.import_module("solver.analysis")
+        analysis = importlib.import_module("yauyau.solver.analysis")
     except ImportError:
         return "yau-yau"  # no analysis in this installation: the general engine
     chosen, _reason = analysis.recommend_method(analysis.analyze(model))
@@ -62,7 +62,8 @@ def make_filter(model: Model, offline: Any | None = None, method: str | None = N
             if offline is None:
                 raise SpecError("method", "wei-norman needs the precomputed Kolmogorov flow "
                                           "(run yauyau precompute)")
-            flow = importlib.import_module("solver.exact.wei_norman").kolmogorov_flow_from_offline(offline)
+            wei_norman = importlib.import_module("yauyau.solver.exact.wei_norman")
+            flow = wei_norman.kolmogorov_flow_from_offline(offline)
             return cls(model, flow)
         return cls(model)
     except SpecError as exc:

@@ -13,10 +13,10 @@ EXAMPLES = ROOT / "examples"
 
 def precompute_into(store: Path, spec_path: Path) -> str:
     """Solve the offline stage of an example spec and save it; returns the model id."""
-    from solver.model import compile_model
-    from solver.offline import precompute
-    from solver.spec import load_spec
-    from storage.model_store import ModelStore
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.offline import precompute
+    from yauyau.solver.spec import load_spec
+    from yauyau.storage.model_store import ModelStore
 
     spec = load_spec(spec_path)
     offline = precompute(compile_model(spec))

@@ -29,8 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from solver.exact.riccati import GaussianKolmogorov
+from yauyau.solver.exact.riccati import GaussianKolmogorov
 
 
 # -- 1. cubic sensor ------------------------------------------------------------------

@@ -10,8 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import sympy as sp
-
-from solver.analysis import (
+from yauyau.solver.analysis import (
     add,
     analyze,
     bracket,
@@ -24,8 +23,8 @@ from solver.analysis import (
     recommend_method,
     wong_matrix,
 )
-from solver.model import compile_model
-from solver.spec import spec_from_dict
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import spec_from_dict
 
 
 def make(state, drift, obs, prior=None, **extra):
@@ -302,7 +301,7 @@ def test_conditions_beyond_the_budget_are_reported_undecided():
 
 def test_zero_tests_see_identities_that_expansion_misses():
     # sin² + cos² − 1 ≡ 0 only by a trigonometric identity (expansion keeps it); 1e-20 x is not 0
-    from solver.analysis import is_zero
+    from yauyau.solver.analysis import is_zero
 
     x = sp.Symbol("x", real=True)
     assert is_zero(sp.sin(x) ** 2 + sp.cos(x) ** 2 - 1, [x])

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 from scipy.special import jn_zeros
 from skfem import BilinearForm, asm
-
-from solver import compile_model, fem, spec_from_dict
-from solver.basis import eigenbasis
+from yauyau.solver import compile_model, fem, spec_from_dict
+from yauyau.solver.basis import eigenbasis
 
 
 def make_model(n, radius, basis, mesh=None, order=2, center=None):
@@ -102,7 +101,7 @@ def test_ball_first_eigenvalue():
 
 
 def test_too_many_basis_functions_is_a_spec_error():
-    from solver.errors import SpecError
+    from yauyau.solver.errors import SpecError
 
     model = make_model(1, 1.0, 40, mesh=4, order=1)
     with pytest.raises(SpecError) as err:

@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def yauyau(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", "analyze", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "yauyau.service.cli", "analyze", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
 
 
@@ -109,9 +109,8 @@ def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
     import tomllib
 
     from fastapi.testclient import TestClient
-
-    from service.app import create_app
-    from service.settings import Settings
+    from yauyau.service.app import create_app
+    from yauyau.service.settings import Settings
 
     settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=1.0)
     api = TestClient(create_app(settings), raise_server_exceptions=False)  # no lifespan: no models needed

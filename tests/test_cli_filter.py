@@ -12,16 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from service.cli import main
-from solver import compile_model, load_spec, spec_from_dict
-from solver.engine import YauYauFilter
-from solver.errors import SpecError
-from solver.methods import make_filter, resolve_method
-from solver.offline import precompute
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.simulate import simulate
-from storage.model_store import ModelStore
+from yauyau.service.cli import main
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.errors import SpecError
+from yauyau.solver.methods import make_filter, resolve_method
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.storage.model_store import ModelStore
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 TWO_D = {"name": "ou-2d-small", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], "observation": ["p", "q"],

@@ -19,17 +19,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from solver import compile_model, load_spec, spec_from_dict
-from solver.engine import YauYauFilter
-from solver.errors import InputError, SpecError
-from solver.exact.riccati import GaussianKolmogorov, GaussianTerms, gaussian_to_terms, terms_to_gaussian
-from solver.filtering import Filter
-from solver.offline import precompute
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.reference.pointmass import PointMassFilter
-from solver.simulate import simulate
-from solver.spec import GaussianPrior
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.riccati import (
+    GaussianKolmogorov,
+    GaussianTerms,
+    gaussian_to_terms,
+    terms_to_gaussian,
+)
+from yauyau.solver.filtering import Filter
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.reference.pointmass import PointMassFilter
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import GaussianPrior
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -336,9 +340,9 @@ def test_two_dimensional_marginals_of_the_prior():
 _CONTINUE = """
 import json, sys
 import numpy as np
-from solver import compile_model, load_spec
-from solver.engine import YauYauFilter
-from solver.offline import OfflineModel
+from yauyau.solver import compile_model, load_spec
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline import OfflineModel
 model = compile_model(load_spec(sys.argv[1]))
 yy = YauYauFilter(model, OfflineModel.from_arrays(model, dict(np.load(sys.argv[2]))))
 state = yy.state_from_dict(json.loads(open(sys.argv[3]).read()))

@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from solver import compile_model, spec_from_dict
-from solver.engine import YauYauFilter
-from solver.offline import precompute
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.simulate import simulate
+from yauyau.solver import compile_model, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
 
 STEPS = 300
 

@@ -19,12 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from solver import compile_model, load_spec, spec_from_dict
-from solver.engine import YauYauFilter
-from solver.offline import precompute
-from solver.reference.benes import BenesFilter
-from solver.simulate import simulate
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline import precompute
+from yauyau.solver.reference.benes import BenesFilter
+from yauyau.solver.simulate import simulate
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

@@ -17,14 +17,13 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
-
-from solver.engine import YauYauFilter
-from solver.exact.kalman_bucy import KalmanBucyFilter
-from solver.exact.yau_hu import YauHuFilter
-from solver.model import compile_model
-from solver.offline import precompute
-from solver.simulate import simulate
-from solver.spec import load_spec, spec_from_dict
+from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+from yauyau.solver.exact.yau_hu import YauHuFilter
+from yauyau.solver.model import compile_model
+from yauyau.solver.offline import precompute
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec, spec_from_dict
 
 DT = 0.01
 STEPS = 300  # 3 s at DT

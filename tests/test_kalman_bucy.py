@@ -3,14 +3,13 @@
 import numpy as np
 import pytest
 from scipy.integrate import quad
-
-from solver.errors import InputError, SpecError
-from solver.exact.kalman_bucy import KINDS, KalmanBucyFilter
-from solver.filtering import Filter
-from solver.model import compile_model
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.simulate import simulate
-from solver.spec import spec_from_dict
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.kalman_bucy import KINDS, KalmanBucyFilter
+from yauyau.solver.filtering import Filter
+from yauyau.solver.model import compile_model
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import spec_from_dict
 
 
 def _model(dt=0.05, drift=("-0.8*x + 0.3",), observation=("1.5*x - 0.2",), a=0.6, R=0.4,

@@ -16,10 +16,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
-from solver.spec import load_spec
-from storage.errors import NotFound, StoreError
-from storage.model_store import FORMAT_VERSION, ModelStore, model_id
+from yauyau.solver.spec import load_spec
+from yauyau.storage.errors import NotFound, StoreError
+from yauyau.storage.model_store import FORMAT_VERSION, ModelStore, model_id
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = json.dumps({"name": "ou", "state": ["x"], "observation": ["x"], "drift": ["-x"],
@@ -221,7 +220,7 @@ def test_unwritable_directory_is_a_store_error(tmp_path: Path):
 _KILLED_WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    import storage.model_store as ms
+    import yauyau.storage.model_store as ms
 
     original = ms._write_dataset
     def slow_write(group, name, arr, *options):

@@ -3,10 +3,9 @@ evaluation at arbitrary points (against closed-form eigenfunctions), and bad inp
 
 import numpy as np
 import pytest
-
-from solver import compile_model, load_spec, spec_from_dict
-from solver.errors import InputError, SpecError
-from solver.offline import ARRAY_NAMES, OfflineModel, precompute
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.offline import ARRAY_NAMES, OfflineModel, precompute
 
 
 def make_model(n, radius=3.0, basis=24, mesh=None, order=2, dt=0.02, center=None):

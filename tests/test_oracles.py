@@ -16,9 +16,8 @@ from oracles import (
     linear_kolmogorov,
 )
 from scipy.linalg import expm
-
-from solver.errors import InputError, SpecError
-from solver.exact.riccati import GaussianKolmogorov, gaussian_to_terms, terms_to_gaussian
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.riccati import GaussianKolmogorov, gaussian_to_terms, terms_to_gaussian
 
 X1, X2, T = sp.symbols("x1 x2 t", real=True)
 XV = sp.Matrix([X1, X2])

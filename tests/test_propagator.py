@@ -21,11 +21,10 @@ import numpy as np
 import oracles
 import pytest
 from scipy.sparse.linalg import expm_multiply
-
-from solver import compile_model, fem, spec_from_dict
-from solver.exact.riccati import gaussian_to_terms
-from solver.offline import precompute
-from solver.propagator import SdirkPropagator
+from yauyau.solver import compile_model, fem, spec_from_dict
+from yauyau.solver.exact.riccati import gaussian_to_terms
+from yauyau.solver.offline import precompute
+from yauyau.solver.propagator import SdirkPropagator
 
 
 def make_model(drift, observation, radius, n=1, mesh=None, order=2, dt=0.05, substeps=64, basis=8):

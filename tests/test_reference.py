@@ -3,10 +3,9 @@
 import numpy as np
 import pytest
 import sympy as sp
-
-from solver.errors import SpecError
-from solver.model import compile_model
-from solver.reference import (
+from yauyau.solver.errors import SpecError
+from yauyau.solver.model import compile_model
+from yauyau.solver.reference import (
     BenesFilter,
     BootstrapParticleFilter,
     DiscreteKalmanFilter,
@@ -16,8 +15,8 @@ from solver.reference import (
     affine_coefficients,
     van_loan,
 )
-from solver.simulate import simulate
-from solver.spec import load_spec, spec_from_dict
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec, spec_from_dict
 
 OU = {"name": "ou", "state": ["x"], "drift": ["-theta*x + 0.3"], "observation": ["2*x - 0.5"],
       "parameters": {"theta": 0.8}, "diffusion": [[0.6]], "observation_noise": [[0.5]],
@@ -270,8 +269,7 @@ def test_ekf_prediction_of_a_nonlinear_drift_matches_the_ode_solution():
 def test_update_factor_is_the_gaussian_likelihood_ratio():
     """seed 002 (5.35): exp(hᵀR⁻¹Δy − ½hᵀR⁻¹h dt) = N(Δy; h dt, R dt) / N(Δy; 0, R dt)."""
     from scipy.stats import multivariate_normal
-
-    from solver.reference._base import log_update_factor
+    from yauyau.solver.reference._base import log_update_factor
 
     r = [[0.7, 0.2], [0.2, 0.4]]
     model = _model(ROT, observation=["x1**3", "sin(x2)"], observation_noise=r)
@@ -284,7 +282,7 @@ def test_update_factor_is_the_gaussian_likelihood_ratio():
 
 
 def test_systematic_resampling_keeps_each_count_within_one_of_n_w():
-    from solver.reference.particle import systematic_resample
+    from yauyau.solver.reference.particle import systematic_resample
 
     w = np.random.default_rng(52).dirichlet(np.ones(50))
     counts = np.bincount(systematic_resample(w, np.random.default_rng(53)), minlength=50)

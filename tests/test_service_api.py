@@ -14,13 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-
-from service.app import create_app
-from service.settings import Settings
-from solver.model import compile_model
-from solver.reference.kalman import DiscreteKalmanFilter
-from solver.simulate import simulate
-from solver.spec import load_spec
+from yauyau.service.app import create_app
+from yauyau.service.settings import Settings
+from yauyau.solver.model import compile_model
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec
 
 PROBLEM = "application/problem+json"
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"

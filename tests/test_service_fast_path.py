@@ -17,14 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-
-from service.app import create_app
-from service.settings import Settings
-from solver.model import compile_model
-from solver.simulate import simulate
-from solver.spec import load_spec
-from storage.errors import StoreError
-from storage.session_store import SessionStore
+from yauyau.service.app import create_app
+from yauyau.service.settings import Settings
+from yauyau.solver.model import compile_model
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec
+from yauyau.storage.errors import StoreError
+from yauyau.storage.session_store import SessionStore
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 AWKWARD = [5e-324, -0.0, 1.7976931348623157e308, 0.1, 1 / 3, 2.0**-1074 * 3, 123456789.12345678, 1e-310,

@@ -14,9 +14,8 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from schemathesis import GenerationMode
 from schemathesis.specs.openapi.checks import positive_data_acceptance
-
-from service.app import create_app
-from service.settings import Settings
+from yauyau.service.app import create_app
+from yauyau.service.settings import Settings
 
 EXAMPLES = 8  # per operation, mode and path-parameter choice: bounded, derandomized
 OPERATIONS = [("GET", "/livez"), ("GET", "/readyz"), ("GET", "/v1/models"), ("GET", "/v1/models/{model_id}"),

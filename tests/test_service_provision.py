@@ -35,11 +35,39 @@ def _wait(url: str, proc: subprocess.Popen, timeout: float = 120.0) -> None:
     raise AssertionError(f"{url} never answered")
 
 
+_IMPORTS = """
+import importlib, json
+found = {}
+for name in ("yauyau", "yauyau.solver", "yauyau.storage", "yauyau.service", "yauyau.service.cli",
+             "solver", "storage", "service"):
+    try:
+        found[name] = importlib.import_module(name).__file__
+    except ImportError:
+        found[name] = None
+print(json.dumps(found))
+"""
+
+
+def _assert_one_import_name(python: Path, cwd: Path) -> None:
+    """The install puts one top-level name in site-packages: yauyau (its layers under it)."""
+    import json
+
+    out = subprocess.run([str(python), "-c", _IMPORTS], cwd=cwd, check=True, capture_output=True, text=True,
+                         env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    found = json.loads(out.stdout)
+    for name in ("yauyau", "yauyau.solver", "yauyau.storage", "yauyau.service", "yauyau.service.cli"):
+        assert found[name] is not None and "site-packages" in found[name], (name, found[name])
+    assert found["solver"] is None and found["storage"] is None and found["service"] is None, found
+    site = Path(found["yauyau"]).parent.parent
+    assert not any((site / name).exists() for name in ("solver", "storage", "service"))
+
+
 @pytest.mark.slow
 def test_fresh_install_precompute_and_serve(tmp_path):
     venv, store = tmp_path / "venv", tmp_path / "store"
     subprocess.run([*PROVISION, "install", "--venv", str(venv)], check=True, cwd=tmp_path, timeout=600)
     assert (venv / "bin" / "yauyau").exists()
+    _assert_one_import_name(venv / "bin" / "python", tmp_path)
     spec = str(ROOT / "examples" / "cubic_sensor.toml")
     subprocess.run([*PROVISION, "precompute", "--venv", str(venv), "--store", str(store), spec],
                    check=True, cwd=tmp_path, timeout=300)

@@ -20,23 +20,23 @@ import httpx
 import numpy as np
 import pytest
 from conftest import EXAMPLES, free_port
-
-from solver.model import compile_model
-from solver.simulate import simulate
-from solver.spec import load_spec
+from yauyau.solver.model import compile_model
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec
 
 CHUNK = 50
 CHUNKS = 8
 
 
 class Server:
-    """`python -m service.cli serve` in its own process group (SIGKILL takes the workers too)."""
+    """`python -m yauyau.service.cli serve` in its own process group (SIGKILL takes the workers too)."""
 
     def __init__(self, store, db, workers=1):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--store", str(store), "--session-db", str(db),
-               "--port", str(self.port), "--workers", str(workers), "--log-level", "warning"]
+        cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
+               "--session-db", str(db), "--port", str(self.port), "--workers", str(workers),
+               "--log-level", "warning"]
         self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE)
         self._wait_ready()

@@ -15,9 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
-
-from storage.errors import Conflict, NotFound, StoreError
-from storage.session_store import SessionStore
+from yauyau.storage.errors import Conflict, NotFound, StoreError
+from yauyau.storage.session_store import SessionStore
 
 
 def append_seq(seq: int, delay: float = 0.0):

@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 from scipy.stats import norm
-
-from solver.errors import InputError
-from solver.model import compile_model
-from solver.simulate import sample_prior, simulate, simulate_paths
-from solver.spec import spec_from_dict
+from yauyau.solver.errors import InputError
+from yauyau.solver.model import compile_model
+from yauyau.solver.simulate import sample_prior, simulate, simulate_paths
+from yauyau.solver.spec import spec_from_dict
 
 
 def _spec(**over):

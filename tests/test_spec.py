@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 import sympy as sp
-
-from solver import SpecError, compile_model, load_spec, spec_from_dict
-from solver.expressions import parse_expression
+from yauyau.solver import SpecError, compile_model, load_spec, spec_from_dict
+from yauyau.solver.expressions import parse_expression
 
 X = sp.Symbol("x_0", real=True)
 

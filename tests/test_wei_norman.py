@@ -19,12 +19,11 @@ import pytest
 import sympy as sp
 from scipy.integrate import solve_ivp
 from scipy.interpolate import RegularGridInterpolator
-
-from solver.errors import InputError, SpecError
-from solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
-from solver.filtering import Filter
-from solver.model import compile_model
-from solver.spec import spec_from_dict
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
+from yauyau.solver.filtering import Filter
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import spec_from_dict
 
 SEED004_DRIFT = ["x1 + x2 - x3", "x1 + x2**2 + x3**2 + x3 - x2 + 1", "-x1 + x2**2 + x3**2"]
 
@@ -136,7 +135,7 @@ def test_linear_model_matches_kalman_bucy_with_loglik():
 
 
 def test_linear_model_with_the_stored_kolmogorov_propagator():
-    from solver.offline import precompute
+    from yauyau.solver.offline import precompute
 
     model = make(["x"], [f"-{THETA}*x + {B}"], [f"{C}*x + {D}"], [MEAN0], [[VAR0]], radius=8.0, dt=DT,
                  observation_noise=[[R]], discretization={"dt": DT, "basis": 120})

@@ -4,14 +4,13 @@ Beneš filter and the Kalman–Bucy filter."""
 import numpy as np
 import pytest
 import sympy as sp
-
-from solver.errors import InputError, SpecError
-from solver.exact.kalman_bucy import KalmanBucyFilter
-from solver.exact.yau_hu import YauHuFilter, yau_system
-from solver.filtering import Filter
-from solver.model import compile_model
-from solver.simulate import simulate
-from solver.spec import load_spec, spec_from_dict
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+from yauyau.solver.exact.yau_hu import YauHuFilter, yau_system
+from yauyau.solver.filtering import Filter
+from yauyau.solver.model import compile_model
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import load_spec, spec_from_dict
 
 t, z, xi, x = sp.symbols("t z xi x", real=True)
 

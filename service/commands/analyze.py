@@ -9,16 +9,16 @@ from __future__ import annotations
 
 import json
 
-from solver.analysis import (
+from yauyau.solver.analysis import (
     DEFAULT_MAX_DEPTH,
     DEFAULT_MAX_DIMENSION,
     DEFAULT_MAX_SIZE,
     DEFAULT_TIME_LIMIT,
     analyze,
 )
-from solver.errors import SpecError
-from solver.model import compile_model
-from solver.spec import load_spec
+from yauyau.solver.errors import SpecError
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import load_spec
 
 
 def add_arguments(parser) -> None:

@@ -24,8 +24,8 @@ DEFAULT_CHUNK = 1000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from solver.engine import FORMS, PRECISIONS
-    from solver.spec import METHODS
+    from yauyau.solver.engine import FORMS, PRECISIONS
+    from yauyau.solver.spec import METHODS
 
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)
@@ -42,8 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from solver.errors import InputError
-    from solver.methods import make_filter
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.methods import make_filter
 
     if args.chunk < 1:
         raise InputError("chunk", "must be a positive integer")
@@ -60,9 +60,9 @@ def run(args: argparse.Namespace) -> int:
 
 def load_stored_model(store_dir: str, model_id: str):
     """(Model, OfflineModel) of a stored model."""
-    from solver import compile_model, parse_spec_text
-    from solver.offline import OfflineModel
-    from storage.model_store import ModelStore
+    from yauyau.solver import compile_model, parse_spec_text
+    from yauyau.solver.offline import OfflineModel
+    from yauyau.storage.model_store import ModelStore
 
     stored = ModelStore(store_dir).load(model_id)
     model = compile_model(parse_spec_text(stored.spec_json, "json"))
@@ -72,9 +72,8 @@ def load_stored_model(store_dir: str, model_id: str):
 def read_increments(path: str, m: int):
     """(K, m) floats from .npy or CSV; NaN rows are missing observations."""
     import numpy as np
-
-    from solver.errors import InputError
-    from solver.filtering import check_increments
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.filtering import check_increments
 
     if Path(path).suffix.lower() == ".npy":
         try:
@@ -94,7 +93,7 @@ def read_increments(path: str, m: int):
 def parse_csv(text: str, m: int) -> list[list[float]]:
     """Rows of m fields; empty fields (or a blank line) are a missing observation (NaN row); the
     first line may be a header; blank lines at the end are ignored."""
-    from solver.errors import InputError
+    from yauyau.solver.errors import InputError
 
     lines = text.splitlines()
     while lines and not lines[-1].strip():
@@ -153,7 +152,7 @@ def header(model) -> list[str]:
 
 def write_csv(path: str, columns: list[str], rows: list[list]) -> None:
     """Write atomically (temporary file in the same directory, then rename)."""
-    from solver.errors import InputError
+    from yauyau.solver.errors import InputError
 
     target = Path(path)
     try:

@@ -36,8 +36,8 @@ def table(summaries) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from storage.errors import StoreError
-    from storage.model_store import ModelStore
+    from yauyau.storage.errors import StoreError
+    from yauyau.storage.model_store import ModelStore
 
     store = ModelStore(args.store)
     if not store.directory.is_dir():

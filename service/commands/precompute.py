@@ -47,7 +47,7 @@ def _progress_bar(args: argparse.Namespace, total: int):
 
 
 def _already_stored(args: argparse.Namespace, store, mid: str) -> bool:
-    from storage.errors import StoreError
+    from yauyau.storage.errors import StoreError
 
     if args.force or not store.exists(mid):
         return False
@@ -61,10 +61,10 @@ def _already_stored(args: argparse.Namespace, store, mid: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from solver import compile_model, load_spec
-    from solver.errors import InputError
-    from solver.offline import default_workers, precompute
-    from storage.model_store import ModelStore, model_id
+    from yauyau.solver import compile_model, load_spec
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.offline import default_workers, precompute
+    from yauyau.storage.model_store import ModelStore, model_id
 
     spec = load_spec(args.spec)
     model = compile_model(spec)

@@ -24,9 +24,8 @@ def add_arguments(parser):
 
 def _settings(args):
     from pydantic import ValidationError
-
-    from service.settings import Settings
-    from solver.errors import InputError
+    from yauyau.service.settings import Settings
+    from yauyau.solver.errors import InputError
 
     overrides = {k: v for k, v in {"store": args.store, "host": args.host, "port": args.port,
                                    "workers": args.workers, "session_db": args.session_db,
@@ -41,8 +40,7 @@ def _settings(args):
 
 def run(args):
     import uvicorn
-
-    from storage.errors import StoreError
+    from yauyau.storage.errors import StoreError
 
     settings = _settings(args)
     if not settings.store.is_dir():
@@ -53,6 +51,6 @@ def run(args):
     os.environ.update(settings.to_env())
     if settings.metrics_dir is not None:
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(settings.metrics_dir)
-    uvicorn.run("service.app:create_app", factory=True, host=settings.host, port=settings.port,
+    uvicorn.run("yauyau.service.app:create_app", factory=True, host=settings.host, port=settings.port,
                 workers=settings.workers, log_level=settings.log_level, access_log=False)
     return 0
