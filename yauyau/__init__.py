@@ -18,3 +18,50 @@ if not (_Path(__file__).resolve().parent / "solver").is_dir():
     __path__.append(str(_Path(__file__).resolve().parent.parent))  # noqa: F821 (a package's __path__)
 
 __version__ = "0.2.0"
+
+# The public API, small and stable.  Loaded on first use (PEP 562) so that ``import yauyau`` and the
+# CLI's start-up stay cheap: nothing below is imported until it is asked for.
+_API = {
+    # specs and models
+    "load_spec": "yauyau.solver.spec",
+    "parse_spec_text": "yauyau.solver.spec",
+    "ModelSpec": "yauyau.solver.spec",
+    "compile_model": "yauyau.solver.model",
+    "Model": "yauyau.solver.model",
+    # offline stage and the store
+    "precompute": "yauyau.api",
+    "ModelStore": "yauyau.storage.model_store",
+    # filtering
+    "open_filter": "yauyau.api",
+    "load_model": "yauyau.api",
+    "choose_method": "yauyau.api",
+    "OnlineFilter": "yauyau.api",
+    "make_filter": "yauyau.solver.methods",
+    "Estimate": "yauyau.solver.filtering",
+    "ChunkResult": "yauyau.solver.engine",
+    "simulate": "yauyau.api",
+    # analysis
+    "analyze": "yauyau.solver.analysis",
+    # errors (each names the field at fault)
+    "YauyauError": "yauyau.solver.errors",
+    "SpecError": "yauyau.solver.errors",
+    "InputError": "yauyau.solver.errors",
+    "StoreError": "yauyau.storage.errors",
+}
+
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'yauyau' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

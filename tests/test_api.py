@@ -1,0 +1,117 @@
+"""The public API (yauyau/__init__.py, yauyau/api.py) against independent truth.
+
+Truth here: the Ornstein–Uhlenbeck model observed linearly has the Kalman–Bucy filter as its exact
+optimal filter (a Riccati ODE, closed form in 1-D), so a filter opened through the API must give it;
+the conditional density of a Gaussian state is the normal density.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import yauyau
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.storage.errors import StoreError
+
+ROOT = Path(__file__).resolve().parent.parent
+OU = ROOT / "examples" / "ou.toml"
+
+
+@pytest.fixture(scope="module")
+def ou_store(tmp_path_factory):
+    store = tmp_path_factory.mktemp("api-store")
+    return store, yauyau.precompute(OU, store)
+
+
+def test_every_public_name_resolves_and_import_is_light():
+    for name in yauyau.__all__:
+        assert getattr(yauyau, name) is not None, name
+    assert sorted(yauyau.__all__) == dir(yauyau)
+    code = ("import sys, yauyau; heavy = [m for m in ('sympy', 'scipy', 'h5py', 'fastapi', 'skfem') "
+            "if m in sys.modules]; print(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert out.stdout.strip() == "[]"
+    with pytest.raises(AttributeError):
+        yauyau.no_such_name  # noqa: B018
+
+
+def test_precompute_stores_the_chosen_method_once(ou_store):
+    store, mid = ou_store
+    loaded = yauyau.load_model(store, mid)
+    assert loaded.method == "kalman-bucy"  # OU: the analysis finds the linear case
+    assert "linear" in loaded.method_reason.lower() or "kalman" in loaded.method_reason.lower()
+    again = yauyau.precompute(OU, store)  # already stored: verified, not recomputed
+    assert again == mid
+    assert yauyau.ModelStore(store).ids() == [mid]
+
+
+def test_open_filter_is_kalman_bucy_and_the_engine_agrees(ou_store):
+    store, mid = ou_store
+    spec = yauyau.load_spec(OU)
+    sim = yauyau.simulate(spec, steps=400, seed=3)
+    exact = yauyau.open_filter(store, mid)
+    engine = yauyau.open_filter(store, mid, method="yau-yau")
+    assert (exact.method, engine.method) == ("kalman-bucy", "yau-yau")
+    a, b = exact.run(sim.increments), engine.run(sim.increments)
+    # Kalman–Bucy by hand: dP/dt = -2θP + 1 - P², dm = -θm dt + P (dy - m dt), θ = 0.5
+    m, P, dt = 1.0, 0.5, 0.01
+    means = []
+    for dy in sim.increments[:, 0]:
+        for _ in range(100):  # fine Euler sub-steps of the Riccati ODE
+            P += (-P + 1.0 - P * P) * dt / 100
+        m += -0.5 * m * dt + P * (dy - m * dt)
+        means.append(m)
+    assert np.max(np.abs(a.mean[:, 0] - np.array(means))) < 0.02
+    assert np.max(np.abs(a.mean - b.mean)) < 0.02  # the engine's O(dt) splitting gap (docs/benchmarks.md)
+    assert exact.cov[0, 0] == pytest.approx((math.sqrt(5.0) - 1.0) / 2, rel=1e-3)  # steady Riccati: P² + P - 1 = 0
+
+
+def test_step_estimate_density_marginal_and_state(ou_store):
+    store, mid = ou_store
+    flt = yauyau.open_filter(store, mid, method="yau-yau")
+    first = flt.step([0.01])
+    assert first.step == 1 and flt.estimate.step == 1
+    predicted = flt.step(None)  # no observation: predict only
+    assert predicted.step == 2 and predicted.loglik_increment == pytest.approx(0.0, abs=1e-6)
+    grid = np.linspace(-6, 6, 1201)
+    density = flt.density(grid)
+    assert np.trapezoid(density, grid) == pytest.approx(1.0, abs=1e-4)
+    mean, var = flt.mean[0], flt.cov[0, 0]
+    normal = np.exp(-0.5 * (grid - mean) ** 2 / var) / math.sqrt(2 * math.pi * var)
+    assert np.max(np.abs(density - normal)) < 2e-3  # the posterior of a linear-Gaussian model is Gaussian
+    assert np.allclose(flt.marginal("x", grid), density)
+    saved = json.loads(json.dumps(flt.state_dict()))
+    continued = flt.step([0.02])
+    flt.restore(saved)
+    assert flt.step([0.02]).mean == pytest.approx(continued.mean, abs=0)  # exact restart
+    flt.reset()
+    assert flt.estimate.step == 0 and flt.mean[0] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_user_errors_name_the_field(ou_store, tmp_path):
+    store, mid = ou_store
+    with pytest.raises(StoreError):
+        yauyau.open_filter(store, "0" * 20)
+    with pytest.raises(InputError) as err:
+        yauyau.open_filter(store, 12)
+    assert err.value.field == "model_id"
+    with pytest.raises(SpecError) as err:
+        yauyau.open_filter(store, mid, method="auto")
+    assert err.value.field == "method"
+    flt = yauyau.open_filter(store, mid)
+    with pytest.raises(InputError):
+        flt.step([1.0, 2.0])  # m = 1
+    with pytest.raises(InputError) as err:
+        flt.marginal("y", [0.0])
+    assert err.value.field == "variable"
+    with pytest.raises(InputError) as err:
+        yauyau.simulate(OU, steps=0)
+    assert err.value.field == "steps"

@@ -1,0 +1,273 @@
+"""The public Python face of yauyau: spec -> precompute -> open a filter -> step it.
+
+    import yauyau
+
+    spec = yauyau.load_spec("examples/cubic_sensor.toml")
+    model_id = yauyau.precompute(spec, "var/store")        # offline stage, once, into an HDF5 store
+    flt = yauyau.open_filter("var/store", model_id)        # the method chosen at precompute
+    sim = yauyau.simulate(spec, steps=500, seed=1)          # truth and increments dy_k
+    chunk = flt.run(sim.increments)                         # ChunkResult: mean, cov, mode, loglik...
+    flt.density([[0.0], [1.0]])                             # conditional density now
+
+A filter of :mod:`yauyau.solver` is a function of (state, data) (the ``Filter`` protocol of
+``yauyau.solver.filtering``); :class:`OnlineFilter` carries its state along, as a stream needs.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .solver.errors import InputError, SpecError
+from .solver.filtering import Estimate
+from .solver.spec import ModelSpec, load_spec
+from .storage.model_store import ModelStore
+
+DEFAULT_TIME_LIMIT = 60.0  # seconds the estimation-algebra analysis may spend choosing the method
+
+
+def _as_spec(spec: ModelSpec | str | os.PathLike) -> ModelSpec:
+    return spec if isinstance(spec, ModelSpec) else load_spec(spec)
+
+
+def _as_store(store: ModelStore | str | os.PathLike) -> ModelStore:
+    return store if isinstance(store, ModelStore) else ModelStore(store)
+
+
+def choose_method(model: Any, method: str | None = None, time_limit: float | None = DEFAULT_TIME_LIMIT
+                  ) -> tuple[str, str]:
+    """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
+    estimation-algebra analysis once (bounded by ``time_limit`` seconds)."""
+    from .solver.methods import resolve_method
+
+    requested = model.spec.method if method is None else method
+    if requested != "auto":
+        resolve_method(model, requested)  # validates the name
+        return requested, f"method = {requested!r} in the spec" if method is None else "asked for"
+    from .solver import analysis
+
+    report = analysis.analyze(model, time_limit=time_limit)
+    chosen, reason = analysis.recommend_method(report)
+    return chosen, reason
+
+
+def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
+               workers: int = 1, time_limit: float | None = DEFAULT_TIME_LIMIT, force: bool = False,
+               progress: Any | None = None) -> str:
+    """Solve the offline stage of ``spec`` (a :class:`ModelSpec` or a spec file) and save it in
+    ``store`` (a directory or a :class:`ModelStore`); returns the model id (a content hash).
+
+    The filter method is chosen here, once (``auto`` asks the estimation-algebra analysis within
+    ``time_limit`` seconds), and stored with its reason; :func:`open_filter` reads it back.  A model
+    already in the store is verified and kept unless ``force``.
+    """
+    import time
+
+    from .solver.model import compile_model
+    from .solver.offline import precompute as solve_offline
+    from .storage.errors import StoreError
+    from .storage.model_store import model_id
+
+    spec = _as_spec(spec)
+    store = _as_store(store)
+    spec_json = spec.canonical_json()
+    mid = model_id(spec_json)
+    if not force and store.exists(mid):
+        try:
+            store.load(mid)
+            return mid
+        except StoreError:
+            pass  # unusable file: compute it again
+    store.ensure_writable()
+    model = compile_model(spec)
+    method, reason = choose_method(model, time_limit=time_limit)
+    started = time.perf_counter()
+    offline = solve_offline(model, workers=workers, progress=progress)
+    attrs = {"precompute_seconds": round(time.perf_counter() - started, 3), "workers": workers,
+             "name": spec.name, "method": method, "method_reason": reason}
+    return store.save(spec_json, offline.to_arrays(), attrs)
+
+
+@dataclass(frozen=True)
+class StoredFilterModel:
+    """A stored model opened for filtering: the compiled model, its offline arrays and the method
+    chosen at precompute (with the reason)."""
+
+    id: str
+    model: Any
+    offline: Any
+    method: str
+    method_reason: str
+    attrs: dict[str, Any]
+
+
+def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFilterModel:
+    """Read and verify a stored model; never runs the analysis (the method was chosen at precompute;
+    files from before 0.2 that lack it fall back to the spec's method, ``auto`` meaning yau-yau)."""
+    from .solver.model import compile_model
+    from .solver.offline import OfflineModel
+    from .solver.spec import parse_spec_text
+
+    stored = _as_store(store).load(model_id)
+    model = compile_model(parse_spec_text(stored.spec_json, "json"))
+    method = stored.attrs.get("method")
+    reason = stored.attrs.get("method_reason", "")
+    if not method:
+        method = model.spec.method if model.spec.method != "auto" else "yau-yau"
+        reason = "no method stored with this model (precomputed before 0.2): the spec's, auto -> yau-yau"
+    return StoredFilterModel(id=model_id, model=model, offline=OfflineModel.from_arrays(model, stored.arrays),
+                             method=method, method_reason=reason, attrs=stored.attrs)
+
+
+def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: str | None = None, *,
+                prior: Any | None = None, form: str = "stable", precision: str | None = None
+                ) -> "OnlineFilter":
+    """A ready-to-step filter of a stored model.
+
+    ``method`` overrides the one chosen at precompute (``yau-yau``, ``kalman-bucy``, ...; an exact
+    filter that does not apply raises SpecError('method')); ``prior`` (a spec prior, e.g.
+    ``{"kind": "gaussian", "mean": [0], "cov": [[1]]}``) overrides the model's.
+    """
+    from .solver.methods import make_filter
+
+    if not isinstance(model_id, str):
+        raise InputError("model_id", "must be a model id (a string; yauyau models lists them)")
+    loaded = load_model(store, model_id)
+    if method == "auto":
+        raise SpecError("method", "auto is resolved at precompute; name a method or leave it out")
+    flt = make_filter(loaded.model, loaded.offline, method or loaded.method, form=form, precision=precision)
+    return OnlineFilter(flt, prior=prior)
+
+
+def simulate(spec: ModelSpec | str | os.PathLike | Any, steps: int, seed: int | None = 0,
+             substeps: int = 10) -> Any:
+    """A sample path of the model and its observation increments (Euler–Maruyama with ``substeps``
+    per dt): ``.times`` (K+1,), ``.states`` (K+1, n), ``.increments`` (K, m)."""
+    from .solver.model import Model, compile_model
+    from .solver.simulate import simulate as simulate_model
+
+    model = spec if isinstance(spec, Model) else compile_model(_as_spec(spec))
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise InputError("steps", "must be a positive integer")
+    return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps)
+
+
+class OnlineFilter:
+    """A filter and its current state: ``step`` one increment or ``run`` a chunk; ``estimate``,
+    ``mean``, ``cov``, ``mode`` and ``loglik`` now; the ``density`` and ``marginal`` now.
+
+    ``filter`` is the underlying :class:`yauyau.solver.filtering.Filter` (a pure function of state
+    and data); ``state`` is its JSON-safe state (``state_dict()``/``restore`` move it between
+    processes, exactly).
+    """
+
+    def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None):
+        self.filter = flt
+        self.model = flt.model
+        self.method: str = flt.method
+        self.state = flt.initial_state(prior) if state is None else state
+
+    def __repr__(self) -> str:
+        return f"<OnlineFilter {self.model.spec.name!r} method={self.method} step={self.state.step}>"
+
+    # -- stepping -----------------------------------------------------------------------
+    def step(self, increment: Any | None = None) -> Estimate:
+        """One observation interval dt: ``increment`` Δy (m numbers), or None to only predict."""
+        self.state, estimate = self.filter.step(self.state, None if increment is None
+                                                else np.asarray(increment, dtype=float))
+        return estimate
+
+    def run(self, increments: Any) -> Any:
+        """A chunk of increments (K, m) (NaN rows: no observation); returns the chunk's estimates as
+        arrays (``step``, ``t``, ``mean`` (K, n), ``cov`` (K, n, n), ``mode``, ``loglik``,
+        ``degenerate``, ``reason``; ``.estimates()`` gives Estimate objects)."""
+        self.state, result = self.filter.run_arrays(self.state, increments)
+        return result
+
+    def iterate(self, increments: Any):
+        """Yield one Estimate per row of ``increments``, stepping as it goes."""
+        for row in np.asarray(increments, dtype=float).reshape(len(increments), -1):
+            yield self.step(None if np.isnan(row).all() else row)
+
+    # -- now ------------------------------------------------------------------------------
+    @property
+    def estimate(self) -> Estimate:
+        return self.filter.estimate(self.state)
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.estimate.mean
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.estimate.cov
+
+    @property
+    def mode(self) -> np.ndarray | None:
+        return self.estimate.mode
+
+    @property
+    def loglik(self) -> float:
+        return self.estimate.loglik
+
+    @property
+    def degenerate(self) -> bool:
+        return bool(self.state.degenerate)
+
+    def density(self, points: Any) -> np.ndarray:
+        """Normalised conditional density at points (P, n) (for n = 1 a flat list will do)."""
+        points = np.asarray(points, dtype=float)
+        if points.ndim == 1 and self.model.n == 1:
+            points = points[:, None]
+        return self.filter.density(self.state, points)
+
+    def marginal(self, variable: int | str, grid: Any, resolution: int = 64) -> np.ndarray:
+        """Marginal density of one state variable (index or name) at the values ``grid``."""
+        names = list(self.model.spec.state)
+        if isinstance(variable, str):
+            if variable not in names:
+                raise InputError("variable", f"unknown state variable {variable!r} (have {names})")
+            variable = names.index(variable)
+        grid = np.asarray(grid, dtype=float)
+        if hasattr(self.filter, "marginal"):
+            return self.filter.marginal(self.state, variable, grid, resolution)
+        return _gaussian_box_marginal(self, variable, grid, resolution)
+
+    # -- state ------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """The state as JSON-safe data (carried log-likelihood included)."""
+        return self.state.to_dict()
+
+    def restore(self, data: dict[str, Any]) -> None:
+        """Continue from a :meth:`state_dict` (validated; bad fields raise InputError)."""
+        self.state = self.filter.state_from_dict(data)
+
+    def reset(self, prior: Any | None = None) -> None:
+        """Back to t = 0 with the model's prior (or ``prior``)."""
+        self.state = self.filter.initial_state(prior)
+
+
+def _gaussian_box_marginal(flt: OnlineFilter, variable: int, grid: np.ndarray, resolution: int) -> np.ndarray:
+    """Marginal by the trapezoidal rule over the other coordinates, on a box of ±8 standard deviations
+    around the mean (the filters without a marginal of their own have light-tailed densities)."""
+    n = flt.model.n
+    if n == 1:
+        return flt.density(grid[:, None])
+    mean, sd = flt.mean, np.sqrt(np.clip(np.diag(flt.cov), 1e-300, None))
+    rest = [i for i in range(n) if i != variable]
+    axes = [np.linspace(mean[i] - 8 * sd[i], mean[i] + 8 * sd[i], resolution) for i in rest]
+    others = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n - 1)
+    points = np.empty((len(grid), len(others), n))
+    points[:, :, variable] = grid[:, None]
+    points[:, :, rest] = others[None]
+    values = flt.density(points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
+    for axis in axes[::-1]:
+        values = np.trapezoid(values, axis, axis=-1)
+    return values
+
+
+__all__ = ["OnlineFilter", "StoredFilterModel", "choose_method", "load_model", "open_filter", "precompute",
+           "simulate"]
