@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-import yauyau
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.storage.errors import StoreError
+
+import yauyau
 
 ROOT = Path(__file__).resolve().parent.parent
 OU = ROOT / "examples" / "ou.toml"
