@@ -71,7 +71,8 @@ def test_open_filter_is_kalman_bucy_and_the_engine_agrees(ou_store):
         means.append(m)
     assert np.max(np.abs(a.mean[:, 0] - np.array(means))) < 0.02
     assert np.max(np.abs(a.mean - b.mean)) < 0.02  # the engine's O(dt) splitting gap (docs/benchmarks.md)
-    assert exact.cov[0, 0] == pytest.approx((math.sqrt(5.0) - 1.0) / 2, rel=1e-3)  # steady Riccati: P² + P - 1 = 0
+    # the steady Riccati solution: P² + P - 1 = 0
+    assert exact.cov[0, 0] == pytest.approx((math.sqrt(5.0) - 1.0) / 2, rel=1e-3)
 
 
 def test_step_estimate_density_marginal_and_state(ou_store):
