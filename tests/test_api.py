@@ -69,8 +69,9 @@ def test_open_filter_is_kalman_bucy_and_the_engine_agrees(ou_store):
             P += (-P + 1.0 - P * P) * dt / 100
         m += -0.5 * m * dt + P * (dy - m * dt)
         means.append(m)
-    assert np.max(np.abs(a.mean[:, 0] - np.array(means))) < 0.02
-    assert np.max(np.abs(a.mean - b.mean)) < 0.02  # the engine's O(dt) splitting gap (docs/benchmarks.md)
+    # measured 4.0e-3 (the O(dt) of this Euler recursion) and 4.8e-3 (the engine's O(dt) splitting gap)
+    assert np.max(np.abs(a.mean[:, 0] - np.array(means))) < 0.01
+    assert np.max(np.abs(a.mean - b.mean)) < 0.01
     # the steady Riccati solution: P² + P - 1 = 0
     assert exact.cov[0, 0] == pytest.approx((math.sqrt(5.0) - 1.0) / 2, rel=1e-3)
 
