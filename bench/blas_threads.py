@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
-
 from yauyau.solver import compile_model, load_spec
 from yauyau.solver.engine import YauYauFilter
 from yauyau.solver.offline import precompute
