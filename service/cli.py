@@ -21,14 +21,17 @@ COMMANDS = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``only`` (the command about to run) just that command's module is imported,
+    so a command pays for its own imports only (``yauyau filter`` never loads the analysis)."""
     parser = argparse.ArgumentParser(prog="yauyau", description="Real-time optimal nonlinear filtering.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, help_text in COMMANDS.items():
-        module = importlib.import_module(f"yauyau.service.commands.{name}")
         cmd = sub.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(cmd)
-        cmd.set_defaults(_module=module)
+        if only is None or name == only:
+            module = importlib.import_module(f"yauyau.service.commands.{name}")
+            module.add_arguments(cmd)
+            cmd.set_defaults(_module=module)
     return parser
 
 
@@ -36,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     from yauyau.solver.errors import YauyauError
     from yauyau.storage.errors import StoreError
 
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    first = argv[0] if argv else None
+    args = build_parser(first if first in COMMANDS else None).parse_args(argv)
     try:
         return int(args._module.run(args) or 0)
     except (YauyauError, StoreError) as exc:

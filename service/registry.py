@@ -1,21 +1,23 @@
-"""The models a worker serves, loaded once at start-up and kept in memory.
+"""The models a worker serves: listed from the store's file attributes at start-up, loaded on first
+use and kept in a bounded least-recently-used cache.
 
-Each stored model becomes a compiled :class:`solver.model.Model`, its
-:class:`solver.offline.OfflineModel` (the propagators) and one filter per method asked for.
+Start-up reads no arrays and runs no analysis, so a server is ready at once whatever the number of
+stored models.  A model is loaded (verified, compiled, its offline arrays and default filter built)
+by the first request that needs it; the filter method is the one chosen at precompute
+(:func:`yauyau.api.load_model`).  At most ``capacity`` models stay in memory; the least recently
+used one is dropped (a session of a dropped model is served by loading it again).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from yauyau.solver.filtering import Filter
-from yauyau.solver.model import Model, compile_model
-from yauyau.solver.spec import spec_from_dict
 from yauyau.storage.errors import NotFound
 from yauyau.storage.model_store import ModelStore
 
@@ -26,15 +28,17 @@ log = logging.getLogger("yauyau.service")
 class LoadedModel:
     id: str
     spec: dict[str, Any]
-    model: Model
+    model: Any
     offline: Any
     basis: int
+    method: str  # chosen at precompute
     filters: dict[str, Filter] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def filter(self, method: str | None = None) -> Filter:
-        """The filter for ``method`` (None: the spec's), built once and shared by all sessions."""
-        key = method or self.model.spec.method
+        """The filter for ``method`` (None: the one chosen at precompute), built once and shared by all
+        sessions of this worker."""
+        key = method or self.method
         with self._lock:
             if key not in self.filters:
                 from yauyau.solver.methods import make_filter
@@ -46,43 +50,81 @@ class LoadedModel:
         spec = self.model.spec
         return {"id": self.id, "name": spec.name, "state": list(spec.state), "n": spec.n, "m": spec.m,
                 "dt": spec.discretization.dt, "radius": spec.domain.radius, "basis": self.basis,
-                "method": self.filter().method}
+                "method": self.method}
 
 
 def load_model(store: ModelStore, model_id: str) -> LoadedModel:
-    from yauyau.solver.offline import OfflineModel
+    import json
 
-    stored = store.load(model_id)
-    spec_doc = json.loads(stored.spec_json)
-    model = compile_model(spec_from_dict(spec_doc))
-    offline = OfflineModel.from_arrays(model, stored.arrays)
-    arrays = stored.arrays
-    basis = arrays["basis"].shape[-1] if "basis" in arrays else spec_doc["discretization"]["basis"]
-    loaded = LoadedModel(id=model_id, spec=spec_doc, model=model, offline=offline, basis=int(basis))
-    loaded.filter()  # build the default filter now, not on the first request
+    from yauyau.api import load_model as load_stored
+
+    stored = load_stored(store, model_id)
+    spec_doc = json.loads(stored.model.spec.canonical_json())
+    loaded = LoadedModel(id=model_id, spec=spec_doc, model=stored.model, offline=stored.offline,
+                         basis=int(stored.offline.size), method=stored.method)
+    loaded.filter()  # the default filter now, not inside the first chunk
     return loaded
 
 
 class Registry:
-    """Every model of the store directory, by id (unreadable ones are logged and skipped)."""
+    """The models of one store directory, by id, loaded on demand (LRU of ``capacity`` models)."""
 
-    def __init__(self, models: dict[str, LoadedModel]):
-        self.models = models
+    def __init__(self, store: ModelStore, capacity: int = 8):
+        self.store = store
+        self.capacity = max(1, int(capacity))
+        self._cache: OrderedDict[str, LoadedModel] = OrderedDict()
+        self._lock = threading.Lock()
+        self._loading: dict[str, threading.Lock] = {}
+        self.loads = 0  # models loaded so far (a reload after eviction counts again)
 
     @classmethod
-    def load(cls, directory: Path) -> "Registry":
-        store = ModelStore(directory)
-        models = {}
-        for model_id in store.ids():
-            try:
-                models[model_id] = load_model(store, model_id)
-            except Exception as exc:  # one bad file must not take the service down
-                log.error("skipping model %s: %s", model_id, exc)
-        log.info("loaded %d model(s) from %s", len(models), directory)
-        return cls(models)
+    def open(cls, directory: Path, capacity: int = 8) -> "Registry":
+        registry = cls(ModelStore(directory), capacity)
+        log.info("model store %s: %d model(s), loaded on first use (cache of %d)", directory,
+                 len(registry.store.ids()), registry.capacity)
+        return registry
+
+    def ids(self) -> list[str]:
+        return self.store.ids()
+
+    def loaded_ids(self) -> list[str]:
+        with self._lock:
+            return list(self._cache)
+
+    def summaries(self) -> list[dict[str, Any]]:
+        """Every stored model, from the file attributes (no arrays read); unreadable files are listed
+        with their error instead of a summary."""
+        out = []
+        for summary in self.store.list():
+            if summary.error is not None:
+                out.append({"id": summary.id, "error": summary.error})
+                continue
+            out.append({"id": summary.id, "name": summary.name, "state": summary.state, "n": summary.n,
+                        "m": summary.m, "dt": summary.dt, "radius": summary.radius, "basis": summary.basis,
+                        "method": summary.extra.get("method")})
+        return out
 
     def get(self, model_id: str, field_name: str = "model") -> LoadedModel:
-        try:
-            return self.models[model_id]
-        except KeyError:
-            raise NotFound(field_name, f"no model {model_id!r} (see GET /v1/models)") from None
+        with self._lock:
+            loaded = self._cache.get(model_id)
+            if loaded is not None:
+                self._cache.move_to_end(model_id)
+                return loaded
+            if not self.store.exists(model_id):
+                raise NotFound(field_name, f"no model {model_id!r} (see GET /v1/models)")
+            gate = self._loading.setdefault(model_id, threading.Lock())
+        with gate:  # one load per model at a time; others wait for it
+            with self._lock:
+                if model_id in self._cache:
+                    self._cache.move_to_end(model_id)
+                    return self._cache[model_id]
+            loaded = load_model(self.store, model_id)
+            with self._lock:
+                self.loads += 1
+                self._cache[model_id] = loaded
+                while len(self._cache) > self.capacity:
+                    dropped, _ = self._cache.popitem(last=False)
+                    log.info("model %s dropped from the cache (capacity %d)", dropped, self.capacity)
+                self._loading.pop(model_id, None)
+            log.info("loaded model %s (%s, method %s)", model_id, loaded.model.spec.name, loaded.method)
+            return loaded

@@ -100,14 +100,17 @@ class DensityOut(BaseModel):
 
 class ModelSummary(BaseModel):
     id: str
-    name: str
-    state: list[str]
-    n: int
-    m: int
-    dt: float
-    radius: float
-    basis: int
-    method: str = Field(description="the filter a session runs by default")
+    name: str | None = None
+    state: list[str] | None = None
+    n: int | None = None
+    m: int | None = None
+    dt: float | None = None
+    radius: float | None = None
+    basis: int | None = None
+    method: str | None = Field(None, description="the filter a session runs by default (chosen at "
+                                                 "precompute)")
+    error: str | None = Field(None, description="set, and the rest left out, when the model file is "
+                                                "unreadable")
 
 
 class ModelDetail(ModelSummary):

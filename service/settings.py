@@ -32,6 +32,12 @@ class Settings(BaseSettings):
     analyze_time_limit: float = Field(
         10.0, gt=0, le=3600, description="seconds one POST /v1/analyze may compute (the report then says "
                                          "which bound stopped the analysis)")
+    blas_threads: int = Field(
+        1, ge=1, le=1024, description="BLAS threads per worker process for the online products (1: fastest "
+                                      "on a busy host, docs/bench-blas.md)")
+    model_cache: int = Field(
+        8, ge=1, le=100_000, description="models each worker keeps loaded (least recently used dropped "
+                                         "first); models load on first use")
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
     metrics_dir: Path | None = Field(
         None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")

@@ -31,7 +31,8 @@ import numpy as np
 
 from .errors import NotFound, StoreError
 
-FORMAT_VERSION = 1
+# 2 (yauyau 0.2): the filter method chosen at precompute is stored (attrs "method", "method_reason")
+FORMAT_VERSION = 2
 ID_LENGTH = 20
 SUFFIX = ".h5"
 TMP_PREFIX = ".tmp-"
@@ -59,6 +60,7 @@ class ModelSummary:
 
     id: str
     name: str | None = None
+    state: list[str] | None = None
     n: int | None = None
     m: int | None = None
     dt: float | None = None
@@ -70,9 +72,10 @@ class ModelSummary:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "name": self.name, "n": self.n, "m": self.m, "dt": self.dt,
+        return {"id": self.id, "name": self.name, "state": self.state, "n": self.n, "m": self.m,
+                "dt": self.dt,
                 "radius": self.radius, "basis": self.basis, "created": self.created,
-                "file_size": self.file_size, "error": self.error}
+                "file_size": self.file_size, "error": self.error, **self.extra}
 
 
 def canonical_spec(spec_json: str) -> str:
@@ -317,22 +320,26 @@ class ModelStore:
                 spec = json.loads(_text_attr(h5, "spec"))
                 created = _text_attr(h5, "created")
                 basis_shape = _basis_shape(h5)
+                attrs = json.loads(_text_attr(h5, "attrs"))
         except FileNotFoundError:
             return ModelSummary(id=mid, error="deleted while listing")
         except (OSError, KeyError, ValueError, TypeError, RuntimeError, StoreError) as exc:
             return ModelSummary(id=mid, file_size=_size_or_zero(path), error=_short(exc))
-        return _summary_from_spec(mid, spec, created, size, basis_shape)
+        return _summary_from_spec(mid, spec, created, size, basis_shape, attrs)
 
 
-def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shape) -> ModelSummary:
+def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shape,
+                       attrs: dict | None = None) -> ModelSummary:
     disc = spec.get("discretization") or {}
     domain = spec.get("domain") or {}
     basis = int(basis_shape[-1]) if basis_shape else disc.get("basis")
     state, obs = spec.get("state"), spec.get("observation")
     return ModelSummary(
-        id=mid, name=spec.get("name"), n=len(state) if isinstance(state, list) else None,
+        id=mid, name=spec.get("name"), state=state if isinstance(state, list) else None,
+        n=len(state) if isinstance(state, list) else None,
         m=len(obs) if isinstance(obs, list) else None, dt=disc.get("dt"), radius=domain.get("radius"),
-        basis=basis, created=created, file_size=size)
+        basis=basis, created=created, file_size=size,
+        extra={key: (attrs or {})[key] for key in ("method", "method_reason") if key in (attrs or {})})
 
 
 def _basis_shape(h5: h5py.File) -> tuple | None:
@@ -366,8 +373,11 @@ def _text_attr(h5: h5py.File, name: str) -> str:
 def _check_version(h5: h5py.File, mid: str) -> None:
     version = h5.attrs.get("format_version")
     if version is None or int(version) != FORMAT_VERSION:
+        hint = (": re-run `yauyau precompute SPEC` (the spec is kept in the file: `h5dump -a spec`)"
+                if version is not None and int(version) < FORMAT_VERSION else "")
         raise StoreError("format_version",
-                         f"model {mid} has format version {version}, this library reads {FORMAT_VERSION}")
+                         f"model {mid} has format version {version}, this library reads "
+                         f"{FORMAT_VERSION}{hint}")
 
 
 def _verified(h5: h5py.File, mid: str) -> StoredModel:

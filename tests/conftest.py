@@ -12,15 +12,10 @@ EXAMPLES = ROOT / "examples"
 
 
 def precompute_into(store: Path, spec_path: Path) -> str:
-    """Solve the offline stage of an example spec and save it; returns the model id."""
-    from yauyau.solver.model import compile_model
-    from yauyau.solver.offline import precompute
-    from yauyau.solver.spec import load_spec
-    from yauyau.storage.model_store import ModelStore
+    """Solve the offline stage of an example spec and save it (method chosen once); returns the id."""
+    import yauyau
 
-    spec = load_spec(spec_path)
-    offline = precompute(compile_model(spec))
-    return ModelStore(store).save(spec.canonical_json(), offline.to_arrays(), {"source": spec_path.name})
+    return yauyau.precompute(spec_path, store)
 
 
 @pytest.fixture(scope="session")

@@ -20,7 +20,8 @@ from yauyau.solver.methods import make_filter, resolve_method
 from yauyau.solver.offline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
-from yauyau.storage.model_store import ModelStore
+
+import yauyau
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 TWO_D = {"name": "ou-2d-small", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], "observation": ["p", "q"],
@@ -29,9 +30,7 @@ TWO_D = {"name": "ou-2d-small", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], 
 
 
 def _store(directory: Path, spec) -> str:
-    model = compile_model(spec)
-    arrays = precompute(model).to_arrays()
-    return ModelStore(directory).save(spec.canonical_json(), arrays, {"name": spec.name})
+    return yauyau.precompute(spec, directory)  # the method is chosen here, once
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +111,77 @@ def test_bad_input_one_line_exit_2_no_output(store, tmp_path, capsys, content, f
     code, out = _filter(store, "ou", tmp_path, source)
     err = capsys.readouterr().err
     assert code == 2 and not out.exists()
-    assert err.count("\n") == 1 and field in err
+    assert err.count("\n") == 1 and field in err  # input is checked before anything else is said
+
+
+@pytest.mark.parametrize("content, field", [
+    ("0.1,abc\n0.2,0.3\n", "increments[0][1]: line 1"),  # used to be taken for a header: every step shifted
+    ("abc,0.1\n0.2,0.3\n", "increments[0][0]: line 1"),
+])
+def test_malformed_first_row_is_an_error_not_a_header(store, tmp_path, capsys, content, field):
+    source = tmp_path / "bad.csv"
+    source.write_text(content)
+    code, out = _filter(store, "2d", tmp_path, source)
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists() and field in err
+
+
+def test_header_of_text_is_skipped_and_rows_keep_their_steps(store, tmp_path):
+    source = tmp_path / "in.csv"
+    source.write_text("dy_p,dy_q\n0.01,0.02\n0.03,-0.01\n")
+    code, out = _filter(store, "2d", tmp_path, source, "--method", "yau-yau")
+    columns, table = _read(out)
+    assert code == 0 and table.shape[0] == 2 and list(table[:, 0]) == [1.0, 2.0]
+
+
+def test_filter_uses_the_stored_method_says_so_and_never_analyses(store, tmp_path):
+    """The method is chosen at precompute: `yauyau filter` prints it and does not load the analysis."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    directory, ids, model = store
+    source = tmp_path / "in.npy"
+    np.save(source, simulate(model, 5, np.random.default_rng(1)).increments)
+    code = ("import sys, json; from yauyau.service.cli import main; code = main(sys.argv[1:]); "
+            "print(json.dumps({'code': code, 'analysis': 'yauyau.solver.analysis' in sys.modules}))")
+    root = str(Path(__file__).resolve().parent.parent)
+    out = subprocess.run([sys.executable, "-c", code, "filter", ids["ou"], "--store", str(directory),
+                          "--increments", str(source), "--out", str(tmp_path / "o.csv")],
+                         capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=root), timeout=120)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["code"] == 0 and not result["analysis"], out.stderr
+    assert "yauyau filter: method kalman-bucy (stored at precompute: f and h are affine" in out.stderr
+
+
+@pytest.mark.parametrize("flag, threads", [([], 1), (["--blas-threads", "2"], 2)])
+def test_blas_threads_of_the_hot_path(store, tmp_path, monkeypatch, flag, threads):
+    from threadpoolctl import threadpool_info
+    from yauyau.service.commands import filter as command
+
+    seen = []
+    real = command.filter_rows
+
+    def spy(*args, **kwargs):
+        seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(command, "filter_rows", spy)
+    source = tmp_path / "in.csv"
+    source.write_text("0.1\n")
+    code, _ = _filter(store, "ou", tmp_path, source, "--method", "yau-yau", *flag)
+    assert code == 0 and seen and set(seen) == {threads}
+
+
+def test_blas_threads_refused_when_not_positive(store, tmp_path, capsys, monkeypatch):
+    source = tmp_path / "in.csv"
+    source.write_text("0.1\n")
+    code, _ = _filter(store, "ou", tmp_path, source, "--blas-threads", "0")
+    assert code == 2 and "blas_threads" in capsys.readouterr().err
+    monkeypatch.setenv("YAUYAU_BLAS_THREADS", "many")
+    code, _ = _filter(store, "ou", tmp_path, source)
+    assert code == 2 and "YAUYAU_BLAS_THREADS" in capsys.readouterr().err
 
 
 def test_bad_2d_rows_and_missing_model(store, tmp_path, capsys):

@@ -37,20 +37,27 @@ def _as_store(store: ModelStore | str | os.PathLike) -> ModelStore:
     return store if isinstance(store, ModelStore) else ModelStore(store)
 
 
-def choose_method(model: Any, method: str | None = None, time_limit: float | None = DEFAULT_TIME_LIMIT
-                  ) -> tuple[str, str]:
+def choose_method(model: Any, method: str | None = None, *, offline: Any | None = None,
+                  time_limit: float | None = DEFAULT_TIME_LIMIT) -> tuple[str, str]:
     """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
-    estimation-algebra analysis once (bounded by ``time_limit`` seconds)."""
-    from .solver.methods import resolve_method
+    estimation-algebra analysis once (bounded by ``time_limit`` seconds).  With ``offline`` (the
+    precomputed arrays) an exact method the analysis recommends is built once to check that it
+    applies; if it does not, the general engine is chosen and the reason says why."""
+    from .solver.methods import make_filter, resolve_method
 
     requested = model.spec.method if method is None else method
     if requested != "auto":
         resolve_method(model, requested)  # validates the name
-        return requested, f"method = {requested!r} in the spec" if method is None else "asked for"
+        return requested, ("method = %r in the spec" % requested) if method is None else "asked for"
     from .solver import analysis
 
-    report = analysis.analyze(model, time_limit=time_limit)
-    chosen, reason = analysis.recommend_method(report)
+    chosen, reason = analysis.recommend_method(analysis.analyze(model, time_limit=time_limit))
+    if chosen != "yau-yau" and offline is not None:
+        try:
+            make_filter(model, offline, chosen)
+        except SpecError as exc:
+            return "yau-yau", (f"the analysis recommends {chosen} ({reason}), but it does not apply: "
+                               f"{exc.message}")
     return chosen, reason
 
 
@@ -83,10 +90,11 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             pass  # unusable file: compute it again
     store.ensure_writable()
     model = compile_model(spec)
-    method, reason = choose_method(model, time_limit=time_limit)
     started = time.perf_counter()
     offline = solve_offline(model, workers=workers, progress=progress)
-    attrs = {"precompute_seconds": round(time.perf_counter() - started, 3), "workers": workers,
+    seconds = time.perf_counter() - started
+    method, reason = choose_method(model, offline=offline, time_limit=time_limit)
+    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers,
              "name": spec.name, "method": method, "method_reason": reason}
     return store.save(spec_json, offline.to_arrays(), attrs)
 
@@ -105,21 +113,25 @@ class StoredFilterModel:
 
 
 def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFilterModel:
-    """Read and verify a stored model; never runs the analysis (the method was chosen at precompute;
-    files from before 0.2 that lack it fall back to the spec's method, ``auto`` meaning yau-yau)."""
+    """Read and verify a stored model.  The method is the one chosen at precompute; only a file saved
+    without one (``ModelStore.save`` called directly, with no "method" attr) makes the analysis run,
+    here, once, with a warning."""
     from .solver.model import compile_model
     from .solver.offline import OfflineModel
     from .solver.spec import parse_spec_text
 
     stored = _as_store(store).load(model_id)
     model = compile_model(parse_spec_text(stored.spec_json, "json"))
-    method = stored.attrs.get("method")
-    reason = stored.attrs.get("method_reason", "")
+    offline = OfflineModel.from_arrays(model, stored.arrays)
+    method, reason = stored.attrs.get("method"), stored.attrs.get("method_reason", "")
     if not method:
-        method = model.spec.method if model.spec.method != "auto" else "yau-yau"
-        reason = "no method stored with this model (precomputed before 0.2): the spec's, auto -> yau-yau"
-    return StoredFilterModel(id=model_id, model=model, offline=OfflineModel.from_arrays(model, stored.arrays),
-                             method=method, method_reason=reason, attrs=stored.attrs)
+        import warnings
+
+        warnings.warn(f"model {model_id} was saved without a method: choosing it now (yauyau.precompute "
+                      "stores it)", stacklevel=2)
+        method, reason = choose_method(model, offline=offline)
+    return StoredFilterModel(id=model_id, model=model, offline=offline, method=method, method_reason=reason,
+                             attrs=stored.attrs)
 
 
 def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: str | None = None, *,

@@ -9,19 +9,15 @@ from __future__ import annotations
 
 import json
 
-from yauyau.solver.analysis import (
-    DEFAULT_MAX_DEPTH,
-    DEFAULT_MAX_DIMENSION,
-    DEFAULT_MAX_SIZE,
-    DEFAULT_TIME_LIMIT,
-    analyze,
-)
-from yauyau.solver.errors import SpecError
-from yauyau.solver.model import compile_model
-from yauyau.solver.spec import load_spec
-
 
 def add_arguments(parser) -> None:
+    from yauyau.solver.analysis import (
+        DEFAULT_MAX_DEPTH,
+        DEFAULT_MAX_DIMENSION,
+        DEFAULT_MAX_SIZE,
+        DEFAULT_TIME_LIMIT,
+    )
+
     parser.add_argument("spec", metavar="SPEC", help="model spec (.toml or .json)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH, metavar="K",
@@ -37,6 +33,11 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from yauyau.solver.analysis import analyze
+    from yauyau.solver.errors import SpecError
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.spec import load_spec
+
     if not 1 <= args.max_depth <= 20:
         raise SpecError("--max-depth", "must be between 1 and 20")
     if not 1 <= args.max_dimension <= 64:

@@ -3,8 +3,9 @@
 The observation increments Δy_k = y(τ_k) − y(τ_{k−1}), one row per step τ_k = k·dt, are read from
 a CSV file (m comma-separated numbers per row; an optional header line; a row of empty fields is a
 missing observation, the filter then only predicts) or a .npy array (K, m) (NaN rows missing).
-The stored model (storage.model_store) is filtered with the method of --method (default: the
-spec's; ``auto`` asks the estimation-algebra analysis) in chunks of --chunk rows, and OUT gets one
+The stored model (storage.model_store) is filtered with the method of --method (default: the one
+chosen at precompute and stored with the model; no analysis runs here) in chunks of --chunk rows, with
+--blas-threads BLAS threads (default 1: docs/bench-blas.md), and OUT gets one
 row per step: step, t, mean_<var>…, cov_<var>_<var>… (upper triangle), loglik (cumulative),
 degenerate.  All input is validated before anything is written; OUT appears atomically.
 """
@@ -23,15 +24,40 @@ from .precompute import store_argument
 DEFAULT_CHUNK = 1000
 
 
+FORMS = ("stable", "literal")  # yauyau.solver.engine.FORMS (not imported here: start-up cost)
+PRECISIONS = ("double", "single")
+
+
+def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
+                        help="BLAS threads of the online products (default: $YAUYAU_BLAS_THREADS or 1; one "
+                             "thread per process is faster on a busy machine, docs/bench-blas.md)")
+
+
+def blas_threads(requested: int | None) -> int:
+    """The BLAS thread count: the flag, else $YAUYAU_BLAS_THREADS, else 1."""
+    from yauyau.solver.errors import InputError
+
+    if requested is None:
+        text = os.environ.get("YAUYAU_BLAS_THREADS", "1")
+        try:
+            requested = int(text)
+        except ValueError:
+            raise InputError("YAUYAU_BLAS_THREADS", f"must be a positive integer, got {text!r}") from None
+    if requested < 1 or requested > 1024:
+        raise InputError("blas_threads", "must be a positive integer (at most 1024)")
+    return requested
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from yauyau.solver.engine import FORMS, PRECISIONS
-    from yauyau.solver.spec import METHODS
+    from yauyau.solver.methods import METHODS
 
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)
     parser.add_argument("--increments", required=True, help="observation increments: .csv or .npy")
     parser.add_argument("--out", required=True, help="output CSV of the estimates")
-    parser.add_argument("--method", choices=METHODS, default=None, help="filter (default: the spec's method)")
+    parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
+                        help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
                         help="yau-yau step: stable (default) or literal seed 002 (5.35)")
     parser.add_argument("--precision", choices=PRECISIONS, default=None,
@@ -39,34 +65,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default: the spec's discretization.precision)")
     parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
                         help="rows per chunk (default %(default)s)")
+    blas_threads_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    from threadpoolctl import threadpool_limits
     from yauyau.solver.errors import InputError
     from yauyau.solver.methods import make_filter
 
+    from yauyau.api import load_model
+
     if args.chunk < 1:
         raise InputError("chunk", "must be a positive integer")
-    model, offline = load_stored_model(args.store, args.model_id)
+    threads = blas_threads(args.blas_threads)
+    stored = load_model(args.store, args.model_id)
+    model = stored.model
     increments = read_increments(args.increments, model.m)
-    flt = make_filter(model, offline, args.method, form=args.form, precision=args.precision)
-    rows, first_degenerate = filter_rows(flt, increments, args.chunk)
+    method = args.method or stored.method
+    why = "--method" if args.method else f"stored at precompute: {stored.method_reason}"
+    print(f"yauyau filter: method {method} ({why})", file=sys.stderr)
+    flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision)
+    with threadpool_limits(limits=threads, user_api="blas"):
+        rows, first_degenerate = filter_rows(flt, increments, args.chunk)
     write_csv(args.out, header(model), rows)
     if first_degenerate is not None:
         print(f"yauyau filter: degenerate from step {first_degenerate.step}: {first_degenerate.reason}",
               file=sys.stderr)
     return 0
-
-
-def load_stored_model(store_dir: str, model_id: str):
-    """(Model, OfflineModel) of a stored model."""
-    from yauyau.solver import compile_model, parse_spec_text
-    from yauyau.solver.offline import OfflineModel
-    from yauyau.storage.model_store import ModelStore
-
-    stored = ModelStore(store_dir).load(model_id)
-    model = compile_model(parse_spec_text(stored.spec_json, "json"))
-    return model, OfflineModel.from_arrays(model, stored.arrays)
 
 
 def read_increments(path: str, m: int):
@@ -92,7 +117,9 @@ def read_increments(path: str, m: int):
 
 def parse_csv(text: str, m: int) -> list[list[float]]:
     """Rows of m fields; empty fields (or a blank line) are a missing observation (NaN row); the
-    first line may be a header; blank lines at the end are ignored."""
+    first line is a header when none of its fields is a number (a first line with some numbers is
+    data, and a bad field in it an error: never silently shift every step by one); blank lines at
+    the end are ignored."""
     from yauyau.solver.errors import InputError
 
     lines = text.splitlines()
@@ -102,8 +129,8 @@ def parse_csv(text: str, m: int) -> list[list[float]]:
     for number, line in enumerate(lines, start=1):
         fields = [f.strip() for f in line.split(",")] if line.strip() else [""] * m
         values = [_number(f) for f in fields]
-        if number == 1 and any(v is None for v in values):
-            continue  # a header
+        if number == 1 and line.strip() and all(v is None for v in values):
+            continue  # a header: text in every field
         where = f"increments[{len(rows)}]"
         if len(fields) != m:
             raise InputError(where, f"line {number}: expected {m} field(s), got {len(fields)}")

@@ -2,9 +2,12 @@
 
 Solves the Fokker–Planck / Kolmogorov propagators of the spec's model over dt for every basis
 function (solver.offline.precompute, seed 002 §5) and saves them in the model store under the
-content hash of the spec.  The model id is the LAST line of stdout (the only one); messages and
-the progress bar go to stderr.  The bar is shown only when stderr is a terminal and --quiet is
-not given.  An id already in the store is not recomputed (its file is verified) unless --force.
+content hash of the spec.  The filter method is chosen here, once: ``auto`` asks the
+estimation-algebra analysis (bounded by --time-limit) and the choice and its reason are stored in the
+file, so `yauyau filter` and `yauyau serve` never analyse again.  The model id is the LAST line of
+stdout (the only one); messages and the progress bar go to stderr.  The bar is shown only when
+stderr is a terminal and --quiet is not given.  An id already in the store is not recomputed (its
+file is verified) unless --force.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="processes solving the propagators (default: min(4, CPU count))")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no messages on stderr")
     parser.add_argument("--force", action="store_true", help="recompute even if the model is stored")
+    parser.add_argument("--time-limit", type=float, default=60.0, metavar="T",
+                        help="seconds the estimation-algebra analysis may take to choose the method when the "
+                             "spec says method = auto (default %(default)g; past it: the general engine)")
     parser.add_argument("--compress", action="store_true",
                         help="gzip the float arrays too (about 1/3 smaller in 2-D, loads much slower)")
 
@@ -66,11 +72,15 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.solver.offline import default_workers, precompute
     from yauyau.storage.model_store import ModelStore, model_id
 
+    from yauyau.api import choose_method
+
     spec = load_spec(args.spec)
     model = compile_model(spec)
     workers = default_workers() if args.workers is None else args.workers
     if workers < 1:
         raise InputError("workers", "must be a positive integer")
+    if not 0.1 <= args.time_limit <= 3600:  # also refuses nan and inf
+        raise InputError("--time-limit", "must be between 0.1 and 3600 seconds")
     spec_json = spec.canonical_json()
     store, mid = ModelStore(args.store, compress_floats=args.compress), model_id(spec_json)
     store.ensure_writable()  # fail before the (long) computation, not after
@@ -86,8 +96,11 @@ def run(args: argparse.Namespace) -> int:
             bar.update(done - bar.n)
         offline = precompute(model, workers=workers, progress=progress)
     seconds = time.perf_counter() - started
+    method, reason = choose_method(model, offline=offline, time_limit=args.time_limit)
+    _say(args, f"method {method}: {reason}")
 
-    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers, "name": spec.name}
+    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers, "name": spec.name,
+             "method": method, "method_reason": reason}
     saved = store.save(spec_json, offline.to_arrays(), attrs)
     size = store.path(saved).stat().st_size
     _say(args, f"stored '{spec.name}' ({total} basis functions, {seconds:.1f} s, "

@@ -19,6 +19,12 @@ def add_arguments(parser):
     parser.add_argument("--session-synchronous", choices=["normal", "full"],
                         help="durability of each chunk: normal (default) survives a killed server, full also "
                              "an OS crash or power loss (an fsync per chunk; env YAUYAU_SESSION_SYNCHRONOUS)")
+    parser.add_argument("--blas-threads", type=int,
+                        help="BLAS threads per worker for the online products "
+                             "(env YAUYAU_BLAS_THREADS; default 1)")
+    parser.add_argument("--model-cache", type=int,
+                        help="models each worker keeps loaded, least recently used dropped first "
+                             "(env YAUYAU_MODEL_CACHE; default 8); models load on first use")
     parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
 
 
@@ -30,6 +36,7 @@ def _settings(args):
     overrides = {k: v for k, v in {"store": args.store, "host": args.host, "port": args.port,
                                    "workers": args.workers, "session_db": args.session_db,
                                    "session_synchronous": args.session_synchronous,
+                                   "blas_threads": args.blas_threads, "model_cache": args.model_cache,
                                    "log_level": args.log_level}.items() if v is not None}
     try:
         return Settings(**overrides)

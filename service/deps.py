@@ -1,0 +1,36 @@
+"""Dependencies of the routes (FastAPI ``Depends``): what a request may use, in one place.
+
+The application keeps its sessions, model registry and settings on ``app.state`` (set by the
+lifespan in service/app.py); routes never look there themselves but declare what they need.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from .problems import Problem
+from .registry import Registry
+from .sessions import Sessions
+from .settings import Settings
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_sessions(request: Request) -> Sessions:
+    sessions = getattr(request.app.state, "sessions", None)
+    if sessions is None:
+        raise Problem(503, "models are still loading")
+    return sessions
+
+
+def get_registry(sessions: Annotated[Sessions, Depends(get_sessions)]) -> Registry:
+    return sessions.registry
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+SessionsDep = Annotated[Sessions, Depends(get_sessions)]
+RegistryDep = Annotated[Registry, Depends(get_registry)]

@@ -1,0 +1,138 @@
+"""The routes of the HTTP API, on APIRouters: health, models, sessions, analysis.
+
+Each route takes what it needs as a dependency (service/deps.py) and returns JSON (``NaN`` never
+leaves: ``allow_nan=False``); errors are raised and become problem+json (service/problems.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Body, Path, Query, Request
+from starlette.responses import JSONResponse, Response
+
+from . import metrics
+from .density import parse_points
+from .deps import RegistryDep, SessionsDep, SettingsDep
+from .problems import Problem
+from .schemas import (
+    AnalyzeReport,
+    ChunkResult,
+    DensityOut,
+    Health,
+    ModelDetail,
+    ModelSummary,
+    Observations,
+    SessionCreate,
+    SessionCreated,
+    SessionInfo,
+)
+
+SessionId = Annotated[str, Path(min_length=1, max_length=100, description="session id")]
+ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model id")]
+
+ERRORS = {400: "malformed request (e.g. invalid JSON)", 404: "unknown model, session or route",
+          409: "seq gap or concurrent update", 413: "request body too large",
+          422: "invalid input (the field is named)", 503: "models are still loading"}
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {code: {"description": ERRORS[code]} for code in codes}
+
+
+def _json(content: Any, status: int = 200) -> Response:
+    return JSONResponse(content, status_code=status)  # allow_nan=False: NaN never leaves
+
+
+health = APIRouter(tags=["health"])
+models = APIRouter(prefix="/v1/models", tags=["models"])
+sessions = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+analysis = APIRouter(prefix="/v1/analyze", tags=["analysis"])
+
+
+@health.get("/livez", response_model=Health)
+def livez() -> Response:
+    return _json({"status": "ok"})
+
+
+@health.get("/readyz", response_model=Health, responses=_errors(503))
+def readyz(request: Request) -> Response:
+    if not request.app.state.ready:
+        raise Problem(503, "models are still loading")
+    return _json({"status": "ready", "models": len(request.app.state.registry.ids())})
+
+
+@health.get("/metrics", response_class=Response,
+            responses={200: {"content": {"text/plain": {}}, "description": "Prometheus exposition"}})
+def prometheus() -> Response:
+    body, content_type = metrics.render()
+    return Response(body, media_type=content_type)
+
+
+@models.get("", response_model=list[ModelSummary])
+def list_models(registry: RegistryDep) -> Response:
+    return _json(registry.summaries())
+
+
+@models.get("/{model_id}", response_model=ModelDetail, responses=_errors(404))
+def get_model(registry: RegistryDep, model_id: ModelId) -> Response:
+    loaded = registry.get(model_id)
+    return _json({**loaded.summary(), "spec": loaded.spec})
+
+
+@sessions.post("", status_code=201, response_model=SessionCreated, responses=_errors(400, 404, 413, 422))
+def create_session(service: SessionsDep, body: SessionCreate) -> Response:
+    return _json(service.create(body.model, body.prior, body.method), 201)
+
+
+@sessions.post("/{session_id}/observations", response_model=ChunkResult,
+               responses=_errors(400, 404, 409, 413, 422))
+async def observe(service: SessionsDep, session_id: SessionId, body: Observations) -> Response:
+    # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
+    text = await asyncio.get_running_loop().run_in_executor(
+        service.chunk_executor, service.observe, session_id, body.seq, body.increments, True)
+    return Response(text, media_type="application/json")
+
+
+@sessions.get("/{session_id}", response_model=SessionInfo, responses=_errors(404))
+def get_session(service: SessionsDep, session_id: SessionId) -> Response:
+    return _json(service.info(session_id))
+
+
+@sessions.get("/{session_id}/density", response_model=DensityOut, responses=_errors(404, 422))
+def density(service: SessionsDep, session_id: SessionId,
+            points: Annotated[str | None, Query(max_length=100_000, description=(
+                "points separated by ';', coordinates by ',' (e.g. '0.1;0.5' or '0,1;1,0')"))] = None,
+            grid: Annotated[str | None, Query(max_length=1000, description=(
+                "a product grid, one 'lo:hi:count' per coordinate, separated by ','"))] = None,
+            ) -> Response:
+    pts = parse_points(points, grid, service.max_density_points)
+    return _json(service.density(session_id, np.asarray(pts, dtype=float)))
+
+
+@sessions.delete("/{session_id}", status_code=204, response_class=Response, responses=_errors(404))
+def delete_session(service: SessionsDep, session_id: SessionId) -> Response:
+    service.delete(session_id)
+    return Response(status_code=204)
+
+
+_EXAMPLE_SPEC = {"name": "cubic-sensor", "state": ["x"], "drift": ["-0.2*x"], "observation": ["x**3"],
+                 "initial": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}, "domain": {"radius": 7.0},
+                 "discretization": {"dt": 0.01, "basis": 128}}
+
+
+@analysis.post("", response_model=AnalyzeReport, responses=_errors(400, 413, 422))
+def analyze(settings: SettingsDep,
+            spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
+                                                 examples=[_EXAMPLE_SPEC])]) -> Response:
+    from yauyau.solver.analysis import analyze as analyze_model  # SymPy: loaded on the first analysis
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.spec import spec_from_dict
+
+    report = analyze_model(compile_model(spec_from_dict(spec)), time_limit=settings.analyze_time_limit)
+    return _json(report.to_dict())
+
+
+routers = [health, models, sessions, analysis]
