@@ -54,11 +54,11 @@ def _problem_openapi(app: FastAPI) -> dict[str, Any]:
 
 
 def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
-    from yauyau.storage.session_store import SessionStore
+    from yauyau.storage.session_store import SqliteSessionStore
 
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    store = SessionStore(path, synchronous=settings.session_synchronous)
+    store = SqliteSessionStore(path, synchronous=settings.session_synchronous)
     return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points)
 
 

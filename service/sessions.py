@@ -17,6 +17,7 @@ import numpy as np
 import orjson
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import Estimate, check_increments
+from yauyau.storage.protocols import SessionStore
 
 from . import metrics
 from .registry import LoadedModel, Registry
@@ -108,7 +109,7 @@ def _record(rec: Any, name: str) -> Any:
 class Sessions:
     """The session operations behind the /v1/sessions routes."""
 
-    def __init__(self, store: Any, registry: Registry, max_chunk_rows: int, max_density_points: int):
+    def __init__(self, store: SessionStore, registry: Registry, max_chunk_rows: int, max_density_points: int):
         self.store = store
         self.registry = registry
         self.max_chunk_rows = max_chunk_rows

@@ -1,4 +1,5 @@
-"""SQLite session store: filter states advanced by numbered chunks, each applied exactly once.
+"""SQLite session store (the embedded default :class:`storage.protocols.SessionStore`): filter states
+advanced by numbered chunks, each applied exactly once.
 
 A session holds the filter state (any JSON-able dict), ``next_seq`` (the seq the next chunk must
 carry; the first chunk is seq 0) and a ``version``.  ``apply_chunk(id, seq, compute)``:
@@ -136,7 +137,7 @@ def _progress(new_state: dict[str, Any], response: dict[str, Any], default: tupl
     return tuple(pick(k, c, d) for k, c, d in zip(keys, casts, default, strict=True))
 
 
-class SessionStore:
+class SqliteSessionStore:
     """Sessions in one SQLite file; safe to share between threads and processes."""
 
     def __init__(self, path: str | os.PathLike, retention: int = 256, busy_timeout_ms: int = 30_000,

@@ -23,7 +23,7 @@ from yauyau.solver.model import compile_model
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec
 from yauyau.storage.errors import StoreError
-from yauyau.storage.session_store import SessionStore
+from yauyau.storage.session_store import SqliteSessionStore
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 AWKWARD = [5e-324, -0.0, 1.7976931348623157e308, 0.1, 1 / 3, 2.0**-1074 * 3, 123456789.12345678, 1e-310,
@@ -37,7 +37,7 @@ def _bits(values):
 def test_floats_round_trip_bit_for_bit(tmp_path: Path):
     rng = np.random.default_rng(0)
     values = AWKWARD + (rng.standard_normal(500) * 10.0 ** rng.integers(-300, 300, 500)).tolist()
-    store = SessionStore(tmp_path / "s.sqlite")
+    store = SqliteSessionStore(tmp_path / "s.sqlite")
     sid = store.create("m", "x", {"c": values, "nested": [[values[0]], [values[1]]]})
     back = store.get(sid).state
     assert _bits(back["c"]) == _bits(values)
@@ -47,7 +47,7 @@ def test_floats_round_trip_bit_for_bit(tmp_path: Path):
 @pytest.mark.parametrize("bad", [{"c": [1.0, math.nan]}, {"c": [[1.0], [math.inf]]}, {"c": {"d": -math.inf}},
                                  {"c": [np.float64("nan")]}, {"c": np.zeros(2)}])
 def test_non_finite_or_foreign_states_are_refused(tmp_path: Path, bad):
-    store = SessionStore(tmp_path / "s.sqlite")
+    store = SqliteSessionStore(tmp_path / "s.sqlite")
     sid = store.create("m", "x", {"v": 0})
     with pytest.raises(StoreError) as err:
         store.apply_chunk(sid, 0, lambda s: (bad, {}))
@@ -55,13 +55,13 @@ def test_non_finite_or_foreign_states_are_refused(tmp_path: Path, bad):
 
 
 def test_large_finite_values_whose_sum_overflows_are_kept(tmp_path: Path):
-    store = SessionStore(tmp_path / "s.sqlite")
+    store = SqliteSessionStore(tmp_path / "s.sqlite")
     sid = store.create("m", "x", {"c": [1.7e308, 1.7e308, -1.0]})
     assert store.get(sid).state["c"] == [1.7e308, 1.7e308, -1.0]
 
 
 def test_encoded_apply_and_replay_return_the_same_bytes(tmp_path: Path):
-    store = SessionStore(tmp_path / "s.sqlite")
+    store = SqliteSessionStore(tmp_path / "s.sqlite")
     sid = store.create("m", "x", {"values": []})
 
     def compute(state):
@@ -78,7 +78,7 @@ def test_encoded_apply_and_replay_return_the_same_bytes(tmp_path: Path):
 
 
 def test_a_response_encoded_by_the_caller_is_stored_as_given(tmp_path: Path):
-    store = SessionStore(tmp_path / "s.sqlite")
+    store = SqliteSessionStore(tmp_path / "s.sqlite")
     sid = store.create("m", "x", {"step": 0})
     text = '{"seq":0,"note":"as given"}'
     assert store.apply_chunk(sid, 0, lambda s: ({"step": 4, "t": 0.4, "loglik": -1.5}, text)) == (
@@ -90,14 +90,14 @@ def test_a_response_encoded_by_the_caller_is_stored_as_given(tmp_path: Path):
 
 @pytest.mark.parametrize("level, code", [("normal", 1), ("full", 2)])
 def test_synchronous_level_is_what_sqlite_reports(tmp_path: Path, level, code):
-    store = SessionStore(tmp_path / "s.sqlite", synchronous=level)
+    store = SqliteSessionStore(tmp_path / "s.sqlite", synchronous=level)
     assert store._connection().execute("PRAGMA synchronous").fetchone()[0] == code
     assert sqlite3.connect(store.path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
 def test_unknown_synchronous_level_is_refused(tmp_path: Path, monkeypatch):
     with pytest.raises(StoreError) as err:
-        SessionStore(tmp_path / "s.sqlite", synchronous="off")
+        SqliteSessionStore(tmp_path / "s.sqlite", synchronous="off")
     assert err.value.field == "synchronous"
     monkeypatch.setenv("YAUYAU_SESSION_SYNCHRONOUS", "full")
     assert Settings().session_synchronous == "full"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from yauyau.storage.errors import Conflict, NotFound, StoreError
-from yauyau.storage.session_store import SessionStore
+from yauyau.storage.session_store import SqliteSessionStore
 
 
 def append_seq(seq: int, delay: float = 0.0):
@@ -31,11 +31,11 @@ def append_seq(seq: int, delay: float = 0.0):
 
 
 @pytest.fixture
-def store(tmp_path: Path) -> SessionStore:
-    return SessionStore(tmp_path / "sessions.sqlite")
+def store(tmp_path: Path) -> SqliteSessionStore:
+    return SqliteSessionStore(tmp_path / "sessions.sqlite")
 
 
-def test_create_get_count_delete(store: SessionStore):
+def test_create_get_count_delete(store: SqliteSessionStore):
     sid = store.create("abc", "yau-yau", {"values": []}, {"estimate": {"mean": [1.0]}})
     assert re.fullmatch(r"[A-Za-z0-9_-]{20,}", sid)
     assert sid != store.create("abc", "yau-yau", {"values": []})
@@ -52,13 +52,13 @@ def test_create_get_count_delete(store: SessionStore):
         store.delete(sid)
 
 
-def test_wal_mode_and_busy_timeout(store: SessionStore):
+def test_wal_mode_and_busy_timeout(store: SqliteSessionStore):
     db = sqlite3.connect(store.path)
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     assert store._connection().execute("PRAGMA busy_timeout").fetchone()[0] == 30_000
 
 
-def test_chunks_in_order_then_replay_returns_stored_response_without_computing(store: SessionStore):
+def test_chunks_in_order_then_replay_returns_stored_response_without_computing(store: SqliteSessionStore):
     sid = store.create("m", "kalman-bucy", {"values": []})
     for seq in range(3):
         response, replayed = store.apply_chunk(sid, seq, append_seq(seq))
@@ -73,7 +73,7 @@ def test_chunks_in_order_then_replay_returns_stored_response_without_computing(s
     assert store.get(sid).state["values"] == [0, 1, 2]
 
 
-def test_gap_is_a_conflict_naming_the_expected_seq_and_changes_nothing(store: SessionStore):
+def test_gap_is_a_conflict_naming_the_expected_seq_and_changes_nothing(store: SqliteSessionStore):
     sid = store.create("m", "yau-yau", {"values": []})
     store.apply_chunk(sid, 0, append_seq(0))
     with pytest.raises(Conflict, match="expected seq 1") as err:
@@ -83,7 +83,7 @@ def test_gap_is_a_conflict_naming_the_expected_seq_and_changes_nothing(store: Se
     assert rec.state["values"] == [0] and rec.next_seq == 1 and rec.version == 1
 
 
-def test_unknown_session_and_bad_seq(store: SessionStore):
+def test_unknown_session_and_bad_seq(store: SqliteSessionStore):
     with pytest.raises(NotFound, match="no session"):
         store.apply_chunk("nope", 0, append_seq(0))
     sid = store.create("m", "yau-yau", {"values": []})
@@ -93,7 +93,7 @@ def test_unknown_session_and_bad_seq(store: SessionStore):
         assert err.value.field == "seq"
 
 
-def test_failing_compute_applies_nothing_and_the_chunk_can_be_resent(store: SessionStore):
+def test_failing_compute_applies_nothing_and_the_chunk_can_be_resent(store: SqliteSessionStore):
     sid = store.create("m", "yau-yau", {"values": []})
 
     def boom(state):
@@ -104,7 +104,7 @@ def test_failing_compute_applies_nothing_and_the_chunk_can_be_resent(store: Sess
     assert store.apply_chunk(sid, 0, append_seq(0))[1] is False
 
 
-def test_non_json_state_is_refused_and_nothing_applied(store: SessionStore):
+def test_non_json_state_is_refused_and_nothing_applied(store: SqliteSessionStore):
     sid = store.create("m", "yau-yau", {"values": []})
     with pytest.raises(StoreError) as err:
         store.apply_chunk(sid, 0, lambda s: ({"x": float("nan")}, {}))
@@ -115,7 +115,7 @@ def test_non_json_state_is_refused_and_nothing_applied(store: SessionStore):
 
 
 def test_retention_keeps_the_last_responses_and_refuses_older_ones(tmp_path: Path):
-    store = SessionStore(tmp_path / "s.sqlite", retention=3)
+    store = SqliteSessionStore(tmp_path / "s.sqlite", retention=3)
     sid = store.create("m", "yau-yau", {"values": []})
     for seq in range(6):
         store.apply_chunk(sid, seq, append_seq(seq))
@@ -126,7 +126,7 @@ def test_retention_keeps_the_last_responses_and_refuses_older_ones(tmp_path: Pat
     assert sorted(r[0] for r in rows) == [3, 4, 5]
 
 
-def test_version_clash_returns_the_winners_response(store: SessionStore):
+def test_version_clash_returns_the_winners_response(store: SqliteSessionStore):
     """While this compute runs, another thread applies the same seq: ours must not be written."""
     sid = store.create("m", "yau-yau", {"values": []})
     calls = []
@@ -142,7 +142,7 @@ def test_version_clash_returns_the_winners_response(store: SessionStore):
     assert store.get(sid).state["values"] == [0] and store.get(sid).version == 1
 
 
-def test_version_clash_on_a_moved_session_recomputes(store: SessionStore):
+def test_version_clash_on_a_moved_session_recomputes(store: SqliteSessionStore):
     """A clash where the session moved on by something else than our seq: recompute on the new state."""
     sid = store.create("m", "yau-yau", {"values": []})
     seen = []
@@ -164,7 +164,7 @@ N_CHUNKS = 30
 
 
 def _hammer(path: str, sid: str, worker: int, out) -> None:
-    store = SessionStore(path)
+    store = SqliteSessionStore(path)
     rng = random.Random(worker)
     records = []
     guess = 0
@@ -181,7 +181,7 @@ def _hammer(path: str, sid: str, worker: int, out) -> None:
     out.put(records)
 
 
-def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(store: SessionStore):
+def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(store: SqliteSessionStore):
     sid = store.create("m", "yau-yau", {"values": []})
     ctx = multiprocessing.get_context("fork")
     out = ctx.Queue()
@@ -206,14 +206,14 @@ def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(sto
 
 
 def _independent(path: str, sids: list[str], out) -> None:
-    store = SessionStore(path)
+    store = SqliteSessionStore(path)
     for sid in sids:
         for seq in range(10):
             store.apply_chunk(sid, seq, append_seq(seq))
     out.put("ok")
 
 
-def test_processes_on_different_sessions_do_not_interfere(store: SessionStore):
+def test_processes_on_different_sessions_do_not_interfere(store: SqliteSessionStore):
     sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(8)]
     ctx = multiprocessing.get_context("fork")
     out = ctx.Queue()
@@ -226,7 +226,7 @@ def test_processes_on_different_sessions_do_not_interfere(store: SessionStore):
     assert all(store.get(sid).state["values"] == list(range(10)) for sid in sids)
 
 
-def test_threads_share_a_store_object(store: SessionStore):
+def test_threads_share_a_store_object(store: SqliteSessionStore):
     sid = store.create("m", "yau-yau", {"values": []})
     errors = []
 
@@ -242,3 +242,13 @@ def test_threads_share_a_store_object(store: SessionStore):
     for t in threads:
         t.join()
     assert errors == [] and store.get(sid).state["values"] == list(range(20))
+
+
+def test_the_sqlite_store_implements_the_protocol_the_service_takes(store: SqliteSessionStore):
+    import inspect
+
+    from yauyau.service.sessions import Sessions
+    from yauyau.storage.protocols import SessionStore
+
+    assert isinstance(store, SessionStore)
+    assert inspect.signature(Sessions.__init__).parameters["store"].annotation in ("SessionStore", SessionStore)
