@@ -251,4 +251,5 @@ def test_the_sqlite_store_implements_the_protocol_the_service_takes(store: Sqlit
     from yauyau.storage.protocols import SessionStore
 
     assert isinstance(store, SessionStore)
-    assert inspect.signature(Sessions.__init__).parameters["store"].annotation in ("SessionStore", SessionStore)
+    annotation = inspect.signature(Sessions.__init__).parameters["store"].annotation
+    assert annotation in ("SessionStore", SessionStore)
