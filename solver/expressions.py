@@ -1,12 +1,18 @@
-"""Safe model expressions: user text -> SymPy -> vectorised numpy.
+"""Safe model expressions: user text -> a checked syntax tree -> numpy closures, or SymPy.
 
 User text is parsed with :mod:`ast` and checked node by node against a whitelist
 (numbers, the declared state names, parameters, ``+ - * / **``, unary minus and
-calls of a fixed set of math functions).  The SymPy expression is then built by
-hand from the checked tree.  Nothing here calls ``eval``, ``exec``, ``sympify``
-or ``parse_expr`` on user text, and the SymPy symbols carry names chosen here
-(``x_0, x_1, ...``), never the user's: ``lambdify`` prints symbol names into
-generated source, so a user-chosen name would be code.
+calls of a fixed set of math functions).  Two builders walk the checked tree:
+
+* :func:`numeric_expression` composes numpy closures (no code is generated or evaluated,
+  and SymPy is not imported: this is what a stored model needs to filter, so start-up stays
+  cheap);
+* :func:`parse_expression` builds the exact SymPy expression for the offline stage and the
+  analysis (derivatives, Lie brackets).
+
+Nothing here calls ``eval``, ``exec``, ``sympify`` or ``parse_expr`` on user text, and the SymPy
+symbols carry names chosen here (``x_0, x_1, ...``), never the user's: ``lambdify`` prints symbol
+names into generated source, so a user-chosen name would be code.
 """
 
 from __future__ import annotations
@@ -14,11 +20,15 @@ from __future__ import annotations
 import ast
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
-import sympy as sp
 
 from .errors import SpecError
+
+if TYPE_CHECKING:
+    import sympy as sp
 
 MAX_LENGTH = 2000  # characters of one expression
 MAX_NODES = 400  # AST nodes of one expression
@@ -26,29 +36,34 @@ MAX_DEPTH = 40  # nesting depth of the AST
 MAX_EXPONENT = 64  # |p| for a constant exponent
 MAX_LOG_MAGNITUDE = 700.0  # |log|b**p|| for a constant power (float range)
 
-_UNARY_FUNCTIONS = {
-    "exp": sp.exp,
-    "log": sp.log,
-    "sqrt": sp.sqrt,
-    "sin": sp.sin,
-    "cos": sp.cos,
-    "tan": sp.tan,
-    "tanh": sp.tanh,
-    "sinh": sp.sinh,
-    "cosh": sp.cosh,
-    "atan": sp.atan,
-    "asin": sp.asin,
-    "acos": sp.acos,
-    "asinh": sp.asinh,
-    "acosh": sp.acosh,
-    "atanh": sp.atanh,
-    "abs": sp.Abs,
-    "sech": lambda u: 1 / sp.cosh(u),
-    "sign": sp.sign,
+# name -> arity of the allowed functions; both builders map every one of them
+FUNCTIONS = {name: 1 for name in ("exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "sinh", "cosh", "atan",
+                                  "asin", "acos", "asinh", "acosh", "atanh", "abs", "sech", "sign")}
+FUNCTIONS.update(atan2=2, min=2, max=2)
+CONSTANTS = {"pi": math.pi, "e": math.e}
+RESERVED_NAMES = frozenset(FUNCTIONS) | frozenset(CONSTANTS)
+
+_NUMPY_FUNCTIONS: dict[str, Callable[..., Any]] = {
+    "exp": np.exp, "log": np.log, "sqrt": np.sqrt, "sin": np.sin, "cos": np.cos, "tan": np.tan,
+    "tanh": np.tanh, "sinh": np.sinh, "cosh": np.cosh, "atan": np.arctan, "asin": np.arcsin,
+    "acos": np.arccos, "asinh": np.arcsinh, "acosh": np.arccosh, "atanh": np.arctanh, "abs": np.abs,
+    "sech": lambda u: 1.0 / np.cosh(u), "sign": np.sign, "atan2": np.arctan2, "min": np.minimum,
+    "max": np.maximum,
 }
-_BINARY_FUNCTIONS = {"atan2": sp.atan2, "min": sp.Min, "max": sp.Max}
-_CONSTANTS = {"pi": sp.pi, "e": sp.E}
-RESERVED_NAMES = frozenset(_UNARY_FUNCTIONS) | frozenset(_BINARY_FUNCTIONS) | frozenset(_CONSTANTS)
+assert set(_NUMPY_FUNCTIONS) == set(FUNCTIONS)
+
+
+def _sympy_tables() -> tuple[dict[str, Callable[..., Any]], dict[str, Any]]:
+    import sympy as sp
+
+    functions = {"exp": sp.exp, "log": sp.log, "sqrt": sp.sqrt, "sin": sp.sin, "cos": sp.cos, "tan": sp.tan,
+                 "tanh": sp.tanh, "sinh": sp.sinh, "cosh": sp.cosh, "atan": sp.atan, "asin": sp.asin,
+                 "acos": sp.acos, "asinh": sp.asinh, "acosh": sp.acosh, "atanh": sp.atanh, "abs": sp.Abs,
+                 "sech": lambda u: 1 / sp.cosh(u), "sign": sp.sign, "atan2": sp.atan2, "min": sp.Min,
+                 "max": sp.Max}
+    assert set(functions) == set(FUNCTIONS)
+    return functions, {"pi": sp.pi, "e": sp.E}
+
 
 _BINOPS = {
     ast.Add: lambda a, b: a + b,
@@ -58,13 +73,17 @@ _BINOPS = {
 }
 
 
-def state_symbols(n: int) -> tuple[sp.Symbol, ...]:
+def state_symbols(n: int) -> tuple["sp.Symbol", ...]:
     """Internal, real symbols for the state coordinates (never user names)."""
+    import sympy as sp
+
     return tuple(sp.Symbol(f"x_{i}", real=True) for i in range(n))
 
 
-def number(value: float | int) -> sp.Expr:
+def number(value: float | int) -> "sp.Expr":
     """Exact SymPy number for a Python number (0.2 -> 1/5), so the analysis is exact."""
+    import sympy as sp
+
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise TypeError("not a number")
     if isinstance(value, int):
@@ -75,14 +94,15 @@ def number(value: float | int) -> sp.Expr:
 
 
 class _Builder:
-    def __init__(self, field: str, names: Mapping[str, sp.Expr]):
+    def __init__(self, field: str, names: Mapping[str, "sp.Expr"]):
         self.field = field
         self.names = names
+        self.functions, self.constants = _sympy_tables()
 
     def fail(self, message: str) -> SpecError:
         return SpecError(self.field, message)
 
-    def build(self, node: ast.AST) -> sp.Expr:
+    def build(self, node: ast.AST) -> "sp.Expr":
         if isinstance(node, ast.Constant):
             return self._constant(node.value)
         if isinstance(node, ast.Name):
@@ -98,24 +118,19 @@ class _Builder:
             return self._call(node)
         raise self.fail(f"'{type(node).__name__}' is not allowed in an expression")
 
-    def _constant(self, value: object) -> sp.Expr:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(f"only real numbers are allowed as constants, not {type(value).__name__}")
-        if isinstance(value, int) and abs(value) > 10**15:
-            raise self.fail("integer constant too large")
-        if isinstance(value, float) and not math.isfinite(value):
-            raise self.fail("constant is not finite")
-        return number(value)
+    def _constant(self, value: object) -> "sp.Expr":
+        return number(_checked_constant(self, value))
 
-    def _name(self, name: str) -> sp.Expr:
+    def _name(self, name: str) -> "sp.Expr":
         if name in self.names:
             return self.names[name]
-        if name in _CONSTANTS:
-            return _CONSTANTS[name]
-        known = ", ".join(sorted(self.names)) or "none"
-        raise self.fail(f"unknown name '{name}' (state variables and parameters: {known})")
+        if name in self.constants:
+            return self.constants[name]
+        raise self.fail(_unknown_name(name, self.names))
 
-    def _power(self, base: sp.Expr, exponent: sp.Expr) -> sp.Expr:
+    def _power(self, base: "sp.Expr", exponent: "sp.Expr") -> "sp.Expr":
+        import sympy as sp
+
         if exponent.is_number:
             p = complex(exponent.evalf())
             if p.imag != 0 or abs(p.real) > MAX_EXPONENT:
@@ -128,24 +143,13 @@ class _Builder:
             raise self.fail("a non-constant exponent needs a positive constant base (use exp(...))")
         return self._checked(sp.Pow(base, exponent))
 
-    def _call(self, node: ast.Call) -> sp.Expr:
-        if not isinstance(node.func, ast.Name):
-            raise self.fail("only calls of the allowed math functions are allowed")
-        name = node.func.id
-        if node.keywords:
-            raise self.fail(f"{name}() takes no keyword arguments")
-        if name in _UNARY_FUNCTIONS:
-            arity, fn = 1, _UNARY_FUNCTIONS[name]
-        elif name in _BINARY_FUNCTIONS:
-            arity, fn = 2, _BINARY_FUNCTIONS[name]
-        else:
-            allowed = ", ".join(sorted(set(_UNARY_FUNCTIONS) | set(_BINARY_FUNCTIONS)))
-            raise self.fail(f"unknown function '{name}' (allowed: {allowed})")
-        if len(node.args) != arity or any(isinstance(a, ast.Starred) for a in node.args):
-            raise self.fail(f"{name}() takes exactly {arity} argument(s)")
-        return self._checked(fn(*(self.build(a) for a in node.args)))
+    def _call(self, node: ast.Call) -> "sp.Expr":
+        name = _checked_call(self, node)
+        return self._checked(self.functions[name](*(self.build(a) for a in node.args)))
 
-    def _checked(self, expr: sp.Expr) -> sp.Expr:
+    def _checked(self, expr: "sp.Expr") -> "sp.Expr":
+        import sympy as sp
+
         if expr.has(sp.zoo, sp.oo, -sp.oo, sp.nan):
             raise self.fail("expression is undefined (division by zero or infinite value)")
         if expr.is_number and expr.has(sp.I):
@@ -165,12 +169,130 @@ def _depth(node: ast.AST, limit: int) -> int:
     return deepest
 
 
-def parse_expression(text: str, names: Mapping[str, sp.Expr], field: str = "expression") -> sp.Expr:
-    """Parse one user expression into SymPy, or raise :class:`SpecError` naming ``field``.
+def _checked_constant(builder: Any, value: object) -> float | int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise builder.fail(f"only real numbers are allowed as constants, not {type(value).__name__}")
+    if isinstance(value, int) and abs(value) > 10**15:
+        raise builder.fail("integer constant too large")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise builder.fail("constant is not finite")
+    return value
 
-    ``names`` maps the allowed user names (state variables, parameters) to SymPy objects
-    chosen by the caller (internal symbols or exact numbers).
-    """
+
+def _unknown_name(name: str, names: Mapping[str, Any]) -> str:
+    known = ", ".join(sorted(names)) or "none"
+    return f"unknown name '{name}' (state variables and parameters: {known})"
+
+
+def _checked_call(builder: Any, node: ast.Call) -> str:
+    """The called function's name, after checking it is allowed with its arity."""
+    if not isinstance(node.func, ast.Name):
+        raise builder.fail("only calls of the allowed math functions are allowed")
+    name = node.func.id
+    if node.keywords:
+        raise builder.fail(f"{name}() takes no keyword arguments")
+    if name not in FUNCTIONS:
+        raise builder.fail(f"unknown function '{name}' (allowed: {', '.join(sorted(FUNCTIONS))})")
+    arity = FUNCTIONS[name]
+    if len(node.args) != arity or any(isinstance(a, ast.Starred) for a in node.args):
+        raise builder.fail(f"{name}() takes exactly {arity} argument(s)")
+    return name
+
+
+# -- numpy closures -------------------------------------------------------------------------------
+Columns = tuple  # the state coordinates x_0, x_1, ... as arrays of the points
+
+
+@dataclass(frozen=True)
+class _Num:
+    """A built node: ``value`` for a constant (folded), else ``fn(columns) -> array``."""
+
+    fn: Callable[[Columns], Any] | None = None
+    value: float | None = None
+
+    def __call__(self, cols: Columns) -> Any:
+        return self.value if self.fn is None else self.fn(cols)
+
+
+class _NumericBuilder:
+    """The whitelisted tree as composed numpy closures; constants are folded as they are met."""
+
+    def __init__(self, field: str, states: Mapping[str, int], parameters: Mapping[str, float]):
+        self.field = field
+        self.states = states
+        self.parameters = parameters
+
+    def fail(self, message: str) -> SpecError:
+        return SpecError(self.field, message)
+
+    def build(self, node: ast.AST) -> _Num:
+        if isinstance(node, ast.Constant):
+            return self._const(float(_checked_constant(self, node.value)))
+        if isinstance(node, ast.Name):
+            return self._name(node.id)
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+            inner = self.build(node.operand)
+            if isinstance(node.op, ast.UAdd):
+                return inner
+            return self._apply(lambda u: -u, inner)
+        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            return self._apply(_BINOPS[type(node.op)], self.build(node.left), self.build(node.right))
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow):
+            return self._power(self.build(node.left), self.build(node.right))
+        if isinstance(node, ast.Call):
+            name = _checked_call(self, node)
+            return self._apply(_NUMPY_FUNCTIONS[name], *(self.build(a) for a in node.args))
+        raise self.fail(f"'{type(node).__name__}' is not allowed in an expression")
+
+    def _const(self, value: float) -> _Num:
+        if not math.isfinite(value):
+            raise self.fail("expression is undefined (division by zero or infinite value)")
+        return _Num(value=value)
+
+    def _name(self, name: str) -> _Num:
+        if name in self.states:
+            index = self.states[name]
+            return _Num(fn=lambda cols: cols[index])
+        if name in self.parameters:
+            return self._const(float(self.parameters[name]))
+        if name in CONSTANTS:
+            return _Num(value=CONSTANTS[name])
+        raise self.fail(_unknown_name(name, {**self.states, **self.parameters}))
+
+    def _apply(self, op: Callable[..., Any], *args: _Num) -> _Num:
+        if all(a.fn is None for a in args):
+            with np.errstate(all="ignore"):
+                try:
+                    value = op(*(np.float64(a.value) for a in args))
+                except ZeroDivisionError:
+                    value = math.inf
+            value = complex(value)
+            if value.imag != 0:
+                raise self.fail("expression is not real")
+            return self._const(value.real)
+        fns = [a.fn if a.fn is not None else (lambda cols, v=a.value: v) for a in args]
+        if len(fns) == 1:
+            f0 = fns[0]
+            return _Num(fn=lambda cols: op(f0(cols)))
+        f0, f1 = fns
+        return _Num(fn=lambda cols: op(f0(cols), f1(cols)))
+
+    def _power(self, base: _Num, exponent: _Num) -> _Num:
+        if exponent.fn is None:
+            p = exponent.value
+            if abs(p) > MAX_EXPONENT:
+                raise self.fail(f"exponent must be a real number with |p| <= {MAX_EXPONENT}")
+            if base.fn is None and base.value != 0 and abs(p * math.log(abs(base.value))) > MAX_LOG_MAGNITUDE:
+                raise self.fail("constant power out of floating-point range")
+            if float(p).is_integer():
+                exponent = _Num(value=int(p))  # x**3 as numpy's integer power, as lambdify prints it
+        elif not (base.fn is None and base.value > 0):
+            raise self.fail("a non-constant exponent needs a positive constant base (use exp(...))")
+        return self._apply(lambda b, p: b ** p, base, exponent)
+
+
+def _checked_tree(text: Any, field: str) -> ast.expr:
+    """Parse ``text`` and check its size (length, nodes, depth); the expression's syntax tree."""
     if not isinstance(text, str):
         raise SpecError(field, "expression must be a string")
     if not text.strip():
@@ -186,8 +308,51 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr], field: str = "expr
         raise SpecError(field, f"expression has more than {MAX_NODES} syntax nodes")
     if _depth(tree, MAX_DEPTH) > MAX_DEPTH:
         raise SpecError(field, f"expression nested deeper than {MAX_DEPTH}")
+    return tree.body
+
+
+def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping[str, float],
+                       field: str = "expression") -> Callable[[np.ndarray], np.ndarray]:
+    """One user expression as a numpy function of points X (P, n) -> (P,), built without SymPy;
+    raises :class:`SpecError` naming ``field``.  ``states`` maps the user's state names to columns."""
+    tree = _checked_tree(text, field)
     try:
-        expr = _Builder(field, names).build(tree.body)
+        node = _NumericBuilder(field, states, parameters).build(tree)
+    except SpecError:
+        raise
+    except (RecursionError, MemoryError, OverflowError, ValueError, TypeError, ZeroDivisionError):
+        raise SpecError(field, "expression cannot be evaluated safely") from None
+
+    def evaluate(X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        with np.errstate(all="ignore"):
+            value = node(tuple(X.T))
+        return np.broadcast_to(np.asarray(value, dtype=float), (X.shape[0],)).copy()
+
+    return evaluate
+
+
+def numeric_many(functions: Sequence[Callable[[np.ndarray], np.ndarray]]):
+    """Stack one-expression functions: points X (P, n) -> (P, len(functions))."""
+
+    def evaluate(X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        if not functions:
+            return np.zeros((X.shape[0], 0))
+        return np.stack([f(X) for f in functions], axis=1)
+
+    return evaluate
+
+
+def parse_expression(text: str, names: Mapping[str, "sp.Expr"], field: str = "expression") -> "sp.Expr":
+    """Parse one user expression into SymPy, or raise :class:`SpecError` naming ``field``.
+
+    ``names`` maps the allowed user names (state variables, parameters) to SymPy objects
+    chosen by the caller (internal symbols or exact numbers).
+    """
+    tree = _checked_tree(text, field)
+    try:
+        expr = _Builder(field, names).build(tree)
     except SpecError:
         raise
     except (RecursionError, MemoryError, OverflowError, ValueError, TypeError, ZeroDivisionError):
@@ -195,8 +360,10 @@ def parse_expression(text: str, names: Mapping[str, sp.Expr], field: str = "expr
     return expr
 
 
-def vectorize(expr: sp.Expr, symbols: Sequence[sp.Symbol]):
+def vectorize(expr: "sp.Expr", symbols: Sequence["sp.Symbol"]):
     """numpy function of points X (shape (P, n)) returning shape (P,) for one expression."""
+    import sympy as sp
+
     fn = sp.lambdify(list(symbols), expr, modules="numpy")
 
     def evaluate(X: np.ndarray) -> np.ndarray:
@@ -208,14 +375,6 @@ def vectorize(expr: sp.Expr, symbols: Sequence[sp.Symbol]):
     return evaluate
 
 
-def vectorize_many(exprs: Sequence[sp.Expr], symbols: Sequence[sp.Symbol]):
+def vectorize_many(exprs: Sequence["sp.Expr"], symbols: Sequence["sp.Symbol"]):
     """numpy function of points X (P, n) returning (P, len(exprs))."""
-    parts = [vectorize(e, symbols) for e in exprs]
-
-    def evaluate(X: np.ndarray) -> np.ndarray:
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        if not parts:
-            return np.zeros((X.shape[0], 0))
-        return np.stack([p(X) for p in parts], axis=1)
-
-    return evaluate
+    return numeric_many([vectorize(e, symbols) for e in exprs])

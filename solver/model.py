@@ -1,41 +1,57 @@
-"""The compiled model: SymPy expressions of f, h and the prior, and their numpy forms.
+"""The compiled model: numpy forms of f, h, ½hᵀR⁻¹h and the prior, and (lazily) their SymPy forms.
 
-Derivatives needed by the offline stage and the analysis are taken symbolically:
-div f, the Jacobians of f and h, and hᵀR⁻¹h (the potential of seed 002 (5.31)).
+    dx = f(x) dt + G dv,   dy = h(x) dt + dw        (the problem part of the spec)
+
+``compile_model`` builds the numpy evaluators straight from the checked syntax trees
+(solver/expressions.py), without SymPy: a stored model filters without ever importing it.  The
+exact SymPy expressions (``drift``, ``observation``, ``prior_expr`` on the internal symbols
+``x_0, x_1, ...``) and what is derived from them symbolically — div f, the Jacobians of f and h,
+½hᵀR⁻¹h, the potential of seed 002 (5.31) — are built on first use, by the offline stage, the
+analysis and the exact filters.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
-import sympy as sp
 
-from .errors import SpecError
-from .expressions import number, parse_expression, state_symbols, vectorize, vectorize_many
+from .expressions import (
+    number,
+    parse_expression,
+    state_symbols,
+    vectorize,
+    vectorize_many,
+)
 from .spec import DensityPrior, GaussianPrior, MixturePrior, ModelSpec
+
+if TYPE_CHECKING:
+    import sympy as sp
+
+Points = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True, eq=False)
 class Model:
-    """A validated model: ``symbols`` are internal (x_0, ...), ``spec.state`` the user's names."""
+    """A validated model.  ``f``, ``h``, ``half_hRh`` and ``log_prior`` are numpy functions of points
+    X (P, n); ``symbols`` (internal, x_0, ...), ``drift``, ``observation`` and ``prior_expr`` are the
+    SymPy forms, parsed on first use; ``spec.state`` holds the user's names."""
 
     spec: ModelSpec
-    symbols: tuple[sp.Symbol, ...]
-    drift: tuple[sp.Expr, ...]  # f
-    observation: tuple[sp.Expr, ...]  # h
-    prior_expr: sp.Expr | None = None  # unnormalised prior density, kind="density"
-    _cache: dict = field(default_factory=dict, repr=False)
+    f: Points  # (P, n) -> (P, n)
+    h: Points  # (P, n) -> (P, m)
+    _prior_fn: Points | None = None  # unnormalised prior density (kind = "density")
 
     # -- sizes and matrices ---------------------------------------------------------
     @property
     def n(self) -> int:
-        return len(self.symbols)
+        return self.spec.n
 
     @property
     def m(self) -> int:
-        return len(self.observation)
+        return self.spec.m
 
     @cached_property
     def a(self) -> np.ndarray:
@@ -62,43 +78,73 @@ class Model:
     def center(self) -> np.ndarray:
         return self.spec.center()
 
-    # -- symbolic derived quantities --------------------------------------------------
+    # -- symbolic forms (SymPy, on first use) ----------------------------------------------
     @cached_property
-    def div_drift(self) -> sp.Expr:
+    def symbols(self) -> tuple["sp.Symbol", ...]:
+        return state_symbols(self.n)
+
+    @cached_property
+    def _sympy_names(self) -> dict[str, Any]:
+        names: dict[str, Any] = {name: number(float(v)) for name, v in self.spec.parameters.items()}
+        names.update(dict(zip(self.spec.state, self.symbols, strict=True)))
+        return names
+
+    @cached_property
+    def drift(self) -> tuple["sp.Expr", ...]:
+        """f as exact SymPy expressions."""
+        return tuple(parse_expression(e, self._sympy_names, f"drift[{i}]")
+                     for i, e in enumerate(self.spec.drift))
+
+    @cached_property
+    def observation(self) -> tuple["sp.Expr", ...]:
+        """h as exact SymPy expressions."""
+        return tuple(parse_expression(e, self._sympy_names, f"observation[{i}]")
+                     for i, e in enumerate(self.spec.observation))
+
+    @cached_property
+    def prior_expr(self) -> "sp.Expr | None":
+        """The unnormalised prior density of kind "density" (None for the other kinds)."""
+        if not isinstance(self.spec.initial, DensityPrior):
+            return None
+        return parse_expression(self.spec.initial.expression, self._sympy_names, "initial.expression")
+
+    @cached_property
+    def div_drift(self) -> "sp.Expr":
+        import sympy as sp
+
         return sp.simplify(sum(sp.diff(fi, xi) for fi, xi in zip(self.drift, self.symbols, strict=True)))
 
     @cached_property
-    def jacobian_drift(self) -> sp.Matrix:
+    def jacobian_drift(self) -> "sp.Matrix":
+        import sympy as sp
+
         return sp.Matrix(self.drift).jacobian(self.symbols)
 
     @cached_property
-    def jacobian_observation(self) -> sp.Matrix:
+    def jacobian_observation(self) -> "sp.Matrix":
+        import sympy as sp
+
         return sp.Matrix(self.observation).jacobian(self.symbols)
 
     @cached_property
-    def potential(self) -> sp.Expr:
+    def potential(self) -> "sp.Expr":
         """½ hᵀR⁻¹h, the observation-independent potential of seed 002 (5.31)."""
+        import sympy as sp
+
         h = sp.Matrix(self.observation)
         r_inv = sp.Matrix([[number(float(v)) for v in row] for row in self.R_inv])
         return sp.expand((h.T * r_inv * h)[0, 0] / 2)
 
     # -- numpy evaluators (points X of shape (P, n)) ----------------------------------
-    @cached_property
-    def f(self):
-        return vectorize_many(self.drift, self.symbols)
-
-    @cached_property
-    def h(self):
-        return vectorize_many(self.observation, self.symbols)
+    def half_hRh(self, X: np.ndarray) -> np.ndarray:
+        """½ hᵀR⁻¹h at points (P,)."""
+        h = self.h(X)
+        return 0.5 * np.einsum("pi,ij,pj->p", h, self.R_inv, h)
 
     @cached_property
     def div_f(self):
+        """div f at points (from the symbolic derivative)."""
         return vectorize(self.div_drift, self.symbols)
-
-    @cached_property
-    def half_hRh(self):
-        """½ hᵀR⁻¹h at points."""
-        return vectorize(self.potential, self.symbols)
 
     @cached_property
     def jac_f(self):
@@ -131,10 +177,6 @@ class Model:
     def prior_density(self, X: np.ndarray) -> np.ndarray:
         return np.exp(self.log_prior(X))
 
-    @cached_property
-    def _prior_fn(self):
-        return vectorize(self.prior_expr, self.symbols)
-
     def prior_moments(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Mean and covariance of a gaussian/mixture prior; None for a density prior."""
         prior = self.spec.initial
@@ -159,33 +201,7 @@ def _log_gaussian(X: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarra
 
 
 def compile_model(spec: ModelSpec) -> Model:
-    """Parse every expression of ``spec`` (safely) and build the :class:`Model`."""
-    symbols = state_symbols(spec.n)
-    names: dict[str, sp.Expr] = {name: number(float(v)) for name, v in spec.parameters.items()}
-    names.update(dict(zip(spec.state, symbols, strict=True)))
-    drift = tuple(parse_expression(e, names, f"drift[{i}]") for i, e in enumerate(spec.drift))
-    obs = tuple(parse_expression(e, names, f"observation[{i}]") for i, e in enumerate(spec.observation))
-    prior_expr = None
-    if isinstance(spec.initial, DensityPrior):
-        prior_expr = parse_expression(spec.initial.expression, names, "initial.expression")
-    model = Model(spec=spec, symbols=symbols, drift=drift, observation=obs, prior_expr=prior_expr)
-    _check_finite_on_domain(model)
-    return model
-
-
-def _check_finite_on_domain(model: Model) -> None:
-    """Reject models whose f, h or prior are not finite on the ball (e.g. log(x) at 0)."""
-    rng = np.random.default_rng(0)
-    n = model.n
-    direction = rng.normal(size=(256, n))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    radii = model.radius * rng.uniform(0, 1, size=(256, 1)) ** (1.0 / n)
-    X = np.vstack([model.center + direction * radii, model.center[None, :]])
-    for field_name, values in (("drift", model.f(X)), ("observation", model.h(X))):
-        if not np.all(np.isfinite(values)):
-            raise SpecError(field_name, "is not finite everywhere on the domain ball")
-    if model.prior_expr is not None:
-        values = model._prior_fn(X)
-        if not np.all(np.isfinite(values)) or np.any(values < 0) or not np.any(values > 0):
-            raise SpecError("initial.expression",
-                            "prior density must be finite, non-negative and not identically zero on the ball")
+    """The :class:`Model` of ``spec``: its expressions parsed (safely) into numpy functions and checked
+    finite on the domain ball (``ModelSpec.numeric``).  SymPy is not used here."""
+    f, h, prior = spec.numeric()  # built once per spec (spec_from_dict already did)
+    return Model(spec=spec, f=f, h=h, _prior_fn=prior)

@@ -1,13 +1,27 @@
 """The offline stage of the Yau–Yau filter (seed 002 §5, (5.31)–(5.34); seed 001 §3).
 
-For an L²(B_R)-orthonormal basis {φ_k} (solver.basis) it solves, once per model,
+For an L²(B_R)-orthonormal basis {φ_k} it solves, once per model,
 
     ∂u/∂t = L u    (Fokker–Planck, L u = ½ a:∇²u − div(f u)),          u(0) = φ_k,
     ∂u/∂t = L_K u  (Kolmogorov, L_K = L − ½hᵀR⁻¹h, seed 002 (5.31)),     u(0) = φ_k,
 
 with u = 0 on ∂B_R, over one observation interval dt, and stores the nodal values of
-e^{dt L}φ_k and e^{dt L_K}φ_k (solver.propagator).  The N independent solves are split in
-fixed column blocks, so ``workers`` processes give bit-identical arrays to one process.
+e^{dt L}φ_k and e^{dt L_K}φ_k.
+
+The pipeline is three builders, each replaceable (``precompute(model, space=..., basis=...,
+propagators=...)``): a new basis or a moving domain touches one of them, not the engine:
+
+* ``space(model) -> Discretisation``: nodes, quadrature weights and the two operators as sparse
+  matrices on the nodal values (default :func:`finite_element_space`: scikit-fem, solver/fem.py);
+* ``basis(discretisation, N) -> OrthonormalBasis``: values, projector and eigenvalues (default
+  :func:`dirichlet_eigenbasis`, solver/basis.py);
+* ``propagators(discretisation, basis, dt, substeps, workers, progress) -> (fp, k)``: the nodal
+  values of e^{dt L}φ_k and e^{dt L_K}φ_k (default :func:`sdirk_propagators`, solver/propagator.py;
+  the N solves in fixed column blocks, so ``workers`` processes give bit-identical arrays).
+
+What the online engine consumes is the :class:`OfflineArrays` protocol; :class:`OfflineModel`
+implements it and round-trips through the HDF5 store (``to_arrays``/``from_arrays``).  Nothing
+heavy (scikit-fem, SuperLU) is imported until a builder runs or a density is evaluated.
 """
 
 from __future__ import annotations
@@ -15,20 +29,80 @@ from __future__ import annotations
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from . import fem
-from .basis import blas_threads, eigenbasis
 from .errors import InputError, SpecError
 from .model import Model
-from .propagator import SdirkPropagator
 
 ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
                "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
 Progress = Callable[[int, int], None]
+
+
+@runtime_checkable
+class OfflineArrays(Protocol):
+    """What the online engine needs of the offline stage (Q nodes, N basis functions).
+
+    ``nodes`` (Q, n) where densities are represented; ``weights`` (Q,) positive quadrature weights
+    (∫u ≈ weights·u); ``basis`` (Q, N) nodal values of Φ with ΦᵀWΦ = I; ``projector`` (N, Q) = ΦᵀW;
+    ``propagator_fp`` and ``propagator_k`` (Q, N) nodal values of e^{dt L}φ_k and e^{dt L_K}φ_k;
+    ``evaluate_basis(points) -> (P, N)`` the basis anywhere (0 outside the domain).
+    """
+
+    nodes: np.ndarray
+    weights: np.ndarray
+    basis: np.ndarray
+    projector: np.ndarray
+    propagator_fp: np.ndarray
+    propagator_k: np.ndarray
+
+    def evaluate_basis(self, points: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """What a space builder returns: the nodes and weights, and the Fokker–Planck and Kolmogorov
+    operators as sparse (Q, Q) matrices acting on nodal values (``mass`` the lumped mass, W = diag
+    of ``weights``); ``half_stiffness`` is ½K of −½div(a∇) (for an eigenbasis); ``space`` whatever
+    the builder needs to evaluate functions at points later, and ``arrays`` what it must store for
+    that (e.g. the mesh)."""
+
+    nodes: np.ndarray
+    weights: np.ndarray
+    fokker_planck: Any
+    kolmogorov: Any
+    half_stiffness: Any
+    space: Any
+    arrays: dict[str, np.ndarray]
+
+
+def finite_element_space(model: Model) -> Discretisation:
+    """The default space: scikit-fem elements on the ball (solver/fem.py)."""
+    from . import fem
+
+    space = fem.discretise(model)
+    ops = fem.assemble(model, space)
+    arrays = {"mesh_points": space.mesh.p, "mesh_cells": space.mesh.t, "node_index": space.interior,
+              "element_order": np.array(space.order)}
+    return Discretisation(nodes=space.nodes, weights=ops.weights, fokker_planck=ops.fokker_planck,
+                          kolmogorov=ops.kolmogorov, half_stiffness=ops.half_stiffness, space=space,
+                          arrays=arrays)
+
+
+def dirichlet_eigenbasis(disc: Discretisation, size: int):
+    """The default basis: the ``size`` lowest Dirichlet eigenfunctions of −½div(a∇) (solver/basis.py)."""
+    from .basis import eigenbasis
+
+    return eigenbasis(disc.half_stiffness, disc.weights, size)
+
+
+def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int, workers: int = 1,
+                      progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The default propagators: Alexander's L-stable SDIRK2 over dt (solver/propagator.py)."""
+    job = _Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values)
+    return propagate_all(job, workers, progress)
 
 
 # -- the column blocks, in this process or in workers ----------------------------------------------
@@ -50,12 +124,16 @@ _START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else
 
 def _setup(job: _Job) -> None:
     """Factor both matrices once per process."""
+    from .propagator import SdirkPropagator
+
     _WORKER["initial"] = job.initial
     _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps)
     _WORKER["k"] = SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps)
 
 
 def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
+    from .basis import blas_threads
+
     start, stop = columns
     u0 = _WORKER["initial"][:, start:stop]
     with blas_threads(1):  # SuperLU's small dense kernels: threads only add contention (measured)
@@ -117,8 +195,8 @@ class OfflineModel:
     eigenvalues: np.ndarray
     node_index: np.ndarray
     element_order: np.ndarray
-    _space: fem.FESpace | None = field(default=None, repr=False)
-    _tree: cKDTree | None = field(default=None, repr=False)
+    _space: Any | None = field(default=None, repr=False)  # fem.FESpace, built on first use
+    _tree: Any | None = field(default=None, repr=False)  # scipy.spatial.cKDTree of the cells
 
     @property
     def size(self) -> int:
@@ -160,7 +238,9 @@ class OfflineModel:
         return out
 
     @property
-    def space(self) -> fem.FESpace:
+    def space(self) -> Any:
+        from . import fem
+
         if self._space is None:
             self._space = fem.space_from_arrays(self.model.n, self.mesh_points, self.mesh_cells,
                                                 int(self.element_order))
@@ -168,6 +248,10 @@ class OfflineModel:
 
     def _simplex_values(self, X: np.ndarray, full: np.ndarray) -> np.ndarray:
         """P1 interpolation: barycentric coordinates in the element containing each point."""
+        from scipy.spatial import cKDTree
+
+        from . import fem
+
         if self._tree is None:
             self._tree = cKDTree(self.mesh_points[:, self.mesh_cells].mean(axis=1).T)
         cells = self.mesh_cells
@@ -213,28 +297,29 @@ def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
 
 
 # -- precompute ---------------------------------------------------------------------------------
-def precompute(model: Model, workers: int = 1, progress: Progress | None = None) -> OfflineModel:
-    """Mesh, basis and propagators of ``model`` (seed 002 §5 offline stage)."""
+def precompute(model: Model, workers: int = 1, progress: Progress | None = None, *,
+               space: Callable[[Model], Discretisation] = finite_element_space,
+               basis: Callable[[Discretisation, int], Any] = dirichlet_eigenbasis,
+               propagators: Callable[..., tuple[np.ndarray, np.ndarray]] = sdirk_propagators) -> OfflineModel:
+    """Nodes, basis and propagators of ``model`` (seed 002 §5 offline stage), from the three builders."""
     if not isinstance(workers, int) or workers < 1:
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
-    space = fem.discretise(model)
-    ops = fem.assemble(model, space)
-    basis = eigenbasis(ops.half_stiffness, ops.weights, spec.basis)
-    job = _Job(ops.fokker_planck, ops.kolmogorov, ops.weights, model.dt, spec.substeps, basis.values)
-    prop_fp, prop_k = propagate_all(job, workers, progress)
+    disc = space(model)
+    phi = basis(disc, spec.basis)
+    prop_fp, prop_k = propagators(disc, phi, model.dt, spec.substeps, workers, progress)
     for name, arr in (("propagator_fp", prop_fp), ("propagator_k", prop_k)):
         if not np.all(np.isfinite(arr)):
             raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")
     return OfflineModel(
-        model=model, mesh_points=space.mesh.p, mesh_cells=space.mesh.t, nodes=space.nodes,
-        weights=ops.weights, basis=basis.values, projector=basis.projector, propagator_fp=prop_fp,
-        propagator_k=prop_k, eigenvalues=basis.eigenvalues, node_index=space.interior,
-        element_order=np.array(space.order), _space=space)
+        model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
+        propagator_fp=prop_fp, propagator_k=prop_k, eigenvalues=phi.eigenvalues, **disc.arrays,
+        _space=disc.space)
 
 
 def default_workers() -> int:
     return max(1, min(4, (multiprocessing.cpu_count() or 1)))
 
 
-__all__ = ["ARRAY_NAMES", "OfflineModel", "default_workers", "precompute"]
+__all__ = ["ARRAY_NAMES", "Discretisation", "OfflineArrays", "OfflineModel", "default_workers",
+           "dirichlet_eigenbasis", "finite_element_space", "precompute", "sdirk_propagators"]

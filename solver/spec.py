@@ -17,7 +17,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from .errors import SpecError
 from .expressions import RESERVED_NAMES
@@ -115,6 +123,7 @@ class ModelSpec(_Strict):
     domain: Domain
     discretization: Discretization
     method: Literal["auto", "yau-yau", "kalman-bucy", "yau-hu", "wei-norman"] = "auto"
+    _numeric: tuple | None = PrivateAttr(default=None)
 
     @field_validator("name")
     @classmethod
@@ -185,9 +194,51 @@ class ModelSpec(_Strict):
     def center(self) -> np.ndarray:
         return np.zeros(self.n) if self.domain.center is None else np.asarray(self.domain.center, float)
 
+    def numeric(self) -> tuple[Any, Any, Any]:
+        """f, h and the density prior (or None) as numpy functions of points (P, n), built once from the
+        checked expressions (SymPy-free) and checked finite on the domain ball; SpecError names the
+        expression at fault."""
+        if self._numeric is None:
+            self._numeric = _numeric_functions(self)
+        return self._numeric
+
     def canonical_json(self) -> str:
         """Deterministic JSON of the spec (the input of the model's content hash)."""
         return json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+
+
+def _numeric_functions(spec: ModelSpec) -> tuple[Any, Any, Any]:
+    from .expressions import numeric_expression, numeric_many
+
+    states = {name: i for i, name in enumerate(spec.state)}
+    params = dict(spec.parameters)
+    f = numeric_many([numeric_expression(e, states, params, f"drift[{i}]") for i, e in enumerate(spec.drift)])
+    h = numeric_many([numeric_expression(e, states, params, f"observation[{i}]")
+                      for i, e in enumerate(spec.observation)])
+    prior = None
+    if isinstance(spec.initial, DensityPrior):
+        prior = numeric_expression(spec.initial.expression, states, params, "initial.expression")
+    _check_finite_on_ball(spec, f, h, prior)
+    return f, h, prior
+
+
+def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:
+    """Reject models whose f, h or prior are not finite on the ball (e.g. log(x) at 0): 256 random
+    points of the ball and its centre."""
+    rng = np.random.default_rng(0)
+    n = spec.n
+    direction = rng.normal(size=(256, n))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radii = spec.domain.radius * rng.uniform(0, 1, size=(256, 1)) ** (1.0 / n)
+    X = np.vstack([spec.center() + direction * radii, spec.center()[None, :]])
+    for field_name, values in (("drift", f(X)), ("observation", h(X))):
+        if not np.all(np.isfinite(values)):
+            raise SpecError(field_name, "is not finite everywhere on the domain ball")
+    if prior is not None:
+        values = prior(X)
+        if not np.all(np.isfinite(values)) or np.any(values < 0) or not np.any(values > 0):
+            raise SpecError("initial.expression",
+                            "prior density must be finite, non-negative and not identically zero on the ball")
 
 
 def _finite_or_raise(values: Any, field: str) -> None:
@@ -245,9 +296,7 @@ def spec_from_dict(data: Any) -> ModelSpec:
             raise ctx_error from None
         msg = err["msg"].removeprefix("Value error, ")
         raise SpecError(_field_path(tuple(err["loc"])), msg) from None
-    from .model import compile_model  # expressions are checked when compiled
-
-    compile_model(spec)
+    spec.numeric()  # the expressions, checked (safely) and finite on the ball; kept for compile_model
     return spec
 
 
