@@ -21,9 +21,11 @@ from pathlib import Path
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 # (module, fragment) in reading order
 TOPICS = [
+    ("startup", "bench-startup.md"),
     ("precompute", "bench-precompute.md"),
     ("storage", "bench-storage.md"),
     ("engine_speed", "bench-engine.md"),
+    ("blas_threads", "bench-blas.md"),
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
     ("load", "bench-load.md"),

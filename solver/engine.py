@@ -49,7 +49,7 @@ import numpy as np
 from scipy.linalg.blas import dgemv, sgemv
 
 from .errors import InputError, SpecError
-from .filtering import Estimate, check_increments
+from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments
 from .model import Model
 from .spec import DensityPrior
 
@@ -120,30 +120,7 @@ class YauYauState:
         return self.coefficients / self.mass
 
 
-@dataclass(frozen=True)
-class ChunkResult:
-    """Estimates of a chunk as arrays (the fast path of :meth:`YauYauFilter.run`)."""
-
-    step: np.ndarray  # (K,) int
-    t: np.ndarray  # (K,)
-    mean: np.ndarray  # (K, n)
-    cov: np.ndarray  # (K, n, n)
-    mode: np.ndarray  # (K, n)
-    loglik: np.ndarray  # (K,) cumulative
-    loglik_increment: np.ndarray  # (K,)
-    degenerate: np.ndarray  # (K,) bool
-    reason: str | None = None  # of the first degenerate step
-
-    def estimates(self) -> list[Estimate]:
-        reason = self.reason
-        return [Estimate(step=int(self.step[k]), t=float(self.t[k]), mean=self.mean[k], cov=self.cov[k],
-                         loglik=float(self.loglik[k]), loglik_increment=float(self.loglik_increment[k]),
-                         degenerate=bool(self.degenerate[k]), reason=reason if self.degenerate[k] else None,
-                         mode=self.mode[k])
-                for k in range(len(self.step))]
-
-
-class YauYauFilter:
+class YauYauFilter(ChunkedFilter):
     """The Yau–Yau filter on precomputed offline arrays (the :class:`solver.filtering.Filter` protocol).
 
     ``offline`` needs ``nodes`` (Q, n), ``weights`` (Q,), ``projector`` (N, Q), ``propagator_fp`` and
@@ -254,16 +231,7 @@ class YauYauFilter:
         return dataclasses.replace(state.last, step=state.step, t=state.t, loglik_increment=0.0,
                                    degenerate=True, reason=state.reason)
 
-    # -- stepping ----------------------------------------------------------------------
-    def step(self, state: YauYauState, increment: np.ndarray | None) -> tuple[YauYauState, Estimate]:
-        row = np.full((1, self.model.m), np.nan) if increment is None else np.reshape(increment, (1, -1))
-        new_state, estimates = self.run(state, row)
-        return new_state, estimates[0]
-
-    def run(self, state: YauYauState, increments: np.ndarray) -> tuple[YauYauState, list[Estimate]]:
-        new_state, result = self.run_arrays(state, increments)
-        return new_state, result.estimates()
-
+    # -- stepping (step and run: ChunkedFilter) -----------------------------------------
     def run_arrays(self, state: YauYauState, increments: np.ndarray) -> tuple[YauYauState, ChunkResult]:
         """Advance over a chunk (K, m) of increments; estimates as arrays."""
         dy = check_increments(increments, self.model.m)

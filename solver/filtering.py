@@ -1,19 +1,26 @@
-"""What every filter returns: the common interface of the Yau–Yau engine and the exact filters.
+"""The filter contract: the protocol every filter implements and every type it uses.
 
 A filter keeps the model apart from the algorithm (as in N. Chopin's ``particles``): it is
-built once from a model, its state is a plain value, and ``step``/``run`` map
-(state, observation increments) to (new state, one :class:`Estimate` per increment).
-The state is serialisable (``to_dict``/``from_dict``, JSON-safe) so that the service can
-store it between chunks; the log normalising constant is carried along in it.
+built once from a model, its state is a plain value, and ``run_arrays`` maps (state, a chunk of
+observation increments) to (new state, a :class:`ChunkResult` of arrays) — a function of
+(params, data), as in dynamax.  ``step`` and ``run`` are the same map for one row and as
+:class:`Estimate` objects; :class:`ChunkedFilter` derives them from ``run_arrays``.  The state is
+serialisable (``to_dict``/``state_from_dict``, JSON-safe) so that the service can store it between
+chunks; the log normalising constant (the log-likelihood) is carried along in it.
 
 Observation times τ_k = k·dt; increment Δy_k = y(τ_k) − y(τ_{k−1}) (shape (m,)).  A row of
-NaN means "no observation at this step": the filter only predicts.
+NaN means "no observation at this step": the filter only predicts.  ``step(state, None)`` is the
+same as a row of NaN.
+
+Adding a filter: a module with a class implementing :class:`Filter` (usually ``ChunkedFilter`` plus
+``initial_state``, ``run_arrays``, ``estimate``, ``density``, ``state_from_dict``) and one line in
+the registry of solver/methods.py.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -46,8 +53,44 @@ class Estimate:
         return out
 
 
+@dataclass(frozen=True)
+class ChunkResult:
+    """The estimates of a chunk of K steps as arrays (what ``run_arrays`` returns).
+
+    ``mode`` is None where a filter does not compute it (a mixture); a row of ``mode`` that is not
+    finite means "unknown at that step".  ``degenerate[k]`` flags the steps at and after the first
+    degenerate one, whose ``reason`` is given; their moments repeat the last good estimate.
+    """
+
+    step: np.ndarray  # (K,) int
+    t: np.ndarray  # (K,)
+    mean: np.ndarray  # (K, n)
+    cov: np.ndarray  # (K, n, n)
+    mode: np.ndarray | None  # (K, n) or None
+    loglik: np.ndarray  # (K,) cumulative
+    loglik_increment: np.ndarray  # (K,)
+    degenerate: np.ndarray  # (K,) bool
+    reason: str | None = None  # of the first degenerate step
+
+    def __len__(self) -> int:
+        return len(self.step)
+
+    def estimates(self) -> list[Estimate]:
+        """One :class:`Estimate` per step (new objects; nothing is shared with later chunks)."""
+        modes = [None] * len(self.step) if self.mode is None else [
+            m if np.all(np.isfinite(m)) else None for m in self.mode]
+        columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
+                      self.loglik_increment.tolist(), self.degenerate.tolist(), modes, strict=True)
+        reason = self.reason
+        return [Estimate(step=s, t=t, mean=m, cov=P, loglik=ll, loglik_increment=i, degenerate=bad,
+                         reason=reason if bad else None, mode=mode)
+                for s, t, m, P, ll, i, bad, mode in columns]
+
+
 @runtime_checkable
 class FilterState(Protocol):
+    """What every filter state has: where it is, the carried log-likelihood, its health."""
+
     step: int
     t: float
     loglik: float
@@ -56,20 +99,36 @@ class FilterState(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
+@dataclass(frozen=True)
+class StepState:
+    """Common bookkeeping of a filter state (a base for the filters' own state classes)."""
+
+    step: int = 0
+    t: float = 0.0
+    loglik: float = 0.0
+    loglik_increment: float = 0.0
+    degenerate: bool = False
+    reason: str | None = None
+
+
 @runtime_checkable
 class Filter(Protocol):
     """The interface of every filter (general engine and exact filters alike)."""
 
-    method: str  # "yau-yau", "kalman-bucy", "yau-hu", "wei-norman", ...
+    method: ClassVar[str]  # the registry name: "yau-yau", "kalman-bucy", "yau-hu", "wei-norman", ...
+    model: Any
 
     def initial_state(self, prior: Any | None = None) -> FilterState:
         """State at t = 0; ``prior`` (a spec prior) overrides the model's."""
 
+    def run_arrays(self, state: FilterState, increments: np.ndarray) -> tuple[FilterState, ChunkResult]:
+        """Advance over a chunk of increments (K, m); rows of NaN are missing observations."""
+
     def step(self, state: FilterState, increment: np.ndarray | None) -> tuple[FilterState, Estimate]:
-        """Advance by one observation interval dt."""
+        """Advance by one observation interval dt (``None``: no observation, predict only)."""
 
     def run(self, state: FilterState, increments: np.ndarray) -> tuple[FilterState, list[Estimate]]:
-        """Advance over a chunk of increments (K, m); rows of NaN are missing observations."""
+        """``run_arrays`` with one :class:`Estimate` per row."""
 
     def estimate(self, state: FilterState) -> Estimate:
         """The current estimate (without stepping)."""
@@ -79,6 +138,30 @@ class Filter(Protocol):
 
     def state_from_dict(self, data: dict[str, Any]) -> FilterState:
         """Inverse of ``state.to_dict()``."""
+
+
+class ChunkedFilter:
+    """``step`` and ``run`` of a filter that advances whole chunks with ``run_arrays``."""
+
+    model: Any
+
+    def step(self, state: Any, increment: np.ndarray | None) -> tuple[Any, Estimate]:
+        row = observed(increment, self.model.m)
+        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
+        new_state, result = self.run_arrays(state, rows)
+        return new_state, result.estimates()[0]
+
+    def run(self, state: Any, increments: np.ndarray) -> tuple[Any, list[Estimate]]:
+        new_state, result = self.run_arrays(state, increments)
+        return new_state, result.estimates()
+
+
+def observed(increment: np.ndarray | None, m: int) -> np.ndarray | None:
+    """The increment as an (m,) array, or None for a missing observation (None or a NaN row)."""
+    if increment is None:
+        return None
+    row = check_increments(np.reshape(np.asarray(increment, dtype=float), (1, -1)), m, "increment")[0]
+    return None if np.isnan(row).all() else row
 
 
 def check_increments(increments: Any, m: int, field: str = "increments") -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, SpecError
-from ..filtering import Estimate, check_increments
+from ..filtering import ChunkedFilter, Estimate, StepState, check_increments, observed
 from ..model import Model
 from ..spec import GaussianPrior
 
@@ -35,26 +35,6 @@ def log_sum_exp(log_values: np.ndarray, weights: np.ndarray | None = None) -> fl
     terms = np.exp(log_values - top)
     total = terms.sum() if weights is None else terms @ weights
     return float(top + np.log(total)) if total > 0 else -np.inf
-
-
-def observed(increment: np.ndarray | None, m: int) -> np.ndarray | None:
-    """The increment as an (m,) array, or None for a missing observation (None or a NaN row)."""
-    if increment is None:
-        return None
-    row = check_increments(np.reshape(np.asarray(increment, dtype=float), (1, -1)), m, "increment")[0]
-    return None if np.isnan(row).all() else row
-
-
-@dataclass(frozen=True)
-class StepState:
-    """Common bookkeeping of a reference filter's state."""
-
-    step: int = 0
-    t: float = 0.0
-    loglik: float = 0.0
-    loglik_increment: float = 0.0
-    degenerate: bool = False
-    reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -112,20 +92,6 @@ class ReferenceFilter:
             state = self._advance(state, None if np.isnan(row).all() else row)
             estimates.append(self.estimate(state))
         return state, estimates
-
-
-class ChunkedFilter:
-    """``step`` and ``run`` of a filter that advances whole chunks with ``run_arrays``."""
-
-    def step(self, state: Any, increment: np.ndarray | None) -> tuple[Any, Estimate]:
-        row = observed(increment, self.model.m)
-        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
-        new_state, result = self.run_arrays(state, rows)
-        return new_state, result.estimates()[0]
-
-    def run(self, state: Any, increments: np.ndarray) -> tuple[Any, list[Estimate]]:
-        new_state, result = self.run_arrays(state, increments)
-        return new_state, result.estimates()
 
 
 def gaussian_estimate(state: GaussianState) -> Estimate:
