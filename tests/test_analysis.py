@@ -100,7 +100,7 @@ def test_seed004_example_algebra_and_table():
     x, n = model.symbols, 3
     report = analyze(model)
     assert all(c.holds for c in report.seed004.values())
-    assert report.conditions["seed004_structure"].holds and report.conditions["seed004_class"].holds
+    assert report.conditions["wei_norman_structure"].holds and report.conditions["wei_norman_class"].holds
     assert not report.conditions["yau_filtering_system"].holds  # Ω is not constant
     alg = report.algebra
     L0, D1, x1, one = kolmogorov_operator(model), D(model, 0), multiplication(x[0], n), multiplication(1, n)
