@@ -22,9 +22,10 @@ class Paper:
 
     @property
     def short(self) -> str:
-        """"Yau & Lai (2003)", "Shi et al. (2017)"."""
+        """"Yau & Lai (2003)", "Yau, Du & Jia", "Shi et al. (2017)" (four authors or more: et al.)."""
         surnames = [name.split()[-1] for name in self.authors]
-        who = " & ".join(surnames) if len(surnames) <= 2 else f"{surnames[0]} et al."
+        who = (", ".join(surnames[:-1]) + " & " + surnames[-1]) if 1 < len(surnames) <= 3 else (
+            surnames[0] if len(surnames) == 1 else f"{surnames[0]} et al.")
         return f"{who} ({self.year})" if self.year else who
 
     def to_dict(self) -> dict[str, Any]:
