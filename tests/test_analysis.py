@@ -100,7 +100,7 @@ def test_seed004_example_algebra_and_table():
     x, n = model.symbols, 3
     report = analyze(model)
     assert all(c.holds for c in report.seed004.values())
-    assert report.conditions["seed004_structure"].holds and report.conditions["seed004_class"].holds
+    assert report.conditions["wei_norman_structure"].holds and report.conditions["wei_norman_class"].holds
     assert not report.conditions["yau_filtering_system"].holds  # Ω is not constant
     alg = report.algebra
     L0, D1, x1, one = kolmogorov_operator(model), D(model, 0), multiplication(x[0], n), multiplication(1, n)
@@ -315,3 +315,17 @@ def test_disguised_ornstein_uhlenbeck_is_still_linear():
     report = analyze(model)
     assert report.conditions["linear"].holds and report.method == "kalman-bucy"
     assert report.algebra.closed and report.algebra.dimension == 4 and not report.algebra.exact
+
+
+def test_citations_name_authors_year_and_place():
+    from yauyau.solver.papers import PAPERS, cite, cite_full
+
+    assert set(PAPERS) == {"000", "001", "002", "003", "004"}
+    assert cite("000", "Theorem 3.1") == "Yau & Lai (2003), Theorem 3.1"
+    assert cite("002") == "Yau (2008)" and cite("004") == "Shi et al. (2017)"
+    assert cite("003") == "Yau, Du & Jia"  # no year printed in our copy: none invented
+    assert cite_full("001") == (
+        "Stephen S.-T. Yau and Lixing Jia, 'Filtering Problem with Nonlinear Observations and Drift Terms "
+        "Equal to Gradient Vector Field plus Affine Vector Field', Joint IEEE Conference on Decision and "
+        "Control and European Control Conference (CDC-ECC), Seville, Spain, 2005")
+    assert all(p.doi is None or p.doi.startswith("10.") for p in PAPERS.values())

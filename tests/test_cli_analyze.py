@@ -123,3 +123,79 @@ def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
     bad = api.post("/v1/analyze", json={**spec, "drift": ["x", "y"]})
     assert bad.status_code == 422 and bad.headers["content-type"].startswith("application/problem+json")
     assert "drift" in bad.json()["field"]
+
+
+# ---------------------------------------------------------------------------------------------
+# the output names the papers (title, authors, theorem), never the internal seed numbers
+# ---------------------------------------------------------------------------------------------
+YAU_LAI = "Explicit Solution of DMZ Equation in Nonlinear Filtering via Solution of ODEs"
+SHI_ET_AL = "New Classes of Finite Dimensional Filters With Non-Maximal Rank"
+YAU_2008 = "New Algorithms in Real Time Solution of the Nonlinear Filtering Problem"
+
+
+@pytest.mark.parametrize("example, method, cited", [
+    ("ou.toml", "kalman-bucy", None),
+    ("benes.toml", "yau-hu",
+     "Yau-Hu direct method reduces the DMZ equation to a Kolmogorov equation and ODEs (Stephen S.-T. Yau and "
+     f"Yuen-Tai Lai, '{YAU_LAI}', IEEE Transactions on Automatic Control, 2003, Theorem 3.1; Yau (2008), "
+     "Section 4)"),
+    ("cubic_sensor.toml", "yau-yau", f"general Yau-Yau algorithm (Stephen S.-T. Yau, '{YAU_2008}'"),
+])
+def test_text_report_names_the_papers_not_the_seeds(example, method, cited):
+    done = yauyau(str(ROOT / "examples" / example), "--max-depth", "2")
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert f"recommended method: {method}" in out
+    assert "seed" not in out.lower()
+    assert YAU_LAI in out and SHI_ET_AL in out and YAU_2008 in out  # the references section
+    assert "doi:10.1109/TAC.2003.809169" in out and "doi:10.1109/LCSYS.2017.2713604" in out
+    assert "(Yau & Lai (2003), Theorem 2.1)" in out  # (C1) <=> (C'1) is Theorem 2.1 there
+    if cited:
+        assert cited in out
+
+
+def test_text_report_of_the_non_maximal_rank_example_cites_theorem_1(tmp_path):
+    spec = tmp_path / "example.toml"
+    spec.write_text(SEED004.replace("seed004-example", "non-maximal-rank-example"))
+    done = yauyau(str(spec))
+    assert done.returncode == 0, done.stderr
+    assert "seed" not in done.stdout.lower()
+    assert ("the Wei-Norman filter (Ji Shi, Xiuqiong Chen, Wenhui Dong and Stephen S.-T. Yau, "
+            f"'{SHI_ET_AL}', IEEE Control Systems Letters, 2017, Theorem 1)") in done.stdout
+    assert "Shi et al. (2017) class, items:" in done.stdout
+
+
+def test_json_report_lists_the_references(tmp_path):
+    spec = tmp_path / "example.toml"
+    spec.write_text(SEED004.replace("seed004-example", "non-maximal-rank-example"))
+    done = yauyau(str(spec), "--json")
+    assert done.returncode == 0, done.stderr
+    assert "seed" not in done.stdout.lower()
+    data = json.loads(done.stdout)
+    refs = {r["title"]: r for r in data["references"]}
+    assert set(refs) == {YAU_LAI, YAU_2008, SHI_ET_AL}
+    assert refs[YAU_LAI]["authors"] == ["Stephen S.-T. Yau", "Yuen-Tai Lai"]
+    assert refs[YAU_LAI]["doi"] == "10.1109/TAC.2003.809169" and refs[YAU_LAI]["year"] == 2003
+    assert refs[SHI_ET_AL]["doi"] == "10.1109/LCSYS.2017.2713604" and refs[SHI_ET_AL]["year"] == 2017
+    assert refs[YAU_2008]["doi"] is None  # none printed in the paper, none confirmed: not invented
+    assert data["conditions"]["wei_norman_structure"]["holds"] is True
+    assert data["conditions"]["wei_norman_class"]["holds"] is True
+    assert all(c["holds"] for c in data["wei_norman_conditions"].values())
+    assert data["recommendation"]["method"] == "wei-norman" and SHI_ET_AL in data["recommendation"]["reason"]
+
+
+def test_service_report_is_the_same_report_with_references(tmp_path):
+    import tomllib
+
+    from fastapi.testclient import TestClient
+    from yauyau.service.app import create_app
+    from yauyau.service.settings import Settings
+
+    settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=30.0)
+    api = TestClient(create_app(settings), raise_server_exceptions=False)
+    r = api.post("/v1/analyze", json=tomllib.loads((ROOT / "examples" / "benes.toml").read_text()))
+    assert r.status_code == 200
+    data = r.json()
+    assert "seed" not in r.text.lower()
+    assert [ref["title"] for ref in data["references"]] == [YAU_LAI, YAU_2008, SHI_ET_AL]
+    assert data["recommendation"]["method"] == "yau-hu" and YAU_LAI in data["recommendation"]["reason"]

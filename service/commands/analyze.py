@@ -1,7 +1,9 @@
 """`yauyau analyze SPEC`: Wong matrix, η, conditions, estimation algebra, recommended method.
 
-Prints the report of :func:`solver.analysis.analyze` as text, or as JSON with ``--json``.
-Bounded by ``--time-limit`` seconds and ``--max-size`` (see solver.analysis.analyze).
+Prints the report of :func:`yauyau.solver.analysis.analyze` as text (``report.render()``) or as JSON
+with ``--json`` (``report.to_dict()``, the same dict POST /v1/analyze returns).  Both name the papers
+the conditions and the recommendation come from by author, year, title and theorem (solver.papers);
+the JSON has them in ``references``.  Bounded by ``--time-limit`` seconds and ``--max-size``.
 A bad spec raises SpecError, which the dispatcher prints as one line (exit status 2).
 """
 

@@ -90,11 +90,11 @@ class WeiNormanFilter:
         self.log_flow = log_flow
         k = observed_coordinate(model)
         if not is_identity(model.a):
-            raise SpecError("diffusion", "the Wei-Norman filter of seed 004 needs a = I")
+            raise SpecError("diffusion", "the Wei-Norman filter of Shi et al. (2017) needs a = I")
         structure = seed004_structure(model, k) if k is not None else None
         if structure is None:
             raise SpecError("method", "wei-norman needs omega_kj = 0, eta = A x_k^2 + B x_k + gamma(others) "
-                                      "and h affine in one coordinate x_k (seed 004 (I), (II), (v))")
+                                      "and h affine in one coordinate x_k (Shi et al. (2017) (I), (II), (v))")
         self.k = k
         self.A = float(structure["A"])
         self.B = float(structure["B"])

@@ -134,7 +134,7 @@ def _exponential_sum(F: sp.Expr, symbols):
 def yau_system(model: Model) -> YauSystem:
     """Check (C1)–(C3) for ``model`` (a = I) and return ℓ, F, η; SpecError names the field."""
     if not np.allclose(model.a, np.eye(model.n)):
-        raise SpecError("diffusion", "the Yau–Hu filter needs a = I (orthogonal g, as in seed 000)")
+        raise SpecError("diffusion", "the Yau–Hu filter needs a = I (orthogonal g, as in Yau & Lai (2003))")
     xs = model.symbols
     affine_coefficients(model.observation, xs, "observation")  # (C2)
     f = [sp.expand(fi) for fi in model.drift]

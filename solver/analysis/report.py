@@ -1,0 +1,213 @@
+"""The analysis report: conditions, estimation algebra, the recommended method and why, with the
+papers it rests on named in words; rendered as text (``yauyau analyze``) or as a dict (``--json``
+and POST /v1/analyze).
+
+For dx = f dt + G dv, dy = h dt + dw (a = GQGᵀ, E dw dwᵀ = R dt) the DMZ equation reads
+dσ = L0 σ dt + Σ_i L_i σ dy_i with (seed 002 (2.2), seed 004 (2))
+
+    L0 = ½ Σ a_ij ∂_i∂_j − Σ f_i ∂_i − div f − ½ hᵀR⁻¹h,      L_i = multiplication by (R⁻¹h)_i.
+
+:func:`analyze` decides the conditions of :mod:`.conditions` (at most half of the time limit) and
+builds the estimation algebra of :mod:`.algebra` (the rest), then :func:`recommend_method_from`
+chooses kalman-bucy | yau-hu | wei-norman | yau-yau.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..model import Model
+from ..papers import cite, cite_full, reference
+from .algebra import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, EstimationAlgebra, bounded_algebra
+from .budget import DEFAULT_MAX_SIZE, DEFAULT_TIME_LIMIT, Budget, bounded
+from .conditions import Condition, Facts, all_of, decide_conditions
+from .operators import _DIGITS, _ZERO_POINTS, is_identity, show, show_operator
+
+# the papers every report rests on: (C1)-(C3) from seed 000, E and its algorithm from seed 002, the
+# non-maximal-rank class from seed 004
+CITED = ("000", "002", "004")
+YAU_HU = cite_full("000", "Theorem 3.1")  # the direct method: DMZ -> Kolmogorov equation + ODEs
+WEI_NORMAN = cite_full("004", "Theorem 1")
+YAU_YAU = cite_full("002", "Section 5")
+CLASS_004 = cite("004")  # the non-maximal-rank class (i)-(v) of seed 004 §III
+
+
+@dataclass
+class AnalysisReport:
+    model: str
+    state: list[str]
+    wong_matrix: list[list[str]]
+    wong_constant: bool | None
+    eta: str
+    notes: list[str]
+    conditions: dict[str, Condition]
+    seed004: dict[str, Condition]
+    algebra: EstimationAlgebra
+    algebra_basis: list[str]
+    method: str
+    reason: str
+    elapsed: float = 0.0  # seconds the analysis took
+    references: list[str] = field(default_factory=lambda: list(CITED))  # keys of solver.papers.PAPERS
+
+    def to_dict(self) -> dict[str, Any]:
+        alg = self.algebra
+        return {
+            "model": self.model, "state": self.state,
+            "wong_matrix": self.wong_matrix, "wong_constant": self.wong_constant,
+            "eta": self.eta, "notes": self.notes,
+            "conditions": {k: c.to_dict() for k, c in self.conditions.items()},
+            "wei_norman_conditions": {k: c.to_dict() for k, c in self.seed004.items()},
+            "estimation_algebra": {
+                "closed": alg.closed, "dimension": alg.dimension, "basis": self.algebra_basis,
+                "linear_rank": alg.linear_rank, "maximal_rank": alg.maximal_rank,
+                "rounds": alg.rounds, "max_depth": alg.max_depth, "max_dimension": alg.max_dimension,
+                "stopped_by": alg.stopped_by, "time_limit": alg.time_limit, "max_size": alg.max_size,
+                "rank_test": "exact over Q" if alg.exact else f"numeric, {_DIGITS} digits at random points"},
+            "recommendation": {"method": self.method, "reason": self.reason},
+            "elapsed_s": round(self.elapsed, 3),
+            "references": [reference(key) for key in self.references],
+        }
+
+    def render(self) -> str:
+        d = self.to_dict()
+        width = max(len(e) for row in self.wong_matrix for e in row)
+        lines = [f"model: {self.model}   state: {', '.join(self.state)}", "",
+                 "Wong matrix Omega (omega_ij = df_j/dx_i - df_i/dx_j):"]
+        lines += ["  [ " + "  ".join(e.rjust(width) for e in row) + " ]" for row in self.wong_matrix]
+        constant = _mark(self.wong_constant, "yes", "no", "undecided")
+        lines += [f"  constant: {constant}", "", f"eta = {self.eta}"]
+        lines += [f"  note: {note}" for note in self.notes]
+        lines += ["", "conditions:"]
+        lines += [f"  [{_mark(c.holds)}] {c.title}" + (f"  ({c.detail})" if c.detail else "")
+                  for c in self.conditions.values()]
+        if self.seed004:
+            lines += [f"  {CLASS_004} class, items:"]
+            lines += [f"    [{_mark(c.holds)}] {k}" + (f"  ({c.detail})" if c.detail else "")
+                      for k, c in self.seed004.items()]
+        alg = d["estimation_algebra"]
+        lines += ["", "estimation algebra E = <L0, h_1, ..., h_m>:"]
+        if alg["closed"]:
+            lines += [f"  dimension {alg['dimension']}, linear rank {alg['linear_rank']}, "
+                      f"{'maximal' if alg['maximal_rank'] else 'non-maximal'} rank  ({alg['rank_test']})"]
+            lines += [f"  basis: {{{', '.join(alg['basis'])}}}"]
+        else:
+            lines += [f"  does not close within {alg['stopped_by']} "
+                      f"({alg['rounds']} rounds of brackets, {len(alg['basis'])} independent elements found)"]
+        lines += ["", f"recommended method: {self.method}", f"  reason: {self.reason}",
+                  f"  (analysis took {self.elapsed:.2f} s)"]
+        lines += ["", "references:"] + [f"  {_reference_line(key)}" for key in self.references]
+        return "\n".join(lines)
+
+
+def _reference_line(key: str) -> str:
+    doi = reference(key)["doi"]
+    return cite_full(key) + (f", doi:{doi}" if doi else "")
+
+
+def _mark(holds: bool | None, yes: str = "x", no: str = " ", undecided: str = "?") -> str:
+    return undecided if holds is None else (yes if holds else no)
+
+
+def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int = DEFAULT_MAX_DIMENSION,
+            time_limit: float | None = DEFAULT_TIME_LIMIT,
+            max_size: int | None = DEFAULT_MAX_SIZE) -> AnalysisReport:
+    """Wong matrix, η, conditions, estimation algebra and the recommended exact/general method.
+
+    Bounded: the conditions get at most half of `time_limit` (they usually take milliseconds), the
+    algebra the rest; an item that reaches a bound is reported undecided (holds None) and the
+    algebra as not closing within that bound.  A single SymPy call cannot be interrupted, so the
+    size cap keeps each one small; the report may come back a little after the deadline.
+    """
+    start = time.monotonic()
+    half = None if time_limit is None else time_limit / 2
+    name = None if time_limit is None else f"time {time_limit:g} s (half of it for the conditions)"
+    with bounded(Budget(half, max_size, start, name)) as budget:
+        facts = decide_conditions(model)
+        facts.numeric = budget.numeric_zero_tests
+    with bounded(Budget(time_limit, max_size, start)) as budget:
+        algebra = bounded_algebra(model, max_depth, max_dimension)
+        basis = [show_operator(op, model, label)
+                 for op, label in zip(algebra.basis, algebra.labels, strict=True)]
+        facts.numeric += budget.numeric_zero_tests
+        report = _report(model, facts, algebra, basis)  # simplifies for display only while time is left
+    report.elapsed = time.monotonic() - start
+    return report
+
+
+def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[str]) -> AnalysisReport:
+    a_is_identity = is_identity(model.a)
+    notes = []
+    if not is_identity(model.R):
+        notes.append("R != I: eta and L0 use h^T R^-1 h")
+    if not a_is_identity:
+        notes.append("a != I: the papers assume a = I (g orthogonal); eta here is f^T a^-1 f + div f + "
+                     "h^T R^-1 h and (C'1) is tested on a J^T - J a "
+                     "(the Wong matrix of z = L^-1 x, a = L L^T); "
+                     f"the {CLASS_004} class is only tested for a = I")
+    if facts.numeric:
+        notes.append(f"non-polynomial zero tests are numeric ({_DIGITS} digits at {_ZERO_POINTS} "
+                     "random points)")
+    undecided = ""
+    if facts.stopped_by:
+        undecided = f"not decided within {' / '.join(facts.stopped_by)}"
+        notes.append(f"some conditions were {undecided}")
+    k = facts.k
+    conditions = {
+        "yau_filtering_system": Condition(
+            facts.c1, "" if facts.c1 is not None else undecided,
+            f"(C'1) Omega constant, equivalently f = affine + gradient (C1) ({cite('000', 'Theorem 2.1')})"),
+        "h_affine": Condition(facts.c2, "" if facts.c2 is not None else undecided, "(C2) h affine"),
+        "eta_quadratic": Condition(facts.c3, "" if facts.c3 is not None else undecided,
+                                   "(C3) eta a polynomial of degree <= 2"),
+        "linear": Condition(facts.linear, "" if facts.linear is not None else undecided,
+                            "linear model: f and h affine (Kalman-Bucy)"),
+        "wei_norman_structure": Condition(
+            facts.structure_holds,
+            ("" if k is None else f"x_k = {model.spec.state[k]}")
+            + ("" if facts.structure_holds is not None else f"; {undecided}"),
+            f"{CLASS_004} (I), (II), (v): omega_kj = 0, eta quadratic in x_k plus a function of the others, "
+            "h affine in x_k only"),
+    }
+    if facts.seed004:
+        conditions["wei_norman_class"] = Condition(all(c.holds for c in facts.seed004.values()), "",
+                                                   f"{CLASS_004} class: conditions (i)-(v)")
+    yau = all_of([facts.c1, facts.c2, facts.c3])
+    method, reason = recommend_method_from(model, facts.linear is True, yau is True,
+                                           facts.structure_holds is True, a_is_identity)
+    if method == "yau-yau" and undecided:
+        reason += f" (the exact-filter conditions were {undecided}; the general engine is always valid)"
+    n = model.n
+    shown = f"not computed within {' / '.join(facts.stopped_by)}" if facts.stopped_by else "not computed"
+    return AnalysisReport(
+        model=model.spec.name, state=list(model.spec.state),
+        wong_matrix=[[show(facts.omega[i, j], model) if facts.omega is not None else shown
+                      for j in range(n)] for i in range(n)],
+        wong_constant=facts.wong_constant, eta=show(facts.eta, model) if facts.eta is not None else shown,
+        notes=notes, conditions=conditions, seed004=facts.seed004, algebra=algebra, algebra_basis=basis,
+        method=method, reason=reason)
+
+
+def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
+                          a_is_identity: bool) -> tuple[str, str]:
+    gaussian = model.spec.initial.kind == "gaussian"
+    if linear and gaussian:
+        return "kalman-bucy", "f and h are affine and the prior is Gaussian: the Kalman-Bucy filter is exact"
+    if yau and a_is_identity:
+        return "yau-hu", ("Yau filtering system with (C1), (C2), (C3): the Yau-Hu direct method reduces the "
+                          "DMZ equation to a Kolmogorov equation and ODEs "
+                          f"({YAU_HU}; {cite('002', 'Section 4')})")
+    if seed004 and a_is_identity:
+        return "wei-norman", (f"{CLASS_004} class: E = {{L0, D1, x1, 1}} is finite dimensional; "
+                              "u = e^r0 e^(r1 x1) e^(r2 D1) e^(t L0) sigma0, the Wei-Norman filter "
+                              f"({WEI_NORMAN})")
+    if (linear or yau or seed004) and not a_is_identity:
+        return "yau-yau", "an exact filter would apply with a = I, but a != I here: the general engine"
+    return "yau-yau", ("no finite-dimensional exact filter applies: the general Yau-Yau algorithm "
+                      f"({YAU_YAU})")
+
+
+def recommend_method(report: AnalysisReport) -> tuple[str, str]:
+    """The method the analysis recommends and why: kalman-bucy | yau-hu | wei-norman | yau-yau."""
+    return report.method, report.reason
