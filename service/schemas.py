@@ -9,7 +9,8 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from yauyau.solver.spec import METHODS, Prior
+from yauyau.solver.registry import METHODS
+from yauyau.solver.spec import Prior
 
 Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Method = Literal[METHODS]  # type: ignore[valid-type]

@@ -560,3 +560,9 @@ def _estimate_from_dict(data: Any, n: int) -> Estimate:
                                                    "state.last.loglik_increment"),
                     degenerate=bool(data.get("degenerate", False)), reason=data.get("reason"),
                     mode=None if mode is None else _float_array(mode, "state.last.mode", (n,)))
+
+
+def build(model: Model, offline: Any, form: str = "stable", precision: str = "double",
+          **_: Any) -> YauYauFilter:
+    """The registry's constructor (solver/registry.py)."""
+    return YauYauFilter(model, offline, form=form, precision=precision)

@@ -58,8 +58,9 @@ class ChunkResult:
     """The estimates of a chunk of K steps as arrays (what ``run_arrays`` returns).
 
     ``mode`` is None where a filter does not compute it (a mixture); a row of ``mode`` that is not
-    finite means "unknown at that step".  ``degenerate[k]`` flags the steps at and after the first
-    degenerate one, whose ``reason`` is given; their moments repeat the last good estimate.
+    finite means "unknown at that step".  ``degenerate[k]`` flags the steps the filter could not
+    resolve (``reason`` says why, for the first); their arrays hold finite stand-ins (the engine
+    repeats the last good estimate) and their :class:`Estimate` has no mode.
     """
 
     step: np.ndarray  # (K,) int
@@ -78,7 +79,8 @@ class ChunkResult:
     def estimates(self) -> list[Estimate]:
         """One :class:`Estimate` per step (new objects; nothing is shared with later chunks)."""
         modes = [None] * len(self.step) if self.mode is None else [
-            m if np.all(np.isfinite(m)) else None for m in self.mode]
+            m if not bad and np.all(np.isfinite(m)) else None
+            for m, bad in zip(self.mode, self.degenerate.tolist(), strict=True)]
         columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
                       self.loglik_increment.tolist(), self.degenerate.tolist(), modes, strict=True)
         reason = self.reason

@@ -1,96 +1,84 @@
-"""Method choice: which filter solves the DMZ equation of a model.
+"""Method choice: which filter solves the DMZ equation of a model, and making it.
 
     ∂σ = ½ Σ a_ij ∂_i∂_j σ − div(f σ) dt + σ hᵀR⁻¹ dy        (the Duncan–Mortensen–Zakai equation)
 
-``yau-yau`` is the general real-time algorithm of seed 002 §5 (solver/engine.py, needs the offline
-propagators).  ``kalman-bucy`` (linear models), ``yau-hu`` (Yau filtering systems, seed 000) and
-``wei-norman`` (seed 004) are exact finite-dimensional filters where the estimation algebra allows
-them.  ``auto`` asks the estimation-algebra analysis (solver/analysis.py) which one applies.
-Exact filters are imported lazily: the engine works without them.
+The methods are those of solver/registry.py: ``yau-yau``, the general real-time algorithm (needs
+the offline propagators), and the exact finite-dimensional filters where the estimation algebra
+allows them.  ``auto`` asks the estimation-algebra analysis (solver/analysis/) once — at precompute
+(yauyau.api.precompute stores the choice with the model) — never at filtering time.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import SpecError
-from .filtering import Filter
-from .model import Model
-from .spec import METHODS
+from .registry import AUTO, METHODS, REGISTRY
 
-_EXACT = {
-    "kalman-bucy": ("yauyau.solver.exact.kalman_bucy", "KalmanBucyFilter"),
-    "yau-hu": ("yauyau.solver.exact.yau_hu", "YauHuFilter"),
-    "wei-norman": ("yauyau.solver.exact.wei_norman", "WeiNormanFilter"),
-}
+if TYPE_CHECKING:
+    from .filtering import Filter
+    from .model import Model
+
+__all__ = ["METHODS", "choose_method", "make_filter", "resolve_method"]
 
 
-def resolve_method(model: Model, method: str | None = None) -> str:
-    """The concrete method name: the argument, else the spec's; ``auto`` asks the analysis."""
-    method = model.spec.method if method is None else method
+def _checked(method: str) -> str:
     if method not in METHODS:
         raise SpecError("method", f"must be one of {', '.join(METHODS)}, got {method!r}")
-    if method != "auto":
-        return method
+    return method
+
+
+def choose_method(model: "Model", method: str | None = None, *, offline: Any | None = None,
+                  time_limit: float | None = 60.0) -> tuple[str, str]:
+    """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
+    estimation-algebra analysis (bounded by ``time_limit`` seconds).  With ``offline`` (the
+    precomputed arrays) an exact method the analysis recommends is built once to check that it
+    applies; if it does not, the general engine is chosen and the reason says why."""
+    requested = _checked(model.spec.method if method is None else method)
+    if requested != AUTO:
+        return requested, (f"method = {requested!r} in the spec" if method is None else "asked for")
+    from . import analysis
+
+    chosen, reason = analysis.recommend_method(analysis.analyze(model, time_limit=time_limit))
+    if chosen not in REGISTRY:
+        return "yau-yau", f"the analysis recommends {chosen}, not in this installation: the general engine"
+    if chosen != "yau-yau":
+        try:
+            make_filter(model, offline, chosen)
+        except SpecError as exc:
+            if offline is not None or not REGISTRY[chosen].needs_offline:
+                return "yau-yau", (f"the analysis recommends {chosen} ({reason}), but it does not apply: "
+                                   f"{exc.message}")
+    return chosen, reason
+
+
+def resolve_method(model: "Model", method: str | None = None) -> str:
+    """The concrete method name (``choose_method`` without the reason)."""
+    return choose_method(model, method)[0]
+
+
+def make_filter(model: "Model", offline: Any | None = None, method: str | None = None,
+                form: str = "stable", precision: str | None = None) -> "Filter":
+    """A filter for ``model`` by registry name (``auto``: the analysis chooses, now).  ``offline``
+    (the precomputed arrays, solver.offline.OfflineArrays) is needed by the methods that say so;
+    ``form``/``precision`` are the engine's options (precision defaults to the spec's).  A method
+    that is unknown, unavailable or does not apply raises SpecError('method')."""
+    requested = _checked(model.spec.method if method is None else method)
+    method = resolve_method(model, requested) if requested == AUTO else requested
+    entry = REGISTRY[method]
+    if entry.needs_offline and offline is None:
+        raise SpecError("method", f"{method} needs the precomputed arrays (run yauyau precompute)")
     try:
-        analysis = importlib.import_module("yauyau.solver.analysis")
-    except ImportError:
-        return "yau-yau"  # no analysis in this installation: the general engine
-    chosen, _reason = analysis.recommend_method(analysis.analyze(model))
-    return chosen if _available(chosen) else "yau-yau"
-
-
-def make_filter(model: Model, offline: Any | None = None, method: str | None = None,
-                form: str = "stable", precision: str | None = None) -> Filter:
-    """A filter for ``model``; ``offline`` (solver.offline.OfflineModel) is needed by yau-yau and
-    wei-norman.  ``form``/``precision`` are the yau-yau engine's options (solver.engine).  An exact
-    method that is unavailable or does not apply raises SpecError('method').  ``precision`` defaults
-    to the spec's ``discretization.precision``."""
-    requested = method
-    precision = precision or model.spec.discretization.precision
-    method = resolve_method(model, method)
-    if method == "yau-yau":
-        if offline is None:
-            raise SpecError("method", "yau-yau needs the precomputed propagators (run yauyau precompute)")
-        from .engine import YauYauFilter
-
-        return YauYauFilter(model, offline, form=form, precision=precision)
-    cls = _exact_class(method)
-    try:
-        if method == "wei-norman":
-            if offline is None:
-                raise SpecError("method", "wei-norman needs the precomputed Kolmogorov flow "
-                                          "(run yauyau precompute)")
-            wei_norman = importlib.import_module("yauyau.solver.exact.wei_norman")
-            flow = wei_norman.kolmogorov_flow_from_offline(offline)
-            return cls(model, flow)
-        return cls(model)
-    except SpecError as exc:
-        if (requested or model.spec.method) == "auto" and offline is not None:
-            from .engine import YauYauFilter  # the analysis was too optimistic: the general engine
-
-            return YauYauFilter(model, offline, form=form, precision=precision)
-        raise SpecError("method", f"{method} does not apply to this model: {exc}") from None
-
-
-def _available(method: str) -> bool:
-    if method == "yau-yau":
-        return True
-    try:
-        _exact_class(method)
-    except SpecError:
-        return False
-    return True
-
-
-def _exact_class(method: str):
-    module_name, class_name = _EXACT[method]
-    try:
-        module = importlib.import_module(module_name)
+        module = importlib.import_module(entry.module)
     except ImportError:
         raise SpecError("method", f"{method} is not available in this installation") from None
-    cls = getattr(module, class_name, None)
-    if cls is None:
-        raise SpecError("method", f"{method} is not available in this installation")
-    return cls
+    precision = precision or model.spec.discretization.precision
+    try:
+        return module.build(model, offline, form=form, precision=precision)
+    except SpecError as exc:
+        if method == "yau-yau" or exc.field in ("form", "precision"):
+            raise
+        if requested == AUTO and offline is not None:  # the analysis was too optimistic
+            return make_filter(model, offline, "yau-yau", form=form, precision=precision)
+        raise SpecError("method", f"{method} does not apply to this model: {exc}") from None

@@ -25,6 +25,7 @@ from .expressions import (
     vectorize,
     vectorize_many,
 )
+from .gaussian import log_normal
 from .spec import DensityPrior, GaussianPrior, MixturePrior, ModelSpec
 
 if TYPE_CHECKING:
@@ -164,10 +165,10 @@ class Model:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         prior = self.spec.initial
         if isinstance(prior, GaussianPrior):
-            return _log_gaussian(X, np.asarray(prior.mean), np.asarray(prior.cov))
+            return log_normal(X, np.asarray(prior.mean), np.asarray(prior.cov))
         if isinstance(prior, MixturePrior):
             w = np.asarray(prior.weights, float) / np.sum(prior.weights)
-            logs = np.stack([np.log(wi) + _log_gaussian(X, np.asarray(mu), np.asarray(c))
+            logs = np.stack([np.log(wi) + log_normal(X, np.asarray(mu), np.asarray(c))
                              for wi, mu, c in zip(w, prior.means, prior.covs, strict=True) if wi > 0])
             top = logs.max(axis=0)
             return top + np.log(np.exp(logs - top).sum(axis=0))
@@ -191,13 +192,6 @@ class Model:
             cov = np.einsum("k,kij->ij", w, covs) + np.einsum("k,ki,kj->ij", w, d, d)
             return mean, cov
         return None
-
-
-def _log_gaussian(X: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    chol = np.linalg.cholesky(cov)
-    z = np.linalg.solve(chol, (X - mean).T)
-    log_det = 2.0 * np.log(np.diag(chol)).sum()
-    return -0.5 * (z * z).sum(axis=0) - 0.5 * (len(mean) * np.log(2 * np.pi) + log_det)
 
 
 def compile_model(spec: ModelSpec) -> Model:

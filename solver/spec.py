@@ -29,9 +29,9 @@ from pydantic import (
 
 from .errors import SpecError
 from .expressions import RESERVED_NAMES
+from .registry import METHODS, check_method  # noqa: F401  (METHODS: the spec's choices, re-exported)
 
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
-METHODS = ("auto", "yau-yau", "kalman-bucy", "yau-hu", "wei-norman")
 MAX_SPEC_BYTES = 64 * 1024
 
 
@@ -122,8 +122,13 @@ class ModelSpec(_Strict):
     initial: Prior
     domain: Domain
     discretization: Discretization
-    method: Literal["auto", "yau-yau", "kalman-bucy", "yau-hu", "wei-norman"] = "auto"
+    method: str = Field("auto", description="auto or a name of solver/registry.py")
     _numeric: tuple | None = PrivateAttr(default=None)
+
+    @field_validator("method")
+    @classmethod
+    def _method(cls, v: str) -> str:
+        return check_method(v)
 
     @field_validator("name")
     @classmethod

@@ -34,11 +34,11 @@ _API = {
     # filtering
     "open_filter": "yauyau.api",
     "load_model": "yauyau.api",
-    "choose_method": "yauyau.api",
+    "choose_method": "yauyau.solver.methods",
     "OnlineFilter": "yauyau.api",
     "make_filter": "yauyau.solver.methods",
     "Estimate": "yauyau.solver.filtering",
-    "ChunkResult": "yauyau.solver.engine",
+    "ChunkResult": "yauyau.solver.filtering",
     "simulate": "yauyau.api",
     # analysis
     "analyze": "yauyau.solver.analysis",

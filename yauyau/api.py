@@ -23,6 +23,7 @@ import numpy as np
 
 from .solver.errors import InputError, SpecError
 from .solver.filtering import Estimate
+from .solver.methods import choose_method
 from .solver.spec import ModelSpec, load_spec
 from .storage.model_store import ModelStore
 
@@ -35,30 +36,6 @@ def _as_spec(spec: ModelSpec | str | os.PathLike) -> ModelSpec:
 
 def _as_store(store: ModelStore | str | os.PathLike) -> ModelStore:
     return store if isinstance(store, ModelStore) else ModelStore(store)
-
-
-def choose_method(model: Any, method: str | None = None, *, offline: Any | None = None,
-                  time_limit: float | None = DEFAULT_TIME_LIMIT) -> tuple[str, str]:
-    """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
-    estimation-algebra analysis once (bounded by ``time_limit`` seconds).  With ``offline`` (the
-    precomputed arrays) an exact method the analysis recommends is built once to check that it
-    applies; if it does not, the general engine is chosen and the reason says why."""
-    from .solver.methods import make_filter, resolve_method
-
-    requested = model.spec.method if method is None else method
-    if requested != "auto":
-        resolve_method(model, requested)  # validates the name
-        return requested, ("method = %r in the spec" % requested) if method is None else "asked for"
-    from .solver import analysis
-
-    chosen, reason = analysis.recommend_method(analysis.analyze(model, time_limit=time_limit))
-    if chosen != "yau-yau" and offline is not None:
-        try:
-            make_filter(model, offline, chosen)
-        except SpecError as exc:
-            return "yau-yau", (f"the analysis recommends {chosen} ({reason}), but it does not apply: "
-                               f"{exc.message}")
-    return chosen, reason
 
 
 def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,

@@ -50,7 +50,7 @@ def blas_threads(requested: int | None) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from yauyau.solver.methods import METHODS
+    from yauyau.solver.registry import METHODS
 
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)

@@ -69,10 +69,9 @@ def _already_stored(args: argparse.Namespace, store, mid: str) -> bool:
 def run(args: argparse.Namespace) -> int:
     from yauyau.solver import compile_model, load_spec
     from yauyau.solver.errors import InputError
+    from yauyau.solver.methods import choose_method
     from yauyau.solver.offline import default_workers, precompute
     from yauyau.storage.model_store import ModelStore, model_id
-
-    from yauyau.api import choose_method
 
     spec = load_spec(args.spec)
     model = compile_model(spec)

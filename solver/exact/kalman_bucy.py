@@ -31,14 +31,14 @@ log ∫σ the Yau–Yau engine accumulates, so the two are comparable.  A NaN ro
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from ..engine import ChunkResult
 from ..errors import InputError, SpecError
-from ..filtering import Estimate, check_increments
+from ..filtering import ChunkedFilter, ChunkResult, check_increments
+from ..gaussian import GaussianFilter, GaussianState, log_normal
 from ..model import Model
-from ..reference._base import ChunkedFilter, GaussianReferenceFilter, GaussianState
 from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients
 from .riccati import (
     FlowFamily,
@@ -53,15 +53,16 @@ from .riccati import (
 KINDS = ("continuous", "discrete")
 
 
-class KalmanBucyFilter(ChunkedFilter, GaussianReferenceFilter):
+class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
     """Filter protocol implementation; state: mean, cov and the accumulated log-likelihood."""
 
     method = "kalman-bucy"
+    exact_prior = True  # a mixture prior is refused, never moment-matched
 
     def __init__(self, model: Model, kind: str = "continuous"):
         if kind not in KINDS:
             raise SpecError("kind", f"must be one of {KINDS}, got {kind!r}")
-        super().__init__(model)
+        self.model = model
         self.kind = kind
         self.F, self.f0 = affine_coefficients(model.drift, model.symbols, "drift")
         self.H, self.h0 = affine_coefficients(model.observation, model.symbols, "observation")
@@ -81,14 +82,14 @@ class KalmanBucyFilter(ChunkedFilter, GaussianReferenceFilter):
         return q, r
 
     # -- Filter protocol -----------------------------------------------------------------
-    def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, "ExactChunk"]:
+    def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, "ChunkResult"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays."""
         dy = check_increments(increments, self.model.m)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
         if K == 0:
             empty = np.empty((0, n))
-            return state, ExactChunk(steps, steps * 1.0, empty, np.empty((0, n, n)), empty, np.empty(0),
+            return state, ChunkResult(steps, steps * 1.0, empty, np.empty((0, n, n)), empty, np.empty(0),
                                       np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
         scheduled = None
@@ -108,7 +109,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianReferenceFilter):
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
                             loglik_increment=float(increments_ll[-1]), mean=mean[-1].copy(),
                             cov=cov[-1].copy())
-        return new_state, ExactChunk(step=steps, t=times, mean=mean, cov=cov, mode=mean.copy(),
+        return new_state, ChunkResult(step=steps, t=times, mean=mean, cov=cov, mode=mean.copy(),
                                       loglik=loglik, loglik_increment=increments_ll,
                                       degenerate=np.zeros(K, bool))
 
@@ -227,29 +228,17 @@ class KalmanBucyFilter(ChunkedFilter, GaussianReferenceFilter):
         v = (I_GH @ kf.shift) + (gain @ (dy - kf.h0 * dt)[..., None])[..., 0]
         means = affine_path(W[:, None], v[:, None], state.mean[None])[:, 0]
         predicted = (means[:-1] @ kf.phi.T + kf.shift) @ Hd.T + kf.h0 * dt
-        ll = _log_normal_batch(dy, predicted, innovation) - _log_normal_batch(dy, np.zeros(m), Rdt[None])
+        ll = log_normal(dy, predicted, innovation) - log_normal(dy, np.zeros(m), Rdt[None])
         return means[1:], cov, np.where(missing, 0.0, ll)
 
 
-@dataclass(frozen=True)
-class ExactChunk(ChunkResult):
-    """The engine's chunk arrays; ``mode`` may be None (a mixture's mode is not computed)."""
-
-    def estimates(self) -> list[Estimate]:
-        modes = [None] * len(self.step) if self.mode is None else list(self.mode)
-        columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
-                      self.loglik_increment.tolist(), modes, strict=True)
-        return [Estimate(step=s, t=t, mean=m, cov=P, loglik=ll, loglik_increment=i, mode=mode)
-                for s, t, m, P, ll, i, mode in columns]
-
-
 def _one_row_result(state: GaussianState, dt: float, mean: float, cov: np.ndarray, ll: float):
-    """The new state and the one-row ExactChunk of a scalar step (plain floats in, arrays out)."""
+    """The new state and the one-row ChunkResult of a scalar step (plain floats in, arrays out)."""
     step = state.step + 1
     t, loglik = step * dt, state.loglik + ll
     new_state = replace(state, step=step, t=t, loglik=loglik, loglik_increment=ll, mean=np.array([mean]),
                         cov=cov)
-    return new_state, ExactChunk(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
+    return new_state, ChunkResult(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
                                  cov=cov[None].copy(), mode=np.array([[mean]]), loglik=np.array([loglik]),
                                  loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool))
 
@@ -285,14 +274,6 @@ def _kalman_covariances(phi, Q, Hd, Rdt, P0, missing):
             pp = pp - G @ S @ G.T
         P = cov[k] = 0.5 * (pp + pp.T)
     return cov_pred, gain, innovation, cov
-
-
-def _log_normal_batch(x, mean, cov) -> np.ndarray:
-    """log N(x_k; mean_k, cov_k) for rows x (K, m), mean (K, m) or (m,), cov (K, m, m) or (1, m, m)."""
-    chol = np.linalg.cholesky(cov)
-    z = np.linalg.solve(chol, (x - mean)[..., None])[..., 0]
-    log_det = np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
-    return -0.5 * (z * z).sum(-1) - log_det - 0.5 * x.shape[-1] * np.log(2 * np.pi)
 
 
 # -- cached schedules: the data-free coefficients of consecutive observed steps ---------------
@@ -423,3 +404,8 @@ def _discrete_coefficients(kb: "KalmanBucyFilter", P_prev, cov_pred, gain, innov
     kappa = -0.5 * np.einsum("i,kij,j->k", e0, S_inv, e0) - 0.5 * log_det_ratio
     return {"W": I_GH @ kf.phi, "Vy": gain, "v0": (I_GH @ kf.shift) - gain @ (kf.h0 * dt), "kappa": kappa,
             "ell": ell, "M": M, "prev": P_prev, "cov": cov}
+
+
+def build(model: Model, offline: Any = None, **_: Any) -> KalmanBucyFilter:
+    """The registry's constructor (solver/registry.py)."""
+    return KalmanBucyFilter(model)

@@ -39,9 +39,8 @@ import sympy as sp
 from ..analysis import exact_matrix, is_identity, observed_coordinate, seed004_structure
 from ..errors import InputError, SpecError
 from ..expressions import vectorize
-from ..filtering import Estimate, check_increments
+from ..filtering import ChunkResult, Estimate, check_increments
 from ..model import Model
-from .kalman_bucy import ExactChunk
 
 DEFAULT_POINTS_PER_AXIS = {1: 801, 2: 161, 3: 61}
 FLOW_CACHE_BYTES = 256 * 2**20  # log e^{tL0}σ0 at the nodes, kept for the first steps up to this size
@@ -300,7 +299,7 @@ class WeiNormanFilter:
         new, result = self.run_arrays(state, increments)
         return new, result.estimates()
 
-    def run_arrays(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, ExactChunk]:
+    def run_arrays(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, ChunkResult]:
         """Advance over a chunk (K, m) of increments; estimates as arrays (the engine's ChunkResult)."""
         dy = check_increments(increments, self.model.m)
         if np.isnan(dy).any():
@@ -309,7 +308,7 @@ class WeiNormanFilter:
         steps = state.step + 1 + np.arange(K)
         times = steps * self.model.dt
         if K == 0:
-            return state, ExactChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n)),
+            return state, ChunkResult(steps, times, np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n)),
                                      np.empty(0), np.empty(0), np.zeros(0, bool))
         y, r = self._r_path(state, dy)
         log_z, mean, cov, mode = self._chunk_moments(steps, y, r)
@@ -328,7 +327,7 @@ class WeiNormanFilter:
         if new.degenerate:
             new.reason = ("the conditional density vanished on the quadrature nodes: the shift r2 = "
                           f"{r[-1, 2]:.3g} moved e^(tL0)sigma0 off its domain")
-        return new, _Chunk(step=steps, t=times, mean=mean, cov=cov, mode=mode, loglik=loglik[1:],
+        return new, ChunkResult(step=steps, t=times, mean=mean, cov=cov, mode=mode, loglik=loglik[1:],
                            loglik_increment=increments_ll, degenerate=degenerate, reason=reason)
 
     def estimate(self, state: WeiNormanState) -> Estimate:
@@ -363,18 +362,6 @@ class WeiNormanFilter:
 
 MISSING = ("the Wei-Norman representation (12) needs every increment; missing observations are not "
            "supported (use yau-yau)")
-
-
-@dataclass(frozen=True)
-class _Chunk(ExactChunk):
-    """ExactChunk that keeps the degenerate flags and reason in the Estimate objects."""
-
-    def estimates(self) -> list[Estimate]:
-        out = super().estimates()
-        for est, flag in zip(out, self.degenerate.tolist(), strict=True):
-            if flag:
-                est.degenerate, est.reason, est.mode = True, self.reason, None
-        return out
 
 
 def _carry_forward(values: np.ndarray) -> np.ndarray:
@@ -426,3 +413,8 @@ def kolmogorov_flow_from_offline(offline) -> Callable[[float, np.ndarray], np.nd
 
     flow.nodes, flow.weights = offline.nodes, offline.weights  # the filter's default quadrature
     return flow
+
+
+def build(model: Model, offline: Any, **_: Any) -> WeiNormanFilter:
+    """The registry's constructor (solver/registry.py): the Kolmogorov flow from the stored arrays."""
+    return WeiNormanFilter(model, kolmogorov_flow_from_offline(offline))

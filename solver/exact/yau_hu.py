@@ -36,12 +36,11 @@ from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
-from ..filtering import Estimate, check_increments
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, check_increments
+from ..gaussian import log_normal
 from ..model import Model
-from ..reference._base import ChunkedFilter, ReferenceFilter, StepState
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
-from .kalman_bucy import ExactChunk
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
@@ -231,13 +230,13 @@ class YauHuState(StepState):
                 "degenerate": self.degenerate, "reason": self.reason, "fit_error": self.fit_error}
 
 
-class YauHuFilter(ChunkedFilter, ReferenceFilter):
+class YauHuFilter(ChunkedFilter):
     """Filter protocol; exact for Gaussian-mixture e^{−F}σ0, else the prior is fitted."""
 
     method = "yau-hu"
 
     def __init__(self, model: Model, n_components: int = 8):
-        super().__init__(model)
+        self.model = model
         if not isinstance(n_components, int) or not 1 <= n_components <= 64:
             raise SpecError("n_components", "must be an integer in 1..64")
         self.n_components = n_components
@@ -319,7 +318,7 @@ class YauHuFilter(ChunkedFilter, ReferenceFilter):
         return best
 
     # -- Filter protocol -----------------------------------------------------------------
-    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ExactChunk"]:
+    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ChunkResult"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 
         All-observed chunks use the cached schedule of data-free step coefficients (see _Schedule);
@@ -330,7 +329,7 @@ class YauHuFilter(ChunkedFilter, ReferenceFilter):
         steps = state.step + 1 + np.arange(K)
         times = steps * self.model.dt
         if K == 0:
-            return state, ExactChunk(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
+            return state, ChunkResult(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
                                        np.empty(0), np.empty(0), np.zeros(0, bool))
         missing = np.isnan(dy[:, 0])
         done = None
@@ -346,7 +345,7 @@ class YauHuFilter(ChunkedFilter, ReferenceFilter):
         loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
                             loglik_increment=float(increments_ll[-1]), A=A, B=B, C=C)
-        return new_state, ExactChunk(steps, times, mean, cov, None, loglik, increments_ll,
+        return new_state, ChunkResult(steps, times, mean, cov, None, loglik, increments_ll,
                                        np.zeros(K, bool))
 
     def _general_chunk(self, state: YauHuState, dy: np.ndarray, missing: np.ndarray):
@@ -566,7 +565,7 @@ class YauHuFilter(ChunkedFilter, ReferenceFilter):
         if X.shape[1] != self.model.n or not np.all(np.isfinite(X)):
             raise InputError("points", f"must be finite points of shape (P, {self.model.n})")
         logw, means, covs = self._components(state.A, state.B, state.C)
-        logs = [lw + _log_normal(X, mu, P) for lw, mu, P in zip(logw, means, covs, strict=False)]
+        logs = [lw + log_normal(X, mu, P) for lw, mu, P in zip(logw, means, covs, strict=False)]
         return np.exp(logsumexp(np.stack(logs), axis=0))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauHuState:
@@ -596,12 +595,6 @@ def _mixture_moments(logw, means, covs):
     dev = means - mean[..., None, :]
     cov = np.einsum("...i,...ijk->...jk", w, covs) + np.einsum("...i,...ij,...ik->...jk", w, dev, dev)
     return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
-
-
-def _log_normal(X, mean, cov):
-    chol = np.linalg.cholesky(cov)
-    z = np.linalg.solve(chol, (X - mean).T)
-    return -0.5 * (z * z).sum(0) - np.log(np.diag(chol)).sum() - 0.5 * len(mean) * np.log(2 * np.pi)
 
 
 def _mixture_terms(prior):
@@ -639,7 +632,7 @@ def _weighted_em(X, w, K, iterations: int = 300):
     mix = np.full(K, 1.0 / K)
     floor = 1e-6 * np.trace(cov) / n * np.eye(n)
     for _ in range(iterations):
-        logr = np.stack([np.log(mix[k]) + _log_normal(X, means[k], covs[k]) for k in range(K)])
+        logr = np.stack([np.log(mix[k]) + log_normal(X, means[k], covs[k]) for k in range(K)])
         resp = np.exp(logr - logsumexp(logr, axis=0)) * w
         mass = resp.sum(axis=1) + 1e-300
         mix = mass / mass.sum()
@@ -651,12 +644,12 @@ def _weighted_em(X, w, K, iterations: int = 300):
 
 
 def _one_row_result(state: YauHuState, dt: float, mean: float, var: float, ll: float, A, B: list, C: list):
-    """The new state and the one-row ExactChunk of a scalar step (plain floats in, arrays out)."""
+    """The new state and the one-row ChunkResult of a scalar step (plain floats in, arrays out)."""
     step = state.step + 1
     t, loglik = step * dt, state.loglik + ll
     new_state = replace(state, step=step, t=t, loglik=loglik, loglik_increment=ll, A=A,
                         B=np.array(B)[:, None], C=np.array(C))
-    return new_state, ExactChunk(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
+    return new_state, ChunkResult(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
                                  cov=np.array([[[var]]]), mode=None, loglik=np.array([loglik]),
                                  loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool))
 
@@ -722,3 +715,8 @@ class _Schedule:
         if end.shape[-1] == 1 and self.parts["Vy"].shape[-1] == 1:  # n = m = 1: rows (J, L)
             self.rows = {name: np.ascontiguousarray(value.reshape(self.length, J).T)
                          for name, value in self.parts.items() if name != "A"}
+
+
+def build(model: Model, offline: Any = None, **_: Any) -> YauHuFilter:
+    """The registry's constructor (solver/registry.py)."""
+    return YauHuFilter(model)

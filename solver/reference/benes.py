@@ -23,9 +23,10 @@ import sympy as sp
 
 from ..errors import SpecError
 from ..filtering import Estimate
+from ..gaussian import GaussianState
 from ..model import Model
 from ..spec import MixturePrior
-from ._base import GaussianState, ReferenceFilter, advance
+from ._base import ReferenceFilter, advance
 
 
 def log_cosh(x: np.ndarray | float) -> np.ndarray | float:

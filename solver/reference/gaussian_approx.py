@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from ..gaussian import GaussianState
 from ..model import Model
-from ._base import GaussianReferenceFilter, GaussianState, advance, gaussian_update
+from ._base import GaussianReferenceFilter, advance, gaussian_update
 
 
 def rk4_moments(derivative, mean: np.ndarray, cov: np.ndarray, dt: float, substeps: int):

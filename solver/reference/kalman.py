@@ -14,8 +14,9 @@ import sympy as sp
 from scipy.linalg import expm
 
 from ..errors import SpecError
+from ..gaussian import GaussianState
 from ..model import Model
-from ._base import GaussianReferenceFilter, GaussianState, advance, gaussian_update
+from ._base import GaussianReferenceFilter, advance, gaussian_update
 
 
 def affine_coefficients(exprs, symbols, field: str) -> tuple[np.ndarray, np.ndarray]:

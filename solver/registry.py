@@ -1,0 +1,41 @@
+"""The filter methods, by name: the one list the spec, the CLI, the service and ``make_filter`` use.
+
+A method is a class implementing the filter contract (solver/filtering.py) in its own module, with a
+module-level ``build(model, offline=None, **options)`` that makes it; the module is imported only when
+the method is used.  Adding an exact filter is one module plus one line here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    module: str  # has build(model, offline=None, **options); imported on first use
+    cls: str  # the filter class (for documentation and isinstance checks)
+    needs_offline: bool  # built from the precomputed arrays (the offline stage)
+    summary: str
+
+
+REGISTRY: dict[str, Method] = {m.name: m for m in (
+    Method("yau-yau", "yauyau.solver.engine", "YauYauFilter", True,
+           "the general Yau-Yau algorithm: offline propagators, online updates (Yau, 2008, section 5)"),
+    Method("kalman-bucy", "yauyau.solver.exact.kalman_bucy", "KalmanBucyFilter", False,
+           "exact for affine f and h with a Gaussian prior"),
+    Method("yau-hu", "yauyau.solver.exact.yau_hu", "YauHuFilter", False,
+           "exact for Yau filtering systems: Kolmogorov equation and ODEs (Yau & Lai, 2003, Theorem 3.1)"),
+    Method("wei-norman", "yauyau.solver.exact.wei_norman", "WeiNormanFilter", True,
+           "exact for the finite-dimensional estimation algebras of Shi et al. (2017), Theorem 1"),
+)}
+
+AUTO = "auto"  # resolved once, at precompute, by the estimation-algebra analysis
+METHODS: tuple[str, ...] = (AUTO, *REGISTRY)
+
+
+def check_method(name: object, field: str = "method") -> str:
+    """``name`` if it is a method or ``auto``; else ValueError naming the choices."""
+    if not isinstance(name, str) or name not in METHODS:
+        raise ValueError(f"must be one of {', '.join(METHODS)}, got {name!r}")
+    return name
