@@ -10,7 +10,8 @@ chunks; the log normalising constant (the log-likelihood) is carried along in it
 
 Observation times τ_k = k·dt; increment Δy_k = y(τ_k) − y(τ_{k−1}) (shape (m,)).  A row of
 NaN means "no observation at this step": the filter only predicts.  ``step(state, None)`` is the
-same as a row of NaN.
+same as a row of NaN.  A filter whose representation cannot predict without the observation (the
+Wei–Norman filter: its (12) needs the whole path) raises InputError('increment') saying so.
 
 Adding a filter: a module with a class implementing :class:`Filter` (usually ``ChunkedFilter`` plus
 ``initial_state``, ``run_arrays``, ``estimate``, ``density``, ``state_from_dict``) and one line in

@@ -14,7 +14,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from .errors import SpecError
-from .registry import AUTO, METHODS, REGISTRY
+from .registry import AUTO, METHODS, REGISTRY, check_method
 
 if TYPE_CHECKING:
     from .filtering import Filter
@@ -24,9 +24,10 @@ __all__ = ["METHODS", "choose_method", "make_filter", "resolve_method"]
 
 
 def _checked(method: str) -> str:
-    if method not in METHODS:
-        raise SpecError("method", f"must be one of {', '.join(METHODS)}, got {method!r}")
-    return method
+    try:
+        return check_method(method)
+    except ValueError as exc:
+        raise SpecError("method", str(exc)) from None
 
 
 def choose_method(model: "Model", method: str | None = None, *, offline: Any | None = None,

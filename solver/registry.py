@@ -34,8 +34,8 @@ AUTO = "auto"  # resolved once, at precompute, by the estimation-algebra analysi
 METHODS: tuple[str, ...] = (AUTO, *REGISTRY)
 
 
-def check_method(name: object, field: str = "method") -> str:
-    """``name`` if it is a method or ``auto``; else ValueError naming the choices."""
-    if not isinstance(name, str) or name not in METHODS:
-        raise ValueError(f"must be one of {', '.join(METHODS)}, got {name!r}")
+def check_method(name: object) -> str:
+    """``name`` if it is a registered method or ``auto``; else ValueError naming the choices."""
+    if not isinstance(name, str) or not (name == AUTO or name in REGISTRY):
+        raise ValueError(f"must be one of {', '.join((AUTO, *REGISTRY))}, got {name!r}")
     return name

@@ -28,6 +28,7 @@ polynomial in r2) plus log e^{tL0}σ0, which does not depend on the data and is 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -114,6 +115,7 @@ class WeiNormanFilter:
         self._moment_features = _moment_features(self.nodes - model.center)
         self._log_v = np.empty((0, len(self.nodes)))  # rows: steps 0, 1, ... of log e^{tL0}σ0
         self._log_v_count = 0
+        self._lock = threading.Lock()  # the cache is shared by every session of the model
 
     # -- the ODEs (13), exactly on one interval ------------------------------------------------
     def _van_loan(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -193,6 +195,10 @@ class WeiNormanFilter:
 
     def _log_flow(self, first: int, count: int) -> np.ndarray:
         """log e^{tL0}σ0 at the nodes for steps first, ..., first + count − 1 (cached, data-free)."""
+        with self._lock:
+            return self._log_flow_locked(first, count)
+
+    def _log_flow_locked(self, first: int, count: int) -> np.ndarray:
         Q = len(self.nodes)
         limit = max(1, FLOW_CACHE_BYTES // (8 * Q))
         end = first + count
@@ -291,7 +297,7 @@ class WeiNormanFilter:
 
     def step(self, state: WeiNormanState, increment: np.ndarray | None) -> tuple[WeiNormanState, Estimate]:
         if increment is None:
-            raise InputError("increments", MISSING)
+            raise InputError("increment", MISSING)
         new, result = self.run_arrays(state, np.reshape(np.asarray(increment, dtype=float), (1, -1)))
         return new, result.estimates()[0]
 
@@ -376,12 +382,40 @@ def _moment_features(d: np.ndarray) -> np.ndarray:
     return np.column_stack([np.ones(Q), d, (d[:, :, None] * d[:, None, :]).reshape(Q, n * n)])
 
 
+class _softplus(sp.Function):
+    """softplus(z) = log(1 + e^z), evaluated as numpy's logaddexp(0, z): finite for every z."""
+
+
+def _stable_logs(expr: sp.Expr) -> sp.Expr:
+    """log(1 ± tanh u) = log 2 − softplus(∓2u): SymPy's antiderivative of tanh is log(tanh u + 1),
+    which is log(0) = −inf in floating point for u ≲ −19 (and −inf − (−inf) = NaN downstream)."""
+    def stable(arg: sp.Expr):
+        rest = sp.expand(arg - 1)  # ±tanh(u)
+        if rest.func == sp.tanh:
+            return sp.log(2) - _softplus(-2 * rest.args[0])
+        if (-rest).func == sp.tanh:
+            return sp.log(2) - _softplus(2 * (-rest).args[0])
+        return None
+
+    return expr.replace(lambda e: e.func == sp.log and stable(e.args[0]) is not None,
+                        lambda e: stable(e.args[0]))
+
+
 def _shift_integral(model: Model, k: int):
     """(x, r) ↦ ∫_0^r f_k(x + τ e_k) dτ, the log of the integrating factor of e^{r D_k}."""
     tau, r = sp.Symbol("tau_", real=True), sp.Symbol("r_", real=True)
     xk = model.symbols[k]
-    integral = sp.integrate(model.drift[k].subs(xk, xk + tau), (tau, 0, r))
-    return vectorize(sp.simplify(integral), [*model.symbols, r])
+    integral = _stable_logs(sp.simplify(sp.integrate(model.drift[k].subs(xk, xk + tau), (tau, 0, r))))
+    fn = sp.lambdify([*model.symbols, r], integral,
+                     modules=[{"_softplus": lambda z: np.logaddexp(0.0, z)}, "numpy"])
+
+    def evaluate(X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        with np.errstate(all="ignore"):
+            value = fn(*X.T)
+        return np.broadcast_to(np.asarray(value, dtype=float), (X.shape[0],)).copy()
+
+    return evaluate
 
 
 def _observation_weights(model: Model):
@@ -392,27 +426,63 @@ def _observation_weights(model: Model):
     return lambda X: np.stack([p(X) for p in parts], axis=1)
 
 
-def kolmogorov_flow_from_offline(offline) -> Callable[[float, np.ndarray], np.ndarray]:
+class KolmogorovFlow:
     """e^{t L0} σ0 from the stored Kolmogorov propagator (``propagator_k``, seed 002 (5.31)).
 
     σ at the nodes after k intervals is (propagator_k · projector)^k σ0, interpolated at any
     points by the finite-element space; t must be a multiple of dt (the filter only asks for those).
+    Memory is bounded by ``cache_bytes``: checkpoints every ``stride`` steps (the stride doubles when
+    they would exceed it) and the last vector computed, so a later step is a few products away.
+    Thread-safe: one flow serves every session of a model.
     """
-    model = offline.model
-    history = [np.exp(model.log_prior(offline.nodes))]
 
-    def flow(t: float, points: np.ndarray) -> np.ndarray:
-        k = int(round(t / model.dt))
-        if k < 0 or abs(k * model.dt - t) > 1e-9 * max(1.0, t):
+    def __init__(self, offline: Any, cache_bytes: int | None = None):
+        self.offline = offline
+        self.model = offline.model
+        self.nodes, self.weights = offline.nodes, offline.weights  # the filter's default quadrature
+        vector_bytes = 8 * len(offline.nodes)
+        self.max_vectors = max(4, (FLOW_CACHE_BYTES if cache_bytes is None else cache_bytes) // vector_bytes)
+        self.stride = 1
+        self._checkpoints: dict[int, np.ndarray] = {0: np.exp(self.model.log_prior(offline.nodes))}
+        self._last = (0, self._checkpoints[0])
+        self._lock = threading.Lock()
+
+    @property
+    def held_bytes(self) -> int:
+        return 8 * len(self.nodes) * (len(self._checkpoints) + 1)
+
+    def __call__(self, t: float, points: np.ndarray) -> np.ndarray:
+        k = int(round(t / self.model.dt))
+        if k < 0 or abs(k * self.model.dt - t) > 1e-9 * max(1.0, t):
             raise InputError("t", "the stored Kolmogorov flow is known at multiples of dt only")
-        while len(history) <= k:
-            history.append(offline.propagator_k @ (offline.projector @ history[-1]))
-        if points is offline.nodes:  # its own nodes: the nodal values, no element search
-            return history[k]
-        return offline.interpolate(history[k], points)
+        values = self._at(k)
+        if points is self.nodes:  # its own nodes: the nodal values, no element search
+            return values
+        return self.offline.interpolate(values, points)
 
-    flow.nodes, flow.weights = offline.nodes, offline.weights  # the filter's default quadrature
-    return flow
+    def _at(self, k: int) -> np.ndarray:
+        with self._lock:
+            start = max((j for j in self._checkpoints if j <= k), default=0)
+            if self._last[0] <= k and self._last[0] > start:
+                start = self._last[0]
+                vector = self._last[1]
+            else:
+                vector = self._checkpoints[start]
+            for j in range(start + 1, k + 1):
+                vector = self.offline.propagator_k @ (self.offline.projector @ vector)
+                if j % self.stride == 0:
+                    self._checkpoints[j] = vector
+                    if len(self._checkpoints) > self.max_vectors:
+                        self.stride *= 2
+                        self._checkpoints = {i: v for i, v in self._checkpoints.items()
+                                             if i % self.stride == 0}
+            self._last = (k, vector)
+            return vector
+
+
+def kolmogorov_flow_from_offline(offline) -> KolmogorovFlow:
+    """e^{t L0} σ0 from the stored Kolmogorov propagator (see :class:`KolmogorovFlow`)."""
+    return KolmogorovFlow(offline)
 
 
 def build(model: Model, offline: Any, **_: Any) -> WeiNormanFilter:
