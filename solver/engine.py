@@ -28,14 +28,9 @@ The log-likelihood increment is log ∫σ(τ_k) − log ∫σ(τ_{k−1}), the G
 the increment against pure noise.
 
 A step is degenerate (flagged with a reason; the state keeps the last good coefficients and
-estimate) when its update factor overflows, when ∫σ is not positive even in log scale, when most
-of σ sits within one element of ∂B_R, when a variance comes out ≤ 0 (unresolved by the basis), or
-when mass leaks through ∂B_R: the Dirichlet condition kills the density that reaches the wall, so
-the filter turns wrong long before much mass sits at the rim.  The leak of step k is the fraction
-of ∫σ_k lost by its projection and the next Fokker–Planck flow, ∫ e^{dt L} Π σ_k / ∫σ_k
-(= mass lost through ∂B_R, the FP flow conserving mass otherwise), less the basis' own mass
-errors (|projection mass change| and κ × the negative part of σ_k): a leak above
-``_LEAK_RATE``·dt is flagged (thresholds measured in tests/test_engine_boundary.py's docstring).
+estimate) when its update factor overflows, when ∫σ is not positive even in log scale, or when the
+checks of solver/diagnostics.py find it implausible (pushed against ∂B_R, unresolved, leaking mass
+through the wall).  The state and its exact JSON form are in solver/engine_state.py.
 """
 
 from __future__ import annotations
@@ -48,6 +43,8 @@ from typing import Any
 import numpy as np
 from scipy.linalg.blas import dgemv, sgemv
 
+from .diagnostics import Diagnostics
+from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments
 from .model import Model
@@ -73,51 +70,6 @@ class _Arithmetic:
 _ARITHMETIC = {"double": _Arithmetic(np.float64, dgemv, 1e-280, 1e280, 1e-250),
                "single": _Arithmetic(np.float32, sgemv, 1e-30, 1e30, 1e-25)}
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
-_RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
-# Boundary leak (fraction of the mass per unit time) beyond which the Dirichlet wall shows in the
-# estimates.  Measured at dt = 0.01: Beneš (radius 10, 40 paths) reaches a mean gap of 0.01 at a
-# leak of 2.5e-4..3.8e-4 per step, 1.2e-4 per step flags it with gaps ≤ 8.1e-3; healthy runs stay
-# ≤ 1.1e-4 (2-D range, 60 paths × 300 steps), ≤ 1e-9 (cubic sensor), ≤ 1e-14 (OU).
-_LEAK_RATE = 0.012
-# Weight of the negative part of σ (the basis' ripples) in the leak's noise: under-resolved 2-D
-# densities show spurious flux of about 3× their negative mass; a real leak comes with none.
-_RIPPLE_WEIGHT = 10.0
-
-
-@dataclass(frozen=True, eq=False)
-class YauYauState:
-    """Filter state after ``step`` steps (time ``t``).
-
-    ``coefficients`` are the basis coefficients of the conditional density at a scale where the
-    (pre-projection) density has mass ``mass``: the normalised coefficients are
-    ``coefficients / mass`` (:attr:`density_coefficients`).  Keeping the pair exactly as the hot
-    loop carries it makes a run split into chunks bit-identical to an uninterrupted one.
-    ``loglik`` is the log normaliser of σ (the cumulative log-likelihood).  ``last`` is the last
-    good estimate; a ``degenerate`` state keeps it and keeps returning it.
-    """
-
-    coefficients: np.ndarray  # (N,)
-    mass: float
-    step: int
-    t: float
-    loglik: float
-    last: Estimate
-    degenerate: bool = False
-    reason: str | None = None
-    form: str = "stable"
-    precision: str = "double"
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe; floats as Python floats (repr round-trips exactly)."""
-        return {"method": "yau-yau", "form": self.form, "precision": self.precision, "step": self.step,
-                "t": self.t,
-                "loglik": self.loglik, "degenerate": self.degenerate, "reason": self.reason,
-                "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
-
-    @property
-    def density_coefficients(self) -> np.ndarray:
-        """Coefficients of the normalised conditional density."""
-        return self.coefficients / self.mass
 
 
 class YauYauFilter(ChunkedFilter):
@@ -163,11 +115,7 @@ class YauYauFilter(ChunkedFilter):
         w, x = self.weights, self.nodes
         self._features = np.vstack([w * x[:, i] for i in range(model.n)]
                                    + [w * x[:, i] * x[:, j] for i, j in self._pairs])
-        self._rim = _rim_nodes(self.nodes, model.center, model.radius)
-        # rows: ∫Πσ and ∫e^{dt L}Πσ as linear functionals of nodal σ (Π = basis · projector)
-        kept = [np.asarray(m, dtype=float).T @ self.weights for m in (offline.basis, offline.propagator_fp)]
-        self._kept = np.vstack([projector.T @ row for row in kept])
-        self._leak_limit = _LEAK_RATE * model.dt
+        self._diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline)
 
     # -- states ------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauYauState:
@@ -197,32 +145,7 @@ class YauYauFilter(ChunkedFilter):
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
-        if not isinstance(data, dict):
-            raise InputError("state", "must be an object")
-        if data.get("method") != "yau-yau":
-            raise InputError("state.method", f"is {data.get('method')!r}, this filter is 'yau-yau'")
-        for name in ("form", "precision"):
-            if data.get(name) != getattr(self, name):
-                raise InputError(f"state.{name}",
-                                 f"is {data.get(name)!r}, this filter uses {getattr(self, name)!r}")
-        coefficients = _float_array(data.get("coefficients"), "state.coefficients", (self.N,))
-        step = data.get("step")
-        if not isinstance(step, int) or isinstance(step, bool) or step < 0:
-            raise InputError("state.step", "must be a non-negative integer")
-        reason = data.get("reason")
-        if reason is not None and not isinstance(reason, str):
-            raise InputError("state.reason", "must be a string or null")
-        if not isinstance(data.get("degenerate"), bool):
-            raise InputError("state.degenerate", "must be true or false")
-        mass = _finite_float(data.get("mass"), "state.mass")
-        if not mass > 0.0:
-            raise InputError("state.mass", "must be positive")
-        return YauYauState(coefficients=coefficients, mass=mass, step=step,
-                           t=_finite_float(data.get("t"), "state.t"),
-                           loglik=_finite_float(data.get("loglik"), "state.loglik"),
-                           last=_estimate_from_dict(data.get("last"), self.model.n),
-                           degenerate=data["degenerate"], reason=reason, form=self.form,
-                           precision=self.precision)
+        return state_from_dict(data, self.N, self.model.n, self.form, self.precision)
 
     def estimate(self, state: YauYauState) -> Estimate:
         """The last good estimate; flagged (with the reason) when the state is degenerate."""
@@ -248,7 +171,7 @@ class YauYauFilter(ChunkedFilter):
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
         mean, cov, mode = self._moments(sigma[:done], masses[:done])
-        bad, why = self._first_implausible(sigma[:done], masses[:done], cov)
+        bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov)
         if bad is not None:
             done, reason = bad, why
             carried = self._carried_after(sigma, masses, bad, initial)
@@ -324,53 +247,6 @@ class YauYauFilter(ChunkedFilter):
             masses[k] = mass = new_mass
             carried = projected
         return sigma, np.array(masses), carried, K, None
-
-    def _first_implausible(self, sigma, masses, cov) -> tuple[int | None, str | None]:
-        """The first step whose density cannot be right, and why (None, None if every step is fine).
-
-        * mostly within one element of the boundary: the Dirichlet condition forces σ = 0 on ∂B_R,
-          so the data pull the state out of the ball (impossible under the model on this domain);
-        * a variance ≤ 0 (or not finite): the basis' ripples dominate, it cannot resolve the density;
-        * mass leaking through ∂B_R (:meth:`_boundary_leak`): the Dirichlet wall biases the estimates.
-        """
-        if not len(masses):
-            return None, None
-        leak = self._boundary_leak(sigma, masses)
-        leaking = leak > self._leak_limit
-        variances = np.diagonal(cov, axis1=1, axis2=2)
-        unresolved = ~np.all(np.isfinite(cov.reshape(len(cov), -1)) & np.isfinite(masses)[:, None], axis=1)
-        unresolved |= np.any(variances <= 0.0, axis=1)
-        rim = np.zeros(len(masses), dtype=bool)
-        if self._rim.size:
-            rim = (sigma[:, self._rim] * self.weights[self._rim]).sum(axis=1) > _RIM_FRACTION * masses
-        if not (rim.any() or unresolved.any() or leaking.any()):
-            return None, None
-        bad = int(np.argmax(rim | unresolved | leaking))
-        if leaking[bad] and not unresolved[bad]:
-            return bad, (f"probability mass leaks through the boundary of the domain ball ({leak[bad]:.2g} "
-                         f"of it per step of dt = {self.model.dt:g}, limit {self._leak_limit:.2g}): the "
-                         "Dirichlet condition on ∂B_R now biases the estimates; enlarge domain.radius "
-                         "or re-centre domain.center on the state's path")
-        if rim[bad]:
-            return bad, ("the conditional density is pushed against the boundary of the domain ball: the "
-                         "data are incompatible with the model on this ball (enlarge domain.radius?)")
-        return bad, ("the covariance is not positive: the basis cannot resolve the conditional density "
-                     "(refine discretization.basis / mesh)")
-
-    def _boundary_leak(self, sigma: np.ndarray, masses: np.ndarray) -> np.ndarray:
-        """Per step, the fraction of ∫σ_k that projection + the next Fokker–Planck flow lose, beyond noise.
-
-        The FP flow with σ = 0 on ∂B_R conserves mass up to the outflow through ∂B_R; the truncated
-        basis adds signed mass errors of its own (projection, ripples).  Their sizes are subtracted:
-        a loss smaller than the basis' mass errors cannot be told from truncation.  Elementwise
-        einsum (no BLAS): each row's value does not depend on the chunk length.
-        """
-        projected, flowed = np.einsum("kq,fq->fk", sigma, self._kept)
-        negative = -np.einsum("kq,q->k", np.minimum(sigma, 0.0), self.weights)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            noise = np.abs(1.0 - projected / masses) + _RIPPLE_WEIGHT * negative / masses
-            leak = (1.0 - flowed / projected) - noise
-        return np.where(np.isfinite(leak) & (projected > 0.0), leak, 0.0)
 
     def _carried_after(self, sigma, masses, step: int, initial: np.ndarray) -> np.ndarray:
         """[coefficients, ∫σ] as the hot loop carried them after row ``step`` − 1 (bit for bit)."""
@@ -472,16 +348,9 @@ class YauYauFilter(ChunkedFilter):
             values = np.trapezoid(values, axis, axis=-1)
         return values
 
-    marginals = marginal
 
 
 # -- helpers ---------------------------------------------------------------------------------
-def _rim_nodes(nodes: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
-    """Nodes within about one element of the boundary (twice the gap of the outermost node)."""
-    r = np.linalg.norm(nodes - center, axis=1)
-    return np.flatnonzero(r >= radius - 2.0 * (radius - r.max()))
-
-
 def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     matrix = np.asarray(propagator, dtype=float)
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
@@ -525,41 +394,6 @@ def _check_offline_shapes(nodes, weights, projector, offline, n: int) -> None:
             raise SpecError(f"offline.{name}", "contains non-finite values")
     if not np.all(weights > 0):
         raise SpecError("offline.weights", "quadrature weights must be positive")
-
-
-def _finite_float(value: Any, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(field, "must be a finite number")
-    return float(value)
-
-
-def _float_array(value: Any, field: str, shape: tuple[int, ...]) -> np.ndarray:
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(field, "must be a list of numbers") from None
-    if arr.shape != shape:
-        raise InputError(field, f"must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(field, "must be finite")
-    return arr
-
-
-def _estimate_from_dict(data: Any, n: int) -> Estimate:
-    if not isinstance(data, dict):
-        raise InputError("state.last", "must be an estimate object")
-    step = data.get("step")
-    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
-        raise InputError("state.last.step", "must be a non-negative integer")
-    mode = data.get("mode")
-    return Estimate(step=step, t=_finite_float(data.get("t"), "state.last.t"),
-                    mean=_float_array(data.get("mean"), "state.last.mean", (n,)),
-                    cov=_float_array(data.get("cov"), "state.last.cov", (n, n)),
-                    loglik=_finite_float(data.get("loglik"), "state.last.loglik"),
-                    loglik_increment=_finite_float(data.get("loglik_increment"),
-                                                   "state.last.loglik_increment"),
-                    degenerate=bool(data.get("degenerate", False)), reason=data.get("reason"),
-                    mode=None if mode is None else _float_array(mode, "state.last.mode", (n,)))
 
 
 def build(model: Model, offline: Any, form: str = "stable", precision: str = "double",

@@ -1,4 +1,4 @@
-"""The engine flags mass leaking through ∂B_R (solver/engine.py, ``_boundary_leak``), against truth.
+"""The engine flags mass leaking through ∂B_R (solver/diagnostics.py, ``boundary_leak``), against truth.
 
 The Dirichlet condition kills the density that reaches the wall, so the filter turns wrong long
 before much mass sits at the rim.  Measured (dt = 0.01, leak = fraction of ∫σ lost per step beyond
@@ -57,13 +57,13 @@ def test_leak_of_the_first_dirichlet_mode_is_its_exact_decay():
     sigma = np.cos(np.pi * x / (2 * radius))[None, :]
     masses = sigma @ yy.weights
     exact = 1.0 - np.exp(-0.5 * (np.pi / (2 * radius)) ** 2 * dt)
-    assert yy._boundary_leak(sigma, masses)[0] == pytest.approx(exact, rel=1e-3)
-    bad, reason = yy._first_implausible(sigma, masses, np.ones((1, 1, 1)))
+    assert yy._diagnostics.boundary_leak(sigma, masses)[0] == pytest.approx(exact, rel=1e-3)
+    bad, reason = yy._diagnostics.first_implausible(sigma, masses, np.ones((1, 1, 1)))
     assert bad == 0 and "domain.radius" in reason and "leaks" in reason
     # a narrow Gaussian in the middle loses nothing (its tail at the wall is e^{−45}); what is
     # left is the truncation of 32 modes, far below the limit
     centred = np.exp(-x ** 2 / (2 * 0.1))[None, :]
-    assert abs(yy._boundary_leak(centred, centred @ yy.weights)[0]) < 1e-6
+    assert abs(yy._diagnostics.boundary_leak(centred, centred @ yy.weights)[0]) < 1e-6
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3, 4])
