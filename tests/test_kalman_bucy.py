@@ -212,7 +212,7 @@ def test_continuous_kind_against_the_kalman_bucy_odes_across_settling(two):
     for piece in _pieces(incs, (1, 7, 40, 1, 1)):
         state, part = kb.run(state, piece)
         ests += part
-    assert any(schedule.settled for schedule, _ in kb._positions.values())
+    assert any(schedule.settled for schedule, _ in kb._schedules._positions.values())
     F, f0 = kb.F, kb.f0
     m, P, loglik = np.full(model.n, 0.7), np.eye(model.n), 0.0
     for k, row in enumerate(incs):
@@ -252,6 +252,6 @@ def test_discrete_kind_long_run_in_odd_chunks_equals_the_reference(two):
     for piece in _pieces(incs, (1, 1, 50, 3)):
         state, part = kb.run(state, piece)
         ests += part
-    assert any(schedule.settled for schedule, _ in kb._positions.values())
+    assert any(schedule.settled for schedule, _ in kb._schedules._positions.values())
     _assert_matches_reference(ests, ref, incs, rtol=1e-10, loglik_abs=1e-9)
     assert ests[500].loglik_increment == 0.0

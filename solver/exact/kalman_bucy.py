@@ -30,7 +30,7 @@ log ∫σ the Yau–Yau engine accumulates, so the two are comparable.  A NaN ro
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -49,6 +49,7 @@ from .riccati import (
     linear_recursion,
     settle,
 )
+from .schedule import Schedule, ScheduleCache
 
 KINDS = ("continuous", "discrete")
 
@@ -71,7 +72,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         predicted_eq = GaussianKolmogorov(self.F, self.f0, a=model.a)
         self._flows = FlowFamily([observed_eq.flow(model.dt), predicted_eq.flow(model.dt)])
         self._discrete = DiscreteKalmanFilter(model) if kind == "discrete" else None
-        self._positions: dict[bytes, tuple[_Schedule, int]] = {}  # covariance -> (schedule, step index)
+        self._schedules = ScheduleCache()  # covariance -> (schedule, step index)
 
     def potential_terms(self, increment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(q, r) of the observation potential ½hᵀR⁻¹h − hᵀR⁻¹ẏ for ẏ = Δy/dt; rows for (K, m)."""
@@ -114,22 +115,12 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
                                       degenerate=np.zeros(K, bool))
 
     # -- scheduled chunks (observed rows from a remembered covariance) ------------------------
-    def _schedule_at(self, state: GaussianState) -> tuple["_Schedule", int]:
+    def _schedule_at(self, state: GaussianState) -> tuple[Schedule, int]:
         """The schedule and position whose covariance is ``state.cov`` (a new schedule if unseen)."""
-        key = np.ascontiguousarray(state.cov, dtype=float).tobytes()
-        found = self._positions.get(key)
-        if found is not None:
-            return found
-        if self._discrete is not None:
-            start = np.array(state.cov, dtype=float)
-        else:
-            start = gaussian_to_terms(state.mean, state.cov).A
-        if len(self._positions) >= _MAX_KEYS:
-            self._positions.clear()
-        found = self._positions[key] = (_Schedule(start=start, end=start), 0)
-        return found
+        first = None if self._discrete is not None else gaussian_to_terms(state.mean, state.cov).A
+        return self._schedules.at(state.cov, first)
 
-    def _extend(self, schedule: "_Schedule", count: int) -> None:
+    def _extend(self, schedule: Schedule, count: int) -> None:
         """Append ``count`` observed steps to an unsettled schedule (fewer if the path settles)."""
         zeros = np.zeros(count, dtype=bool)
         if self._discrete is None:
@@ -148,10 +139,11 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         """(mean, cov, ll) of an all-observed chunk from cached coefficients, or None (path unsettled)."""
         schedule, j = self._schedule_at(state)
         K = len(dy)
-        if not schedule.settled and j + K > schedule.length:
-            if j + K > _MAX_STEPS:
-                return None
-            self._extend(schedule, j + K - schedule.length + min(_EXTEND, schedule.length))
+        count = schedule.extension(j, K)
+        if count is None:
+            return None
+        if count:
+            self._extend(schedule, count)
         L = schedule.length
         idx = np.minimum(np.arange(j, j + K), L - 1) if schedule.settled and j + K > L else slice(j, j + K)
         first = min(j, L - 1)
@@ -173,18 +165,17 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         self._remember(cov[-1], schedule, j + K)
         return mean, cov, ll
 
-    def _remember(self, cov: np.ndarray, schedule: "_Schedule", position: int) -> None:
-        if len(self._positions) >= _MAX_KEYS:
-            self._positions.clear()
-        self._positions[np.ascontiguousarray(cov).tobytes()] = (schedule, position)
+    def _remember(self, cov: np.ndarray, schedule: Schedule, position: int) -> None:
+        self._schedules.remember(cov, schedule, position)
 
     def _one_row(self, state: GaussianState, dy: float):
         """One observed row of a scalar model in plain floats (the service's chunk of 1), or None."""
         schedule, j = self._schedule_at(state)
-        if not schedule.settled and j >= schedule.length:
-            if j + 1 > _MAX_STEPS:
-                return None
-            self._extend(schedule, j + 1 - schedule.length + min(_EXTEND, schedule.length))
+        count = schedule.extension(j, 1)
+        if count is None:
+            return None
+        if count:
+            self._extend(schedule, count)
         if schedule.scalars is None:
             names = ("W", "Vy", "v0", "kappa", "ell", "M", "prev", "cov")
             schedule.scalars = list(zip(*(getattr(schedule, k).reshape(schedule.length, -1).tolist()
@@ -284,39 +275,6 @@ def _kalman_covariances(phi, Q, Hd, Rdt, P0, missing):
 # the log-likelihood increment as one quadratic form ll_k = κ_k + ℓ_kᵀu + ½uᵀ𝕄_k u in
 # u = (x_{k−1}, Δy_k).  Once the path stops moving (to rounding) the last entry is the steady
 # step and is reused for every later step.
-
-_EXTEND = 512  # most steps added beyond the need (the length doubles up to it: one-row chunks share the cost)
-_MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
-_MAX_KEYS = 4096  # covariances remembered as schedule positions
-
-
-@dataclass
-class _Schedule:
-    """Coefficient arrays (leading axis: step) from one start; ``settled``: last entry is steady."""
-
-    start: np.ndarray  # covariance-type variable before the first step (A or P), (n, n)
-    end: np.ndarray  # the same after the last stored step (where an extension starts)
-    W: np.ndarray | None = None  # (L, n, n)
-    Vy: np.ndarray | None = None  # (L, n, m)
-    v0: np.ndarray | None = None  # (L, n)
-    kappa: np.ndarray | None = None  # (L,)
-    ell: np.ndarray | None = None  # (L, n + m)
-    M: np.ndarray | None = None  # (L, n + m, n + m)
-    prev: np.ndarray | None = None  # (L, n, n) A or P before each step
-    cov: np.ndarray | None = None  # (L, n, n) filtered covariance after each step
-    settled: bool = False
-    scalars: list | None = None  # per-step plain floats for the one-row path (n = m = 1)
-
-    @property
-    def length(self) -> int:
-        return 0 if self.W is None else len(self.W)
-
-    def append(self, parts: dict, settled: bool, end: np.ndarray) -> None:
-        for name, value in parts.items():
-            old = getattr(self, name)
-            setattr(self, name, value if old is None else np.concatenate([old, value]))
-        self.settled, self.end, self.scalars = settled, end, None
-
 
 def _quadratic(kappa, ell, M, u) -> np.ndarray:
     """κ_k + ℓ_kᵀu_k + ½u_kᵀ𝕄_k u_k for rows u (K, n + m)."""

@@ -17,7 +17,7 @@ every step, only the prior needs fitting), and a(t), b(t), which grow like e^{t}
 model, never leave one step.  Per step: one exact Riccati flow per component, one precomputed
 linear map for (a, b), a Gauss–Legendre sum for c — Kalman-like cost.  All-observed chunks go
 further: the A path is data-free, so each filter caches the step coefficients (B affine, the C
-gain quadratic in (B_prev, Δy)) until the path settles, and reuses them (see _Schedule).
+gain quadratic in (B_prev, Δy)) until the path settles, and reuses them (solver/exact/schedule.py).
 
 Moments need ∫e^{F}·Gaussian in closed form: e^{F} must be a finite sum of positive multiples of
 exponentials of affine functions (F = 0, log cosh, ...), found symbolically; otherwise SpecError.
@@ -41,6 +41,7 @@ from ..gaussian import log_normal
 from ..model import Model
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .prior_fit import fit_mixture_grid, weighted_em
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
@@ -50,117 +51,10 @@ from .riccati import (
     linear_recursion,
     settle,
 )
+from .schedule import MAX_ENTRIES, MAX_STEPS, Schedule, ScheduleCache
+from .yau_system import YauSystem, yau_system
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
-
-
-# -- symbolic analysis: (C1)–(C3) ---------------------------------------------------------
-@dataclass(frozen=True)
-class YauSystem:
-    """ℓ = Dx + d, F (SymPy), η = xᵀE x + eᵀx + e0 and e^{F} = Σ exp(log_c_k + k_kᵀx)."""
-
-    D: np.ndarray
-    d: np.ndarray
-    F: sp.Expr
-    E: np.ndarray
-    e: np.ndarray
-    e0: float
-    exp_F_slopes: np.ndarray  # (T, n)
-    exp_F_logc: np.ndarray  # (T,)
-
-
-def _affine_part(expr: sp.Expr, symbols) -> sp.Expr:
-    """The terms of ``expr`` that are polynomials of degree <= 1 in the state."""
-    terms = sp.Add.make_args(sp.expand(expr))
-    return sp.Add(*[t for t in terms
-                    if t.is_polynomial(*symbols) and sp.Poly(t, *symbols).total_degree() <= 1])
-
-
-def _potential(g: list[sp.Expr], symbols) -> sp.Expr:
-    """F with ∇F = g (g has a symmetric Jacobian), by successive integration."""
-    F = sp.Integer(0)
-    for i, xi in enumerate(symbols):
-        rest = sp.simplify(g[i] - sp.diff(F, xi))
-        part = sp.integrate(rest, xi)
-        if part.has(sp.Integral):
-            raise SpecError("drift", "cannot integrate the gradient part of the drift symbolically")
-        F += part
-    return sp.simplify(F)
-
-
-def _quadratic(expr: sp.Expr, symbols, field: str):
-    n = len(symbols)
-    try:
-        poly = sp.Poly(sp.expand(sp.simplify(expr)), *symbols)
-    except sp.PolynomialError:
-        poly = None
-    if poly is None or poly.total_degree() > 2:
-        raise SpecError(field, "η = |f|² + div f + |h|² is not a quadratic polynomial (condition C3)")
-    E = np.zeros((n, n))
-    e = np.zeros(n)
-    for i in range(n):
-        e[i] = float(poly.coeff_monomial(symbols[i]))
-        for j in range(n):
-            coeff = float(poly.coeff_monomial(symbols[i] * symbols[j]))
-            E[i, j] = coeff if i == j else 0.5 * coeff
-    return E, e, float(poly.coeff_monomial(1))
-
-
-def _exponential_sum(F: sp.Expr, symbols):
-    """e^{F} = Σ_k c_k exp(s_kᵀx) (c_k > 0), or None."""
-    total = sp.expand(sp.simplify(sp.exp(F).rewrite(sp.exp)).rewrite(sp.exp))
-    slopes, logc = [], []
-    for term in sp.Add.make_args(total):
-        coeff, rest = term.as_independent(*symbols, as_Add=False)
-        arg = sp.Integer(0)
-        for factor in sp.Mul.make_args(rest):
-            base, power = factor.as_base_exp()
-            if base == sp.E or isinstance(factor, sp.exp):
-                arg += factor.args[0] if isinstance(factor, sp.exp) else power
-            elif factor != 1:
-                return None
-        arg = sp.expand(arg)
-        if not arg.is_polynomial(*symbols) or (arg != 0 and sp.Poly(arg, *symbols).total_degree() > 1):
-            return None
-        const = arg.subs({s: 0 for s in symbols})
-        if not (coeff.is_number and coeff.is_positive):
-            return None
-        slopes.append([float(arg.coeff(s)) for s in symbols])
-        logc.append(float(sp.log(coeff) + const))
-    return np.array(slopes, float).reshape(-1, len(symbols)), np.array(logc, float)
-
-
-def yau_system(model: Model) -> YauSystem:
-    """Check (C1)–(C3) for ``model`` (a = I) and return ℓ, F, η; SpecError names the field."""
-    if not np.allclose(model.a, np.eye(model.n)):
-        raise SpecError("diffusion", "the Yau–Hu filter needs a = I (orthogonal g, as in Yau & Lai (2003))")
-    xs = model.symbols
-    affine_coefficients(model.observation, xs, "observation")  # (C2)
-    f = [sp.expand(fi) for fi in model.drift]
-    ell = [_affine_part(fi, xs) for fi in f]
-    g = [fi - li for fi, li in zip(f, ell, strict=False)]
-    J = sp.Matrix(g).jacobian(xs)
-    anti = sp.simplify((J - J.T) / 2)
-    if any(entry.free_symbols & set(xs) for entry in anti):
-        raise SpecError("drift", "∂f_j/∂x_i − ∂f_i/∂x_j is not constant: not affine + gradient (C1)")
-    shift = list(anti * sp.Matrix(xs))
-    ell = [li + si for li, si in zip(ell, shift, strict=False)]
-    g = [sp.simplify(gi - si) for gi, si in zip(g, shift, strict=False)]
-    D, d = affine_coefficients(ell, xs, "drift")
-    F = _potential(g, xs)
-    # η is fixed by f and h (R whitened): |f|² + div f + hᵀR⁻¹h
-    eta = sum(fi**2 for fi in f) + sum(sp.diff(fi, xi) for fi, xi in zip(f, xs, strict=True))
-    eta += 2 * model.potential
-    E, e, e0 = _quadratic(eta, xs, "drift")
-    found = _exponential_sum(F, xs)
-    if found is None:
-        raise SpecError("drift", f"e^F (F = {F}) is not a sum of exponentials of affine functions: "
-                                 "no closed-form moments")
-    slopes, logc = found
-    # a numerically safe form of F for evaluation: log Σ c_k e^{s_kᵀx} (log cosh, not x − log(1 + tanh))
-    F_safe = sp.log(sum(sp.exp(float(lc) + sum(float(sk) * xi for sk, xi in zip(row, xs, strict=False)))
-                        for row, lc in zip(slopes, logc, strict=False)))
-    return YauSystem(D, d, F_safe if len(logc) > 1 else F, E, e, e0, slopes, logc)
 
 
 # -- the online step -------------------------------------------------------------------
@@ -255,7 +149,7 @@ class YauHuFilter(ChunkedFilter):
         self._r = np.array([f.eq.r for f in flows])
         self._Hw, self._h0w = Hw, h0w
         self._scalar_whitening = float(self.L_inv[0, 0])  # the one-row path (n = m = 1)
-        self._positions: dict[bytes, tuple[_Schedule, int]] = {}  # exponents A -> (schedule, step index)
+        self._schedules = ScheduleCache()  # exponents A -> (schedule, step index)
 
     # -- mixtures of e^{F}·exp(−xᵀAx − Bᵀx − C) ------------------------------------------
     def _components(self, A, B, C):
@@ -296,7 +190,7 @@ class YauHuFilter(ChunkedFilter):
         from ..model import compile_model  # the prior override is checked by the model
         model = self.model if prior is self.model.spec.initial else compile_model(
             self.model.spec.model_copy(update={"initial": prior}))
-        X, vol = _grid(model)
+        X, vol = fit_mixture_grid(model)
         F_at = np.asarray(sp.lambdify(model.symbols, self.system.F, "numpy")(*X.T), float) * np.ones(len(X))
         log_target = model.log_prior(X) - F_at
         ok = np.isfinite(log_target)
@@ -306,7 +200,7 @@ class YauHuFilter(ChunkedFilter):
         target = np.where(ok, np.exp(log_target - log_total), 0.0)
         best = None
         for K in sorted({1, 2, 4, self.n_components} & set(range(1, self.n_components + 1))):
-            mix_w, means, covs = _weighted_em(X, weights / weights.sum(), K)
+            mix_w, means, covs = weighted_em(X, weights / weights.sum(), K)
             terms = [gaussian_to_terms(mu, P, w) for w, mu, P in zip(mix_w, means, covs, strict=False)]
             A = np.stack([t.A for t in terms])
             B = np.stack([t.B for t in terms])
@@ -321,7 +215,7 @@ class YauHuFilter(ChunkedFilter):
     def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ChunkResult"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 
-        All-observed chunks use the cached schedule of data-free step coefficients (see _Schedule);
+        All-observed chunks use the cached schedule of data-free step coefficients (solver/exact/schedule.py);
         chunks with missing rows (or a path that never settles) take the general chunk code.
         """
         dy = check_increments(increments, self.model.m)
@@ -375,33 +269,22 @@ class YauHuFilter(ChunkedFilter):
         return (mean, cov, increments_ll), (A[-1], B[-1], C[-1] + log_mass[-1])
 
     # -- scheduled chunks (observed rows from remembered exponents A) -----------------------
-    def _schedule_at(self, state: YauHuState) -> tuple["_Schedule", int]:
+    def _schedule_at(self, state: YauHuState) -> tuple[Schedule, int]:
         """The schedule and position whose exponents are ``state.A`` (a new schedule if unseen)."""
-        key = np.ascontiguousarray(state.A, dtype=float).tobytes()
-        found = self._positions.get(key)
-        if found is None:
-            found = self._remember(key, _Schedule(end=np.array(state.A, dtype=float)), 0)
-        return found
+        return self._schedules.at(state.A)
 
-    def _remember(self, key: bytes, schedule: "_Schedule", position: int):
-        if len(self._positions) >= _MAX_KEYS:
-            self._positions.clear()
-        found = self._positions[key] = (schedule, position)
-        return found
-
-    def _ready(self, schedule: "_Schedule", j: int, K: int) -> bool:
+    def _ready(self, schedule: Schedule, j: int, K: int) -> bool:
         """Extend an unsettled schedule to cover steps j..j+K−1.
 
         False (the general chunk code takes over, and reports any failure at its step) if that is
         past the size cap, or the path blows up or leaves the positive-definite exponents first.
         """
-        if schedule.settled or j + K <= schedule.length:
-            return True
         J, n = schedule.end.shape[0], self.model.n
-        cap = min(_MAX_STEPS, _MAX_ENTRIES // (J * (n + self.model.m) ** 2))
-        if j + K > cap:
+        count = schedule.extension(j, K, min(MAX_STEPS, MAX_ENTRIES // (J * (n + self.model.m) ** 2)))
+        if count is None:
             return False
-        count = j + K - schedule.length + min(_EXTEND, schedule.length)
+        if count == 0:
+            return True
         try:
             path = self._family.path(np.zeros(count, dtype=int), schedule.end)  # (count+1, J, n, n)
         except InputError:
@@ -460,11 +343,11 @@ class YauHuFilter(ChunkedFilter):
             return None
         schedule, j, idx = found
         if self.model.n == 1 and self.model.m == 1:
-            outputs, (B, C) = self._scalar_chunk(state, schedule.rows, idx, y[:, 0])
+            outputs, (B, C) = self._scalar_chunk(state, schedule.row_view(), idx, y[:, 0])
         else:
             outputs, (B, C) = self._matrix_chunk(state, schedule.parts, idx, y)
         A_last = schedule.parts["A"][idx][-1].copy()
-        self._remember(A_last.tobytes(), schedule, j + len(y))
+        self._schedules.remember(A_last, schedule, j + len(y))
         return outputs, (A_last, B, C)
 
     def _matrix_chunk(self, state: YauHuState, parts: dict, idx, y: np.ndarray):
@@ -551,7 +434,7 @@ class YauHuFilter(ChunkedFilter):
         start_mass = _scalar_mixture(cov_old, None, state.B[:, 0].tolist(), state.C.tolist(), slopes, logc)[0]
         log_mass, mean, var = _scalar_mixture(cov_new, hl_new, B_new, C_new, slopes, logc)
         A_last = schedule.parts["A"][k].copy()
-        self._remember(A_last.tobytes(), schedule, j + 1)
+        self._schedules.remember(A_last, schedule, j + 1)
         return mean, var, log_mass - start_mass, A_last, B_new, [c + log_mass for c in C_new]
 
     def estimate(self, state: YauHuState) -> Estimate:
@@ -608,41 +491,6 @@ def _mixture_terms(prior):
     return (np.stack([t.A for t in terms]), np.stack([t.B for t in terms]), np.array([t.C for t in terms]))
 
 
-_GRID = {1: 4001, 2: 161, 3: 41}
-
-
-def _grid(model: Model):
-    n = model.n
-    axes = [np.linspace(c - model.radius, c + model.radius, _GRID[n]) for c in model.center]
-    mesh = np.meshgrid(*axes, indexing="ij")
-    X = np.stack([m.ravel() for m in mesh], axis=1)
-    inside = np.linalg.norm(X - model.center, axis=1) <= model.radius
-    return X[inside], float(np.prod([ax[1] - ax[0] for ax in axes]))
-
-
-def _weighted_em(X, w, K, iterations: int = 300):
-    """Gaussian mixture fit of the weighted points (w sums to 1)."""
-    n = X.shape[1]
-    mean = w @ X
-    cov = np.einsum("p,pi,pj->ij", w, X - mean, X - mean) + 1e-9 * np.eye(n)
-    cdf = np.cumsum(w)
-    picks = np.searchsorted(cdf, (np.arange(K) + 0.5) / K).clip(0, len(X) - 1)
-    means = X[picks].astype(float)
-    covs = np.stack([cov / K ** (2 / n)] * K)
-    mix = np.full(K, 1.0 / K)
-    floor = 1e-6 * np.trace(cov) / n * np.eye(n)
-    for _ in range(iterations):
-        logr = np.stack([np.log(mix[k]) + log_normal(X, means[k], covs[k]) for k in range(K)])
-        resp = np.exp(logr - logsumexp(logr, axis=0)) * w
-        mass = resp.sum(axis=1) + 1e-300
-        mix = mass / mass.sum()
-        means = (resp @ X) / mass[:, None]
-        for k in range(K):
-            dev = X - means[k]
-            covs[k] = np.einsum("p,pi,pj->ij", resp[k], dev, dev) / mass[k] + floor
-    return mix, means, covs
-
-
 def _one_row_result(state: YauHuState, dt: float, mean: float, var: float, ll: float, A, B: list, C: list):
     """The new state and the one-row ChunkResult of a scalar step (plain floats in, arrays out)."""
     step = state.step + 1
@@ -685,37 +533,6 @@ def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
 # A schedule stores those coefficients step by step from one start until the path stops moving
 # (to rounding), then reuses the last (steady) entry.  Positions are keyed by the bytes of A:
 # the coefficients of a step depend only on the A it starts from.
-
-_EXTEND = 512  # most steps added beyond the need (the length doubles up to it)
-_MAX_STEPS = 1 << 16  # a path that has not settled by then is left to the general chunk code
-_MAX_ENTRIES = 1 << 21  # cap on steps × components × (n + m)² stored by one schedule (memory)
-_MAX_KEYS = 4096  # exponents remembered as schedule positions
-
-
-@dataclass
-class _Schedule:
-    """Coefficient arrays (leading axis: step, then component) from one start."""
-
-    end: np.ndarray  # (J, n, n) A after the last stored step (where an extension starts)
-    parts: dict = field(default_factory=dict)
-    settled: bool = False
-    scalars: list | None = None  # per step, per component plain floats (n = m = 1)
-    rows: dict | None = None  # n = m = 1: the parts as (J, L) rows
-
-    @property
-    def length(self) -> int:
-        return len(self.parts["A"]) if self.parts else 0
-
-    def append(self, parts: dict, settled: bool, end: np.ndarray) -> None:
-        for name, value in parts.items():
-            old = self.parts.get(name)
-            self.parts[name] = value if old is None else np.concatenate([old, value])
-        self.settled, self.end, self.scalars = settled, end, None
-        J = end.shape[0]
-        if end.shape[-1] == 1 and self.parts["Vy"].shape[-1] == 1:  # n = m = 1: rows (J, L)
-            self.rows = {name: np.ascontiguousarray(value.reshape(self.length, J).T)
-                         for name, value in self.parts.items() if name != "A"}
-
 
 def build(model: Model, offline: Any = None, **_: Any) -> YauHuFilter:
     """The registry's constructor (solver/registry.py)."""
