@@ -45,6 +45,18 @@ class Model:
     h: Points  # (P, n) -> (P, m)
     _prior_fn: Points | None = None  # unnormalised prior density (kind = "density")
 
+    # -- the two parts of the spec ----------------------------------------------------
+    @property
+    def problem(self):
+        """The filtering problem (solver.spec.ProblemSpec): what f, h, the noises and prior are."""
+        return self.spec.problem
+
+    @property
+    def discretisation(self):
+        """How it is discretised (solver.spec.DiscretisationSpec): dt, the domain ball, resolution.
+        ``dt``, ``radius`` and ``center`` below read it."""
+        return self.spec.discretisation
+
     # -- sizes and matrices ---------------------------------------------------------
     @property
     def n(self) -> int:

@@ -1,10 +1,19 @@
-"""Model specification: the signal/observation model and its discretisation.
+"""Model specification: the filtering problem, and apart from it its discretisation.
 
     dx = f(x) dt + G dv,   dy = h(x) dt + dw,   E[dv dvᵀ] = Q dt,  E[dw dwᵀ] = R dt,
 
 with x ∈ ℝⁿ (n = 1, 2, 3) and y ∈ ℝᵐ.  ``diffusion`` is a = G Q Gᵀ (n×n, SPD) and
-``observation_noise`` is R (m×m, SPD).  One schema (pydantic) serves TOML and JSON;
-:func:`load_spec` turns every problem into one :class:`SpecError` naming the field.
+``observation_noise`` is R (m×m, SPD).
+
+Two parts, one document.  The *problem* (:class:`ProblemSpec`: state, drift, observation, noises,
+parameters, prior) is what the user knows about the system; the *discretisation*
+(:class:`DiscretisationSpec`: the domain ball and the ``[discretization]`` table — dt, basis size,
+mesh, element order, substeps, precision) is how the offline stage represents it.  A spec file keeps
+both at its top level (unchanged format); ``ModelSpec.problem`` and ``ModelSpec.discretisation``
+are the two parts, and :meth:`ModelSpec.compose` / :meth:`ModelSpec.with_discretisation` build a
+spec from them (one problem, several discretisations: a finer mesh, another ball).  One schema
+(pydantic) serves TOML and JSON; :func:`load_spec` turns every problem into one :class:`SpecError`
+naming the field.
 """
 
 from __future__ import annotations
@@ -111,7 +120,32 @@ class Discretization(_Strict):
     precision: Literal["double", "single"] = "double"
 
 
+PROBLEM_FIELDS = ("state", "drift", "observation", "diffusion", "observation_noise", "parameters", "initial")
+DISCRETISATION_FIELDS = ("domain", "discretization")
+
+
+class ProblemSpec(_Strict):
+    """The filtering problem: signal, observation, noises, parameters and prior (no numerics)."""
+
+    state: list[str]
+    drift: list[str]
+    observation: list[str]
+    diffusion: list[list[float]] | None = None
+    observation_noise: list[list[float]] | None = None
+    parameters: dict[str, float] = Field(default_factory=dict)
+    initial: Prior
+
+
+class DiscretisationSpec(_Strict):
+    """How the offline stage represents the problem: the domain ball and the time step/resolution."""
+
+    domain: Domain
+    discretization: Discretization
+
+
 class ModelSpec(_Strict):
+    """A problem and its discretisation, validated together (one flat document: the file format)."""
+
     name: str = Field(min_length=1, max_length=100)
     state: list[str] = Field(min_length=1, max_length=3)
     drift: list[str]
@@ -180,6 +214,28 @@ class ModelSpec(_Strict):
             _finite_or_raise(self.domain.center, "domain.center")
         _check_prior(self.initial, n)
         return self
+
+    # -- the two parts -------------------------------------------------------------------
+    @property
+    def problem(self) -> ProblemSpec:
+        return ProblemSpec.model_validate({k: getattr(self, k) for k in PROBLEM_FIELDS})
+
+    @property
+    def discretisation(self) -> DiscretisationSpec:
+        return DiscretisationSpec(domain=self.domain, discretization=self.discretization)
+
+    @classmethod
+    def compose(cls, name: str, problem: ProblemSpec | dict, discretisation: DiscretisationSpec | dict,
+                method: str = "auto") -> "ModelSpec":
+        """The spec of ``problem`` discretised by ``discretisation`` (validated as a whole)."""
+        doc = {"name": name, "method": method}
+        for part in (problem, discretisation):
+            doc.update(part.model_dump(mode="json") if isinstance(part, BaseModel) else dict(part))
+        return spec_from_dict(doc)
+
+    def with_discretisation(self, discretisation: DiscretisationSpec | dict) -> "ModelSpec":
+        """The same problem on another discretisation (another ball, dt or resolution)."""
+        return ModelSpec.compose(self.name, self.problem, discretisation, self.method)
 
     # -- derived quantities ---------------------------------------------------------
     @property
