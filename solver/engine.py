@@ -75,10 +75,10 @@ _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 class YauYauFilter(ChunkedFilter):
     """The Yau–Yau filter on precomputed offline arrays (the :class:`solver.filtering.Filter` protocol).
 
-    ``offline`` needs ``nodes`` (Q, n), ``weights`` (Q,), ``projector`` (N, Q), ``propagator_fp`` and
-    ``propagator_k`` (Q, N) and ``evaluate_basis(points) -> (P, N)``.  ``precision="single"`` runs
-    the two matrix-vector products per step in float32 (about 2.5× faster; relative rounding ~1e-7
-    per step); the moments, log-likelihood and state stay in float64.
+    ``offline`` is any :class:`solver.offline.OfflineArrays` (nodes, weights, basis, projector, the two
+    propagators, ``evaluate_basis``).  ``precision="single"`` runs the two matrix-vector products per
+    step in float32 (speed-up: docs/bench-engine.md; relative rounding ~1e-7 per step); the moments,
+    log-likelihood and state stay in float64.
     """
 
     method = "yau-yau"

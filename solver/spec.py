@@ -107,8 +107,8 @@ class Discretization(_Strict):
     number of elements across the radius (None: chosen from N and n).  ``order`` is the
     polynomial degree of the finite elements.  ``substeps`` splits dt for the offline time
     integration.  ``precision`` is the floating point of the online engine's two matrix-vector
-    products per observation: "single" halves their memory traffic (measured 3.9x faster in 2-D,
-    docs/benchmarks.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
+    products per observation: "single" halves their memory traffic (the speed-up is measured in
+    docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.
     """
 
