@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
                         help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
-                        help="yau-yau step: stable (default) or literal seed 002 (5.35)")
+                        help="yau-yau step: stable (default) or literal: Yau (2008) (5.35)")
     parser.add_argument("--precision", choices=PRECISIONS, default=None,
                         help="yau-yau matrix-vector products in double or single precision "
                              "(default: the spec's discretization.precision)")
