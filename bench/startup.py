@@ -36,9 +36,9 @@ def _env(tree: Path) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
 
 
-def _timed(cmd: list[str], env: dict[str, str]) -> float:
+def _timed(cmd: list[str], env: dict[str, str], cwd: Path = ROOT) -> float:
     began = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(cmd, env=env, cwd=cwd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - began
 
 
@@ -48,11 +48,11 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _serve_ready(cli: list[str], store: Path, env: dict[str, str]) -> float:
+def _serve_ready(cli: list[str], store: Path, env: dict[str, str], cwd: Path = ROOT) -> float:
     port = _free_port()
     began = time.perf_counter()
     proc = subprocess.Popen([*cli, "serve", "--store", str(store), "--port", str(port), "--log-level",
-                             "warning", "--session-db", str(store / "s.sqlite3")], env=env,
+                             "warning", "--session-db", str(store / "s.sqlite3")], env=env, cwd=cwd,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         while time.perf_counter() - began < 600:
@@ -87,6 +87,7 @@ class Tree:
     """A revision's command line: its import name and a store precomputed by it."""
 
     def __init__(self, label: str, tree: Path, module: str, work: Path, models: int):
+        # run from the tree itself: `python -m` puts the working directory first on sys.path
         self.label, self.tree, self.env = label, tree, _env(tree)
         self.cli = [sys.executable, "-m", module]
         self.one, self.many = work / f"{label}-one", work / f"{label}-many"
@@ -99,12 +100,13 @@ class Tree:
 
     def _precompute(self, store: Path, spec: Path) -> str:
         out = subprocess.run([*self.cli, "precompute", str(spec), "--store", str(store), "--quiet"],
-                             env=self.env, check=True, capture_output=True, text=True)
+                             env=self.env, cwd=self.tree, check=True, capture_output=True, text=True)
         return out.stdout.strip().splitlines()[-1]
 
     def filter_seconds(self) -> float:
+        out = str(self.input.with_suffix(".out.csv"))
         return _timed([*self.cli, "filter", self.model_id, "--store", str(self.one), "--increments",
-                       str(self.input), "--out", str(self.input.with_suffix(".out.csv"))], self.env)
+                       str(self.input), "--out", out], self.env, self.tree)
 
 
 def _baseline_tree(rev: str, into: Path) -> tuple[Path, str]:
@@ -129,8 +131,9 @@ def measure(repeats: int, models: int, baseline: str | None) -> dict[str, dict[s
         for t in trees:
             runs = samples[t.label]
             runs.setdefault("filter, 1 row", []).append(t.filter_seconds())
-            runs.setdefault("serve ready, 1 model", []).append(_serve_ready(t.cli, t.one, t.env))
-            runs.setdefault(f"serve ready, {models} models", []).append(_serve_ready(t.cli, t.many, t.env))
+            runs.setdefault("serve ready, 1 model", []).append(_serve_ready(t.cli, t.one, t.env, t.tree))
+            runs.setdefault(f"serve ready, {models} models", []).append(
+                _serve_ready(t.cli, t.many, t.env, t.tree))
     out = {"floor": {"import numpy, scipy.sparse.linalg, h5py": float(np.median(floor))}}
     for label, runs in samples.items():
         out[label] = {name: float(np.median(values)) for name, values in runs.items()}

@@ -187,6 +187,16 @@ def test_file_renamed_to_another_id_is_refused(store: ModelStore):
         store.load(other)
 
 
+def test_a_file_of_yauyau_0_1_says_re_run_precompute(store: ModelStore):
+    """Format 1 (no method stored) is refused with the fix named, not loaded without its method."""
+    mid = store.save(SPEC, _arrays(np.random.default_rng(8)))
+    with h5py.File(store.path(mid), "r+") as h5:
+        h5.attrs["format_version"] = 1
+    with pytest.raises(StoreError, match="re-run `yauyau precompute SPEC`") as err:
+        store.load(mid)
+    assert err.value.field == "format_version" and FORMAT_VERSION == 2
+
+
 def test_wrong_format_version_is_refused(store: ModelStore):
     mid = store.save(SPEC, _arrays(np.random.default_rng(7)))
     with h5py.File(store.path(mid), "r+") as h5:

@@ -66,3 +66,21 @@ def test_a_new_basis_is_one_builder_and_the_engine_still_meets_kalman():
     assert not result.degenerate.any()
     assert np.max(np.abs(result.mean[:, 0] - [e.mean[0] for e in ref])) < 2e-3
     assert np.max(np.abs(result.cov[:, 0, 0] / [e.cov[0, 0] for e in ref] - 1)) < 0.02
+
+
+def test_spec_validation_builds_no_model_and_the_model_reuses_its_checked_expressions():
+    """v0.1's spec_from_dict compiled a Model (SymPy) and threw it away, and spec.py imported model.py
+    (which imports spec.py): now validation parses the expressions once and compile_model reuses them."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from yauyau.solver.spec import load_spec; "
+            f"load_spec({str(ROOT / 'examples' / 'cubic_sensor.toml')!r}); "
+            "print('yauyau.solver.model' in sys.modules, 'sympy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert out.stdout.split() == ["False", "False"]
+    spec = load_spec(ROOT / "examples" / "cubic_sensor.toml")
+    checked = spec.numeric()
+    model = compile_model(spec)
+    assert model.f is checked[0] and model.h is checked[1]

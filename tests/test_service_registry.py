@@ -1,0 +1,89 @@
+"""`yauyau serve` starts without loading models: they are listed from the files' attributes, loaded
+on first use and kept in a bounded cache; the online products run with one BLAS thread per worker.
+
+Truth: the prior N(1, 0.5) of the Ornstein–Uhlenbeck example (its first estimate) and the method the
+estimation-algebra analysis chose at precompute (linear model, Gaussian prior: Kalman–Bucy).
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from fastapi.testclient import TestClient
+from yauyau.service.app import create_app
+from yauyau.service.settings import Settings
+
+import yauyau
+
+
+@pytest.fixture()
+def store(example_store, tmp_path):
+    source, ids = example_store
+    target = tmp_path / "store"
+    target.mkdir()
+    for mid in ids.values():
+        shutil.copy(source / f"{mid}.h5", target / f"{mid}.h5")
+    return target, ids
+
+
+def _client(store, tmp_path, **settings):
+    return TestClient(create_app(Settings(store=store, session_db=tmp_path / "s.sqlite3", **settings)),
+                      raise_server_exceptions=False)
+
+
+def test_start_up_loads_no_model_and_lists_them_from_attributes(store, tmp_path):
+    directory, ids = store
+    with _client(directory, tmp_path) as api:
+        registry = api.app.state.registry
+        assert api.get("/readyz").json() == {"status": "ready", "models": 2}
+        listed = {m["id"]: m for m in api.get("/v1/models").json()}
+        assert registry.loads == 0 and registry.loaded_ids() == []  # listing reads attributes only
+        assert listed[ids["ou"]]["method"] == "kalman-bucy" and listed[ids["ou"]]["state"] == ["x"]
+        assert listed[ids["cubic_sensor"]]["method"] == "yau-yau"
+        created = api.post("/v1/sessions", json={"model": ids["ou"]})
+        assert created.status_code == 201 and created.json()["method"] == "kalman-bucy"
+        assert created.json()["estimate"]["mean"][0] == pytest.approx(1.0)
+        assert created.json()["estimate"]["cov"][0][0] == pytest.approx(0.5)
+        assert registry.loaded_ids() == [ids["ou"]] and registry.loads == 1
+
+
+def test_the_cache_is_bounded_and_an_evicted_model_comes_back(store, tmp_path):
+    directory, ids = store
+    with _client(directory, tmp_path, model_cache=1) as api:
+        registry = api.app.state.registry
+        first = api.post("/v1/sessions", json={"model": ids["ou"]}).json()["id"]
+        api.post("/v1/sessions", json={"model": ids["cubic_sensor"]})
+        assert registry.loaded_ids() == [ids["cubic_sensor"]]  # the least recently used was dropped
+        chunk = api.post(f"/v1/sessions/{first}/observations", json={"seq": 0, "increments": [[0.01]]})
+        assert chunk.status_code == 200 and registry.loaded_ids() == [ids["ou"]] and registry.loads == 3
+
+
+def test_an_unreadable_model_is_listed_with_its_error_and_refused_on_use(store, tmp_path):
+    directory, ids = store
+    (directory / f"{ids['ou']}.h5").write_bytes(b"not an HDF5 file")
+    with _client(directory, tmp_path) as api:
+        listed = {m["id"]: m for m in api.get("/v1/models").json()}
+        assert listed[ids["ou"]]["error"] and "method" not in listed[ids["ou"]]
+        r = api.post("/v1/sessions", json={"model": ids["ou"]})
+        assert r.status_code == 503 and r.headers["content-type"].startswith("application/problem+json")
+        assert "corrupt or unreadable" in r.json()["detail"]
+        assert api.post("/v1/sessions", json={"model": ids["cubic_sensor"]}).status_code == 201
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_worker_runs_its_blas_with_the_configured_threads(store, tmp_path, threads):
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    directory, _ = store
+    with threadpool_limits(limits=None):  # restore whatever the test process had afterwards
+        with _client(directory, tmp_path, blas_threads=threads) as api:
+            assert api.get("/readyz").status_code == 200
+            seen = {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+            assert seen == {threads}
+
+
+def test_precompute_records_why_it_chose(store):
+    directory, ids = store
+    summaries = {s.id: s for s in yauyau.ModelStore(directory).list()}
+    assert "affine" in summaries[ids["ou"]].extra["method_reason"]
