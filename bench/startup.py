@@ -6,8 +6,9 @@
 * ``yauyau filter`` on a 1-row input of the 1-D cubic sensor (stored model, method chosen at
   precompute), from process start to exit;
 * ``yauyau serve`` from process start to ``/readyz`` answering 200, with 1 and with 9 stored models;
-* with ``--baseline REV``: the same commands of an earlier git revision (its own store: its file
-  format), e.g. v0.1, which analysed the model on every `filter` and every model at `serve`.
+* the same commands of an earlier git revision (``--baseline REV``, default ``ea33e0d``: v0.1, the
+  last revision before the package became ``yauyau``; its own store, its file format), which analysed
+  the model on every `filter` and every model at `serve`; ``--baseline none`` skips it.
 
 Medians of the repeats, the commands interleaved, one BLAS thread (OPENBLAS_NUM_THREADS=1).
 """
@@ -109,6 +110,14 @@ class Tree:
                        str(self.input), "--out", out], self.env, self.tree)
 
 
+BASELINE = "ea33e0d"
+
+
+def _known_revision(rev: str) -> bool:
+    return subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", f"{rev}^{{commit}}"],
+                          capture_output=True).returncode == 0
+
+
 def _baseline_tree(rev: str, into: Path) -> tuple[Path, str]:
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True, capture_output=True).stdout
     into.mkdir(parents=True)
@@ -142,7 +151,7 @@ def measure(repeats: int, models: int, baseline: str | None) -> dict[str, dict[s
 
 def render(results: dict[str, dict[str, float]], repeats: int, baseline: str | None) -> str:
     (floor_name, floor), = results["floor"].items()
-    command = "python -m bench.startup" + (f" --baseline {baseline}" if baseline else "")
+    command = "python -m bench.startup" + ("" if baseline == BASELINE else f" --baseline {baseline or 'none'}")
     lines = ["## Start-up", "", f"`{command}`", "",
              f"Seconds from process start, medians of {repeats} interleaved runs, one BLAS thread; the floor "
              f"is `python -c \"{floor_name}\"` = {floor:.2f} s.  `filter`: the 1-D cubic sensor on a 1-row "
@@ -165,8 +174,11 @@ def render(results: dict[str, dict[str, float]], repeats: int, baseline: str | N
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m bench.startup", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
-    parser.add_argument("--baseline", default=None, metavar="REV", help="also time this git revision")
+    parser.add_argument("--baseline", default=BASELINE, metavar="REV",
+                        help="also time this git revision (default %(default)s, v0.1; 'none' to skip)")
     args = parser.parse_args(argv)
+    if args.baseline == "none" or not _known_revision(args.baseline):
+        args.baseline = None
     repeats = 3 if args.quick else 7
     results = measure(repeats, 9, args.baseline)
     text = render(results, repeats, args.baseline)
