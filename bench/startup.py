@@ -151,7 +151,8 @@ def measure(repeats: int, models: int, baseline: str | None) -> dict[str, dict[s
 
 def render(results: dict[str, dict[str, float]], repeats: int, baseline: str | None) -> str:
     (floor_name, floor), = results["floor"].items()
-    command = "python -m bench.startup" + ("" if baseline == BASELINE else f" --baseline {baseline or 'none'}")
+    flag = "" if baseline == BASELINE else f" --baseline {baseline or 'none'}"
+    command = "python -m bench.startup" + flag
     lines = ["## Start-up", "", f"`{command}`", "",
              f"Seconds from process start, medians of {repeats} interleaved runs, one BLAS thread; the floor "
              f"is `python -c \"{floor_name}\"` = {floor:.2f} s.  `filter`: the 1-D cubic sensor on a 1-row "
