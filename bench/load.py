@@ -268,11 +268,11 @@ def _engine_ms(model, offline, increments) -> float:
 
 def _commit_ms(directory: Path, state: dict, response: dict, count: int = 300) -> dict[str, tuple]:
     """p50/p99 ms of one chunk's store round (read, write state + response, commit) per durability."""
-    from yauyau.storage.session_store import SessionStore
+    from yauyau.storage.session_store import SqliteSessionStore
 
     out = {}
     for level in ("normal", "full"):
-        store = SessionStore(directory / f"commit-{level}.sqlite3", synchronous=level)
+        store = SqliteSessionStore(directory / f"commit-{level}.sqlite3", synchronous=level)
         sid = store.create("m", "yau-yau", state)
         times = []
         for seq in range(count):

@@ -19,7 +19,7 @@ import numpy as np
 from yauyau.solver import compile_model, load_spec
 from yauyau.solver.offline import precompute
 from yauyau.storage.model_store import ModelStore
-from yauyau.storage.session_store import SessionStore
+from yauyau.storage.session_store import SqliteSessionStore
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-storage.md"
@@ -92,13 +92,13 @@ def _chunk(seq: int):
 
 
 def _apply_many(path: str, sid: str, chunks: int) -> None:
-    store = SessionStore(path)
+    store = SqliteSessionStore(path)
     for seq in range(chunks):
         store.apply_chunk(sid, seq, _chunk(seq))
 
 
 def _contend(path: str, sid: str, chunks: int) -> None:
-    store = SessionStore(path)
+    store = SqliteSessionStore(path)
     while (next_seq := store.get(sid).next_seq) < chunks:
         store.apply_chunk(sid, next_seq, _chunk(next_seq))
 
@@ -106,7 +106,7 @@ def _contend(path: str, sid: str, chunks: int) -> None:
 def session_throughput(chunks: int, workdir: Path) -> list[tuple[str, float]]:
     """Chunks per second with a 96-coefficient state (the size of a small Yau–Yau state)."""
     path = str(workdir / "sessions.sqlite")
-    store = SessionStore(path)
+    store = SqliteSessionStore(path)
     state = {"c": list(np.linspace(0, 1, 96)), "step": 0}
     ctx = multiprocessing.get_context("fork")
     out = []
