@@ -79,9 +79,11 @@ class ChunkResult:
 
     def estimates(self) -> list[Estimate]:
         """One :class:`Estimate` per step (new objects; nothing is shared with later chunks)."""
-        modes = [None] * len(self.step) if self.mode is None else [
-            m if not bad and np.all(np.isfinite(m)) else None
-            for m, bad in zip(self.mode, self.degenerate.tolist(), strict=True)]
+        if self.mode is None:
+            modes = [None] * len(self.step)
+        else:
+            known = (np.isfinite(self.mode).all(axis=1) & ~self.degenerate).tolist()
+            modes = [m if ok else None for m, ok in zip(self.mode, known, strict=True)]
         columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
                       self.loglik_increment.tolist(), self.degenerate.tolist(), modes, strict=True)
         reason = self.reason
@@ -149,9 +151,14 @@ class ChunkedFilter:
     model: Any
 
     def step(self, state: Any, increment: np.ndarray | None) -> tuple[Any, Estimate]:
-        row = observed(increment, self.model.m)
-        rows = np.full((1, self.model.m), np.nan) if row is None else row[None]
-        new_state, result = self.run_arrays(state, rows)
+        if increment is None:
+            rows = np.full((1, self.model.m), np.nan)
+        else:
+            try:
+                rows = np.reshape(np.asarray(increment, dtype=float), (1, -1))
+            except (TypeError, ValueError):
+                raise InputError("increment", "must be a list of numbers (or null)") from None
+        new_state, result = self.run_arrays(state, rows)  # validates the row
         return new_state, result.estimates()[0]
 
     def run(self, state: Any, increments: np.ndarray) -> tuple[Any, list[Estimate]]:

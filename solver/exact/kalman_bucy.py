@@ -117,8 +117,9 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
     # -- scheduled chunks (observed rows from a remembered covariance) ------------------------
     def _schedule_at(self, state: GaussianState) -> tuple[Schedule, int]:
         """The schedule and position whose covariance is ``state.cov`` (a new schedule if unseen)."""
-        first = None if self._discrete is not None else gaussian_to_terms(state.mean, state.cov).A
-        return self._schedules.at(state.cov, first)
+        if self._discrete is not None:
+            return self._schedules.at(state.cov)
+        return self._schedules.at(state.cov, lambda: gaussian_to_terms(state.mean, state.cov).A)
 
     def _extend(self, schedule: Schedule, count: int) -> None:
         """Append ``count`` observed steps to an unsettled schedule (fewer if the path settles)."""

@@ -82,13 +82,12 @@ class ScheduleCache:
     def key(start: np.ndarray) -> bytes:
         return np.ascontiguousarray(start, dtype=float).tobytes()
 
-    def at(self, start: np.ndarray, first: np.ndarray | None = None) -> tuple[Schedule, int]:
-        """The schedule and position for ``start`` (a new schedule from ``first``, default ``start``,
-        if unseen)."""
-        key = self.key(start)
-        found = self._positions.get(key)
+    def at(self, start: np.ndarray, first: Any = None) -> tuple[Schedule, int]:
+        """The schedule and position for ``start``; if unseen, a new schedule from ``first()``
+        (a callable, evaluated only then; default ``start`` itself)."""
+        found = self._positions.get(self.key(start))
         if found is None:
-            origin = np.array(start if first is None else first, dtype=float)
+            origin = np.array(start if first is None else first(), dtype=float)
             found = self.remember(start, Schedule(end=origin), 0)
         return found
 
