@@ -360,11 +360,13 @@ def parse_expression(text: str, names: Mapping[str, "sp.Expr"], field: str = "ex
     return expr
 
 
-def vectorize(expr: "sp.Expr", symbols: Sequence["sp.Symbol"]):
-    """numpy function of points X (shape (P, n)) returning shape (P,) for one expression."""
+def vectorize(expr: "sp.Expr", symbols: Sequence["sp.Symbol"],
+              functions: Mapping[str, Callable[..., Any]] | None = None):
+    """numpy function of points X (shape (P, n)) returning shape (P,) for one expression;
+    ``functions`` maps the names of SymPy functions of our own to their numpy forms."""
     import sympy as sp
 
-    fn = sp.lambdify(list(symbols), expr, modules="numpy")
+    fn = sp.lambdify(list(symbols), expr, modules=[dict(functions), "numpy"] if functions else "numpy")
 
     def evaluate(X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))

@@ -406,16 +406,7 @@ def _shift_integral(model: Model, k: int):
     tau, r = sp.Symbol("tau_", real=True), sp.Symbol("r_", real=True)
     xk = model.symbols[k]
     integral = _stable_logs(sp.simplify(sp.integrate(model.drift[k].subs(xk, xk + tau), (tau, 0, r))))
-    fn = sp.lambdify([*model.symbols, r], integral,
-                     modules=[{"_softplus": lambda z: np.logaddexp(0.0, z)}, "numpy"])
-
-    def evaluate(X: np.ndarray) -> np.ndarray:
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        with np.errstate(all="ignore"):
-            value = fn(*X.T)
-        return np.broadcast_to(np.asarray(value, dtype=float), (X.shape[0],)).copy()
-
-    return evaluate
+    return vectorize(integral, [*model.symbols, r], {"_softplus": lambda z: np.logaddexp(0.0, z)})
 
 
 def _observation_weights(model: Model):
