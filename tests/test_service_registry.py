@@ -71,16 +71,37 @@ def test_an_unreadable_model_is_listed_with_its_error_and_refused_on_use(store, 
         assert api.post("/v1/sessions", json={"model": ids["cubic_sensor"]}).status_code == 201
 
 
+_WORKER = """
+import json, sys
+from fastapi.testclient import TestClient
+from threadpoolctl import threadpool_info
+from yauyau.service.app import create_app
+from yauyau.service.settings import Settings
+settings = Settings(store=sys.argv[1], session_db=sys.argv[2], blas_threads=int(sys.argv[3]))
+with TestClient(create_app(settings)) as api:
+    assert api.get("/readyz").status_code == 200
+    print(json.dumps(sorted({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})))
+"""
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_worker_runs_its_blas_with_the_configured_threads(store, tmp_path, threads):
-    from threadpoolctl import threadpool_info, threadpool_limits
+    """In a process of its own: BLAS thread counts are process-wide, and other tests change them."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
 
     directory, _ = store
-    with threadpool_limits(limits=None):  # restore whatever the test process had afterwards
-        with _client(directory, tmp_path, blas_threads=threads) as api:
-            assert api.get("/readyz").status_code == 200
-            seen = {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
-            assert seen == {threads}
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {k: v for k, v in os.environ.items()
+           if not k.endswith("_NUM_THREADS") and not k.startswith("YAUYAU_")}
+    args = [str(directory), str(tmp_path / "s.sqlite3"), str(threads)]
+    out = subprocess.run([sys.executable, "-c", _WORKER, *args], capture_output=True, text=True,
+                         env=dict(env, PYTHONPATH=root), timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [threads]
 
 
 def test_precompute_records_why_it_chose(store):
