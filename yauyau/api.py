@@ -38,6 +38,42 @@ def _as_store(store: ModelStore | str | os.PathLike) -> ModelStore:
     return store if isinstance(store, ModelStore) else ModelStore(store)
 
 
+@dataclass(frozen=True)
+class Solved:
+    """The offline stage of one spec, solved: the model, its arrays, the method chosen and why."""
+
+    spec: ModelSpec
+    model: Any
+    offline: Any
+    method: str
+    method_reason: str
+    seconds: float
+    workers: int
+
+    def attrs(self) -> dict[str, Any]:
+        """What the model file records besides the arrays (read back by :func:`load_model`)."""
+        return {"precompute_seconds": round(self.seconds, 3), "workers": self.workers, "name": self.spec.name,
+                "method": self.method, "method_reason": self.method_reason}
+
+
+def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
+          time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None) -> Solved:
+    """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis,
+    bounded by ``time_limit``), without storing anything."""
+    import time
+
+    from .solver.model import compile_model
+    from .solver.offline import precompute as solve_offline
+
+    spec = _as_spec(spec)
+    model = compile_model(spec)
+    started = time.perf_counter()
+    offline = solve_offline(model, workers=workers, progress=progress)
+    seconds = time.perf_counter() - started
+    method, reason = choose_method(model, offline=offline, time_limit=time_limit)
+    return Solved(spec, model, offline, method, reason, seconds, workers)
+
+
 def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
                workers: int = 1, time_limit: float | None = DEFAULT_TIME_LIMIT, force: bool = False,
                progress: Any | None = None) -> str:
@@ -48,10 +84,6 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
     ``time_limit`` seconds), and stored with its reason; :func:`open_filter` reads it back.  A model
     already in the store is verified and kept unless ``force``.
     """
-    import time
-
-    from .solver.model import compile_model
-    from .solver.offline import precompute as solve_offline
     from .storage.errors import StoreError
     from .storage.model_store import model_id
 
@@ -65,15 +97,9 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             return mid
         except StoreError:
             pass  # unusable file: compute it again
-    store.ensure_writable()
-    model = compile_model(spec)
-    started = time.perf_counter()
-    offline = solve_offline(model, workers=workers, progress=progress)
-    seconds = time.perf_counter() - started
-    method, reason = choose_method(model, offline=offline, time_limit=time_limit)
-    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers,
-             "name": spec.name, "method": method, "method_reason": reason}
-    return store.save(spec_json, offline.to_arrays(), attrs)
+    store.ensure_writable()  # fail before the (long) computation, not after
+    solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress)
+    return store.save(spec_json, solved.offline.to_arrays(), solved.attrs())
 
 
 @dataclass(frozen=True)
@@ -258,5 +284,5 @@ def _gaussian_box_marginal(flt: OnlineFilter, variable: int, grid: np.ndarray, r
     return values
 
 
-__all__ = ["OnlineFilter", "StoredFilterModel", "choose_method", "load_model", "open_filter", "precompute",
-           "simulate"]
+__all__ = ["OnlineFilter", "Solved", "StoredFilterModel", "choose_method", "load_model", "open_filter",
+           "precompute", "simulate", "solve"]

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 DEFAULT_STORE = "var/store"
 
@@ -67,14 +66,14 @@ def _already_stored(args: argparse.Namespace, store, mid: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from yauyau.solver import compile_model, load_spec
+    from yauyau.solver import load_spec
     from yauyau.solver.errors import InputError
-    from yauyau.solver.methods import choose_method
-    from yauyau.solver.offline import default_workers, precompute
+    from yauyau.solver.offline import default_workers
     from yauyau.storage.model_store import ModelStore, model_id
 
+    from yauyau.api import solve
+
     spec = load_spec(args.spec)
-    model = compile_model(spec)
     workers = default_workers() if args.workers is None else args.workers
     if workers < 1:
         raise InputError("workers", "must be a positive integer")
@@ -88,21 +87,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     total = spec.discretization.basis
-    started = time.perf_counter()
     with _progress_bar(args, total) as bar:
         def progress(done: int, of: int) -> None:
             bar.total = of
             bar.update(done - bar.n)
-        offline = precompute(model, workers=workers, progress=progress)
-    seconds = time.perf_counter() - started
-    method, reason = choose_method(model, offline=offline, time_limit=args.time_limit)
-    _say(args, f"method {method}: {reason}")
-
-    attrs = {"precompute_seconds": round(seconds, 3), "workers": workers, "name": spec.name,
-             "method": method, "method_reason": reason}
-    saved = store.save(spec_json, offline.to_arrays(), attrs)
+        solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress)
+    _say(args, f"method {solved.method}: {solved.method_reason}")
+    saved = store.save(spec_json, solved.offline.to_arrays(), solved.attrs())
     size = store.path(saved).stat().st_size
-    _say(args, f"stored '{spec.name}' ({total} basis functions, {seconds:.1f} s, "
+    _say(args, f"stored '{spec.name}' ({total} basis functions, {solved.seconds:.1f} s, "
                f"{size / 1e6:.2f} MB) as {store.path(saved)}")
     print(saved)
     return 0
