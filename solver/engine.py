@@ -46,7 +46,7 @@ from scipy.linalg.blas import dgemv, sgemv
 from .diagnostics import Diagnostics
 from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
-from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments
+from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments, marginal_by_quadrature
 from .model import Model
 from .spec import DensityPrior
 
@@ -334,19 +334,9 @@ class YauYauFilter(ChunkedFilter):
         grid = np.asarray(grid, dtype=float)
         if grid.ndim != 1 or not np.all(np.isfinite(grid)):
             raise InputError("grid", "must be a 1-D list of finite numbers")
-        if n == 1:
-            return self.density(state, grid[:, None])
         center, radius = self.model.center, self.model.radius
-        rest = [i for i in range(n) if i != var_index]
-        axes = [np.linspace(center[i] - radius, center[i] + radius, resolution) for i in rest]
-        others = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n - 1)
-        points = np.empty((len(grid), len(others), n))
-        points[:, :, var_index] = grid[:, None]
-        points[:, :, rest] = others[None, :, :]
-        values = self.density(state, points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
-        for axis in axes[::-1]:
-            values = np.trapezoid(values, axis, axis=-1)
-        return values
+        return marginal_by_quadrature(lambda points: self.density(state, points), n, int(var_index), grid,
+                                      center - radius, center + radius, resolution)
 
 
 

@@ -166,6 +166,25 @@ class ChunkedFilter:
         return new_state, result.estimates()
 
 
+def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray, low: np.ndarray,
+                           high: np.ndarray, resolution: int = 64) -> np.ndarray:
+    """Marginal of coordinate ``variable`` at ``grid`` (G,) from a joint ``density(points (P, n))``:
+    the other coordinates integrated out with the trapezoidal rule on ``resolution`` points per
+    direction over the box [low, high] (arrays of n bounds; the marginal coordinate's are unused)."""
+    if n == 1:
+        return density(grid[:, None])
+    rest = [i for i in range(n) if i != variable]
+    axes = [np.linspace(low[i], high[i], resolution) for i in rest]
+    others = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n - 1)
+    points = np.empty((len(grid), len(others), n))
+    points[:, :, variable] = grid[:, None]
+    points[:, :, rest] = others[None, :, :]
+    values = density(points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
+    for axis in axes[::-1]:
+        values = np.trapezoid(values, axis, axis=-1)
+    return values
+
+
 def observed(increment: np.ndarray | None, m: int) -> np.ndarray | None:
     """The increment as an (m,) array, or None for a missing observation (None or a NaN row)."""
     if increment is None:

@@ -117,3 +117,22 @@ def test_user_errors_name_the_field(ou_store, tmp_path):
     with pytest.raises(InputError) as err:
         yauyau.simulate(OU, steps=0)
     assert err.value.field == "steps"
+
+
+def test_marginal_of_a_gaussian_filter_in_2d_is_the_normal_marginal(tmp_path):
+    """Filters without a marginal of their own (here Kalman–Bucy) integrate the joint density out:
+    the marginal of N(m, P) in coordinate i is N(m_i, P_ii)."""
+    doc = {"name": "ou-2d", "state": ["p", "q"], "drift": ["-p", "-0.5*q + 0.3*p"], "observation": ["p"],
+           "initial": {"kind": "gaussian", "mean": [0.4, -0.2], "cov": [[0.5, 0.2], [0.2, 0.8]]},
+           "domain": {"radius": 5.0}, "discretization": {"dt": 0.05, "basis": 20}}
+    from yauyau.solver.spec import spec_from_dict
+
+    mid = yauyau.precompute(spec_from_dict(doc), tmp_path / "store")
+    flt = yauyau.open_filter(tmp_path / "store", mid)
+    assert flt.method == "kalman-bucy"
+    flt.run([[0.1], [0.05], [-0.02]])
+    grid = np.linspace(-3, 3, 61)
+    for i, name in enumerate(("p", "q")):
+        m, v = flt.mean[i], flt.cov[i, i]
+        normal = np.exp(-0.5 * (grid - m) ** 2 / v) / math.sqrt(2 * math.pi * v)
+        assert np.max(np.abs(flt.marginal(name, grid) - normal)) < 1e-3

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .solver.errors import InputError, SpecError
-from .solver.filtering import Estimate
+from .solver.filtering import Estimate, marginal_by_quadrature
 from .solver.methods import choose_method
 from .solver.spec import ModelSpec, load_spec
 from .storage.model_store import ModelStore
@@ -266,22 +266,11 @@ class OnlineFilter:
 
 
 def _gaussian_box_marginal(flt: OnlineFilter, variable: int, grid: np.ndarray, resolution: int) -> np.ndarray:
-    """Marginal by the trapezoidal rule over the other coordinates, on a box of ±8 standard deviations
-    around the mean (the filters without a marginal of their own have light-tailed densities)."""
-    n = flt.model.n
-    if n == 1:
-        return flt.density(grid[:, None])
+    """Marginal over a box of ±8 standard deviations around the mean (the filters without a marginal
+    of their own have light-tailed densities)."""
     mean, sd = flt.mean, np.sqrt(np.clip(np.diag(flt.cov), 1e-300, None))
-    rest = [i for i in range(n) if i != variable]
-    axes = [np.linspace(mean[i] - 8 * sd[i], mean[i] + 8 * sd[i], resolution) for i in rest]
-    others = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n - 1)
-    points = np.empty((len(grid), len(others), n))
-    points[:, :, variable] = grid[:, None]
-    points[:, :, rest] = others[None]
-    values = flt.density(points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
-    for axis in axes[::-1]:
-        values = np.trapezoid(values, axis, axis=-1)
-    return values
+    return marginal_by_quadrature(flt.density, flt.model.n, variable, grid, mean - 8 * sd, mean + 8 * sd,
+                                  resolution)
 
 
 __all__ = ["OnlineFilter", "Solved", "StoredFilterModel", "choose_method", "load_model", "open_filter",
