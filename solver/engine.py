@@ -314,6 +314,10 @@ class YauYauFilter(ChunkedFilter):
         values = np.clip(basis @ state.density_coefficients, 0.0, None)
         return values / self._clipped_mass(state)
 
+    def nodal_density(self, state: YauYauState) -> np.ndarray:
+        """The unnormalised density σ at the quadrature nodes (Q,) (what the mode search reads)."""
+        return np.asarray(self.offline.basis) @ state.density_coefficients
+
     def _clipped_mass(self, state: YauYauState) -> float:
         nodal = np.clip(np.asarray(self.offline.basis) @ state.density_coefficients, 0.0, None)
         mass = float(self.weights @ nodal)

@@ -174,6 +174,7 @@ class OnlineFilter:
     """A filter and its current state: ``step`` one increment or ``run`` a chunk; ``estimate``,
     ``mean``, ``cov``, ``mode`` and ``loglik`` now; the ``density`` and ``marginal`` now.
 
+    ``mode`` and ``quantiles(probs)`` summarise a density that a mean cannot (yauyau.solver.summaries).
     ``filter`` is the underlying :class:`yauyau.solver.filtering.Filter` (a pure function of state
     and data); ``state`` is its JSON-safe state (``state_dict()``/``restore`` move it between
     processes, exactly).
@@ -222,7 +223,17 @@ class OnlineFilter:
 
     @property
     def mode(self) -> np.ndarray | None:
-        return self.estimate.mode
+        """The MAP point (the tallest node refined by a local quadratic fit for the engine; a
+        search of the density for the other filters); None when degenerate."""
+        from .solver.summaries import mode
+
+        return mode(self.filter, self.state)
+
+    def quantiles(self, probs: Any = (0.05, 0.5, 0.95)) -> np.ndarray:
+        """Marginal quantiles now: an array (n, len(probs)), row i for state variable i."""
+        from .solver.summaries import quantiles
+
+        return quantiles(self.filter, self.state, probs)
 
     @property
     def loglik(self) -> float:
