@@ -87,7 +87,8 @@ def support(flt: Any, state: Any, estimate: Any, variable: int) -> tuple[float, 
     return mean - GAUSSIAN_SUPPORT_SD * sd, mean + GAUSSIAN_SUPPORT_SD * sd
 
 
-def marginal(flt: Any, state: Any, variable: int, grid: np.ndarray, estimate: Any | None = None) -> np.ndarray:
+def marginal(flt: Any, state: Any, variable: int, grid: np.ndarray,
+             estimate: Any | None = None) -> np.ndarray:
     """The marginal density of ``variable`` at ``grid``: the filter's own, or by quadrature over a
     box of ±12 sd around the mean."""
     from .filtering import marginal_by_quadrature

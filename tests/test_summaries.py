@@ -15,17 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import EXAMPLES
 from scipy.optimize import brentq
 from scipy.special import ndtr
 from scipy.stats import norm
-from yauyau import api
-from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver import summaries
+from yauyau.solver import compile_model, load_spec, spec_from_dict, summaries
 from yauyau.solver.errors import InputError
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 
-from conftest import EXAMPLES
+from yauyau import api
 
 PROBS = np.array([0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99])
 
@@ -79,7 +78,8 @@ def test_benes_quantiles_match_the_exact_density(store, method, tol):
         P = P + dt
         mu, P = (mu / P + dy[0]) / (1.0 / P + dt), 1.0 / (1.0 / P + dt)
         if k % 60 == 59:
-            exact = [brentq(lambda x: _benes_cdf(x, mu, P) - p, -30, 30, xtol=1e-12) for p in PROBS]
+            exact = [brentq(lambda x, p=p, mu=mu, P=P: _benes_cdf(x, mu, P) - p, -30, 30, xtol=1e-12)
+                     for p in PROBS]
             worst = max(worst, np.abs(flt.quantiles(PROBS)[0] - exact).max())
     assert worst < tol
 
