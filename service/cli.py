@@ -1,4 +1,4 @@
-"""The ``yauyau`` console script: precompute, models, filter, serve, analyze.
+"""The ``yauyau`` console script: precompute, models, filter, simulate, plot, serve, analyze.
 
 Each subcommand lives in ``service/commands/<name>.py`` with ``add_arguments(parser)`` and
 ``run(args) -> int``.  User errors (:class:`solver.YauyauError`, ``storage.StoreError``) print one
@@ -16,6 +16,8 @@ COMMANDS = {
     "precompute": "solve the Kolmogorov propagators offline and store the model (prints its id)",
     "models": "list the stored models",
     "filter": "run a filter over a file of observation increments",
+    "simulate": "simulate a sample path and its observation increments (CSV files filter reads)",
+    "plot": "plot a filtered run: mean and 95% band, truth, density heat map (PNG or SVG)",
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",
 }

@@ -330,7 +330,10 @@ class YauYauFilter(ChunkedFilter):
         """Marginal density of state variable ``var_index`` at the values ``grid`` (G,).
 
         The other coordinates are integrated out with the trapezoidal rule on ``resolution`` points
-        per direction across the ball (density clipped at 0 as in :meth:`density`).
+        per direction across the ball.  The map from coefficients to the marginal on a grid is linear:
+        it is built once per (variable, grid, resolution) and kept (a few grids), so a quantile or a
+        plot per step costs one (G, N) product.  Negative ripples of the expansion are clipped after
+        integrating (in 1-D: pointwise, as :meth:`density`); normalised by the clipped mass on the ball.
         """
         n = self.model.n
         if not isinstance(var_index, (int, np.integer)) or not 0 <= var_index < n:
@@ -338,10 +341,33 @@ class YauYauFilter(ChunkedFilter):
         grid = np.asarray(grid, dtype=float)
         if grid.ndim != 1 or not np.all(np.isfinite(grid)):
             raise InputError("grid", "must be a 1-D list of finite numbers")
-        center, radius = self.model.center, self.model.radius
-        return marginal_by_quadrature(lambda points: self.density(state, points), n, int(var_index), grid,
-                                      center - radius, center + radius, resolution)
+        operator = self._marginal_operator(int(var_index), grid, int(resolution))
+        values = np.clip(operator @ state.density_coefficients, 0.0, None)
+        return values / self._clipped_mass(state)
 
+    def _marginal_operator(self, var_index: int, grid: np.ndarray, resolution: int) -> np.ndarray:
+        key = (var_index, resolution, grid.tobytes())
+        cache = self.__dict__.setdefault("_marginal_operators", {})
+        if key in cache:
+            return cache[key]
+        n = self.model.n
+        center, radius = self.model.center, self.model.radius
+        basis = self.offline.evaluate_basis
+        if n == 1:
+            operator = basis(grid[:, None])
+        else:
+            N = np.asarray(self.offline.basis).shape[1]
+            block = max(1, 4_000_000 // (resolution ** (n - 1) * N))
+            parts = []
+            for start in range(0, len(grid), block):
+                part = grid[start:start + block]
+                parts.append(marginal_by_quadrature(basis, n, var_index, part, center - radius,
+                                                    center + radius, resolution))
+            operator = np.concatenate(parts, axis=0)
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        cache[key] = operator
+        return operator
 
 
 # -- helpers ---------------------------------------------------------------------------------

@@ -170,7 +170,8 @@ def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray
                            high: np.ndarray, resolution: int = 64) -> np.ndarray:
     """Marginal of coordinate ``variable`` at ``grid`` (G,) from a joint ``density(points (P, n))``:
     the other coordinates integrated out with the trapezoidal rule on ``resolution`` points per
-    direction over the box [low, high] (arrays of n bounds; the marginal coordinate's are unused)."""
+    direction over the box [low, high] (arrays of n bounds; the marginal coordinate's are unused).
+    ``density`` may return (P, k) values (k functions at once): the result is then (G, k)."""
     if n == 1:
         return density(grid[:, None])
     rest = [i for i in range(n) if i != variable]
@@ -179,9 +180,10 @@ def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray
     points = np.empty((len(grid), len(others), n))
     points[:, :, variable] = grid[:, None]
     points[:, :, rest] = others[None, :, :]
-    values = density(points.reshape(-1, n)).reshape((len(grid),) + (resolution,) * (n - 1))
-    for axis in axes[::-1]:
-        values = np.trapezoid(values, axis, axis=-1)
+    values = np.asarray(density(points.reshape(-1, n)))
+    values = values.reshape((len(grid),) + (resolution,) * (n - 1) + values.shape[1:])
+    for k in range(n - 1, 0, -1):  # trailing dimensions (e.g. basis functions) are kept
+        values = np.trapezoid(values, axes[k - 1], axis=k)
     return values
 
 
@@ -215,3 +217,30 @@ def check_increments(increments: Any, m: int, field: str = "increments") -> np.n
         row = int(np.argmax(np.isinf(arr).any(axis=1)))
         raise InputError(f"{field}[{row}]", "increments must be finite")
     return arr
+
+
+def cumulative_hint(increments: np.ndarray, model: Any, min_rows: int = 50) -> str | None:
+    """Why these rows look like the observation path y(τ_k) rather than its increments Δy_k (or None).
+
+    Increments of dy = h dt + dw are nearly uncorrelated with variance ≈ R dt: successive differences
+    have about twice their variance.  A cumulative y is a random walk: its spread grows along the
+    file while its successive differences stay small.  Flagged when, for some component, the
+    differences' mean square is below 1/5 of the rows' variance and that variance exceeds 20 R_jj dt.
+    """
+    rows = np.asarray(increments, dtype=float)
+    rows = rows[~np.isnan(rows).any(axis=1)]
+    if len(rows) < min_rows:
+        return None
+    for j in range(rows.shape[1]):
+        column = rows[:, j]
+        spread = float(np.var(column))
+        differences = float(np.mean(np.diff(column) ** 2))
+        noise = float(model.R[j, j]) * float(model.dt)
+        if spread > 20.0 * noise and differences < 0.2 * spread:
+            half = len(column) // 2
+            return (f"increment column {j} looks like the cumulative observation "
+                    f"y(t_k), not the increments dy_k = y(t_k) - y(t_(k-1)): its spread grows along the file "
+                    f"(variance {np.var(column[:half]):.3g} in the first half, "
+                    f"{np.var(column[half:]):.3g} in the second; increments of this model have variance "
+                    f"about {noise:.3g}); difference it first, e.g. numpy.diff(y, axis=0, prepend=0)")
+    return None
