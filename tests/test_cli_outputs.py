@@ -205,7 +205,8 @@ def test_cumulative_observations_are_recognised(store, tmp_path, capsys):
         assert "looks like the cumulative" not in capsys.readouterr().err, name
         _, inc = _read(run / "increments.csv")
         path = tmp_path / "y.csv"
-        path.write_text("\n".join(",".join(repr(float(v)) for v in row) for row in np.cumsum(inc, axis=0)) + "\n")
+        cumulative = np.cumsum(inc, axis=0)
+        path.write_text("\n".join(",".join(repr(float(v)) for v in row) for row in cumulative) + "\n")
         main(["filter", ids[name], "--store", str(directory), "--increments", str(path),
               "--out", str(tmp_path / "b.csv")])
         err = capsys.readouterr().err
