@@ -2,6 +2,7 @@
 """Set up, precompute and serve yauyau: the one script the Dockerfile, dev.py and the tests use.
 
     python3 scripts/provision.py install    --venv DIR [--editable] [--extras test,bench]
+    python3 scripts/provision.py browser
     python3 scripts/provision.py precompute --venv DIR --store DIR SPEC.toml ...
     python3 scripts/provision.py serve      --venv DIR --store DIR [--host H] [--port P]
 
@@ -81,6 +82,30 @@ def precompute(venv_dir: Path, store: Path, specs: list[Path]) -> None:
                        check=True)
 
 
+BROWSER = {"/usr/bin/chromium": "chromium", "/usr/bin/chromedriver": "chromium-driver"}
+
+
+def browser() -> None:
+    """Debian's chromium and chromedriver for the live-page test (tests/test_live_page.py): installed
+    with apt-get when missing and this runs as root; otherwise say what to install (the test then
+    fails with the reason; it never skips)."""
+    import shutil
+
+    missing = [package for path, package in BROWSER.items() if not Path(path).exists()]
+    if not missing:
+        return
+    apt = shutil.which("apt-get")
+    if apt is None or os.geteuid() != 0:
+        _say(f"the browser test needs {' and '.join(missing)}: sudo apt-get install {' '.join(missing)}")
+        return
+    _say(f"installing {' '.join(missing)} (apt-get) for the browser test")
+    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+    quiet = {"stdout": subprocess.DEVNULL, "env": env}
+    if subprocess.run([apt, "install", "-y", "-q", *missing], **quiet).returncode != 0:
+        subprocess.run([apt, "update", "-q"], check=True, **quiet)
+        subprocess.run([apt, "install", "-y", "-q", *missing], check=True, **quiet)
+
+
 def serve(venv_dir: Path, store: Path, host: str | None, port: int | None, workers: int | None) -> None:
     """Replace this process with ``yauyau serve`` (signals reach the server directly)."""
     command = [str(venv_bin(venv_dir, "yauyau")), "serve", "--store", str(store)]
@@ -95,6 +120,7 @@ def serve(venv_dir: Path, store: Path, host: str | None, port: int | None, worke
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("browser")
     for name in ("install", "precompute", "serve"):
         p = sub.add_parser(name)
         p.add_argument("--venv", type=Path, required=True)
@@ -111,7 +137,9 @@ def main(argv: list[str] | None = None) -> int:
             p.add_argument("--workers", type=int)
     args = parser.parse_args(argv)
     try:
-        if args.command == "install":
+        if args.command == "browser":
+            browser()
+        elif args.command == "install":
             install(args.venv, args.editable, args.extras)
         elif args.command == "precompute":
             precompute(args.venv, args.store, args.specs)

@@ -7,15 +7,19 @@ leaves: ``allow_nan=False``); errors are raised and become problem+json (service
 from __future__ import annotations
 
 import asyncio
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Body, Path, Query, Request
-from starlette.responses import JSONResponse, Response
+from fastapi import APIRouter, Body, Depends, Path, Query, Request
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from starlette.responses import HTMLResponse, JSONResponse, Response
+from yauyau.storage.errors import NotFound
 
 from . import metrics
 from .density import parse_points
 from .deps import RegistryDep, SessionsDep, SettingsDep
+from .live import live_page
 from .problems import Problem
 from .schemas import (
     AnalyzeReport,
@@ -29,6 +33,7 @@ from .schemas import (
     SessionCreated,
     SessionInfo,
 )
+from .sessions import Extras
 
 SessionId = Annotated[str, Path(min_length=1, max_length=100, description="session id")]
 ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model id")]
@@ -91,14 +96,57 @@ def create_session(service: SessionsDep, body: SessionCreate) -> Response:
                responses=_errors(400, 404, 409, 413, 422))
 async def observe(service: SessionsDep, session_id: SessionId, body: Observations) -> Response:
     # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
+    extras = Extras(body.quantiles, body.mode)
     text = await asyncio.get_running_loop().run_in_executor(
-        service.chunk_executor, service.observe, session_id, body.seq, body.increments, True)
+        service.chunk_executor, service.observe, session_id, body.seq, body.increments, True, extras)
     return Response(text, media_type="application/json")
 
 
-@sessions.get("/{session_id}", response_model=SessionInfo, responses=_errors(404))
-def get_session(service: SessionsDep, session_id: SessionId) -> Response:
-    return _json(service.info(session_id))
+Quantiles = Annotated[str | None, Query(max_length=2000, description=(
+    "comma-separated probabilities: add these marginal quantiles of every state variable to the estimate "
+    "(e.g. 0.05,0.5,0.95)"))]
+
+
+@sessions.get("/{session_id}", response_model=SessionInfo, responses=_errors(404, 422))
+def get_session(service: SessionsDep, session_id: SessionId, quantiles: Quantiles = None,
+                mode: Annotated[bool, Query(description="add the mode (MAP point) to the estimate")] = False
+                ) -> Response:
+    return _json(service.info(session_id, Extras(quantiles, mode)))
+
+
+@sessions.get("/{session_id}/view", response_class=HTMLResponse, responses=_errors(404))
+def view(service: SessionsDep, session_id: SessionId) -> Response:
+    """A live page of the session: the density now (curve in 1-D, heat map in 2-D, marginals in 3-D)
+    with the mean, the covariance ellipse and the step, redrawn as chunks arrive (from /events)."""
+    service.version(session_id)  # 404 for an unknown session
+    return HTMLResponse(live_page())
+
+
+def _known_session(service: SessionsDep, session_id: SessionId) -> int:
+    """The session's version; 404 (before any event is streamed) when there is no such session."""
+    return service.version(session_id)
+
+
+@sessions.get("/{session_id}/events", response_class=EventSourceResponse, responses=_errors(404))
+async def events(service: SessionsDep, settings: SettingsDep, request: Request, session_id: SessionId,
+                 seen: Annotated[int, Depends(_known_session)]) -> AsyncIterator[ServerSentEvent]:
+    """Server-Sent Events: one ``frame`` event now and one after every applied chunk (the estimate
+    and the density on a grid, as /view draws them); ``gone`` when the session is deleted.  The
+    session store is polled (every ``YAUYAU_EVENTS_POLL`` s), so a chunk applied by any worker or
+    host shows."""
+    loop = asyncio.get_running_loop()
+    first = True
+    while not await request.is_disconnected():
+        try:
+            version = await loop.run_in_executor(None, service.version, session_id)
+        except NotFound:
+            yield ServerSentEvent(event="gone", data={"id": session_id})
+            return
+        if first or version != seen:
+            first, seen = False, version
+            frame = await loop.run_in_executor(None, service.frame, session_id)
+            yield ServerSentEvent(event="frame", id=str(version), data=frame)
+        await asyncio.sleep(settings.events_poll)
 
 
 @sessions.get("/{session_id}/density", response_model=DensityOut, responses=_errors(404, 422))

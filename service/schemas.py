@@ -35,9 +35,15 @@ class Observations(_Body):
         min_length=1,
         description="observation increments Δy_k = y(k·dt) − y((k−1)·dt), one row of m numbers per step; "
                     "null marks a step without an observation (prediction only)")
+    quantiles: list[Number] | None = Field(
+        None, min_length=1, max_length=99,
+        description="also return these marginal quantiles of every state variable with each estimate "
+                    "(probabilities strictly between 0 and 1, e.g. [0.05, 0.5, 0.95])")
+    mode: bool = Field(False, strict=True, description="also return the mode (MAP point) with each estimate")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"seq": 0, "increments": [[0.0012], [-0.0031], None, [0.0008]]}]})
+        {"seq": 0, "increments": [[0.0012], [-0.0031], None, [0.0008]]},
+        {"seq": 1, "increments": [[0.0009]], "quantiles": [0.05, 0.5, 0.95], "mode": True}]})
 
 
 class EstimateOut(BaseModel):
@@ -45,6 +51,9 @@ class EstimateOut(BaseModel):
     t: float = Field(description="time step·dt")
     mean: list[float] | None = Field(description="conditional mean E[x(t) | y]; null when degenerate")
     cov: list[list[float]] | None = Field(description="conditional covariance; null when degenerate")
+    mode: list[float] | None = Field(None, description="MAP point (when asked for; null when degenerate)")
+    quantiles: dict[str, list[float]] | None = Field(
+        None, description="per state variable, the marginal quantiles asked for, in the order asked")
 
 
 class EstimateFull(EstimateOut):

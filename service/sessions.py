@@ -68,8 +68,55 @@ def run_chunk(filt: Any, state: Any, increments: np.ndarray) -> tuple[Any, list[
     return state, rows, flagged, reason
 
 
-def chunk_response(seq: int, state: Any, increments: np.ndarray, filt: Any) -> tuple[Any, dict[str, Any]]:
-    state, rows, flagged, reason = run_chunk(filt, state, increments)
+def summaries_of(filt: Any, state: Any, estimate: Estimate, extras: "Extras") -> dict[str, Any]:
+    """The mode and quantiles asked for, of one estimate (null when degenerate or not finite)."""
+    from yauyau.solver import summaries
+
+    out: dict[str, Any] = {}
+    healthy = not estimate.degenerate and not bool(getattr(state, "degenerate", False))
+    if extras.mode:
+        point = summaries.mode(filt, state, estimate) if healthy else None
+        out["mode"] = point.tolist() if point is not None and np.all(np.isfinite(point)) else None
+    if extras.quantiles is not None:
+        q = summaries.quantiles(filt, state, extras.quantiles, estimate) if healthy else None
+        names = filt.model.spec.state
+        out["quantiles"] = ({v: q[i].tolist() for i, v in enumerate(names)}
+                            if q is not None and np.all(np.isfinite(q)) else None)
+    return out
+
+
+class Extras:
+    """What a request asks for besides mean and covariance: quantiles (probabilities) and the mode."""
+
+    def __init__(self, quantiles: Any | None = None, mode: bool = False):
+        from yauyau.solver.summaries import check_probabilities
+
+        self.quantiles = None if quantiles is None else check_probabilities(quantiles)
+        self.mode = bool(mode)
+
+    def __bool__(self) -> bool:
+        return self.quantiles is not None or self.mode
+
+
+def run_chunk_with_summaries(filt: Any, state: Any, increments: np.ndarray, extras: Extras):
+    """Like :func:`run_chunk`, stepping row by row to summarise the density after each step."""
+    rows, bad = [], []
+    for row in increments:
+        state, estimate = filt.step(state, row)
+        out = estimate_full(estimate)
+        row = {k: out[k] for k in ("step", "t", "mean", "cov")}
+        rows.append(row | summaries_of(filt, state, estimate, extras))
+        if out["degenerate"]:
+            bad.append(out["reason"])
+    return state, rows, bool(bad), (bad[0] if bad else None)
+
+
+def chunk_response(seq: int, state: Any, increments: np.ndarray, filt: Any,
+                   extras: Extras | None = None) -> tuple[Any, dict[str, Any]]:
+    if extras:
+        state, rows, flagged, reason = run_chunk_with_summaries(filt, state, increments, extras)
+    else:
+        state, rows, flagged, reason = run_chunk(filt, state, increments)
     loglik = float(state.loglik)
     if not math.isfinite(loglik):
         flagged, reason = True, reason or "non-finite log-likelihood"
@@ -140,8 +187,9 @@ class Sessions:
         return rec, loaded, loaded.filter(_record(rec, "method"))
 
     def observe(self, session_id: str, seq: int, rows: list[list[float] | None],
-                encoded: bool = False) -> Any:
-        """Apply chunk ``seq`` exactly once; the response (``encoded``: its stored JSON text)."""
+                encoded: bool = False, extras: Extras | None = None) -> Any:
+        """Apply chunk ``seq`` exactly once; the response (``encoded``: its stored JSON text).
+        ``extras``: quantiles and/or the mode with every estimate (a replay returns what was stored)."""
         if len(rows) > self.max_chunk_rows:
             raise InputError("increments", f"at most {self.max_chunk_rows} rows per chunk, got {len(rows)}")
         rec, loaded, filt = self._session(session_id)
@@ -149,7 +197,7 @@ class Sessions:
         applied: list[dict[str, Any]] = []
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
-            state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt)
+            state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt, extras)
             applied.append(response)
             return state.to_dict(), encode_response(response)
 
@@ -162,12 +210,46 @@ class Sessions:
                 metrics.DEGENERATE.inc()
         return response
 
-    def info(self, session_id: str) -> dict[str, Any]:
+    def info(self, session_id: str, extras: Extras | None = None) -> dict[str, Any]:
         rec, loaded, filt = self._session(session_id)
         state = filt.state_from_dict(_record(rec, "state"))
+        estimate = filt.estimate(state)
+        out = estimate_full(estimate)
+        if extras:
+            out.update(summaries_of(filt, state, estimate, extras))
         return {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
-                "t": float(state.t), "next_seq": int(_record(rec, "next_seq")),
-                "estimate": estimate_full(filt.estimate(state))}
+                "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out}
+
+    def version(self, session_id: str) -> int:
+        """The seq the next chunk must carry (changes when a chunk is applied): what /events polls."""
+        return int(_record(self.store.get(session_id), "next_seq"))
+
+    def frame(self, session_id: str, points: int = 161) -> dict[str, Any]:
+        """What the live page draws: the estimate and the density on a grid around its mass (a curve
+        in 1-D, a heat map in 2-D, the marginals in 3-D)."""
+        from yauyau.solver import summaries
+
+        rec, loaded, filt = self._session(session_id)
+        state = filt.state_from_dict(_record(rec, "state"))
+        estimate = filt.estimate(state)
+        out = estimate_full(estimate)
+        frame = {"id": session_id, "model": loaded.id, "name": loaded.model.spec.name,
+                 "method": filt.method, "state": list(loaded.model.spec.state),
+                 "next_seq": int(_record(rec, "next_seq")), **out, "plot": None}
+        if out["degenerate"]:
+            return frame
+        out.update(summaries_of(filt, state, estimate, Extras(mode=True)))
+        frame["mode"] = out.get("mode")
+        n = loaded.model.n
+        axes = view_axes(filt, state, estimate, points if n == 1 else min(points, 81))
+        marginals = summaries.marginals_on_grid(filt, state, axes, estimate)
+        plot: dict[str, Any] = {"kind": "curve" if n == 1 else "heatmap" if n == 2 else "marginals",
+                                "axes": [a.tolist() for a in axes],
+                                "marginals": [np.round(m, 8).tolist() for m in marginals]}
+        if n == 2:
+            plot["density"] = np.round(summaries.joint_on_grid(filt, state, axes), 8).tolist()
+        frame["plot"] = plot
+        return frame
 
     def density(self, session_id: str, points: np.ndarray) -> dict[str, Any]:
         rec, loaded, filt = self._session(session_id)
@@ -184,6 +266,23 @@ class Sessions:
 
     def delete(self, session_id: str) -> None:
         self.store.delete(session_id)
+
+
+def view_axes(filt: Any, state: Any, estimate: Estimate, points: int) -> list[np.ndarray]:
+    """Per variable, a grid over where the density is (quantiles 1e-4 .. 1 − 1e-4, padded by a
+    quarter of that width; the support when the quantiles are unknown)."""
+    from yauyau.solver import summaries
+
+    q = summaries.quantiles(filt, state, [1e-4, 1 - 1e-4], estimate)
+    axes = []
+    for i in range(filt.model.n):
+        lo, hi = summaries.support(filt, state, estimate, i)
+        a, b = q[i]
+        if np.isfinite(a) and np.isfinite(b) and b > a:
+            pad = 0.25 * (b - a)
+            lo, hi = max(lo, a - pad), min(hi, b + pad)
+        axes.append(np.linspace(lo, hi, points))
+    return axes
 
 
 def _as_prior_error(exc: SpecError) -> SpecError:

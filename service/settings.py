@@ -32,6 +32,9 @@ class Settings(BaseSettings):
     analyze_time_limit: float = Field(
         10.0, gt=0, le=3600, description="seconds one POST /v1/analyze may compute (the report then says "
                                          "which bound stopped the analysis)")
+    events_poll: float = Field(
+        0.2, gt=0, le=60, description="seconds between looks at the session store for /events "
+                                      "(the live page)")
     blas_threads: int = Field(
         1, ge=1, le=1024, description="BLAS threads per worker process for the online products (1: fastest "
                                       "on a busy host, docs/bench-blas.md)")

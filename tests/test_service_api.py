@@ -212,3 +212,42 @@ def test_analyze(api):
 def test_unknown_route_and_method_are_problems(api):
     _problem(api.get("/v1/nothing"), 404)
     _problem(api.put("/v1/models"), 405)
+
+
+# -- quantiles and the mode on request ----------------------------------------------------------------
+def test_chunk_quantiles_and_mode_on_request_match_the_normal_posterior(api):
+    """OU: the Yau–Hu session's quantiles (grid inversion) are the normal quantiles of the exact
+    Kalman–Bucy posterior on the same data; the mode of a normal is its mean."""
+    from scipy.stats import norm
+    from yauyau.solver.simulate import simulate as simulate_model
+
+    model = compile_model(load_spec(EXAMPLES / "ou.toml"))
+    rows = simulate_model(model, 40, np.random.default_rng(8)).increments.tolist()
+    kb = api.post("/v1/sessions", json={"model": api.ids["ou"], "method": "kalman-bucy"}).json()["id"]
+    yh = api.post("/v1/sessions", json={"model": api.ids["ou"], "method": "yau-hu"}).json()["id"]
+    exact = api.post(f"/v1/sessions/{kb}/observations", json={"seq": 0, "increments": rows}).json()
+    probs = [0.05, 0.5, 0.95]
+    body = {"seq": 0, "increments": rows, "quantiles": probs, "mode": True}
+    r = api.post(f"/v1/sessions/{yh}/observations", json=body)
+    assert r.status_code == 200, r.text
+    got = r.json()
+    for e, k in zip(got["estimates"], exact["estimates"], strict=True):
+        truth = norm.ppf(probs, loc=k["mean"][0], scale=np.sqrt(k["cov"][0][0]))
+        np.testing.assert_allclose(e["quantiles"]["x"], truth, atol=1e-3)
+        assert e["mode"][0] == pytest.approx(k["mean"][0], abs=1e-3)
+    assert api.post(f"/v1/sessions/{yh}/observations", json=body).json() == got  # replay: stored answer
+    info = api.get(f"/v1/sessions/{yh}", params={"quantiles": "0.5", "mode": "true"}).json()["estimate"]
+    assert info["quantiles"]["x"][0] == pytest.approx(got["estimates"][-1]["quantiles"]["x"][1], abs=1e-9)
+    plain = api.get(f"/v1/sessions/{yh}").json()["estimate"]
+    assert "quantiles" not in plain and "mode" not in plain
+
+
+@pytest.mark.parametrize("extra", [{"quantiles": [1.5]}, {"quantiles": []}, {"quantiles": [0.5, None]},
+                                   {"mode": "yes"}])
+def test_bad_summary_requests_are_422_and_apply_nothing(api, extra):
+    sid = api.post("/v1/sessions", json={"model": api.ids["ou"]}).json()["id"]
+    r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": [[0.1]], **extra})
+    assert r.status_code == 422 and r.headers["content-type"].startswith("application/problem+json")
+    assert api.get(f"/v1/sessions/{sid}").json()["next_seq"] == 0
+    r = api.get(f"/v1/sessions/{sid}", params={"quantiles": "0,1"})
+    assert r.status_code == 422 and "quantiles" in r.text
