@@ -199,3 +199,23 @@ def test_service_report_is_the_same_report_with_references(tmp_path):
     assert "seed" not in r.text.lower()
     assert [ref["title"] for ref in data["references"]] == [YAU_LAI, YAU_2008, SHI_ET_AL]
     assert data["recommendation"]["method"] == "yau-hu" and YAU_LAI in data["recommendation"]["reason"]
+
+
+@pytest.mark.parametrize("example, words", [
+    ("ou.toml", ["linear with Gaussian noise", "Kalman-Bucy filter is exact", "cheaper per observation"]),
+    ("benes.toml", ["Yau filtering system", "ordinary differential equations"]),
+    ("cubic_sensor.toml", ["is nonlinear", "estimation algebra does not close", "--quantiles"])])
+def test_report_opens_with_plain_sentences(example, words):
+    """Two or three sentences first, in words; the cost ratios they quote are the measured ones of
+    the README's performance table (python -m bench)."""
+    out = yauyau(str(ROOT / "examples" / example))
+    assert out.returncode == 0, out.stderr
+    opening = " ".join(out.stdout.split("\n\n", 1)[0].split())
+    assert opening.startswith("The model (1 state variable observed through 1 sensor)")
+    assert 2 <= opening.count(". ") + 1 <= 4
+    for w in words:
+        assert w in opening, (w, opening)
+    from yauyau.solver.analysis.report import CHEAPER
+
+    readme = (ROOT / "README.md").read_text()
+    assert f"| {CHEAPER['kalman-bucy']}× / {CHEAPER['yau-hu']}× cheaper |" in readme, "README table moved on"

@@ -21,7 +21,9 @@ EXAMPLES = 8  # per operation, mode and path-parameter choice: bounded, derandom
 OPERATIONS = [("GET", "/livez"), ("GET", "/readyz"), ("GET", "/v1/models"), ("GET", "/v1/models/{model_id}"),
               ("POST", "/v1/sessions"), ("POST", "/v1/sessions/{session_id}/observations"),
               ("GET", "/v1/sessions/{session_id}"), ("GET", "/v1/sessions/{session_id}/density"),
-              ("DELETE", "/v1/sessions/{session_id}"), ("POST", "/v1/analyze")]
+              ("GET", "/v1/sessions/{session_id}/view"), ("DELETE", "/v1/sessions/{session_id}"),
+              ("POST", "/v1/analyze")]
+# /v1/sessions/{id}/events is a stream that ends when the session does: tests/test_live_page.py
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ chooses kalman-bucy | yau-hu | wei-norman | yau-yau.
 
 from __future__ import annotations
 
+import textwrap
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,6 +49,7 @@ class AnalysisReport:
     algebra_basis: list[str]
     method: str
     reason: str
+    summary: str = ""  # two or three plain sentences: what the model is, which filter, what to look at
     elapsed: float = 0.0  # seconds the analysis took
     references: list[str] = field(default_factory=lambda: list(CITED))  # keys of solver.papers.PAPERS
 
@@ -65,6 +67,7 @@ class AnalysisReport:
                 "rounds": alg.rounds, "max_depth": alg.max_depth, "max_dimension": alg.max_dimension,
                 "stopped_by": alg.stopped_by, "time_limit": alg.time_limit, "max_size": alg.max_size,
                 "rank_test": "exact over Q" if alg.exact else f"numeric, {_DIGITS} digits at random points"},
+            "summary": self.summary,
             "recommendation": {"method": self.method, "reason": self.reason},
             "elapsed_s": round(self.elapsed, 3),
             "references": [reference(key) for key in self.references],
@@ -73,7 +76,8 @@ class AnalysisReport:
     def render(self) -> str:
         d = self.to_dict()
         width = max(len(e) for row in self.wong_matrix for e in row)
-        lines = [f"model: {self.model}   state: {', '.join(self.state)}", "",
+        lines = [*textwrap.wrap(self.summary, 100), "",
+                 f"model: {self.model}   state: {', '.join(self.state)}", "",
                  "Wong matrix Omega (omega_ij = df_j/dx_i - df_i/dx_j):"]
         lines += ["  [ " + "  ".join(e.rjust(width) for e in row) + " ]" for row in self.wong_matrix]
         constant = _mark(self.wong_constant, "yes", "no", "undecided")
@@ -157,12 +161,17 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
     conditions = {
         "yau_filtering_system": Condition(
             facts.c1, "" if facts.c1 is not None else undecided,
-            f"(C'1) Omega constant, equivalently f = affine + gradient (C1) ({cite('000', 'Theorem 2.1')})"),
-        "h_affine": Condition(facts.c2, "" if facts.c2 is not None else undecided, "(C2) h affine"),
+            "(C'1) the Wong matrix Omega is constant, i.e. the drift is affine plus a gradient "
+            f"(C1) ({cite('000', 'Theorem 2.1')})"),
+        "h_affine": Condition(facts.c2, "" if facts.c2 is not None else undecided,
+                              f"(C2) the sensor h is affine in x ({cite('000', '(2.7)')}, needed by "
+                              "Theorem 3.1)"),
         "eta_quadratic": Condition(facts.c3, "" if facts.c3 is not None else undecided,
-                                   "(C3) eta a polynomial of degree <= 2"),
+                                   "(C3) eta = f^T a^-1 f + div f + h^T R^-1 h is a polynomial of degree "
+                                   "<= 2 "
+                                   f"({cite('000', '(2.8)')}, needed by Theorem 3.1)"),
         "linear": Condition(facts.linear, "" if facts.linear is not None else undecided,
-                            "linear model: f and h affine (Kalman-Bucy)"),
+                            "linear model: f and h affine, a Gaussian prior stays Gaussian (Kalman-Bucy)"),
         "wei_norman_structure": Condition(
             facts.structure_holds,
             ("" if k is None else f"x_k = {model.spec.state[k]}")
@@ -186,7 +195,60 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
                       for j in range(n)] for i in range(n)],
         wong_constant=facts.wong_constant, eta=show(facts.eta, model) if facts.eta is not None else shown,
         notes=notes, conditions=conditions, seed004=facts.seed004, algebra=algebra, algebra_basis=basis,
-        method=method, reason=reason)
+        method=method, reason=reason, summary=plain_summary(model, method, facts, algebra, a_is_identity))
+
+
+# Cost per observation of the general engine over the exact filter, measured side by side on the
+# bundled examples (python -m bench; docs/benchmarks.md "exact ODE filters vs the engine").
+CHEAPER = {"kalman-bucy": 47, "yau-hu": 35}
+
+
+def plain_summary(model: Model, method: str, facts: Facts, algebra: EstimationAlgebra,
+                  a_is_identity: bool) -> str:
+    """Two or three sentences a newcomer understands: what kind of model this is, which filter runs
+    and why in words, and what to read off the output."""
+    n, m = model.n, model.m
+    shape = f"{n} state variable{'s' if n > 1 else ''} observed through {m} sensor{'s' if m > 1 else ''}"
+    if method == "kalman-bucy":
+        first = (f"The model ({shape}) is linear with Gaussian noise and a Gaussian prior: the "
+                 f"Kalman-Bucy filter is exact here and about {CHEAPER['kalman-bucy']}x cheaper per "
+                 "observation than the general engine, so yauyau uses it.")
+    elif method == "yau-hu":
+        first = (f"The model ({shape}) is a Yau filtering system: its drift is affine plus a gradient, "
+                 "its sensor is linear and eta is quadratic, so the conditional density is carried exactly "
+                 "by ordinary differential equations (the Yau-Hu direct method, about "
+                 f"{CHEAPER['yau-hu']}x cheaper per observation than the general engine).")
+    elif method == "wei-norman":
+        first = (f"The model ({shape}) belongs to the non-maximal-rank class of Shi, Chen, Dong and Yau "
+                 "(2017): its estimation algebra is finite-dimensional, so the Wei-Norman filter is exact "
+                 "and needs no mesh.")
+    else:
+        yau = all_of([facts.c1, facts.c2, facts.c3])
+        exact_if_a_were_identity = facts.linear or yau or facts.structure_holds
+        if not a_is_identity and exact_if_a_were_identity:
+            why = "an exact filter would apply if the diffusion were the identity, but it is not"
+        elif algebra.closed is False or algebra.stopped_by:
+            why = ("its estimation algebra does not close in a few dimensions, so no exact "
+                   "finite-dimensional filter applies")
+        else:
+            why = "no exact finite-dimensional filter applies"
+        first = (f"The model ({shape}) is nonlinear: {why}. The general Yau-Yau algorithm computes the "
+                 "conditional density on a basis: the Kolmogorov equation is solved once offline, and each "
+                 "observation then costs a pointwise factor and a small matrix product.")
+    sentences = [first]
+    if method == "kalman-bucy":
+        sentences.append("The conditional density stays Gaussian, so its mean and covariance say all there "
+                         "is to say.")
+    elif method in ("yau-hu", "wei-norman"):
+        sentences.append("No mesh or basis is needed; the density need not be Gaussian (it can have "
+                         "two peaks), so read its quantiles and mode too (yauyau filter --quantiles "
+                         "0.05,0.5,0.95 --mode).")
+    if facts.c2 is False:
+        sentences.append("The sensor is nonlinear, so the conditional density need not be Gaussian and its "
+                         "mean and covariance can mislead (for a sensor like x^2 the mean sits between two "
+                         "peaks): read the quantiles and the mode too (yauyau filter --quantiles "
+                         "0.05,0.5,0.95 --mode).")
+    return " ".join(sentences)
 
 
 def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
