@@ -99,12 +99,22 @@ def _increments(spec_name: str, steps: int, seed: int) -> list[list[float]]:
     return simulate(model, steps, np.random.default_rng(seed)).increments.tolist()
 
 
-def test_page_follows_a_1d_stream(browser, server, tmp_path):
+def _at_step(step: int):
+    return lambda d: d.find_element("tag name", "body").get_attribute("data-step") == str(step)
+
+
+def _open_page(browser, server, model: str):
+    """A new session of ``model`` and its live page, shown at step 0; (client, session id)."""
     srv, ids = server
     client = httpx.Client(base_url=srv.url, timeout=30)
-    sid = client.post("/v1/sessions", json={"model": ids["cubic_sensor"]}).json()["id"]
+    sid = client.post("/v1/sessions", json={"model": ids[model]}).json()["id"]
     browser.get(f"{srv.url}/v1/sessions/{sid}/view")
-    _wait(browser, lambda d: d.find_element("tag name", "body").get_attribute("data-step") == "0", "step 0")
+    _wait(browser, _at_step(0), "step 0")
+    return client, sid
+
+
+def test_page_follows_a_1d_stream(browser, server, tmp_path):
+    client, sid = _open_page(browser, server, "cubic_sensor")
     before = _canvas(browser)
     assert (before[..., :3].sum(axis=-1) < 2.5).mean() > 0.01  # a curve is drawn, not a blank canvas
     rows = _increments("cubic_sensor", 300, seed=2)
@@ -112,9 +122,7 @@ def test_page_follows_a_1d_stream(browser, server, tmp_path):
     for seq in range(3):
         last = client.post(f"/v1/sessions/{sid}/observations",
                            json={"seq": seq, "increments": rows[seq * 100:(seq + 1) * 100]}).json()
-        step = str(last["step"])
-        _wait(browser, lambda d, s=step: d.find_element("tag name", "body").get_attribute("data-step") == s,
-              f"step {step}")
+        _wait(browser, _at_step(last["step"]), f"step {last['step']}")
     assert browser.find_element("id", "step").text == "300"
     shown = _numbers(browser.find_element("id", "mean").text)
     assert shown[0] == pytest.approx(last["estimates"][-1]["mean"][0], rel=1e-4, abs=1e-5)
@@ -134,14 +142,10 @@ def test_page_follows_a_1d_stream(browser, server, tmp_path):
 
 
 def test_page_draws_a_2d_heat_map_and_ellipse(browser, server, tmp_path):
-    srv, ids = server
-    client = httpx.Client(base_url=srv.url, timeout=30)
-    sid = client.post("/v1/sessions", json={"model": ids["range_2d"]}).json()["id"]
-    browser.get(f"{srv.url}/v1/sessions/{sid}/view")
-    _wait(browser, lambda d: d.find_element("tag name", "body").get_attribute("data-step") == "0", "step 0")
+    client, sid = _open_page(browser, server, "range_2d")
     rows = _increments("range_2d", 60, seed=3)
     last = client.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": rows}).json()
-    _wait(browser, lambda d: d.find_element("tag name", "body").get_attribute("data-step") == "60", "step 60")
+    _wait(browser, _at_step(60), "step 60")
     shown = _numbers(browser.find_element("id", "mean").text)
     np.testing.assert_allclose(shown, last["estimates"][-1]["mean"], rtol=1e-4, atol=1e-5)
     pixels = _canvas(browser)[..., :3]
