@@ -17,7 +17,7 @@ COMMANDS = {
     "models": "list the stored models",
     "filter": "run a filter over a file of observation increments",
     "simulate": "simulate a sample path and its observation increments (CSV files filter reads)",
-    "plot": "plot a filtered run: mean and 95% band, truth, density heat map (PNG or SVG)",
+    "plot": "plot a filtered run: mean and 95 percent band, truth, density heat map (PNG or SVG)",
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",
 }

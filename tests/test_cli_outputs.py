@@ -255,3 +255,15 @@ def test_progress_bar_on_request(store, tmp_path, capsys):
         main(["filter", ids["ou"], "--store", str(directory), "--increments", str(run / "increments.csv"),
               "--out", str(tmp_path / "o.csv"), "--progress", flag])
         assert ("50/50" in capsys.readouterr().err) is shown
+
+
+def test_every_help_page_prints(capsys):
+    """`yauyau -h` and each command's -h exit 0 (argparse %-formats help text: a bare % breaks it)."""
+    from yauyau.service.cli import COMMANDS
+
+    for argv in (["-h"], *[[name, "-h"] for name in COMMANDS]):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        assert done.value.code == 0, argv
+        out = capsys.readouterr().out
+        assert out.startswith("usage: yauyau"), argv
