@@ -238,8 +238,7 @@ class Sessions:
                  "next_seq": int(_record(rec, "next_seq")), **out, "plot": None}
         if out["degenerate"]:
             return frame
-        out.update(summaries_of(filt, state, estimate, Extras(mode=True)))
-        frame["mode"] = out.get("mode")
+        frame.update(summaries_of(filt, state, estimate, Extras(mode=True)))
         n = loaded.model.n
         axes = view_axes(filt, state, estimate, points if n == 1 else min(points, 81))
         marginals = summaries.marginals_on_grid(filt, state, axes, estimate)

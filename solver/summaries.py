@@ -125,27 +125,24 @@ def quantiles(flt: Any, state: Any, probs: Sequence[float] | np.ndarray,
         lo, hi = support(flt, state, estimate, i)
         grid = np.linspace(lo, hi, FIRST_PASS_POINTS.get(n, 65))
         values = marginal(flt, state, i, grid, estimate)
-        first = quantiles_from_marginal(grid, values, probs)
+        ends = np.array([min(probs.min(), 1e-4), max(probs.max(), 1 - 1e-4)])
+        found = quantiles_from_marginal(grid, values, np.concatenate([probs, ends]))  # one CDF, both uses
+        first, bracket = found[:len(probs)], found[len(probs):]
         if not np.all(np.isfinite(first)):
             out[i] = np.nan
             continue
         h = grid[1] - grid[0]
-        bracket = quantiles_from_marginal(grid, values, np.array([min(probs.min(), 1e-4),
-                                                                   max(probs.max(), 1 - 1e-4)]))
         a, b = max(lo, bracket[0] - 2 * h), min(hi, bracket[1] + 2 * h)
         if b - a > SPAN_CELLS * h:  # the first grid resolves this posterior: O(h²) is already small
             out[i] = first
             continue
         fine = np.linspace(a, b, SECOND_PASS_POINTS)
         fine_values = marginal(flt, state, i, fine, estimate)
-        # F on the fine grid, anchored by the coarse grid's mass left of a.
-        coarse_cells = 0.5 * (values[1:] + values[:-1]) * np.diff(grid)
-        total = coarse_cells.sum()
-        left = np.interp(a, grid, np.concatenate([[0.0], np.cumsum(coarse_cells)])) / total
-        right = 1.0 - np.interp(b, grid, np.concatenate([[0.0], np.cumsum(coarse_cells)])) / total
-        inner = probs - left
-        span = 1.0 - left - right
-        out[i] = quantiles_from_marginal(fine, fine_values, np.clip(inner / span, 0.0, 1.0))
+        # F on the fine grid, anchored by the coarse grid's mass outside [a, b].
+        coarse_cdf = np.concatenate([[0.0], np.cumsum(0.5 * (values[1:] + values[:-1]) * np.diff(grid))])
+        left, inside_b = np.interp([a, b], grid, coarse_cdf) / coarse_cdf[-1]
+        span = inside_b - left
+        out[i] = quantiles_from_marginal(fine, fine_values, np.clip((probs - left) / span, 0.0, 1.0))
     return out
 
 
