@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ast
 import math
+import unicodedata
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
@@ -40,6 +41,10 @@ MAX_LOG_MAGNITUDE = 700.0  # |log|b**p|| for a constant power (float range)
 FUNCTIONS = {name: 1 for name in ("exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "sinh", "cosh", "atan",
                                   "asin", "acos", "asinh", "acosh", "atanh", "abs", "sech", "sign")}
 FUNCTIONS.update(atan2=2, min=2, max=2)
+# Continuous but not differentiable everywhere: values are all the general engine needs; their
+# derivatives are taken almost everywhere (d|x| = sign x, d sign x = 0 off x = 0) by the Gaussian
+# filters' Jacobians, and the analysis refuses the exact filters for them (docs/spec.md).
+NONSMOOTH = ("abs", "sign", "min", "max")
 CONSTANTS = {"pi": math.pi, "e": math.e}
 RESERVED_NAMES = frozenset(FUNCTIONS) | frozenset(CONSTANTS)
 
@@ -291,6 +296,18 @@ class _NumericBuilder:
         return self._apply(lambda b, p: b ** p, base, exponent)
 
 
+def _check_ascii(text: str, field: str) -> None:
+    """Expressions are ASCII: Python would fold look-alikes (fullwidth 'ｘ', mathematical '𝐱') into
+    'x' while the model id hashes the text as written, giving one model two ids."""
+    for position, char in enumerate(text):
+        if ord(char) > 127:
+            folded = unicodedata.normalize("NFKC", char)
+            hint = f"; did you mean {folded!r}?" if folded.isascii() and folded.isprintable() else ""
+            name = unicodedata.name(char, "unnamed")
+            raise SpecError(field, f"only ASCII characters are allowed: {char!r} (U+{ord(char):04X} {name}) "
+                                   f"at position {position}{hint}")
+
+
 def _checked_tree(text: Any, field: str) -> ast.expr:
     """Parse ``text`` and check its size (length, nodes, depth); the expression's syntax tree."""
     if not isinstance(text, str):
@@ -299,6 +316,7 @@ def _checked_tree(text: Any, field: str) -> ast.expr:
         raise SpecError(field, "expression is empty")
     if len(text) > MAX_LENGTH:
         raise SpecError(field, f"expression longer than {MAX_LENGTH} characters")
+    _check_ascii(text, field)
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
@@ -360,13 +378,28 @@ def parse_expression(text: str, names: Mapping[str, "sp.Expr"], field: str = "ex
     return expr
 
 
+def nonsmooth_functions(exprs: Sequence["sp.Expr"]) -> list[str]:
+    """The names (as the user writes them) of the non-differentiable functions in ``exprs``."""
+    import sympy as sp
+
+    kinds = {"abs": sp.Abs, "sign": sp.sign, "min": sp.Min, "max": sp.Max}
+    return [name for name in NONSMOOTH if any(e.has(kinds[name]) for e in exprs)]
+
+
+def _dirac_delta(*args: Any) -> Any:
+    """The derivative of a jump (sign, and of abs/min/max twice) almost everywhere: 0."""
+    return np.zeros_like(np.asarray(args[0], dtype=float))
+
+
 def vectorize(expr: "sp.Expr", symbols: Sequence["sp.Symbol"],
               functions: Mapping[str, Callable[..., Any]] | None = None):
     """numpy function of points X (shape (P, n)) returning shape (P,) for one expression;
-    ``functions`` maps the names of SymPy functions of our own to their numpy forms."""
+    ``functions`` maps the names of SymPy functions of our own to their numpy forms.  A
+    ``DiracDelta`` (a derivative of sign, abs, min or max) is 0: derivatives hold almost everywhere."""
     import sympy as sp
 
-    fn = sp.lambdify(list(symbols), expr, modules=[dict(functions), "numpy"] if functions else "numpy")
+    table = {"DiracDelta": _dirac_delta, **(functions or {})}
+    fn = sp.lambdify(list(symbols), expr, modules=[table, "numpy"])
 
     def evaluate(X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))

@@ -179,7 +179,7 @@ class Model:
         if isinstance(prior, GaussianPrior):
             return log_normal(X, np.asarray(prior.mean), np.asarray(prior.cov))
         if isinstance(prior, MixturePrior):
-            w = np.asarray(prior.weights, float) / np.sum(prior.weights)
+            w = mixture_weights(prior.weights)
             logs = np.stack([np.log(wi) + log_normal(X, np.asarray(mu), np.asarray(c))
                              for wi, mu, c in zip(w, prior.means, prior.covs, strict=True) if wi > 0])
             top = logs.max(axis=0)
@@ -196,7 +196,7 @@ class Model:
         if isinstance(prior, GaussianPrior):
             return np.asarray(prior.mean, float), np.asarray(prior.cov, float)
         if isinstance(prior, MixturePrior):
-            w = np.asarray(prior.weights, float) / np.sum(prior.weights)
+            w = mixture_weights(prior.weights)
             mus = np.asarray(prior.means, float)
             covs = np.asarray(prior.covs, float)
             mean = w @ mus
@@ -204,6 +204,14 @@ class Model:
             cov = np.einsum("k,kij->ij", w, covs) + np.einsum("k,ki,kj->ij", w, d, d)
             return mean, cov
         return None
+
+
+def mixture_weights(weights) -> np.ndarray:
+    """Weights scaled to sum 1 without overflow: divided by their largest first ([1e308, 1e308] ->
+    [0.5, 0.5]; the plain sum would be inf and every weight 0)."""
+    w = np.asarray(weights, dtype=float)
+    w = w / w.max()
+    return w / w.sum()
 
 
 def compile_model(spec: ModelSpec) -> Model:

@@ -40,12 +40,13 @@ from .errors import SpecError
 from .expressions import RESERVED_NAMES
 from .registry import METHODS, check_method  # noqa: F401  (METHODS: the spec's choices, re-exported)
 
-_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 MAX_SPEC_BYTES = 64 * 1024
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: "16" is not a number and 16.5 not an integer (no silent coercion); ints pass as floats
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
 def _finite(values: Any, what: str) -> None:
@@ -148,6 +149,14 @@ class ModelSpec(_Strict):
 
     name: str = Field(min_length=1, max_length=100)
     state: list[str] = Field(min_length=1, max_length=3)
+
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, name: str) -> str:
+        if not name.isprintable() or name != name.strip():
+            raise ValueError("name must be printable text without control characters (such as a newline) "
+                             "or surrounding spaces")
+        return name
     drift: list[str]
     observation: list[str] = Field(min_length=1, max_length=16)
     diffusion: list[list[float]] | None = None
@@ -176,7 +185,8 @@ class ModelSpec(_Strict):
     def _state(cls, names: list[str]) -> list[str]:
         for name in names:
             if not _NAME.match(name):
-                raise ValueError(f"'{name}' is not a valid variable name (letters, digits, _)")
+                raise ValueError(f"{name!r} is not a valid variable name "
+                                 "(an ASCII letter, then letters, digits, _)")
             if name in RESERVED_NAMES:
                 raise ValueError(f"'{name}' is reserved (a function or constant name)")
         if len(set(names)) != len(names):
@@ -188,7 +198,8 @@ class ModelSpec(_Strict):
     def _parameters(cls, params: dict[str, float]) -> dict[str, float]:
         for name, value in params.items():
             if not _NAME.match(name) or name in RESERVED_NAMES:
-                raise ValueError(f"'{name}' is not a valid parameter name")
+                raise ValueError(f"{name!r} is not a valid parameter name "
+                                 "(an ASCII letter, then letters, digits, _; not a function name)")
             if not math.isfinite(value):
                 raise ValueError(f"parameter '{name}' must be finite")
         return params
@@ -293,8 +304,13 @@ def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:
     radii = spec.domain.radius * rng.uniform(0, 1, size=(256, 1)) ** (1.0 / n)
     X = np.vstack([spec.center() + direction * radii, spec.center()[None, :]])
     for field_name, values in (("drift", f(X)), ("observation", h(X))):
-        if not np.all(np.isfinite(values)):
-            raise SpecError(field_name, "is not finite everywhere on the domain ball")
+        finite = np.isfinite(values)
+        if not finite.all():
+            row, column = np.argwhere(~finite)[0]
+            where = ", ".join(f"{name} = {v:.3g}" for name, v in zip(spec.state, X[row], strict=True))
+            raise SpecError(f"{field_name}[{column}]",
+                            f"is not finite at {where} in the domain ball (a singularity such as log(x) at "
+                            "0, or a value beyond the floating-point range of about 1e308)")
     if prior is not None:
         values = prior(X)
         if not np.all(np.isfinite(values)) or np.any(values < 0) or not np.any(values > 0):

@@ -36,9 +36,9 @@ FORMAT_VERSION = 2
 ID_LENGTH = 20
 SUFFIX = ".h5"
 TMP_PREFIX = ".tmp-"
-_ID = re.compile(rf"^[0-9a-f]{{{ID_LENGTH}}}$")
-_ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
-_TMP = re.compile(rf"^{re.escape(TMP_PREFIX)}[0-9a-f]{{{ID_LENGTH}}}-(\d+)-[0-9a-f]+{re.escape(SUFFIX)}$")
+_ID = re.compile(rf"^[0-9a-f]{{{ID_LENGTH}}}\Z")
+_ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}\Z")
+_TMP = re.compile(rf"^{re.escape(TMP_PREFIX)}[0-9a-f]{{{ID_LENGTH}}}-(\d+)-[0-9a-f]+{re.escape(SUFFIX)}\Z")
 _LIBRARIES = ("numpy", "scipy", "h5py", "scikit-fem")
 # Integer arrays (mesh cells, node indices) shrink 3-15x under shuffle+gzip at no cost.  Dense
 # float arrays shrink by 5-35% but load 20-40x slower (bench/storage.py, docs/bench-storage.md),

@@ -60,7 +60,7 @@ def test_expression_builds_exact_sympy(text, expected):
     ({"initial": {"kind": "gaussian", "mean": [0.0], "cov": [[0.0]]}}, "initial.cov"),
     ({"initial": {"kind": "wishful"}}, "initial"),
     ({"initial": {"kind": "density", "expression": "exp(-x**2)+lambda: 0"}}, "initial.expression"),
-    ({"drift": ["log(x)"]}, "drift"),
+    ({"drift": ["log(x)"]}, "drift[0]"),
     ({"parameters": {"x": 1.0}}, "parameters"),
     ({"colour": "red"}, "colour"),
 ])

@@ -21,7 +21,7 @@ from typing import Any
 import sympy as sp
 
 from ..model import Model
-from .budget import BoundReached, current_budget
+from .budget import BoundReached, current_budget, expand
 from .operators import exact_matrix, is_identity, is_zero, observation_energy, tidy
 
 
@@ -40,7 +40,7 @@ def whitened_wong_matrix(model: Model) -> sp.Matrix:
 
 def _entry(expr: sp.Expr, symbols) -> sp.Expr:
     """Expanded, and exactly 0 when it vanishes identically (a zero test, not sp.simplify)."""
-    e = sp.expand(expr)
+    e = expand(expr)
     return sp.Integer(0) if e != 0 and is_zero(e, symbols) else e
 
 
@@ -49,7 +49,7 @@ def eta(model: Model) -> sp.Expr:
     f = sp.Matrix(model.drift)
     div_f = sum(sp.diff(fi, xi) for fi, xi in zip(model.drift, model.symbols, strict=True))
     a_inv = exact_matrix(model.a).inv()
-    e = sp.expand((f.T * a_inv * f)[0, 0] + div_f + observation_energy(model))
+    e = expand((f.T * a_inv * f)[0, 0] + div_f + observation_energy(model))
     current_budget().check_size(e)
     return tidy(e)
 
@@ -88,7 +88,7 @@ def seed004_structure(model: Model, k: int) -> dict[str, Any] | None:
     omega = wong_matrix(model)
     if any(omega[k, j] != 0 for j in range(n)):
         return None
-    e = sp.expand(eta(model))
+    e = expand(eta(model))
     A = constant_value(sp.diff(e, xk, 2) / 2, x)
     B = constant_value(sp.diff(e, xk).subs(xk, 0), x)
     if A is None or B is None or not polynomial_degree_at_most(e, [xk], 2):

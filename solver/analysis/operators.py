@@ -16,7 +16,7 @@ import mpmath
 import sympy as sp
 
 from ..model import Model
-from .budget import BoundReached, current_budget, expression_size
+from .budget import BoundReached, current_budget, expand, expanded_terms, expression_size
 
 _PRODUCT_TERMS = 20_000  # most terms of one product expanded in a composition
 _SIMPLIFY_NODES = 60  # sp.simplify only on expressions this small (its cost explodes beyond)
@@ -43,7 +43,7 @@ def is_zero(expr: sp.Expr, symbols) -> bool:
     budget = current_budget()
     budget.check()
     budget.check_size(expr)
-    e = sp.expand(expr)
+    e = expand(expr)
     if e == 0:
         return True
     variables = sorted(e.free_symbols | set(symbols), key=str)
@@ -73,7 +73,10 @@ def _vanishes_at_random_points(e: sp.Expr, symbols) -> bool:
 
 def tidy(expr: sp.Expr) -> sp.Expr:
     """A readable exact form: sp.simplify on small expressions, expansion otherwise (never raises)."""
-    if current_budget().remaining() > 0:
+    budget = current_budget()
+    if budget.max_size is not None and expanded_terms(expr, budget.max_size) > budget.max_size:
+        return expr  # too large to expand within the bound: shown as given
+    if budget.remaining() > 0:
         for candidate in (expr, sp.expand(expr)):  # the form sp.simplify was given before bounds existed
             if expression_size(candidate, _SIMPLIFY_NODES) <= _SIMPLIFY_NODES:
                 return sp.simplify(candidate)
@@ -93,7 +96,7 @@ def _rational_polynomial(expr: sp.Expr, symbols) -> bool:
 # ---------------------------------------------------------------------------------------------
 def multiplication(expr: sp.Expr, n: int) -> Operator:
     """The zero-order operator φ ↦ expr·φ."""
-    expr = sp.expand(expr)
+    expr = expand(expr)
     return {} if expr == 0 else {(0,) * n: expr}
 
 
@@ -171,7 +174,7 @@ def _clean(terms: dict) -> Operator:
     out = {}
     for alpha, c in terms.items():
         budget.check()
-        c = sp.expand(c)
+        c = expand(c)
         if c != 0:
             budget.check_size(c)
             out[alpha] = c
@@ -189,7 +192,7 @@ def exact_matrix(values) -> sp.Matrix:
 def observation_energy(model: Model) -> sp.Expr:
     """hᵀR⁻¹h with R⁻¹ inverted exactly."""
     h = sp.Matrix(model.observation)
-    return sp.expand((h.T * exact_matrix(model.R).inv() * h)[0, 0])
+    return expand((h.T * exact_matrix(model.R).inv() * h)[0, 0])
 
 
 def is_identity(matrix) -> bool:

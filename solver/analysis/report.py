@@ -14,11 +14,13 @@ chooses kalman-bucy | yau-hu | wei-norman | yau-yau.
 
 from __future__ import annotations
 
+import dataclasses
 import textwrap
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..expressions import nonsmooth_functions
 from ..model import Model
 from ..papers import cite, cite_full, reference
 from .algebra import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, EstimationAlgebra, bounded_algebra
@@ -97,7 +99,8 @@ class AnalysisReport:
                       f"{'maximal' if alg['maximal_rank'] else 'non-maximal'} rank  ({alg['rank_test']})"]
             lines += [f"  basis: {{{', '.join(alg['basis'])}}}"]
         else:
-            lines += [f"  does not close within {alg['stopped_by']} "
+            lines += [f"  {alg['stopped_by']}"] if (alg["stopped_by"] or "").startswith("not computed") else [
+                      f"  does not close within {alg['stopped_by']} "
                       f"({alg['rounds']} rounds of brackets, {len(alg['basis'])} independent elements found)"]
         lines += ["", f"recommended method: {self.method}", f"  reason: {self.reason}",
                   f"  (analysis took {self.elapsed:.2f} s)"]
@@ -125,6 +128,11 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int
     size cap keeps each one small; the report may come back a little after the deadline.
     """
     start = time.monotonic()
+    rough = nonsmooth_functions([*model.drift, *model.observation])
+    if rough:
+        report = _nonsmooth_report(model, rough, max_depth, max_dimension)
+        report.elapsed = time.monotonic() - start
+        return report
     half = None if time_limit is None else time_limit / 2
     name = None if time_limit is None else f"time {time_limit:g} s (half of it for the conditions)"
     with bounded(Budget(half, max_size, start, name)) as budget:
@@ -137,6 +145,29 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int
         facts.numeric += budget.numeric_zero_tests
         report = _report(model, facts, algebra, basis)  # simplifies for display only while time is left
     report.elapsed = time.monotonic() - start
+    return report
+
+
+def _nonsmooth_report(model: Model, rough: list[str], max_depth: int, max_dimension: int) -> AnalysisReport:
+    """f or h uses abs/sign/min/max: the exact filters need derivatives of f and h (div f in eta,
+    the brackets of E), which are distributions here (a DiracDelta at the kink), so none applies;
+    the general engine needs only values."""
+    names = ", ".join(rough)
+    verb = "is" if len(rough) == 1 else "are"
+    why = f"not computed: f or h uses {names}, not differentiable everywhere"
+    facts = Facts(c1=False, c2=False, c3=False, linear=False, structure_holds=False)
+    algebra = EstimationAlgebra(closed=False, dimension=None, basis=[], labels=[], linear_rank=None,
+                                maximal_rank=None, rounds=0, max_depth=max_depth, max_dimension=max_dimension,
+                                exact=False, stopped_by=why)
+    report = _report(model, facts, algebra, [])
+    report.wong_matrix = [["not computed"] * model.n for _ in range(model.n)]
+    report.eta = why
+    report.conditions = {k: dataclasses.replace(c, detail=f"needs smooth f and h; {names} {verb} not "
+                                                           "differentiable everywhere")
+                         for k, c in report.conditions.items()}
+    report.notes.append(f"{names}: continuous but not differentiable everywhere; the exact filters need "
+                        "smooth f and h, the general engine only values (the EKF/UKF Jacobians use the "
+                        "derivative almost everywhere)")
     return report
 
 
@@ -227,6 +258,8 @@ def plain_summary(model: Model, method: str, facts: Facts, algebra: EstimationAl
         exact_if_a_were_identity = facts.linear or yau or facts.structure_holds
         if not a_is_identity and exact_if_a_were_identity:
             why = "an exact filter would apply if the diffusion were the identity, but it is not"
+        elif (algebra.stopped_by or "").startswith("not computed: "):
+            why = algebra.stopped_by.removeprefix("not computed: ") + ", so no exact filter applies"
         elif algebra.closed is False or algebra.stopped_by:
             why = ("its estimation algebra does not close in a few dimensions, so no exact "
                    "finite-dimensional filter applies")
