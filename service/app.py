@@ -21,7 +21,8 @@ from fastapi.openapi.utils import get_openapi
 from yauyau import __version__
 
 from . import metrics
-from .middleware import BodyLimit
+from .analysis_runner import AnalysisRunner
+from .middleware import BodyLimit, JsonBodies
 from .problems import install_handlers
 from .registry import Registry
 from .routes import ERRORS, routers
@@ -44,7 +45,7 @@ def _problem_openapi(app: FastAPI) -> dict[str, Any]:
         problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
         for operation in (op for item in schema["paths"].values() for op in item.values()):
             responses = operation["responses"]
-            for code in (400, 404, 413, 422):  # the body limit, routing and validation apply everywhere
+            for code in (400, 404, 413, 415, 422, 431, 503):  # limits, routing, validation, store: everywhere
                 responses.setdefault(str(code), {"description": ERRORS[code]})
             for code, response in responses.items():
                 if code[0] in "45":
@@ -84,6 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         registry = Registry.open(settings.store, settings.model_cache)
         app.state.registry = registry
         app.state.sessions = _open_sessions(settings, registry)
+        app.state.analysis = AnalysisRunner(settings.analyze_concurrency)
         app.state.ready = True
         yield
         app.state.ready = False
@@ -99,6 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.openapi = lambda: _problem_openapi(app)
     for router in routers:
         app.include_router(router)
+    app.add_middleware(JsonBodies)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(metrics.RequestMetrics)
     return app

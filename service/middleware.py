@@ -1,4 +1,5 @@
-"""ASGI middleware: cap the request body before anything parses it (413 problem+json)."""
+"""ASGI middleware: cap the request body before anything parses it (413 problem+json) and refuse
+bodies that are not JSON (415 problem+json)."""
 
 from __future__ import annotations
 
@@ -46,3 +47,26 @@ class BodyLimit:
     async def _reject(self, scope, receive, send, status, detail):
         response = problem_response(status, detail, "body", instance=scope.get("path"))
         await response(scope, receive, send)
+
+
+_BODY_METHODS = {"POST", "PUT", "PATCH"}
+
+
+class JsonBodies:
+    """A request body must be JSON: Content-Type application/json (or a +json type), else 415."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http" and scope["method"] in _BODY_METHODS:
+            headers = dict(scope.get("headers") or ())
+            declared = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+            has_body = headers.get(b"content-length", b"0") != b"0" or b"transfer-encoding" in headers
+            json_type = declared == b"application/json" or declared.endswith(b"+json")
+            if (declared and not json_type) or (has_body and not declared):
+                shown = declared.decode("latin-1") or "none"
+                detail = f"the body must be JSON: send Content-Type: application/json (got {shown})"
+                response = problem_response(415, detail, "Content-Type", instance=scope.get("path"))
+                return await response(scope, receive, send)
+        return await self.app(scope, receive, send)

@@ -15,7 +15,7 @@ from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
 from yauyau.solver.errors import InputError, SpecError
-from yauyau.storage.errors import Conflict, NotFound, StoreError
+from yauyau.storage.errors import Conflict, NotFound, StoreError, Unavailable
 
 PROBLEM_TYPE = "application/problem+json"
 log = logging.getLogger("yauyau.service")
@@ -31,8 +31,12 @@ _TAGS = ("gaussian", "mixture", "density")  # discriminator tags of the prior un
 class Problem(Exception):
     """An HTTP error with a problem-details body."""
 
-    def __init__(self, status: int, detail: str, field: str | None = None, title: str | None = None):
+    def __init__(self, status: int, detail: str, field: str | None = None, title: str | None = None,
+                 retry_after: int | None = None, headers: dict[str, str] | None = None):
         super().__init__(detail)
+        self.headers = dict(headers or {})
+        if retry_after is not None:
+            self.headers["Retry-After"] = str(int(retry_after))
         self.status = status
         self.detail = detail
         self.field = field
@@ -40,14 +44,15 @@ class Problem(Exception):
 
 
 def problem_response(status: int, detail: str, field: str | None = None, title: str | None = None,
-                     instance: str | None = None) -> Response:
+                     instance: str | None = None, headers: dict[str, str] | None = None) -> Response:
     body: dict[str, Any] = {"type": "about:blank", "title": title or _TITLES.get(status, "Error"),
                             "status": status, "detail": detail}
     if field is not None:
         body["field"] = field
     if instance is not None:
         body["instance"] = instance
-    return Response(json.dumps(body, allow_nan=False), status_code=status, media_type=PROBLEM_TYPE)
+    return Response(json.dumps(body, allow_nan=False), status_code=status, media_type=PROBLEM_TYPE,
+                    headers=headers)
 
 
 def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
@@ -81,7 +86,7 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem) -> Response:
-        return problem_response(exc.status, exc.detail, exc.field, exc.title, request.url.path)
+        return problem_response(exc.status, exc.detail, exc.field, exc.title, request.url.path, exc.headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> Response:
@@ -101,6 +106,12 @@ def install_handlers(app: FastAPI) -> None:
     async def _conflict(request: Request, exc: Conflict) -> Response:
         return problem_response(409, exc.message, exc.field, instance=request.url.path)
 
+    @app.exception_handler(Unavailable)
+    async def _unavailable(request: Request, exc: Unavailable) -> Response:
+        log.error("session store unavailable on %s: %s", request.url.path, exc.message)
+        headers = {"Retry-After": str(exc.retry_after)} if exc.retry_after is not None else None
+        return problem_response(503, exc.message, exc.field, instance=request.url.path, headers=headers)
+
     @app.exception_handler(StoreError)
     async def _store(request: Request, exc: StoreError) -> Response:
         log.error("store error on %s: %s", request.url.path, exc)
@@ -109,7 +120,8 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> Response:
         detail = exc.detail if isinstance(exc.detail, str) else _TITLES.get(exc.status_code, "error")
-        return problem_response(exc.status_code, detail, instance=request.url.path)
+        return problem_response(exc.status_code, detail, instance=request.url.path,
+                                headers=dict(exc.headers or {}))  # e.g. Allow on a 405
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> Response:

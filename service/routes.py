@@ -40,7 +40,9 @@ ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model i
 
 ERRORS = {400: "malformed request (e.g. invalid JSON)", 404: "unknown model, session or route",
           409: "seq gap or concurrent update", 413: "request body too large",
-          422: "invalid input (the field is named)", 503: "models are still loading"}
+          415: "the body is not JSON (send Content-Type: application/json)",
+          422: "invalid input (the field is named)", 431: "request line and headers too large",
+          503: "not ready, store unavailable (disk full, database damaged) or analysis busy: see Retry-After"}
 
 
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
@@ -64,8 +66,14 @@ def livez() -> Response:
 
 @health.get("/readyz", response_model=Health, responses=_errors(503))
 def readyz(request: Request) -> Response:
+    """Ready when the models are listed and the session store is usable: its file is the one opened,
+    intact (header, write-ahead log, and SQLite's quick_check at most every 30 s) and has not lost
+    committed transactions.  A load balancer takes a worker whose store failed out of rotation."""
     if not request.app.state.ready:
         raise Problem(503, "models are still loading")
+    problem = request.app.state.sessions.store_health()
+    if problem is not None:
+        raise Problem(503, f"session store unusable: {problem}", "sessions")
     return _json({"status": "ready", "models": len(request.app.state.registry.ids())})
 
 
@@ -171,16 +179,28 @@ _EXAMPLE_SPEC = {"name": "cubic-sensor", "state": ["x"], "drift": ["-0.2*x"], "o
                  "discretization": {"dt": 0.01, "basis": 128}}
 
 
-@analysis.post("", response_model=AnalyzeReport, responses=_errors(400, 413, 422))
-def analyze(settings: SettingsDep,
+@analysis.post("", response_model=AnalyzeReport, responses=_errors(400, 413, 422, 503))
+def analyze(settings: SettingsDep, request: Request,
             spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
                                                  examples=[_EXAMPLE_SPEC])]) -> Response:
-    from yauyau.solver.analysis import analyze as analyze_model  # SymPy: loaded on the first analysis
+    """The estimation-algebra analysis, in a process of its own that is killed at the time limit
+    (YAUYAU_ANALYZE_TIME_LIMIT) plus 2 s: a request never takes longer, whatever the spec."""
     from yauyau.solver.model import compile_model
     from yauyau.solver.spec import spec_from_dict
 
-    report = analyze_model(compile_model(spec_from_dict(spec)), time_limit=settings.analyze_time_limit)
-    return _json(report.to_dict())
+    from .analysis_runner import AnalysisBusy, AnalysisTimedOut
+
+    compile_model(spec_from_dict(spec))  # a bad spec is refused here, at once (422 naming the field)
+    limit = settings.analyze_time_limit
+    try:
+        report = request.app.state.analysis.run(spec, limit)
+    except AnalysisBusy as exc:
+        raise Problem(503, f"{exc}; retry later", "spec", retry_after=max(1, round(limit))) from None
+    except AnalysisTimedOut as exc:
+        raise Problem(503, f"{exc}: this model is too large to analyse within the limit (the general "
+                           "engine, method yau-yau, is always valid; `yauyau analyze --time-limit` runs "
+                           "without the server's limit)", "spec") from None
+    return _json(report)
 
 
 routers = [health, models, sessions, analysis]

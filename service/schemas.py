@@ -17,7 +17,7 @@ Method = Literal[METHODS]  # type: ignore[valid-type]
 
 
 class _Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # "1", true and 1.0 are not a seq
 
 
 class SessionCreate(_Body):

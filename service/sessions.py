@@ -8,8 +8,10 @@ that lost an answer (server killed) re-sends the same chunk and nothing is lost 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -136,6 +138,14 @@ def encode_response(response: dict[str, Any]) -> str:
     return orjson.dumps(response).decode()
 
 
+def request_digest(rows: list[list[float] | None], extras: "Extras | None") -> str:
+    """A digest of what a chunk asks (its increments and extras): a re-sent seq must carry the same."""
+    quantiles = None if extras is None or extras.quantiles is None else list(map(float, extras.quantiles))
+    mode = bool(extras.mode) if extras is not None else False
+    payload = orjson.dumps([rows, quantiles, mode], option=orjson.OPT_SERIALIZE_NUMPY)
+    return hashlib.blake2b(payload, digest_size=16).hexdigest()
+
+
 def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
     """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
     out = np.empty((len(rows), m))
@@ -169,6 +179,18 @@ class Sessions:
         # queueing on the lock are woken in no particular order, which made p99 ≫ p50), and the
         # event loop stays free to read the next requests while a chunk computes.
         self.chunk_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="yauyau-chunk")
+        self._deep_checked = 0.0
+
+    def store_health(self, deep_every: float = 30.0) -> str | None:
+        """None when the session store is usable, else why not (SQLite's quick_check at most every
+        ``deep_every`` seconds; the cheap file checks every time)."""
+        health = getattr(self.store, "health", None)
+        if health is None:
+            return None
+        deep = time.monotonic() - self._deep_checked >= deep_every
+        if deep:
+            self._deep_checked = time.monotonic()
+        return health(deep=deep)
 
     def create(self, model_id: str, prior: Any | None, method: str | None) -> dict[str, Any]:
         loaded = self.registry.get(model_id)
@@ -194,6 +216,7 @@ class Sessions:
             raise InputError("increments", f"at most {self.max_chunk_rows} rows per chunk, got {len(rows)}")
         rec, loaded, filt = self._session(session_id)
         increments = increments_array(rows, loaded.model.m)
+        digest = request_digest(rows, extras)
         applied: list[dict[str, Any]] = []
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
@@ -202,7 +225,7 @@ class Sessions:
             return state.to_dict(), encode_response(response)
 
         with self._write_lock:
-            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded)
+            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded, digest=digest)
         metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
         if not replayed:
             metrics.OBSERVATIONS.inc(len(rows))

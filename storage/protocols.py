@@ -25,9 +25,10 @@ class SessionStore(Protocol):
         """The session's record (id, model_id, method, state, next_seq, ...); NotFound if absent."""
 
     def apply_chunk(self, session_id: str, seq: int, compute: Compute,
-                    encoded: bool = False) -> tuple[Any, bool]:
+                    encoded: bool = False, digest: str | None = None) -> tuple[Any, bool]:
         """Apply chunk ``seq`` exactly once: (response, replayed).  A seq past the next one is a
-        Conflict and changes nothing; a seq already applied returns the stored response."""
+        Conflict and changes nothing; a seq already applied returns the stored response, or is a
+        Conflict when its ``digest`` (of the request) differs from the stored one."""
 
     def delete(self, session_id: str) -> None:
         """Remove the session; NotFound if absent."""

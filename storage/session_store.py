@@ -11,8 +11,23 @@ carry; the first chunk is seq 0) and a ``version``.  ``apply_chunk(id, seq, comp
 * seq <  next_seq: the stored response is returned (replayed, nothing applied);
 * seq >  next_seq: :class:`Conflict` naming the expected seq, nothing changed.
 
-Responses of the last ``retention`` chunks per session are kept.  The file is shared by several
+Replays need the responses of the last few chunks only (a client that lost an answer re-sends the
+chunk it sent last): per session the store keeps at most ``retention`` responses (default 16),
+at most ``retention_bytes`` of them (default 256 KiB) and none older than ``retention_seconds``
+(default one day), always the newest one.  Each stored chunk keeps a digest of its request, so a
+re-sent seq with *different* data is refused (Conflict) instead of silently answered with the first
+response.  Deleted sessions give their pages back to the file system (``auto_vacuum =
+INCREMENTAL`` and an incremental vacuum after each delete).  The file is shared by several
 processes (WAL mode, busy timeout); each thread of each process has its own connection.
+
+Faults (docs/reliability.md).  A full disk makes the transaction fail and roll back: nothing is
+stored, :class:`Unavailable` (with retry_after) is raised and the next attempt succeeds once there
+is space.  The file removed, replaced, truncated or its write-ahead log overwritten under a running
+server is detected (the file's identity, the header's page count against the file size and the
+WAL header's checksum after every commit; a generation counter that must never go back at the
+start of every write; SQLite's corruption errors): the store then refuses every operation
+(:class:`Unavailable` without retry_after) and :meth:`health` reports why, so that no chunk is
+acknowledged that a restart would lose.
 ``apply_chunk(..., encoded=True)`` returns the response as the JSON text stored, so that a server
 can send it as is (one encoding per chunk, not two); ``compute`` may also return the response
 already encoded (a ``str`` of a JSON object with finite numbers, stored as given).
@@ -32,14 +47,16 @@ import math
 import os
 import secrets
 import sqlite3
+import struct
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import orjson
 
-from .errors import Conflict, NotFound, StoreError
+from .errors import Conflict, NotFound, StoreError, Unavailable
 
 Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]]
 
@@ -62,9 +79,20 @@ CREATE TABLE IF NOT EXISTS chunks (
     session_id TEXT NOT NULL,
     seq INTEGER NOT NULL,
     response TEXT NOT NULL,
+    digest TEXT,
+    stored REAL,
     PRIMARY KEY (session_id, seq)
 ) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS meta (
+    key TEXT PRIMARY KEY,
+    value INTEGER NOT NULL
+);
+INSERT OR IGNORE INTO meta VALUES ('generation', 0);
 """
+_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL"}  # added to files written before they existed
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_WAL_MAGIC = (0x377F0682, 0x377F0683)  # little- / big-endian checksums
+DISK_FULL_RETRY_S = 10
 _MAX_ATTEMPTS = 100
 _SYNCHRONOUS = ("normal", "full")
 
@@ -140,20 +168,45 @@ def _progress(new_state: dict[str, Any], response: dict[str, Any], default: tupl
 class SqliteSessionStore:
     """Sessions in one SQLite file; safe to share between threads and processes."""
 
-    def __init__(self, path: str | os.PathLike, retention: int = 256, busy_timeout_ms: int = 30_000,
-                 synchronous: str = "normal"):
-        if not isinstance(retention, int) or retention < 1:
-            raise StoreError("retention", "must be a positive integer")
+    def __init__(self, path: str | os.PathLike, retention: int = 16, busy_timeout_ms: int = 30_000,
+                 synchronous: str = "normal", retention_bytes: int = 256 * 1024,
+                 retention_seconds: float = 86_400.0):
+        for name, value in (("retention", retention), ("retention_bytes", retention_bytes)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise StoreError(name, "must be a positive integer")
+        if not retention_seconds > 0:
+            raise StoreError("retention_seconds", "must be positive")
         if synchronous not in _SYNCHRONOUS:
             raise StoreError("synchronous", f"must be one of {', '.join(_SYNCHRONOUS)}, got {synchronous!r}")
         self.synchronous = synchronous
         self.path = Path(path)
         self.retention = retention
+        self.retention_bytes = retention_bytes
+        self.retention_seconds = float(retention_seconds)
         self.busy_timeout_ms = int(busy_timeout_ms)
         self._local = threading.local()
-        with self._transaction() as db:
+        self._failure: str | None = None  # why the store refuses everything (removed, damaged)
+        self._generation = 0  # the highest generation this process has seen committed
+        self._identity: tuple[int, int] | None = None
+        self._create_schema()
+        self._identity = self._file_identity()
+        self._generation = self._read_generation(self._connection())
+
+    def _create_schema(self) -> None:
+        db = self._connection()
+        try:
+            if db.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()[0] == 0:
+                db.execute("PRAGMA auto_vacuum = INCREMENTAL")  # only takes effect on an empty file
+                db.execute("VACUUM")
+        except sqlite3.Error as exc:
+            raise _as_store_error(exc, "cannot create the session database") from None
+        with self._transaction(write=False) as db:
             for statement in filter(str.strip, _SCHEMA.split(";")):
                 db.execute(statement)
+            present = {row[1] for row in db.execute("PRAGMA table_info(chunks)")}
+            for column, kind in _CHUNK_COLUMNS.items():
+                if column not in present:
+                    db.execute(f"ALTER TABLE chunks ADD COLUMN {column} {kind}")
 
     # -- connections ----------------------------------------------------------------
     def _connection(self) -> sqlite3.Connection:
@@ -182,8 +235,99 @@ class SqliteSessionStore:
             db.close()
         self._local = threading.local()
 
-    def _transaction(self) -> "_Transaction":
-        return _Transaction(self._connection())
+    def _transaction(self, write: bool = True) -> "_Transaction":
+        if self._failure is not None:
+            raise Unavailable("sessions", self._failure)
+        return _Transaction(self, self._connection(), write)
+
+    # -- integrity ------------------------------------------------------------------
+    def _file_identity(self) -> tuple[int, int]:
+        st = os.stat(self.path)
+        return st.st_dev, st.st_ino
+
+    @staticmethod
+    def _read_generation(db: sqlite3.Connection) -> int:
+        row = db.execute("SELECT value FROM meta WHERE key = 'generation'").fetchone()
+        return int(row[0]) if row is not None else 0
+
+    def fail(self, reason: str) -> Unavailable:
+        """Refuse every operation from now on (the file cannot be trusted); the error to raise."""
+        if self._failure is None:
+            self._failure = (f"the session database {self.path} {reason}; no chunk is acknowledged until it "
+                             "is restored and the server restarted")
+            _log_critical(self._failure)
+        return Unavailable("sessions", self._failure)
+
+    def verify_file(self) -> None:
+        """Cheap checks of the file after a commit (µs): still the file we opened, not truncated below
+        the page count its header states, the write-ahead log's header intact.  Raises Unavailable."""
+        if self._failure is not None:
+            raise Unavailable("sessions", self._failure)
+        problem = self._file_problem()
+        if problem is not None:
+            time.sleep(0.05)  # a checkpoint of another process may be half-way: look again once
+            problem = self._file_problem()
+        if problem is not None:
+            raise self.fail(problem)
+
+    def _file_problem(self) -> str | None:
+        try:
+            st = os.stat(self.path)
+            with open(self.path, "rb") as fh:
+                header = fh.read(100)
+        except FileNotFoundError:
+            return "was removed"
+        except OSError as exc:
+            return f"cannot be read ({exc})"
+        if (st.st_dev, st.st_ino) != self._identity:
+            return "was replaced by another file"
+        if len(header) < 100 or not header.startswith(_SQLITE_MAGIC):
+            return "was truncated or overwritten (no SQLite header)"
+        page_size = struct.unpack(">H", header[16:18])[0]
+        page_size = 65536 if page_size == 1 else page_size
+        pages = struct.unpack(">I", header[28:32])[0]
+        if st.st_size < pages * page_size:
+            return f"was truncated ({st.st_size} bytes, its header says {pages * page_size})"
+        return _wal_problem(Path(f"{self.path}-wal"))
+
+    def health(self, deep: bool = False) -> str | None:
+        """None when the store is usable, else why not.  ``deep`` adds SQLite's quick_check on a
+        connection of its own (reads every page: for /readyz, not per request)."""
+        if self._failure is None:
+            problem = self._file_problem()
+            if problem is None and deep:
+                problem = self._quick_check()
+            if problem is None:
+                try:
+                    with self._transaction(write=False) as db:  # the generation must not have gone back
+                        self._check_generation(db)
+                except Unavailable:
+                    pass
+                except StoreError as exc:
+                    return exc.message
+            else:
+                self.fail(problem)
+        return self._failure
+
+    def _quick_check(self) -> str | None:
+        try:
+            db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, timeout=self.busy_timeout_ms / 1000)
+            try:
+                result = [r[0] for r in db.execute("PRAGMA quick_check")]
+            finally:
+                db.close()
+        except sqlite3.Error as exc:
+            return f"fails SQLite's integrity check ({exc})"
+        return None if result == ["ok"] else f"fails SQLite's integrity check ({'; '.join(result[:3])})"
+
+    def _check_generation(self, db: sqlite3.Connection) -> None:
+        generation = self._read_generation(db)
+        if generation < self._generation:
+            raise self.fail(f"lost committed transactions (generation {generation} < {self._generation} "
+                            "seen): it was replaced, truncated or its write-ahead log overwritten")
+
+    def _committed(self, generation: int) -> None:
+        self._generation = max(self._generation, generation)
 
     # -- records --------------------------------------------------------------------
     def create(self, model_id: str, method: str, state: dict[str, Any],
@@ -201,6 +345,8 @@ class SqliteSessionStore:
         return session_id
 
     def get(self, session_id: str) -> SessionRecord:
+        if self._failure is not None:
+            raise Unavailable("sessions", self._failure)
         row = self._read(session_id)
         if row is None:
             raise NotFound("session", f"no session {session_id!r}")
@@ -211,7 +357,7 @@ class SqliteSessionStore:
             query = self._connection().execute("SELECT * FROM sessions WHERE id = ?", (str(session_id),))
             row = query.fetchone()
         except sqlite3.Error as exc:
-            raise StoreError("sessions", f"cannot read session: {exc}") from None
+            raise self._error(exc, "cannot read session") from None
         if row is None:
             return None
         return SessionRecord(
@@ -227,6 +373,21 @@ class SqliteSessionStore:
             db.execute("DELETE FROM chunks WHERE session_id = ?", (str(session_id),))
         if not deleted:
             raise NotFound("session", f"no session {session_id!r}")
+        self.reclaim()
+
+    def reclaim(self, pages: int = 0) -> None:
+        """Give free pages back to the file system (all of them when ``pages`` is 0); the file
+        shrinks at the next checkpoint of the write-ahead log."""
+        try:
+            self._connection().execute(f"PRAGMA incremental_vacuum({int(pages)})").fetchall()
+        except sqlite3.Error as exc:
+            raise self._error(exc, "cannot reclaim free pages") from None
+
+    def _error(self, exc: sqlite3.Error, what: str) -> StoreError:
+        error = _as_store_error(exc, what)
+        if isinstance(error, Unavailable) and error.retry_after is None:
+            return self.fail(f"is damaged ({exc})")
+        return error
 
     def count(self) -> int:
         return int(self._connection().execute("SELECT COUNT(*) FROM sessions").fetchone()[0])
@@ -239,40 +400,48 @@ class SqliteSessionStore:
         """The response of an applied chunk (Conflict if it is older than the retention window)."""
         return orjson.loads(self._stored_text(session_id, seq))
 
-    def _stored_text(self, session_id: str, seq: int) -> str:
-        row = self._connection().execute("SELECT response FROM chunks WHERE session_id = ? AND seq = ?",
-                                         (str(session_id), seq)).fetchone()
+    def _stored_text(self, session_id: str, seq: int, digest: str | None = None) -> str:
+        query = "SELECT response, digest FROM chunks WHERE session_id = ? AND seq = ?"
+        row = self._connection().execute(query, (str(session_id), seq)).fetchone()
+        if row is not None and digest is not None and row[1] is not None and row[1] != digest:
+            raise Conflict("seq", f"chunk {seq} was already applied with different data; nothing was applied "
+                                  "(send new data with the next seq, or re-send chunk {seq} unchanged)"
+                           .replace("{seq}", str(seq)))
         if row is None:
             oldest = self._connection().execute("SELECT MIN(seq) FROM chunks WHERE session_id = ?",
                                                 (str(session_id),)).fetchone()[0]
             raise Conflict("seq", f"chunk {seq} was applied but its response is no longer kept "
-                                  f"(the last {self.retention} are; oldest kept: {oldest})")
+                                  f"(replays are kept for the last {self.retention} chunks, at most "
+                                  f"{self.retention_bytes} bytes and {self.retention_seconds:g} s; "
+                                  f"oldest kept: {oldest})")
         return row[0]
 
     def apply_chunk(self, session_id: str, seq: int, compute: Compute,
-                    encoded: bool = False) -> tuple[Any, bool]:
+                    encoded: bool = False, digest: str | None = None) -> tuple[Any, bool]:
         """Apply chunk ``seq`` exactly once; returns (response, replayed).
 
-        ``encoded``: the response as the JSON text that is stored (a replay sends the same bytes)."""
+        ``encoded``: the response as the JSON text that is stored (a replay sends the same bytes).
+        ``digest``: a digest of the request; a replay whose digest differs is a Conflict."""
         if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
             raise StoreError("seq", f"must be a non-negative integer, got {seq!r}")
         for _ in range(_MAX_ATTEMPTS):
             record = self.get(session_id)
             if seq < record.next_seq:
-                text = self._stored_text(session_id, seq)
+                text = self._stored_text(session_id, seq, digest)
                 return (text if encoded else orjson.loads(text)), True
             if seq > record.next_seq:
                 raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
                                       "nothing was applied")
             new_state, response = compute(record.state)  # outside any lock: sessions run in parallel
-            text = self._commit(record, seq, new_state, response)
+            text = self._commit(record, seq, new_state, response, digest)
             if text is not None:
                 if encoded:
                     return text, False
                 return (orjson.loads(text) if isinstance(response, str) else response), False
         raise Conflict("session", f"session {session_id} is updated too often concurrently; retry")
 
-    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict | str) -> str | None:
+    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict | str,
+                digest: str | None = None) -> str | None:
         """The stored response text, or None when another writer moved the session on."""
         state_text = _dumps(new_state, "state")
         if isinstance(response, str):
@@ -288,33 +457,118 @@ class SqliteSessionStore:
             ).rowcount
             if not changed:
                 return None  # someone else moved the session on: re-read
-            db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?)", (old.id, seq, response_text))
-            db.execute("DELETE FROM chunks WHERE session_id = ? AND seq <= ?", (old.id, seq - self.retention))
+            now = time.time()
+            db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?,?,?)",
+                       (old.id, seq, response_text, digest, now))
+            self._trim(db, old.id, seq, now)
         return response_text
+
+    def _trim(self, db: sqlite3.Connection, session_id: str, seq: int, now: float) -> None:
+        """Keep the newest chunk and, before it, what fits in retention (count), retention_bytes
+        (the newest first) and retention_seconds."""
+        db.execute("DELETE FROM chunks WHERE session_id = ? AND seq < ? AND (seq <= ? OR stored < ?)",
+                   (session_id, seq, seq - self.retention, now - self.retention_seconds))
+        db.execute(
+            "DELETE FROM chunks WHERE session_id = ? AND seq < ? AND seq IN (SELECT seq FROM (SELECT seq, "
+            "SUM(LENGTH(response)) OVER (ORDER BY seq DESC) AS total FROM chunks WHERE session_id = ?) "
+            "WHERE total > ?)", (session_id, seq, session_id, self.retention_bytes))
+
+
+def _log_critical(message: str) -> None:
+    import logging
+
+    logging.getLogger("yauyau.storage").critical("SESSION STORE UNUSABLE: %s", message)
+
+
+def _as_store_error(exc: sqlite3.Error, what: str) -> StoreError:
+    """A full disk is Unavailable with retry_after (space may come back); corruption is Unavailable
+    without (an operator must act); anything else a StoreError."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    text = str(exc)
+    if code == sqlite3.SQLITE_FULL or "disk is full" in text or "No space left" in text:
+        return Unavailable("sessions", f"{what}: the disk is full (nothing was stored; retry when there is "
+                                       "space)", retry_after=DISK_FULL_RETRY_S)
+    damaged = "malformed" in text or "not a database" in text
+    if code in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB) or damaged:
+        return Unavailable("sessions", f"{what}: the database is damaged ({text})")
+    if code == sqlite3.SQLITE_IOERR or (code is not None and code & 0xFF == sqlite3.SQLITE_IOERR):
+        return Unavailable("sessions", f"{what}: input/output error ({text}); nothing was stored",
+                           retry_after=DISK_FULL_RETRY_S)
+    return StoreError("sessions", f"{what}: {text}")
+
+
+def _wal_problem(wal: Path) -> str | None:
+    """The write-ahead log's 32-byte header: magic, and its checksum (SQLite's wal.c algorithm)."""
+    try:
+        with open(wal, "rb") as fh:
+            header = fh.read(32)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"has an unreadable write-ahead log ({exc})"
+    if len(header) == 0:
+        return None  # reset after a checkpoint
+    if len(header) < 32:
+        return "has a truncated write-ahead log header"
+    magic = struct.unpack(">I", header[:4])[0]
+    if magic not in _WAL_MAGIC:
+        return "has an overwritten write-ahead log (bad magic number)"
+    order = ">" if magic & 1 else "<"
+    words = struct.unpack(f"{order}6I", header[:24])
+    s0 = s1 = 0
+    for i in range(0, 6, 2):
+        s0 = (s0 + words[i] + s1) & 0xFFFFFFFF
+        s1 = (s1 + words[i + 1] + s0) & 0xFFFFFFFF
+    if (s0, s1) != struct.unpack(">2I", header[24:32]):
+        return "has an overwritten write-ahead log (header checksum)"
+    return None
 
 
 class _Transaction:
-    """BEGIN IMMEDIATE ... COMMIT (ROLLBACK on error); sqlite errors become StoreError."""
+    """BEGIN IMMEDIATE ... COMMIT (ROLLBACK on error); sqlite errors become StoreError.
 
-    def __init__(self, db: sqlite3.Connection):
-        self.db = db
+    A write transaction checks that the store's generation did not go back, bumps it, and after
+    the COMMIT verifies the file (:meth:`SqliteSessionStore.verify_file`) before the caller may
+    acknowledge anything."""
+
+    def __init__(self, store: SqliteSessionStore, db: sqlite3.Connection, write: bool = True):
+        self.store, self.db, self.write = store, db, write
+        self.generation = 0
 
     def __enter__(self) -> sqlite3.Connection:
         try:
             self.db.execute("BEGIN IMMEDIATE")
+            if self.write:
+                self.store._check_generation(self.db)
+                bump = "UPDATE meta SET value = value + 1 WHERE key = 'generation' RETURNING value"
+                self.generation = self.db.execute(bump).fetchone()[0]
         except sqlite3.Error as exc:
-            raise StoreError("sessions", f"cannot start a transaction: {exc}") from None
+            self._rollback()
+            raise self.store._error(exc, "cannot start a transaction") from None
+        except BaseException:
+            self._rollback()
+            raise
         return self.db
+
+    def _rollback(self) -> None:
+        if self.db.in_transaction:  # SQLite already rolled back after SQLITE_FULL and some I/O errors
+            try:
+                self.db.execute("ROLLBACK")
+            except sqlite3.Error:
+                pass
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is None:
             try:
                 self.db.execute("COMMIT")
-                return False
             except sqlite3.Error as err:
-                self.db.execute("ROLLBACK")
-                raise StoreError("sessions", f"cannot commit: {err}") from None
-        self.db.execute("ROLLBACK")
+                self._rollback()
+                raise self.store._error(err, "cannot commit") from None
+            if self.write:
+                self.store._committed(self.generation)
+                self.store.verify_file()
+            return False
+        self._rollback()
         if isinstance(exc, sqlite3.Error):
-            raise StoreError("sessions", f"database error: {exc}") from None
+            raise self.store._error(exc, "database error") from None
         return False

@@ -47,6 +47,7 @@ def _settings(args):
 
 def run(args):
     import uvicorn
+    from yauyau.service.protocol import MAX_HEAD_BYTES, ServiceProtocol
     from yauyau.storage.errors import StoreError
 
     settings = _settings(args)
@@ -59,5 +60,6 @@ def run(args):
     if settings.metrics_dir is not None:
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(settings.metrics_dir)
     uvicorn.run("yauyau.service.app:create_app", factory=True, host=settings.host, port=settings.port,
-                workers=settings.workers, log_level=settings.log_level, access_log=False)
+                workers=settings.workers, log_level=settings.log_level, access_log=False,
+                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES)
     return 0
