@@ -86,3 +86,15 @@ class AnalysisRunner:
         if result[0] == "error":
             raise RuntimeError(f"analysis failed: {result[1]}")
         return result[1]
+
+
+_RUNNER_LOCK = threading.Lock()
+
+
+def analysis_runner(app) -> AnalysisRunner:
+    """The application's runner, made on first use (app.state.analysis)."""
+    with _RUNNER_LOCK:
+        runner = getattr(app.state, "analysis", None)
+        if runner is None:
+            runner = app.state.analysis = AnalysisRunner(app.state.settings.analyze_concurrency)
+        return runner

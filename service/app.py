@@ -21,7 +21,6 @@ from fastapi.openapi.utils import get_openapi
 from yauyau import __version__
 
 from . import metrics
-from .analysis_runner import AnalysisRunner
 from .middleware import BodyLimit, JsonBodies
 from .problems import install_handlers
 from .registry import Registry
@@ -85,7 +84,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         registry = Registry.open(settings.store, settings.model_cache)
         app.state.registry = registry
         app.state.sessions = _open_sessions(settings, registry)
-        app.state.analysis = AnalysisRunner(settings.analyze_concurrency)
         app.state.ready = True
         yield
         app.state.ready = False

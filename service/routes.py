@@ -188,12 +188,12 @@ def analyze(settings: SettingsDep, request: Request,
     from yauyau.solver.model import compile_model
     from yauyau.solver.spec import spec_from_dict
 
-    from .analysis_runner import AnalysisBusy, AnalysisTimedOut
+    from .analysis_runner import AnalysisBusy, AnalysisTimedOut, analysis_runner
 
     compile_model(spec_from_dict(spec))  # a bad spec is refused here, at once (422 naming the field)
     limit = settings.analyze_time_limit
     try:
-        report = request.app.state.analysis.run(spec, limit)
+        report = analysis_runner(request.app).run(spec, limit)
     except AnalysisBusy as exc:
         raise Problem(503, f"{exc}; retry later", "spec", retry_after=max(1, round(limit))) from None
     except AnalysisTimedOut as exc:

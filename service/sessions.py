@@ -225,7 +225,8 @@ class Sessions:
             return state.to_dict(), encode_response(response)
 
         with self._write_lock:
-            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded, digest=digest)
+            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded,
+                                                        digest=digest)
         metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
         if not replayed:
             metrics.OBSERVATIONS.inc(len(rows))

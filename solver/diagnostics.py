@@ -29,6 +29,14 @@ LEAK_RATE = 0.012
 RIPPLE_WEIGHT = 10.0
 
 
+# A Fokker–Planck flow with σ = 0 on ∂B_R never creates probability mass; the truncated basis adds
+# a little of its own (measured: ≤ 1.3e-4 a step on the bundled examples, 2% on a coarse 2-D basis
+# of 20 functions).  A step that multiplies the mass by more than 1 + MASS_GROWTH_LIMIT is an
+# unstable discretisation (drift -x**64 on a radius-7 ball: ×1e34), checked online here and at
+# precompute by solver.offline.check_stable.
+MASS_GROWTH_LIMIT = 0.25
+
+
 class Diagnostics:
     """The checks of one engine (its nodes, weights, projector and Fokker–Planck propagator)."""
 
@@ -42,7 +50,7 @@ class Diagnostics:
         self._kept = np.vstack([projector.T @ row for row in kept])
         self.leak_limit = LEAK_RATE * model.dt
 
-    def first_implausible(self, sigma, masses, cov) -> tuple[int | None, str | None]:
+    def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:
         """The first step whose density cannot be right, and why (None, None if every step is fine).
 
         * mostly within one element of the boundary: the Dirichlet condition forces σ = 0 on ∂B_R,
@@ -60,9 +68,23 @@ class Diagnostics:
         rim = np.zeros(len(masses), dtype=bool)
         if self._rim.size:
             rim = (sigma[:, self._rim] * self.weights[self._rim]).sum(axis=1) > RIM_FRACTION * masses
-        if not (rim.any() or unresolved.any() or leaking.any()):
+        # growth: ∫σ_k for a unit-mass σ_{k-1}, the update factor divided by its maximum (None: unchecked)
+        growing = np.zeros(len(masses), dtype=bool)
+        if growth is not None:
+            growing = ~(growth <= 1.0 + MASS_GROWTH_LIMIT)
+        if not (rim.any() or unresolved.any() or leaking.any() or growing.any()):
             return None, None
-        bad = int(np.argmax(rim | unresolved | leaking))
+        bad = int(np.argmax(rim | unresolved | leaking | growing))
+        if growing[bad]:
+            # ∫σ_k for σ_{k-1} of mass 1 is ∫ e^{log e_k − max log e_k} e^{dt L}σ_{k-1} ≤ 1:
+            # more means the propagator creates mass, and the log-likelihood gains more than the
+            # observation noise allows (its increment is at most max_x log e_k)
+            factor = growth[bad]
+            return bad, (f"the probability mass grew by a factor {factor:.3g} in one step of dt = "
+                         f"{self.dt:g} (a stable flow never creates mass, and the observation factor is at "
+                         "most its maximum): the model is numerically unstable, its log-likelihood "
+                         "meaningless; the drift is too stiff for this mesh and dt (shrink domain.radius, "
+                         "lower discretization.dt or raise discretization.substeps)")
         if leaking[bad] and not unresolved[bad]:
             return bad, (f"probability mass leaks through the boundary of the domain ball ({leak[bad]:.2g} "
                          f"of it per step of dt = {self.dt:g}, limit {self.leak_limit:.2g}): the "

@@ -169,9 +169,12 @@ class YauYauFilter(ChunkedFilter):
         missing = np.isnan(dy[:, 0])
         log_factor, top = self._update_exponents(dy, missing)
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
+        top_before = top.copy()  # _rescue may shift top[k]: the growth is relative to the factor's maximum
         sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
         mean, cov, mode = self._moments(sigma[:done], masses[:done])
-        bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov)
+        with np.errstate(over="ignore", invalid="ignore"):
+            growth = masses[:done] * np.exp(top[:done] - top_before[:done])
+        bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
         if bad is not None:
             done, reason = bad, why
             carried = self._carried_after(sigma, masses, bad, initial)

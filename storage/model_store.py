@@ -317,7 +317,8 @@ class ModelStore:
             size = path.stat().st_size
             with h5py.File(path, "r") as h5:
                 _check_version(h5, mid)
-                spec = json.loads(_text_attr(h5, "spec"))
+                spec_text = _text_attr(h5, "spec")
+                spec = json.loads(spec_text)
                 created = _text_attr(h5, "created")
                 basis_shape = _basis_shape(h5)
                 attrs = json.loads(_text_attr(h5, "attrs"))
@@ -325,6 +326,9 @@ class ModelStore:
             return ModelSummary(id=mid, error="deleted while listing")
         except (OSError, KeyError, ValueError, TypeError, RuntimeError, StoreError) as exc:
             return ModelSummary(id=mid, file_size=_size_or_zero(path), error=_short(exc))
+        if model_id(spec_text) != mid:  # a file renamed or swapped: its spec hashes to another id
+            return ModelSummary(id=mid, file_size=size, error=f"the file holds model {model_id(spec_text)}, "
+                                                              f"not {mid} (renamed or swapped); not served")
         return _summary_from_spec(mid, spec, created, size, basis_shape, attrs)
 
 

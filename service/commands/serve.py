@@ -45,6 +45,29 @@ def _settings(args):
         raise InputError(".".join(str(p) for p in err["loc"]) or "settings", err["msg"]) from None
 
 
+def _check_session_db(settings) -> None:
+    """Open (create) the session database once before any worker starts, so that a read-only store
+    directory is one clear message, not a traceback from every worker."""
+    from yauyau.storage.errors import StoreError
+    from yauyau.storage.session_store import SqliteSessionStore
+
+    path = settings.session_path()
+    hint = ("pass --session-db PATH (env YAUYAU_SESSION_DB) on a writable disk"
+            if settings.session_db is None else "choose a writable --session-db")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists() and not os.access(path, os.W_OK):
+            raise PermissionError(f"{path} is read-only")
+        if not os.access(path.parent, os.W_OK):
+            raise PermissionError(f"directory {path.parent} is read-only")
+        SqliteSessionStore(path, synchronous=settings.session_synchronous).close()
+    except (OSError, StoreError) as exc:
+        reason = exc.message if isinstance(exc, StoreError) else str(exc)
+        raise StoreError("session_db", f"cannot open the session database {path} ({reason}); the "
+                                       f"sessions need a writable file next to the models by default: {hint}"
+                         ) from None
+
+
 def run(args):
     import uvicorn
     from yauyau.service.protocol import MAX_HEAD_BYTES, ServiceProtocol
@@ -53,6 +76,7 @@ def run(args):
     settings = _settings(args)
     if not settings.store.is_dir():
         raise StoreError("store", f"no model store {settings.store} (run `yauyau precompute` first)")
+    _check_session_db(settings)
     if settings.workers > 1 and settings.metrics_dir is None:
         # prometheus multiprocess mode: must be set before any worker imports prometheus_client
         settings.metrics_dir = tempfile.mkdtemp(prefix="yauyau-metrics-")
