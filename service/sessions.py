@@ -195,7 +195,10 @@ class Sessions:
     def create(self, model_id: str, prior: Any | None, method: str | None) -> dict[str, Any]:
         loaded = self.registry.get(model_id)
         filt = loaded.filter(method)
-        state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
+        try:
+            state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
+        except SpecError as exc:  # the prior of the request, not the spec's: name it so
+            raise (_as_prior_error(exc) if prior is not None else exc) from None
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
                     "estimate": estimate}

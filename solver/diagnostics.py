@@ -35,6 +35,7 @@ RIPPLE_WEIGHT = 10.0
 # unstable discretisation (drift -x**64 on a radius-7 ball: ×1e34), checked online here and at
 # precompute by solver.offline.check_stable.
 MASS_GROWTH_LIMIT = 0.25
+OUTLIER_SIGMAS = 5.0  # an increment this many standard deviations off is named as the cause
 
 
 class Diagnostics:
@@ -49,6 +50,9 @@ class Diagnostics:
         kept = [np.asarray(m, dtype=float).T @ weights for m in (offline.basis, offline.propagator_fp)]
         self._kept = np.vstack([projector.T @ row for row in kept])
         self.leak_limit = LEAK_RATE * model.dt
+        with np.errstate(all="ignore"):
+            self._h_nodes = np.asarray(model.h(nodes), dtype=float)  # (Q, m)
+        self._r_diag = np.diag(model.R).astype(float)
 
     def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:
         """The first step whose density cannot be right, and why (None, None if every step is fine).
@@ -95,6 +99,24 @@ class Diagnostics:
                          "data are incompatible with the model on this ball (enlarge domain.radius?)")
         return bad, ("the covariance is not positive: the basis cannot resolve the conditional density "
                      "(refine discretization.basis / mesh)")
+
+    def explain_outlier(self, before: np.ndarray, dy: np.ndarray, step: int, why: str) -> str:
+        """``why`` prefixed by the size of the increment's surprise when it is an outlier: |Δy − E[h]dt|
+        in standard deviations √(R_jj dt), E[h] over the nodal density before the step (a glitch
+        collapses the density or throws it at the wall, which is not the basis' or the ball's fault)."""
+        weights = self.weights * np.clip(np.nan_to_num(before), 0.0, None)
+        total = weights.sum()
+        if not total > 0 or not np.all(np.isfinite(self._h_nodes)):
+            return why
+        expected = weights @ self._h_nodes / total
+        z = np.abs(dy - expected * self.dt) / np.sqrt(self._r_diag * self.dt)
+        worst = float(np.max(z))
+        if not worst > OUTLIER_SIGMAS:
+            return why
+        j = int(np.argmax(z))
+        return (f"the increment of step {step} is an outlier: observation {j} is {worst:.3g} standard "
+                f"deviations from what the model predicts, and the filter cannot follow it ({why}); if it is a sensor "
+                "glitch, send that row as missing (null)")
 
     def boundary_leak(self, sigma: np.ndarray, masses: np.ndarray) -> np.ndarray:
         """Per step, the fraction of ∫σ_k that projection + the next Fokker–Planck flow lose, beyond noise.

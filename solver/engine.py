@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -48,7 +49,7 @@ from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments, marginal_by_quadrature
 from .model import Model
-from .spec import DensityPrior
+from .spec import DensityPrior, GaussianPrior, MixturePrior
 
 FORMS = ("stable", "literal")
 PRECISIONS = ("double", "single")
@@ -121,6 +122,7 @@ class YauYauFilter(ChunkedFilter):
     def initial_state(self, prior: Any | None = None) -> YauYauState:
         """σ(0) = σ0: the prior (the model's, or ``prior``, a spec prior or its dict) on the basis."""
         model = self.model if prior is None else _override_model(self.model, prior)
+        self._check_resolved(model.spec.initial)
         log_prior = model.log_prior(self.nodes)
         finite = np.isfinite(log_prior)
         if not finite.any():
@@ -142,6 +144,36 @@ class YauYauFilter(ChunkedFilter):
                         mode=mode[0])
         return YauYauState(coefficients=projected[: self.N].astype(float), mass=projected.item(self.N),
                            step=0, t=0.0, loglik=0.0, last=last, form=self.form, precision=self.precision)
+
+    @cached_property
+    def node_spacing(self) -> float:
+        """The median distance from a node to its nearest neighbour: the finest feature the nodes see."""
+        from scipy.spatial import cKDTree
+
+        if len(self.nodes) < 2:
+            return math.inf
+        distances, _ = cKDTree(self.nodes).query(self.nodes, k=2)
+        return float(np.median(distances[:, 1]))
+
+    def _check_resolved(self, prior: Any) -> None:
+        """A Gaussian (or mixture component) narrower than the node spacing cannot be represented: its
+        nodal values miss its mass and its covariance comes out ~0.  Refuse it, saying what to change."""
+        if isinstance(prior, GaussianPrior):
+            parts = [("initial.cov", prior.cov)]
+        elif isinstance(prior, MixturePrior):
+            parts = [(f"initial.covs[{i}]", c) for i, (w, c) in enumerate(zip(prior.weights, prior.covs,
+                                                                               strict=True)) if w > 0]
+        else:
+            return
+        h = self.node_spacing
+        for field, cov in parts:
+            sd = math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(cov, dtype=float)).min()), 0.0))
+            if sd < h:
+                raise SpecError(field, (
+                    f"the prior is narrower than the mesh resolves: its smallest standard deviation {sd:.3g} "
+                    f"is below the node spacing {h:.3g} (domain.radius {self.model.radius:g}, {len(self.nodes)} "
+                    f"nodes); widen it to a variance of at least {h * h:.3g}, or resolve it: shrink "
+                    "domain.radius or raise discretization.mesh and discretization.basis"))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
@@ -175,6 +207,10 @@ class YauYauFilter(ChunkedFilter):
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
+        if bad is not None and not missing[bad]:
+            basis = np.asarray(self.offline.basis)
+            before = sigma[bad - 1] if bad > 0 else basis @ state.density_coefficients
+            why = self._diagnostics.explain_outlier(before, dy[bad], int(steps[bad]), why)
         if bad is not None:
             done, reason = bad, why
             carried = self._carried_after(sigma, masses, bad, initial)
