@@ -171,8 +171,8 @@ class YauYauFilter(ChunkedFilter):
             if sd < h:
                 raise SpecError(field, (
                     f"the prior is narrower than the mesh resolves: its smallest standard deviation {sd:.3g} "
-                    f"is below the node spacing {h:.3g} (domain.radius {self.model.radius:g}, {len(self.nodes)} "
-                    f"nodes); widen it to a variance of at least {h * h:.3g}, or resolve it: shrink "
+                    f"is below the node spacing {h:.3g} (domain.radius {self.model.radius:g}, "
+                    f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h:.3g}, or resolve it: shrink "
                     "domain.radius or raise discretization.mesh and discretization.basis"))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
