@@ -115,8 +115,8 @@ class Diagnostics:
             return why
         j = int(np.argmax(z))
         return (f"the increment of step {step} is an outlier: observation {j} is {worst:.3g} standard "
-                f"deviations from what the model predicts, and the filter cannot follow it ({why}); if it is a "
-                "sensor glitch, send that row as missing (null)")
+                f"deviations from what the model predicts, and the filter cannot follow it ({why}); if it "
+                "is a sensor glitch, send that row as missing (null)")
 
     def boundary_leak(self, sigma: np.ndarray, masses: np.ndarray) -> np.ndarray:
         """Per step, the fraction of ∫σ_k that projection + the next Fokker–Planck flow lose, beyond noise.
