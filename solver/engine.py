@@ -172,8 +172,8 @@ class YauYauFilter(ChunkedFilter):
                 raise SpecError(field, (
                     f"the prior is narrower than the mesh resolves: its smallest standard deviation {sd:.3g} "
                     f"is below the node spacing {h:.3g} (domain.radius {self.model.radius:g}, "
-                    f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h:.3g}, or resolve it: "
-                    "shrink domain.radius or raise discretization.mesh and discretization.basis"))
+                    f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h:.3g}, or "
+                    "resolve it: shrink domain.radius or raise discretization.mesh and discretization.basis"))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
