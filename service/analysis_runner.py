@@ -47,8 +47,9 @@ def _child(conn, spec: dict[str, Any], time_limit: float) -> None:
 class AnalysisRunner:
     """Analyses in killable child processes, ``concurrency`` at a time."""
 
-    def __init__(self, concurrency: int = 1, grace: float = 2.0):
+    def __init__(self, concurrency: int = 1, grace: float = 2.0, target=None):
         self.grace = grace
+        self._target = target or _child  # (conn, spec, time_limit) -> None, run in the child
         self._slots = threading.BoundedSemaphore(concurrency)
         self._context = multiprocessing.get_context("forkserver")
         self._context.set_forkserver_preload(_PRELOAD)
@@ -64,7 +65,7 @@ class AnalysisRunner:
 
     def _run(self, spec: dict[str, Any], time_limit: float) -> dict[str, Any]:
         receive, send = self._context.Pipe(duplex=False)
-        process = self._context.Process(target=_child, args=(send, spec, time_limit), daemon=True,
+        process = self._context.Process(target=self._target, args=(send, spec, time_limit), daemon=True,
                                         name="yauyau-analysis")
         process.start()
         send.close()
@@ -96,5 +97,7 @@ def analysis_runner(app) -> AnalysisRunner:
     with _RUNNER_LOCK:
         runner = getattr(app.state, "analysis", None)
         if runner is None:
-            runner = app.state.analysis = AnalysisRunner(app.state.settings.analyze_concurrency)
+            settings = app.state.settings
+            runner = AnalysisRunner(settings.analyze_concurrency, settings.analyze_grace)
+            app.state.analysis = runner
         return runner

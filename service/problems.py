@@ -81,6 +81,18 @@ def _validation_problem(exc: RequestValidationError) -> tuple[int, str, str]:
     return 422, field_path(tuple(err.get("loc", ()))), msg
 
 
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method some route takes at this path (the Allow header of a 405)."""
+    from starlette.routing import Match
+
+    allowed = []
+    for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE"):
+        scope = {**request.scope, "method": method}
+        if any(route.matches(scope)[0] == Match.FULL for route in request.app.routes):
+            allowed.append(method)
+    return allowed
+
+
 def install_handlers(app: FastAPI) -> None:
     """Map every error to a problem+json response."""
 
@@ -120,8 +132,10 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> Response:
         detail = exc.detail if isinstance(exc.detail, str) else _TITLES.get(exc.status_code, "error")
-        return problem_response(exc.status_code, detail, instance=request.url.path,
-                                headers=dict(exc.headers or {}))  # e.g. Allow on a 405
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:  # Starlette names the first matching route's methods only
+            headers["Allow"] = ", ".join(_allowed_methods(request))
+        return problem_response(exc.status_code, detail, instance=request.url.path, headers=headers)
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> Response:

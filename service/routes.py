@@ -184,7 +184,8 @@ def analyze(settings: SettingsDep, request: Request,
             spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
                                                  examples=[_EXAMPLE_SPEC])]) -> Response:
     """The estimation-algebra analysis, in a process of its own that is killed at the time limit
-    (YAUYAU_ANALYZE_TIME_LIMIT) plus 2 s: a request never takes longer, whatever the spec."""
+    (YAUYAU_ANALYZE_TIME_LIMIT) plus YAUYAU_ANALYZE_GRACE (2 s): a request never takes longer,
+    whatever the spec."""
     from yauyau.solver.model import compile_model
     from yauyau.solver.spec import spec_from_dict
 

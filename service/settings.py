@@ -32,9 +32,11 @@ class Settings(BaseSettings):
     analyze_time_limit: float = Field(
         10.0, gt=0, le=3600, description="seconds one POST /v1/analyze may compute (the report then says "
                                          "which bound stopped the analysis)")
+    analyze_grace: float = Field(
+        2.0, gt=0, le=60, description="seconds past analyze_time_limit before the analysis process is killed")
     analyze_concurrency: int = Field(
         1, ge=1, le=64, description="analyses one worker runs at once, each in a process of its own that is "
-                                    "killed at analyze_time_limit + 2 s")
+                                    "killed at analyze_time_limit + analyze_grace")
     events_poll: float = Field(
         0.2, gt=0, le=60, description="seconds between looks at the session store for /events "
                                       "(the live page)")

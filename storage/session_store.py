@@ -379,7 +379,8 @@ class SqliteSessionStore:
         """Give free pages back to the file system (all of them when ``pages`` is 0); the file
         shrinks at the next checkpoint of the write-ahead log."""
         try:
-            self._connection().execute(f"PRAGMA incremental_vacuum({int(pages)})").fetchall()
+            # executescript steps the pragma to completion (execute frees one page per step taken)
+            self._connection().executescript(f"PRAGMA incremental_vacuum({int(pages)});")
         except sqlite3.Error as exc:
             raise self._error(exc, "cannot reclaim free pages") from None
 

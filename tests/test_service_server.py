@@ -31,14 +31,14 @@ CHUNKS = 8
 class Server:
     """`python -m yauyau.service.cli serve` in its own process group (SIGKILL takes the workers too)."""
 
-    def __init__(self, store, db, workers=1):
+    def __init__(self, store, db, workers=1, env=None):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
                "--session-db", str(db), "--port", str(self.port), "--workers", str(workers),
                "--log-level", "warning"]
         self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE)
+                                     stderr=subprocess.PIPE, env={**os.environ, **(env or {})})
         self._wait_ready()
 
     def _wait_ready(self, timeout=90.0):
@@ -55,13 +55,16 @@ class Server:
         self.kill()
         raise RuntimeError("server did not become ready")
 
-    def kill(self):
+    def kill(self) -> str:
+        """SIGKILL the process group; what the server wrote to stderr."""
         try:
             os.killpg(self.proc.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
         self.proc.wait(timeout=30)
+        err = self.proc.stderr.read().decode(errors="replace")
         self.proc.stderr.close()
+        return err
 
 
 def _rows(block):
