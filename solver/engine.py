@@ -156,7 +156,7 @@ class YauYauFilter(ChunkedFilter):
         return float(np.median(distances[:, 1]))
 
     def _check_resolved(self, prior: Any) -> None:
-        """A Gaussian (or mixture component) narrower than the node spacing cannot be represented: its
+        """A Gaussian (or mixture component) narrower than half the node spacing cannot be represented: its
         nodal values miss its mass and its covariance comes out ~0.  Refuse it, saying what to change."""
         if isinstance(prior, GaussianPrior):
             parts = [("initial.cov", prior.cov)]
@@ -168,11 +168,11 @@ class YauYauFilter(ChunkedFilter):
         h = self.node_spacing
         for field, cov in parts:
             sd = math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(cov, dtype=float)).min()), 0.0))
-            if sd < h:
+            if sd < h / 2:  # two standard deviations between nodes: its nodal values miss the peak
                 raise SpecError(field, (
                     f"the prior is narrower than the mesh resolves: its smallest standard deviation {sd:.3g} "
-                    f"is below the node spacing {h:.3g} (domain.radius {self.model.radius:g}, "
-                    f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h:.3g}, or "
+                    f"is below half the node spacing {h:.3g} (domain.radius {self.model.radius:g}, "
+                    f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h / 4:.3g}, or "
                     "resolve it: shrink domain.radius or raise discretization.mesh and discretization.basis"))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
@@ -207,10 +207,10 @@ class YauYauFilter(ChunkedFilter):
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
-        if bad is not None and not missing[bad]:
-            basis = np.asarray(self.offline.basis)
-            before = sigma[bad - 1] if bad > 0 else basis @ state.density_coefficients
-            why = self._diagnostics.explain_outlier(before, dy[bad], int(steps[bad]), why)
+        if bad is not None:
+            why = self._explained(sigma, state, dy, steps, missing, bad, why)
+        elif reason is not None:  # the hot loop stopped at step `done` (no positive mass, overflow)
+            reason = self._explained(sigma, state, dy, steps, missing, done, reason)
         if bad is not None:
             done, reason = bad, why
             carried = self._carried_after(sigma, masses, bad, initial)
@@ -232,6 +232,13 @@ class YauYauFilter(ChunkedFilter):
                                 reason=reason, form=self.form)
         result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
         return new_state, result
+
+    def _explained(self, sigma, state, dy, steps, missing, k: int, why: str) -> str:
+        """``why`` the filter failed at row k, led by the outlier it met there, if it was one."""
+        if missing[k]:
+            return why
+        before = sigma[k - 1] if k > 0 else np.asarray(self.offline.basis) @ state.density_coefficients
+        return self._diagnostics.explain_outlier(before, dy[k], int(steps[k]), why)
 
     def _update_exponents(self, dy: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log e_k = hᵀR⁻¹Δy_k − ½hᵀR⁻¹h·dt at the nodes, minus its row maximum (returned apart).

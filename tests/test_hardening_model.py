@@ -151,3 +151,76 @@ def test_strict_names_characters_and_types(over, field, words):
     with pytest.raises(SpecError) as err:
         spec_from_dict(spec(**over)).numeric()
     assert err.value.field == field and words in err.value.message, str(err.value)
+
+
+# -- 8. unstable discretisations -------------------------------------------------------------
+def test_unstable_propagator_is_refused_at_precompute():
+    doc = spec(drift=["-x**64"], domain={"radius": 7.0})
+    with pytest.raises(SpecError) as err:
+        precompute(compile_model(spec_from_dict(doc)))
+    assert err.value.field == "discretization" and "unstable" in err.value.message
+
+
+def test_unstable_propagator_is_flagged_online(monkeypatch):
+    """A model stored before the precompute check existed: online, the first step already creates
+    ~1e34 times the mass; the log-likelihood may not grow by more than the update factor allows."""
+    import yauyau.solver.offline as offline
+
+    doc = spec(drift=["-x**64"], domain={"radius": 7.0})
+    model = compile_model(spec_from_dict(doc))
+    monkeypatch.setattr(offline, "check_stable", lambda *args: None)
+    engine = YauYauFilter(model, offline.precompute(model))
+    truth = compile_model(spec_from_dict(spec(domain={"radius": 7.0})))
+    dy = simulate(truth, 50, np.random.default_rng(0)).increments
+    _, estimates = engine.run(engine.initial_state(), dy)
+    assert estimates[0].degenerate and "grew by a factor" in estimates[0].reason
+    assert all(e.loglik < 10 for e in estimates)  # was +79 a step
+
+
+def test_stable_models_are_not_flagged():
+    cubic = spec(drift=["-x**3"], observation=["x**2"], discretization={"dt": 0.01, "basis": 48})
+    for doc in (spec(), cubic):
+        model = compile_model(spec_from_dict(doc))
+        engine = YauYauFilter(model, precompute(model))
+        dy = simulate(model, 300, np.random.default_rng(2)).increments
+        _, estimates = engine.run(engine.initial_state(), dy)
+        assert not any("grew" in (e.reason or "") for e in estimates)
+
+
+# -- 9. messages that say what is wrong ------------------------------------------------------
+@pytest.mark.parametrize("cov", [1e-4, 1e-11])
+def test_narrow_prior_is_refused_naming_the_resolution(cov):
+    doc = spec(initial={"kind": "gaussian", "mean": [0.0], "cov": [[cov]]}, domain={"radius": 7.0},
+               discretization={"dt": 0.01, "basis": 32})
+    model = compile_model(spec_from_dict(doc))
+    engine = YauYauFilter(model, precompute(model))
+    with pytest.raises(SpecError) as err:
+        engine.initial_state()
+    assert err.value.field == "initial.cov"
+    assert "narrower than the mesh" in err.value.message and "enlarge" not in err.value.message
+    h = engine.node_spacing
+    wide = spec(initial={"kind": "gaussian", "mean": [0.0], "cov": [[h * h]]}, domain={"radius": 7.0},
+                discretization={"dt": 0.01, "basis": 32})
+    assert YauYauFilter(compile_model(spec_from_dict(wide)), precompute(model)).initial_state().mass > 0
+
+
+def test_outlier_is_named_as_the_cause():
+    """A 10-sigma glitch on the cubic sensor degenerates the filter; the reason names the increment
+    and its size (the innovation |dy - E[h]dt| / sqrt(R dt), computed here independently)."""
+    from conftest import EXAMPLES
+    from yauyau.solver import load_spec
+
+    model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
+    engine = YauYauFilter(model, precompute(model))
+    dy = simulate(model, 100, np.random.default_rng(1)).increments
+    state, _ = engine.run(engine.initial_state(), dy[:50])
+    x = np.linspace(-7, 7, 4001)[:, None]
+    before = np.clip(engine.density(state, x), 0, None)
+    expected = np.trapezoid(before * x[:, 0] ** 3, x[:, 0]) / np.trapezoid(before, x[:, 0])
+    glitch = dy[50:].copy()
+    glitch[0] = expected * model.dt + 10 * np.sqrt(model.dt)
+    _, estimates = engine.run(state, glitch)
+    reason = estimates[0].reason or ""
+    assert "step 51 is an outlier" in reason and "send that row as missing" in reason
+    sigmas = float(reason.split("observation 0 is ")[1].split(" ")[0])
+    assert sigmas == pytest.approx(10.0, rel=0.05)

@@ -390,17 +390,20 @@ def test_models_listing_marks_a_swapped_file(tmp_path):
 
 
 # -- 11. storage growth --------------------------------------------------------------------------
+SESSIONS = 300  # docs/reliability.md's figures: SESSIONS = 1000 (88.5 MB, 44.9 MB after deleting half)
+
+
 def test_retained_responses_are_bounded_and_deletes_give_space_back(tmp_path):
-    """1 000 sessions x 10 chunks of ~8.3 KB responses (100 observations each): before, 256 kept per
-    session and deleting half left the file at 96.4 MB; now at most 16 and 256 KiB per session, and
-    the pages of deleted sessions go back to the file system."""
+    """SESSIONS sessions x 10 chunks of ~8.4 KB responses (100 observations each): before, 256 kept
+    per session and deleting half of 1 000 left the file at 96.4 MB; now at most 16 and 256 KiB per
+    session, and the pages of deleted sessions go back to the file system."""
     from yauyau.storage.session_store import SqliteSessionStore
 
     db = tmp_path / "s.sqlite3"
     store = SqliteSessionStore(db)
     response = "{" + '"estimates": [' + ",".join(['{"step": 1, "mean": [0.123456789012]}'] * 220) + "]}"
     assert 8000 < len(response) < 8600
-    sessions = [store.create("m", "yau-yau", {"v": 0}) for _ in range(300)]
+    sessions = [store.create("m", "yau-yau", {"v": 0}) for _ in range(SESSIONS)]
     for sid in sessions:
         for seq in range(10):
             store.apply_chunk(sid, seq, lambda state: (state, response))
@@ -417,5 +420,6 @@ def test_retained_responses_are_bounded_and_deletes_give_space_back(tmp_path):
         store.delete(sid)
     db_.execute("PRAGMA wal_checkpoint(TRUNCATE)")
     half = db.stat().st_size
+    print(f"{SESSIONS} sessions x 10 chunks: {full / 1e6:.1f} MB, after deleting half {half / 1e6:.1f} MB")
     assert half < 0.6 * full, (full, half)
     assert store.stored_response(sessions[1], 9) == json.loads(response)
