@@ -41,7 +41,8 @@ def _round(tree: Path) -> float:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--against", default="9c2939f", help="the earlier revision (default: before hardening)")
+    parser.add_argument("--against", default="9c2939f",
+                        help="the earlier revision (default: before hardening)")
     parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
