@@ -142,7 +142,7 @@ def request_digest(rows: list[list[float] | None], extras: "Extras | None") -> s
     """A digest of what a chunk asks (its increments and extras): a re-sent seq must carry the same."""
     quantiles = None if extras is None or extras.quantiles is None else list(map(float, extras.quantiles))
     mode = bool(extras.mode) if extras is not None else False
-    payload = orjson.dumps([rows, quantiles, mode], option=orjson.OPT_SERIALIZE_NUMPY)
+    payload = orjson.dumps([rows, quantiles, mode])
     return hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 

@@ -42,7 +42,7 @@ class Diagnostics:
     """The checks of one engine (its nodes, weights, projector and Fokker–Planck propagator)."""
 
     def __init__(self, model: Any, nodes: np.ndarray, weights: np.ndarray, projector: np.ndarray,
-                 offline: Any):
+                 offline: Any, h_nodes: np.ndarray):
         self.dt = model.dt
         self.weights = weights
         self._rim = rim_nodes(nodes, model.center, model.radius)
@@ -50,8 +50,7 @@ class Diagnostics:
         kept = [np.asarray(m, dtype=float).T @ weights for m in (offline.basis, offline.propagator_fp)]
         self._kept = np.vstack([projector.T @ row for row in kept])
         self.leak_limit = LEAK_RATE * model.dt
-        with np.errstate(all="ignore"):
-            self._h_nodes = np.asarray(model.h(nodes), dtype=float)  # (Q, m)
+        self._h_nodes = np.asarray(h_nodes, dtype=float)  # (Q, m), the engine's own evaluation
         self._r_diag = np.diag(model.R).astype(float)
 
     def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:

@@ -116,7 +116,7 @@ class YauYauFilter(ChunkedFilter):
         w, x = self.weights, self.nodes
         self._features = np.vstack([w * x[:, i] for i in range(model.n)]
                                    + [w * x[:, i] * x[:, j] for i, j in self._pairs])
-        self._diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline)
+        self._diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline, h_nodes)
 
     # -- states ------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauYauState:

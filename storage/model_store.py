@@ -326,9 +326,10 @@ class ModelStore:
             return ModelSummary(id=mid, error="deleted while listing")
         except (OSError, KeyError, ValueError, TypeError, RuntimeError, StoreError) as exc:
             return ModelSummary(id=mid, file_size=_size_or_zero(path), error=_short(exc))
-        if model_id(spec_text) != mid:  # a file renamed or swapped: its spec hashes to another id
-            return ModelSummary(id=mid, file_size=size, error=f"the file holds model {model_id(spec_text)}, "
-                                                              f"not {mid} (renamed or swapped); not served")
+        held = model_id(spec_text)
+        if held != mid:  # a file renamed or swapped: its spec hashes to another id
+            swapped = f"the file holds model {held}, not {mid} (renamed or swapped); not served"
+            return ModelSummary(id=mid, file_size=size, error=swapped)
         return _summary_from_spec(mid, spec, created, size, basis_shape, attrs)
 
 

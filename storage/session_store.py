@@ -293,20 +293,18 @@ class SqliteSessionStore:
     def health(self, deep: bool = False) -> str | None:
         """None when the store is usable, else why not.  ``deep`` adds SQLite's quick_check on a
         connection of its own (reads every page: for /readyz, not per request)."""
-        if self._failure is None:
-            problem = self._file_problem()
-            if problem is None and deep:
-                problem = self._quick_check()
-            if problem is None:
-                try:
-                    with self._transaction(write=False) as db:  # the generation must not have gone back
-                        self._check_generation(db)
-                except Unavailable:
-                    pass
-                except StoreError as exc:
-                    return exc.message
-            else:
-                self.fail(problem)
+        if self._failure is not None:
+            return self._failure
+        problem = self._file_problem() or (self._quick_check() if deep else None)
+        if problem is not None:
+            self.fail(problem)
+            return self._failure
+        try:
+            self._check_generation(self._connection())  # a read: the generation must not have gone back
+        except Unavailable:
+            pass  # marked failed: reported below
+        except sqlite3.Error as exc:
+            return self._error(exc, "cannot read the store's generation").message
         return self._failure
 
     def _quick_check(self) -> str | None:
