@@ -61,7 +61,8 @@ def load_model(store: ModelStore, model_id: str) -> LoadedModel:
     stored = load_stored(store, model_id)
     spec_doc = json.loads(stored.model.spec.canonical_json())
     loaded = LoadedModel(id=model_id, spec=spec_doc, model=stored.model, offline=stored.offline,
-                         basis=int(stored.offline.size), method=stored.method)
+                         basis=0 if stored.offline is None else int(stored.offline.size),
+                         method=stored.method)
     loaded.filter()  # the default filter now, not inside the first chunk
     return loaded
 

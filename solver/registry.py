@@ -26,6 +26,9 @@ REGISTRY: dict[str, Method] = {m.name: m for m in (
            "exact for affine f and h with a Gaussian prior"),
     Method("yau-hu", "yauyau.solver.exact.yau_hu", "YauHuFilter", False,
            "exact for Yau filtering systems: Kolmogorov equation and ODEs (Yau & Lai, 2003, Theorem 3.1)"),
+    Method("yau-jia", "yauyau.solver.exact.yau_jia", "YauJiaFilter", False,
+           "affine-plus-gradient drift, nonlinear h with quadratic V: Gaussian-mixture ODE filter, no mesh "
+           "(Yau & Jia, 2005, Theorem 4.2)"),
     Method("wei-norman", "yauyau.solver.exact.wei_norman", "WeiNormanFilter", True,
            "exact for the finite-dimensional estimation algebras of Shi et al. (2017), Theorem 1"),
 )}

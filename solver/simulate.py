@@ -80,13 +80,23 @@ def _sample_density_on_grid(model: Model, count: int, rng: np.random.Generator) 
     return points[idx] + width * (rng.uniform(size=(count, n)) - 0.5)
 
 
+def noise_factor(a: np.ndarray) -> np.ndarray:
+    """G with GGᵀ = a: the Cholesky factor, or for a semi-definite a (noise on some coordinates only)
+    the symmetric square root U√ΛUᵀ."""
+    try:
+        return np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        lam, U = np.linalg.eigh(a)
+        return U * np.sqrt(np.clip(lam, 0.0, None))
+
+
 def simulate_paths(model: Model, steps: int, rng: np.random.Generator, substeps: int = 10,
                    paths: int = 1) -> Simulation:
     """``paths`` independent paths at once: states (paths, K+1, n), increments (paths, K, m)."""
     _check_counts(steps, substeps, paths)
     dt = model.dt
     delta = dt / substeps
-    chol_a = np.linalg.cholesky(model.a)
+    chol_a = noise_factor(model.a)
     chol_r = np.linalg.cholesky(model.R)
     x = sample_prior(model, paths, rng)
     states = np.empty((paths, steps + 1, model.n))

@@ -2,7 +2,9 @@
 
     dx = f(x) dt + G dv,   dy = h(x) dt + dw,   E[dv dvᵀ] = Q dt,  E[dw dwᵀ] = R dt,
 
-with x ∈ ℝⁿ (n = 1, 2, 3) and y ∈ ℝᵐ.  ``diffusion`` is a = G Q Gᵀ (n×n, SPD) and
+with x ∈ ℝⁿ (n = 1 … 6; the general engine's finite elements up to 3) and y ∈ ℝᵐ.  ``diffusion`` is
+a = G Q Gᵀ (n×n, symmetric positive semi-definite: zero rows for noise-free coordinates, which only
+the mesh-free methods take) and
 ``observation_noise`` is R (m×m, SPD).
 
 Two parts, one document.  The *problem* (:class:`ProblemSpec`: state, drift, observation, noises,
@@ -55,16 +57,21 @@ def _finite(values: Any, what: str) -> None:
         raise ValueError(f"{what} must be finite numbers")
 
 
-def check_spd(matrix: list[list[float]], size: int, what: str) -> None:
-    """Raise ValueError unless ``matrix`` is a symmetric positive definite size×size matrix."""
+def check_spd(matrix: list[list[float]], size: int, what: str, semi: bool = False) -> None:
+    """Raise ValueError unless ``matrix`` is a symmetric positive definite size×size matrix
+    (``semi``: positive semi-definite and not zero, as a diffusion with noise on some coordinates)."""
     arr = np.asarray(matrix, dtype=float)
     if arr.shape != (size, size):
         raise ValueError(f"{what} must be {size}x{size}, got shape {arr.shape}")
     _finite(arr, what)
     if not np.allclose(arr, arr.T, rtol=1e-12, atol=1e-12):
         raise ValueError(f"{what} must be symmetric")
-    if np.linalg.eigvalsh(arr).min() <= 1e-12 * max(1.0, np.abs(arr).max()):
-        raise ValueError(f"{what} must be positive definite")
+    low, scale = np.linalg.eigvalsh(arr).min(), max(1.0, np.abs(arr).max())
+    if semi and low >= -1e-12 * scale and np.abs(arr).max() > 0:
+        return
+    if low <= 1e-12 * scale:
+        raise ValueError(f"{what} must be positive {'semi-' if semi else ''}definite"
+                         + (" and not zero" if semi else ""))
 
 
 class GaussianPrior(_Strict):
@@ -148,7 +155,7 @@ class ModelSpec(_Strict):
     """A problem and its discretisation, validated together (one flat document: the file format)."""
 
     name: str = Field(min_length=1, max_length=100)
-    state: list[str] = Field(min_length=1, max_length=3)
+    state: list[str] = Field(min_length=1, max_length=6)  # the engine's finite elements: up to 3
 
     @field_validator("name")
     @classmethod
@@ -216,7 +223,7 @@ class ModelSpec(_Strict):
                                     ("observation_noise", self.observation_noise, m)):
             if matrix is not None:
                 try:
-                    check_spd(matrix, size, field)
+                    check_spd(matrix, size, field, semi=field == "diffusion")
                 except ValueError as exc:
                     raise SpecError(field, str(exc).removeprefix(f"{field} ")) from None
         if self.domain.center is not None and len(self.domain.center) != n:

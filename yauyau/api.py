@@ -53,7 +53,12 @@ class Solved:
     def attrs(self) -> dict[str, Any]:
         """What the model file records besides the arrays (read back by :func:`load_model`)."""
         return {"precompute_seconds": round(self.seconds, 3), "workers": self.workers, "name": self.spec.name,
-                "method": self.method, "method_reason": self.method_reason}
+                "method": self.method, "method_reason": self.method_reason,
+                "offline": self.offline is not None}
+
+    def arrays(self) -> dict[str, Any]:
+        """The arrays to store: the offline stage's, none for a mesh-free model."""
+        return {} if self.offline is None else self.offline.to_arrays()
 
 
 def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
@@ -68,10 +73,39 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
     spec = _as_spec(spec)
     model = compile_model(spec)
     started = time.perf_counter()
+    if mesh_free_only(model):
+        method, reason = _mesh_free_method(model, time_limit)
+        return Solved(spec, model, None, method, reason, time.perf_counter() - started, workers)
     offline = solve_offline(model, workers=workers, progress=progress)
     seconds = time.perf_counter() - started
     method, reason = choose_method(model, offline=offline, time_limit=time_limit)
     return Solved(spec, model, offline, method, reason, seconds, workers)
+
+
+def mesh_free_only(model: Any) -> bool:
+    """True when the general engine's finite elements cannot represent the model: more than three
+    state variables, or a diffusion that is only positive semi-definite (noise on some coordinates
+    only).  Such a model has no offline stage; a mesh-free method (kalman-bucy, yau-jia) filters it."""
+    scale = max(1.0, float(np.abs(model.a).max()))
+    return model.n > 3 or float(np.linalg.eigvalsh(model.a).min()) <= 1e-12 * scale
+
+
+def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
+    from .solver.methods import make_filter
+    from .solver.registry import REGISTRY
+
+    method, reason = choose_method(model, offline=None, time_limit=time_limit)
+    if REGISTRY[method].needs_offline:
+        field, why = (("state", f"{model.n} state variables (the engine's finite elements go up to 3)")
+                      if model.n > 3 else
+                      ("diffusion", "a diffusion that is only positive semi-definite (the engine's finite "
+                                    "elements need noise on every coordinate)"))
+        raise SpecError(field, f"{why}: the general engine cannot filter this model and no mesh-free exact "
+                               f"method applies ({reason}); mesh-free methods: kalman-bucy (linear models), "
+                               "yau-jia (Yau & Jia (2005) class: f = Lx + l + a grad(phi), h^T R^-1 h + ... "
+                               "quadratic)")
+    make_filter(model, None, method)  # it applies (SpecError naming why, otherwise)
+    return method, reason + "; mesh-free model: no offline stage"
 
 
 def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
@@ -99,7 +133,7 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             pass  # unusable file: compute it again
     store.ensure_writable()  # fail before the (long) computation, not after
     solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress)
-    return store.save(spec_json, solved.offline.to_arrays(), solved.attrs())
+    return store.save(spec_json, solved.arrays(), solved.attrs())
 
 
 @dataclass(frozen=True)
@@ -125,7 +159,7 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
 
     stored = _as_store(store).load(model_id)
     model = compile_model(parse_spec_text(stored.spec_json, "json"))
-    offline = OfflineModel.from_arrays(model, stored.arrays)
+    offline = None if stored.attrs.get("offline") is False else OfflineModel.from_arrays(model, stored.arrays)
     method, reason = stored.attrs.get("method"), stored.attrs.get("method_reason", "")
     if not method:
         import warnings

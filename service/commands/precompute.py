@@ -93,9 +93,10 @@ def run(args: argparse.Namespace) -> int:
             bar.update(done - bar.n)
         solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress)
     _say(args, f"method {solved.method}: {solved.method_reason}")
-    saved = store.save(spec_json, solved.offline.to_arrays(), solved.attrs())
+    saved = store.save(spec_json, solved.arrays(), solved.attrs())
     size = store.path(saved).stat().st_size
-    _say(args, f"stored '{spec.name}' ({total} basis functions, {solved.seconds:.1f} s, "
+    what = f"{total} basis functions" if solved.offline is not None else "mesh-free, no offline arrays"
+    _say(args, f"stored '{spec.name}' ({what}, {solved.seconds:.1f} s, "
                f"{size / 1e6:.2f} MB) as {store.path(saved)}")
     print(saved)
     return 0

@@ -157,6 +157,8 @@ class Facts:
     structure: Any = None
     structure_holds: bool | None = None
     seed004: dict = field(default_factory=dict)
+    yau_jia: bool | None = None  # seed 001 (4.1) and (4.2) for the model's a
+    yau_jia_detail: str = ""
     stopped_by: list = field(default_factory=list)
     numeric: int = 0
 
@@ -200,7 +202,21 @@ def decide_conditions(model: Model) -> Facts:
             facts.seed004 = facts.decide(lambda: _seed004_items(model, facts.k)) or {}
     else:
         facts.structure_holds = False
+    facts.yau_jia, facts.yau_jia_detail = _yau_jia_fact(model, facts)
     return facts
+
+
+def _yau_jia_fact(model: Model, facts: Facts) -> tuple[bool | None, str]:
+    from ..errors import SpecError
+    from .yau_jia import yau_jia_structure
+
+    try:
+        structure = facts.decide(lambda: yau_jia_structure(model))
+    except SpecError as exc:
+        return False, exc.message
+    if structure is None:
+        return None, ""
+    return True, structure.describe(model)
 
 
 def observed_coordinate(model: Model) -> int | None:

@@ -30,10 +30,11 @@ from .operators import _DIGITS, _ZERO_POINTS, is_identity, show, show_operator
 
 # the papers every report rests on: (C1)-(C3) from seed 000, E and its algorithm from seed 002, the
 # non-maximal-rank class from seed 004
-CITED = ("000", "002", "004")
+CITED = ("000", "001", "002", "004")
 YAU_HU = cite_full("000", "Theorem 3.1")  # the direct method: DMZ -> Kolmogorov equation + ODEs
 WEI_NORMAN = cite_full("004", "Theorem 1")
 YAU_YAU = cite_full("002", "Section 5")
+YAU_JIA = cite_full("001", "Theorem 4.2")
 CLASS_004 = cite("004")  # the non-maximal-rank class (i)-(v) of seed 004 §III
 
 
@@ -210,12 +211,18 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
             f"{CLASS_004} (I), (II), (v): omega_kj = 0, eta quadratic in x_k plus a function of the others, "
             "h affine in x_k only"),
     }
+    conditions["yau_jia"] = Condition(
+        facts.yau_jia, facts.yau_jia_detail if facts.yau_jia is not None else undecided,
+        f"{cite('001', '(4.1), (4.2)')}: f = Lx + l + a grad(phi) and V = h^T R^-1 h + tr(a D^2 phi) + "
+        "grad(phi)^T a grad(phi) + 2 (Lx + l).grad(phi) quadratic: the Kolmogorov equation maps Gaussians "
+        "to Gaussians, h may be nonlinear (Yau-Jia)")
     if facts.seed004:
         conditions["wei_norman_class"] = Condition(all(c.holds for c in facts.seed004.values()), "",
                                                    f"{CLASS_004} class: conditions (i)-(v)")
     yau = all_of([facts.c1, facts.c2, facts.c3])
     method, reason = recommend_method_from(model, facts.linear is True, yau is True,
-                                           facts.structure_holds is True, a_is_identity)
+                                           facts.structure_holds is True, a_is_identity,
+                                           yau_jia=facts.yau_jia is True)
     if method == "yau-yau" and undecided:
         reason += f" (the exact-filter conditions were {undecided}; the general engine is always valid)"
     n = model.n
@@ -249,6 +256,11 @@ def plain_summary(model: Model, method: str, facts: Facts, algebra: EstimationAl
                  "its sensor is linear and eta is quadratic, so the conditional density is carried exactly "
                  "by ordinary differential equations (the Yau-Hu direct method, about "
                  f"{CHEAPER['yau-hu']}x cheaper per observation than the general engine).")
+    elif method == "yau-jia":
+        first = (f"The model ({shape}) has an affine-plus-gradient drift and a sensor whose energy "
+                 "h^T R^-1 h is quadratic (Yau and Jia, 2005): the density is carried as a Gaussian mixture "
+                 "moved exactly by ODEs, and the nonlinear sensor enters each step with a controlled "
+                 "second-order error; no mesh, so any dimension up to 6.")
     elif method == "wei-norman":
         first = (f"The model ({shape}) belongs to the non-maximal-rank class of Shi, Chen, Dong and Yau "
                  "(2017): its estimation algebra is finite-dimensional, so the Wei-Norman filter is exact "
@@ -285,7 +297,7 @@ def plain_summary(model: Model, method: str, facts: Facts, algebra: EstimationAl
 
 
 def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
-                          a_is_identity: bool) -> tuple[str, str]:
+                          a_is_identity: bool, yau_jia: bool = False) -> tuple[str, str]:
     gaussian = model.spec.initial.kind == "gaussian"
     if linear and gaussian:
         return "kalman-bucy", "f and h are affine and the prior is Gaussian: the Kalman-Bucy filter is exact"
@@ -297,6 +309,10 @@ def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
         return "wei-norman", (f"{CLASS_004} class: E = {{L0, D1, x1, 1}} is finite dimensional; "
                               "u = e^r0 e^(r1 x1) e^(r2 D1) e^(t L0) sigma0, the Wei-Norman filter "
                               f"({WEI_NORMAN})")
+    if yau_jia and model.spec.initial.kind in ("gaussian", "mixture"):
+        return "yau-jia", ("f is affine plus a gradient and V is quadratic (seed 001 (4.1), (4.2)): the "
+                           "Kolmogorov equation maps Gaussians to Gaussians by ODEs, the nonlinear sensor "
+                           f"enters as a Gaussian-mixture update with controlled error ({YAU_JIA})")
     if (linear or yau or seed004) and not a_is_identity:
         return "yau-yau", "an exact filter would apply with a = I, but a != I here: the general engine"
     return "yau-yau", ("no finite-dimensional exact filter applies: the general Yau-Yau algorithm "

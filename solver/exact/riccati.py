@@ -291,7 +291,8 @@ def affine_path(W, v, x0) -> np.ndarray:
 class StepBatch:
     """K steps of a :class:`FlowFamily` at once from known start exponents A_prev (K, J, n, n).
 
-    Step k uses flow choice[k] with the potential's linear part q[k] (n,) and constant r[k].
+    Step k uses flow choice[k] with the potential's linear part q[k] (n,) and constant r[k] (or one
+    per component: q (K, J, n), r (K, J)).
     B enters linearly:
     B_next = W_k B_prev + v_k with W = X(dt)⁻ᵀ (see :class:`GaussianFlow`), so a chunk is the
     data-free part here, one :func:`affine_path` and :meth:`finish`, all batched but the path.
@@ -321,13 +322,15 @@ class StepBatch:
                 raise InputError("dt", _BLOW_UP)
             self.XinvT = np.swapaxes(np.linalg.inv(X), -1, -2)
         # B(s) = X(s)⁻ᵀ [B0 + ∫0^s (Xᵀq − 2Yᵀd)]: the forcing integral at the nodes and at dt
-        q = np.asarray(q, dtype=float)[:, None, None, :, None]
+        q = np.asarray(q, dtype=float)  # (K, n), or (K, J, n): a linear term per component
+        q = q[:, None, None, :, None] if q.ndim == 2 else q[:, None, :, :, None]
         d = eq.d[:, None]
         self.forcing = (mm(np.swapaxes(IX, -1, -2), q) - 2.0 * mm(np.swapaxes(IY, -1, -2), d))[..., 0]
         self.W = self.XinvT[:, -1]
         self.v = mm(self.W, self.forcing[:, -1, ..., None])[..., 0]
         # ∫tr(aA) = ½(log det X − dt tr D), so C gains ½ log det X + (r + ½ tr D) dt − ∫(½BᵀaB + dᵀB)
-        r = np.asarray(r, dtype=float)[:, None]
+        r = np.asarray(r, dtype=float)  # (K,), or (K, J) per component
+        r = r[:, None] if r.ndim == 1 else r
         self.gain0 = 0.5 * log_det + (r + 0.5 * np.trace(eq.D)) * family.dt
 
     def finish(self, B_prev) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..filtering import Estimate
 from ..model import Model
-from ..simulate import sample_prior
+from ..simulate import noise_factor, sample_prior
 from ._base import ReferenceFilter, StepState, advance, log_sum_exp, log_update_factor
 
 
@@ -53,7 +53,7 @@ class BootstrapParticleFilter(ReferenceFilter):
         self.n_particles = int(n_particles)
         self.rng = rng
         self.substeps = int(substeps)
-        self._chol_a = np.linalg.cholesky(model.a)
+        self._chol_a = noise_factor(model.a)
 
     def initial_state(self, prior: Any | None = None) -> ParticleState:
         if prior is not None:

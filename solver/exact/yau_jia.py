@@ -1,0 +1,475 @@
+"""The Yau–Jia filter: nonlinear observations, Kolmogorov equation by ODEs (method "yau-jia").
+
+Seed 001 §4 (Yau & Jia, 2005, Theorem 4.2): when f = Lx + ℓ + a∇φ (4.1) and
+V = hᵀR⁻¹h + tr(a∇²φ) + ∇φᵀa∇φ + 2(Lx + ℓ)·∇φ = xᵀQx + qᵀx + q0 (4.2) — found symbolically by
+solver/analysis/yau_jia.py, for any constant a ≥ 0 — the observation-free part of the robust DMZ
+equation maps Gaussians to Gaussians: with σ = e^{φ}v,
+
+    ∂v/∂t = ½Σa_ij∂i∂jv − (Lx + ℓ)·∇v − (tr L + ½V − ẏᵀR⁻¹h) v        (4.11) plus the data term
+
+and v is carried as a Gaussian mixture Σ_j exp(−xᵀA_jx − B_jᵀx − C_j).  No mesh: any dimension.
+Per observation interval (ẏ = Δy/dt, as the Kalman–Bucy filter takes the path):
+
+1. the data term ẏᵀR⁻¹h is split, per component j, into its first-order Taylor part about the
+   component's mean m_j — affine in x, so it enters the exact Gaussian flow with (4.14)–(4.16) as the
+   linear and constant terms of the potential (solver/exact/riccati.py: one cached matrix exponential,
+   exact over dt) — and the remainder ρ_j(x) = h(x) − h(m_j) − J_j(x − m_j);
+2. the factor exp(Δyᵀ R⁻¹ ρ_j(x)) is applied by its second-order expansion about the new mean (a
+   Gaussian times exp(quadratic) is a Gaussian).  For h affine, ρ = 0: the filter is Kalman–Bucy.
+
+The error is the third-order remainder of h over each component.  It is controlled by splitting:
+after each step, for every component the sensor's departure from its quadratic model at the
+±√3σ points of each principal axis, ε, is measured (whitened by R); the log-likelihood error it
+causes accumulates at about ε·(|h(m)|_R + 1) per unit time, and a component whose rate exceeds
+``split_tolerance`` is split along that axis into three (moment-preserving weights 0.2252, 0.5496,
+0.2252, offsets ±1.0575σ).  Components whose weight falls below e^{−30} of the largest are pruned;
+when ``max_components`` is reached, the two components whose merge costs least (Runnalls'
+bound) are merged with their moments kept.  Log-scale weights throughout; the log-likelihood (log
+of the ratio of ∫σ, the convention of KalmanBucyFilter) is carried; a step that loses
+integrability is reported degenerate and the state keeps the last good mixture.
+
+σ = e^{φ}v: moments need ∫e^{φ}·Gaussian in closed form, so e^{φ} must be a sum of exponentials of
+affine functions (φ = 0: linear drift; log cosh: Beneš); otherwise SpecError.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
+from ..errors import InputError, SpecError
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, check_increments
+from ..gaussian import log_normal
+from ..model import Model
+from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .riccati import FlowFamily, GaussianKolmogorov, gaussian_terms_batch, gaussian_to_terms
+from .yau_system import _exponential_sum
+
+# the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
+# chosen so that mean and variance are kept exactly)
+SPLIT_WEIGHTS = np.array([0.2252246249, 0.5495507502, 0.2252246249])
+SPLIT_OFFSETS = np.array([-1.0575154615, 0.0, 1.0575154615])
+SPLIT_WIDTH = math.sqrt(1.0 - float(SPLIT_WEIGHTS @ SPLIT_OFFSETS**2))
+PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
+SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
+MAX_COMPONENTS = 32
+SPLIT_TOLERANCE = 0.05  # log-likelihood error per unit time at the ±√3σ points, per component
+
+
+@dataclass(frozen=True)
+class YauJiaState(StepState):
+    """v = e^{−φ}σ = Σ_j exp(−xᵀA_jx − B_jᵀx − C_j), normalised so that ∫σ = 1."""
+
+    A: np.ndarray = field(default_factory=lambda: np.full((1, 1, 1), 0.5))
+    B: np.ndarray = field(default_factory=lambda: np.zeros((1, 1)))
+    C: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    splits: int = 0  # components split so far (bookkeeping of the error control)
+    clipped: int = 0  # second-order factors damped to keep a component integrable
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"A": self.A.tolist(), "B": self.B.tolist(), "C": self.C.tolist(), "step": self.step,
+                "t": self.t, "loglik": self.loglik, "loglik_increment": self.loglik_increment,
+                "degenerate": self.degenerate, "reason": self.reason, "splits": self.splits,
+                "clipped": self.clipped}
+
+
+class _Sensor:
+    """h, its Jacobian and its Hessians at points, from one generated function (common subexpressions
+    shared): X (P, n) -> (P, m), (P, m, n), (P, m, n, n)."""
+
+    def __init__(self, model: Model):
+        xs, n, m = model.symbols, model.n, model.m
+        h = list(model.observation)
+        jac = [sp.diff(hi, s) for hi in h for s in xs]
+        hess = [sp.diff(hi, s, t) for hi in h for s in xs for t in xs]
+        table = {"DiracDelta": lambda *a: np.zeros_like(np.asarray(a[0], float))}
+        self._fn = sp.lambdify(list(xs), h + jac + hess, modules=[table, "numpy"], cse=True)
+        self.n, self.m = n, m
+
+    def __call__(self, X: np.ndarray):
+        X = np.asarray(X, float)
+        P, n, m = len(X), self.n, self.m
+        with np.errstate(all="ignore"):
+            values = self._fn(*X.T)
+        flat = np.stack([np.broadcast_to(np.asarray(v, float), (P,)) for v in values], axis=1)
+        return (flat[:, :m], flat[:, m:m + m * n].reshape(P, m, n),
+                flat[:, m + m * n:].reshape(P, m, n, n))
+
+
+def _terms(means, covs, logw):
+    """Exponent (A, B, C) of w·N(m, P) for stacks: A = ½P⁻¹, B = −P⁻¹m, C = ½mᵀP⁻¹m + ½log det 2πP − log w."""
+    n = means.shape[-1]
+    chol = np.linalg.cholesky(covs)
+    P_inv = np.linalg.inv(covs)
+    P_inv = 0.5 * (P_inv + np.swapaxes(P_inv, -1, -2))
+    log_det = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1) + n * math.log(2 * math.pi)
+    Pm = (P_inv @ means[..., None])[..., 0]
+    return 0.5 * P_inv, -Pm, 0.5 * (means * Pm).sum(-1) + 0.5 * log_det - logw
+
+
+def _log_sum_exp(values, axis=-1):
+    top = np.max(values, axis=axis, keepdims=True)
+    return (top + np.log(np.exp(values - top).sum(axis=axis, keepdims=True))).squeeze(axis)
+
+
+class YauJiaFilter(ChunkedFilter):
+    """Filter protocol; see the module docstring."""
+
+    method = "yau-jia"
+
+    def __init__(self, model: Model, max_components: int = MAX_COMPONENTS,
+                 split_tolerance: float = SPLIT_TOLERANCE):
+        if not isinstance(max_components, int) or not 1 <= max_components <= 256:
+            raise SpecError("max_components", "must be an integer in 1..256")
+        if not (math.isfinite(split_tolerance) and split_tolerance > 0):
+            raise SpecError("split_tolerance", "must be a positive number")
+        self.model = model
+        self.max_components, self.split_tolerance = max_components, float(split_tolerance)
+        self.structure: YauJiaStructure = yau_jia_structure(model)
+        s, n = self.structure, model.n
+        if s.phi == 0:
+            self.exp_phi_slopes, self.exp_phi_logc = np.zeros((1, n)), np.zeros(1)
+        else:
+            found = _exponential_sum(s.phi, model.symbols)
+            if found is None:
+                raise SpecError("drift", f"e^phi (phi = {s.phi}) is not a sum of exponentials of affine "
+                                         "functions: the moments of sigma = e^phi v have no closed form")
+            self.exp_phi_slopes, self.exp_phi_logc = found
+        self.R_inv = model.R_inv
+        self._whiten = np.linalg.inv(np.linalg.cholesky(model.R))
+        observed = GaussianKolmogorov(s.L, s.ell, Q=0.5 * s.Q, q=0.5 * s.q, r=0.5 * s.q0, a=model.a)
+        flows = [observed.flow(model.dt)]
+        self._predict_exact = s.V_predict is not None
+        if self._predict_exact:
+            Qp, qp, q0p = s.V_predict
+            flows.append(GaussianKolmogorov(s.L, s.ell, Q=0.5 * Qp, q=0.5 * qp, r=0.5 * q0p,
+                                            a=model.a).flow(model.dt))
+        self._family = FlowFamily(flows)
+        self._q = [f.eq.q for f in flows]
+        self._r = [f.eq.r for f in flows]
+        self.sensor = _Sensor(model)
+
+    # -- σ = e^{φ}v as a flat Gaussian mixture ---------------------------------------------
+    def _components(self, A, B, C):
+        """(log weights, means, covs) of σ's Gaussian terms (J·T of them)."""
+        slopes, logc = self.exp_phi_slopes, self.exp_phi_logc
+        mean, cov, log_mass = gaussian_terms_batch(A[:, None], B[:, None] - slopes, C[:, None] - logc)
+        n = A.shape[-1]
+        cov = np.broadcast_to(cov, (len(C), len(logc), n, n))
+        return log_mass.reshape(-1), mean.reshape(-1, n), cov.reshape(-1, n, n)
+
+    def _normalise(self, A, B, C) -> tuple[np.ndarray, float]:
+        log_mass = float(_log_sum_exp(self._components(A, B, C)[0]))
+        if not math.isfinite(log_mass):
+            raise InputError("increments", "the mixture has no finite mass")
+        return C + log_mass, log_mass
+
+    # -- prior ------------------------------------------------------------------------------
+    def initial_state(self, prior: Any | None = None) -> YauJiaState:
+        prior = self.model.spec.initial if prior is None else prior
+        if isinstance(prior, DensityPrior):
+            raise SpecError("initial", "yau-jia needs a gaussian or mixture prior (kind = \"gaussian\" or "
+                                       "\"mixture\")")
+        if not isinstance(prior, (GaussianPrior, MixturePrior)):
+            raise SpecError("initial", "unsupported prior kind")
+        if isinstance(prior, GaussianPrior):
+            weights, means, covs = [1.0], [prior.mean], [prior.cov]
+        else:
+            weights, means, covs = prior.weights, prior.means, prior.covs
+        top = max(weights)
+        terms = [gaussian_to_terms(mu, P, w / top) for w, mu, P in zip(weights, means, covs, strict=True)
+                 if w > 0]
+        A = np.stack([t.A for t in terms])
+        B = np.stack([t.B for t in terms])
+        C = np.array([t.C for t in terms])
+        if self.structure.phi != 0:
+            A, B, C = self._times_exp_minus_phi(A, B, C)
+        C, _ = self._normalise(A, B, C)
+        A, B, C, splits = self._control(A, B, C)
+        C, _ = self._normalise(A, B, C)
+        return YauJiaState(A=A, B=B, C=C, splits=splits)
+
+    def _times_exp_minus_phi(self, A, B, C):
+        """v0 = e^{−φ}σ0 by the second-order expansion of φ about each component (split first where
+        φ is far from quadratic over a component)."""
+        xs = self.model.symbols
+        phi = self.structure.phi
+        fn = sp.lambdify(list(xs), [phi] + [sp.diff(phi, s) for s in xs]
+                         + [sp.diff(phi, s, t) for s in xs for t in xs], "numpy", cse=True)
+        n = len(xs)
+        for _ in range(4):  # split wide components, then expand
+            means, covs, log_mass = gaussian_terms_batch(A, B, C)
+            if len(C) * 3 > self.max_components:
+                break
+            A, B, C = _terms(*_split_all(means, covs, log_mass))
+        means, covs, _ = gaussian_terms_batch(A, B, C)
+        with np.errstate(all="ignore"):
+            vals = fn(*means.T)
+        flat = np.stack([np.broadcast_to(np.asarray(v, float), (len(C),)) for v in vals], axis=1)
+        s0, g, S = -flat[:, 0], -flat[:, 1:1 + n], -flat[:, 1 + n:].reshape(-1, n, n)
+        A, B, C, _ = _times_exp_quadratic(A, B, C, means, covs, s0, g, S)
+        return A, B, C
+
+    # -- the step -----------------------------------------------------------------------------
+    def _expected(self, means, covs):
+        """E[h], E[∂h], E[∂²h] over each component N(m_j, P_j): the mean over the 2n points
+        m ± √n·√λ_k u_k (third-degree cubature, exact for quadratic integrands)."""
+        J_count, n = means.shape
+        lam, U = np.linalg.eigh(covs)
+        axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
+        points = np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)  # (J, 2n, n)
+        h, Jh, H = self.sensor(points.reshape(-1, n))
+        m = h.shape[1]
+        return (h.reshape(J_count, 2 * n, m).mean(1), Jh.reshape(J_count, 2 * n, m, n).mean(1),
+                H.reshape(J_count, 2 * n, m, n, n).mean(1))
+
+    def _step(self, A, B, C, row):
+        """One interval dt: the exact flow with the statistically linearised data term, then the
+        second-order (Hermite) expansion of the remainder factor.  Returns (A, B, C, clipped)."""
+        model = self.model
+        means, covs, _ = gaussian_terms_batch(A, B, C)
+        J_count = len(C)
+        if row is None:
+            choice = 1 if self._predict_exact else 0
+            q = np.broadcast_to(self._q[choice], (J_count, model.n))
+            r = np.full(J_count, self._r[choice])
+        else:
+            choice = 0
+            c = self.R_inv @ row
+            c_dot = c / model.dt
+            h0, J0, H0 = self._expected(means, covs)  # h ≈ h0 + J0 (x − m_j) over component j
+            # Strang splitting: half of exp(Δyᵀ R⁻¹ ρ_j) before the flow, half after.  Before, ρ_j
+            # has mean and mean gradient 0 over the component: only its curvature term is left.
+            S = 0.5 * np.einsum("jmab,m->jab", H0, c)
+            s0 = -0.5 * np.einsum("jab,jba->j", covs, S)
+            A, B, C, damped0 = _times_exp_quadratic(A, B, C, means, covs, s0, np.zeros_like(means), S)
+            q = self._q[0] - np.einsum("jmn,m->jn", J0, c_dot)
+            r = self._r[0] - (h0 - np.einsum("jmn,jn->jm", J0, means)) @ c_dot
+        A1 = self._family.path([choice], A)[1]
+        batch = self._family.batch([choice], A[None], q[None], r[None])
+        B1, gain = batch.finish(B[None])
+        B1, C1 = B1[0], C + gain[0]
+        means1, covs1, _ = gaussian_terms_batch(A1, B1, C1)
+        if row is not None:  # the other half of exp(Δyᵀ R⁻¹ ρ_j), ρ_j = h − h0 − J0(x − m_j), to degree 2
+            h1, J1, H1 = self._expected(means1, covs1)
+            S = 0.5 * np.einsum("jmab,m->jab", H1, c)
+            s0 = 0.5 * (h1 - h0 - np.einsum("jmn,jn->jm", J0, means1 - means)) @ c \
+                - 0.5 * np.einsum("jab,jba->j", covs1, S)
+            g = 0.5 * np.einsum("jmn,m->jn", J1 - J0, c)
+            A1, B1, C1, damped1 = _times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
+            return A1, B1, C1, damped0 + damped1
+        if not self._predict_exact:  # the flow took ½hᵀR⁻¹h dt off: put it back, to second order
+            h1, J1, H1 = self.sensor(means1)
+            Rh = h1 @ self.R_inv
+            dt = model.dt
+            s0 = 0.5 * (Rh * h1).sum(-1) * dt
+            g = np.einsum("jmn,jm->jn", J1, Rh) * dt
+            S = (np.einsum("jma,mk,jkb->jab", J1, self.R_inv, J1) + np.einsum("jmab,jm->jab", H1, Rh)) * dt
+            return _times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
+        return A1, B1, C1, 0
+
+    # -- error control ---------------------------------------------------------------------------
+    def _rates(self, means, covs):
+        """Per component and principal axis: the sensor's departure from its quadratic model at
+        ±√3σ (whitened), times (|h(m)|_R + 1) — the log-likelihood error per unit time."""
+        J_count, n = means.shape
+        lam, U = np.linalg.eigh(covs)
+        steps = SIGMA * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U  # (J, n, k): column k = axis k
+        axes = np.swapaxes(steps, 1, 2)  # (J, k, n)
+        h0, J0, H0 = self.sensor(means)
+        points = means[:, None, None, :] + np.array([-1.0, 1.0])[None, None, :, None] * axes[:, :, None, :]
+        h_at = self.model.h(points.reshape(-1, n)).reshape(J_count, n, 2, -1)
+        lin = np.einsum("jmn,jkn->jkm", J0, axes)
+        quad = 0.5 * np.einsum("jmab,jka,jkb->jkm", H0, axes, axes)
+        model_at = h0[:, None, None, :] + np.array([-1.0, 1.0])[None, None, :, None] * lin[:, :, None, :] \
+            + quad[:, :, None, :]
+        eps = (h_at - model_at) @ self._whiten.T
+        err = np.sqrt((eps**2).sum(-1)).max(-1)  # (J, k)
+        size = np.sqrt(((h0 @ self._whiten.T) ** 2).sum(-1)) + 1.0
+        rate = err * size[:, None]
+        return np.where(np.isfinite(rate), rate, np.inf), U, lam
+
+    def _control(self, A, B, C):
+        """Split the components whose rate exceeds the tolerance (while there is room), prune the
+        negligible ones, merge the cheapest pairs beyond ``max_components``."""
+        means, covs, logw = gaussian_terms_batch(A, B, C)
+        keep = logw >= logw.max() + PRUNE_LOG_WEIGHT
+        if not keep.all():
+            means, covs, logw = means[keep], covs[keep], logw[keep]
+        rates, U, lam = self._rates(means, covs)
+        worst = rates.max(-1)
+        splits = 0
+        if worst.max() > self.split_tolerance:
+            wanted = int((worst > self.split_tolerance).sum())
+            while len(logw) + 2 > self.max_components and len(logw) > 2 and wanted:
+                means, covs, logw = _merge_cheapest(means, covs, logw)  # make room
+                rates, U, lam = self._rates(means, covs)
+                worst = rates.max(-1)
+                wanted = int((worst > self.split_tolerance).sum())
+            order = np.argsort(-worst)
+            room = (self.max_components - len(logw)) // 2
+            chosen = [j for j in order[:max(room, 0)] if worst[j] > self.split_tolerance]
+            if chosen:
+                new_m, new_P, new_w = [], [], []
+                for j in chosen:
+                    k = int(np.argmax(rates[j]))
+                    u = U[j, :, k] * math.sqrt(lam[j, k])
+                    child_cov = covs[j] - (1.0 - SPLIT_WIDTH**2) * np.outer(u, u)
+                    for w, d in zip(SPLIT_WEIGHTS, SPLIT_OFFSETS, strict=True):
+                        new_m.append(means[j] + d * u)
+                        new_P.append(child_cov)
+                        new_w.append(logw[j] + math.log(w))
+                rest = np.setdiff1d(np.arange(len(logw)), chosen)
+                means = np.concatenate([means[rest], np.array(new_m)])
+                covs = np.concatenate([covs[rest], np.array(new_P)])
+                logw = np.concatenate([logw[rest], np.array(new_w)])
+                splits = len(chosen)
+        while len(logw) > self.max_components:
+            means, covs, logw = _merge_cheapest(means, covs, logw)
+        if splits or len(logw) != len(C):
+            A, B, C = _terms(means, 0.5 * (covs + np.swapaxes(covs, -1, -2)), logw)
+        return A, B, C, splits
+
+    # -- Filter protocol ---------------------------------------------------------------------
+    def run_arrays(self, state: YauJiaState, increments: np.ndarray) -> tuple[YauJiaState, ChunkResult]:
+        dy = check_increments(increments, self.model.m)
+        K, n = len(dy), self.model.n
+        steps = state.step + 1 + np.arange(K)
+        times = steps * self.model.dt
+        mean_out, cov_out = np.empty((K, n)), np.empty((K, n, n))
+        ll_inc, bad = np.zeros(K), np.zeros(K, bool)
+        A, B, C = state.A, state.B, state.C
+        splits, clipped, reason = state.splits, state.clipped, state.reason
+        mean, cov = self._moments(A, B, C)
+        done = K
+        if state.degenerate:
+            done = 0
+        for k in range(done):
+            row = dy[k]
+            row = None if np.isnan(row[0]) else row
+            try:
+                A1, B1, C1, damped = self._step(A, B, C, row)
+                C1, log_mass = self._normalise(A1, B1, C1)
+                A1, B1, C1, split = self._control(A1, B1, C1)
+                C1, _ = self._normalise(A1, B1, C1)
+                mean1, cov1 = self._moments(A1, B1, C1)
+            except (InputError, np.linalg.LinAlgError) as exc:
+                done = k
+                reason = (f"step {int(steps[k])}: the Gaussian mixture lost integrability "
+                          f"({getattr(exc, 'message', str(exc))}); reset the session or use the general "
+                          "engine (method = \"yau-yau\")")
+                break
+            A, B, C, mean, cov = A1, B1, C1, mean1, cov1
+            splits, clipped = splits + split, clipped + damped
+            mean_out[k], cov_out[k] = mean, cov
+            ll_inc[k] = 0.0 if row is None else log_mass
+        if done < K:  # degenerate from here: repeat the last good estimate, flagged
+            mean_out[done:], cov_out[done:] = mean, cov
+            bad[done:] = True
+        loglik = np.cumsum(np.concatenate([[state.loglik], ll_inc]))[1:]  # sequential: chunk-independent
+        last = K - 1
+        new_state = replace(state, step=int(steps[last]) if K else state.step,
+                            t=float(times[last]) if K else state.t,
+                            loglik=float(loglik[last]) if K else state.loglik,
+                            loglik_increment=float(ll_inc[last]) if K else state.loglik_increment,
+                            A=A, B=B, C=C, splits=splits, clipped=clipped,
+                            degenerate=bool(state.degenerate or done < K),
+                            reason=reason if (state.degenerate or done < K) else None)
+        return new_state, ChunkResult(steps, times, mean_out, cov_out, None, loglik, ll_inc, bad,
+                                      reason=new_state.reason if bad.any() else None)
+
+    def _moments(self, A, B, C):
+        logw, means, covs = self._components(A, B, C)
+        w = np.exp(logw - _log_sum_exp(logw))
+        mean = w @ means
+        dev = means - mean
+        cov = np.einsum("j,jab->ab", w, covs) + np.einsum("j,ja,jb->ab", w, dev, dev)
+        return mean, 0.5 * (cov + cov.T)
+
+    def estimate(self, state: YauJiaState) -> Estimate:
+        mean, cov = self._moments(state.A, state.B, state.C)
+        return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
+                        loglik_increment=state.loglik_increment, degenerate=state.degenerate,
+                        reason=state.reason)
+
+    def density(self, state: YauJiaState, points: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(points, float))
+        if X.ndim != 2 or X.shape[1] != self.model.n or not np.all(np.isfinite(X)):
+            raise InputError("points", f"must be finite points of shape (P, {self.model.n})")
+        logw, means, covs = self._components(state.A, state.B, state.C)
+        logs = np.stack([lw + log_normal(X, mu, P) for lw, mu, P in zip(logw, means, covs, strict=True)])
+        return np.exp(_log_sum_exp(logs, axis=0) - _log_sum_exp(logw))
+
+    def state_from_dict(self, data: dict[str, Any]) -> YauJiaState:
+        try:
+            values = dict(data)
+            n = self.model.n
+            A = np.asarray(values.pop("A"), float).reshape(-1, n, n)
+            B = np.asarray(values.pop("B"), float).reshape(-1, n)
+            C = np.asarray(values.pop("C"), float).reshape(-1)
+            if not (len(A) == len(B) == len(C)) or not all(np.all(np.isfinite(v)) for v in (A, B, C)):
+                raise ValueError("A, B, C must be finite with matching lengths")
+            return YauJiaState(A=A, B=B, C=C, **values)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError("state", f"not a valid yau-jia state: {exc}") from None
+
+
+def _times_exp_quadratic(A, B, C, at, covs, s0, g, S):
+    """Multiply each component exp(−xᵀAx − Bᵀx − C) by exp(s0 + gᵀ(x − at) + ½(x − at)ᵀS(x − at)).
+
+    Where the product would not be integrable (P⁻¹ − S not positive definite: a wide component and
+    a convex factor) S is damped to θS with θ = 0.9/λ_max(PS) (counted in ``clipped``).
+    """
+    S = 0.5 * (S + np.swapaxes(S, -1, -2))
+    top = np.linalg.eigvals(covs @ S).real.max(-1)  # λ_max(PS): P⁻¹ − θS > 0 iff θλ_max < 1
+    theta = np.where(top > 0.9, 0.9 / np.where(top > 0.9, top, 1.0), 1.0)
+    S = theta[:, None, None] * S
+    Sm = (S @ at[..., None])[..., 0]
+    A2 = A - 0.5 * S
+    B2 = B - (g - Sm)
+    C2 = C - (s0 - (g * at).sum(-1) + 0.5 * (at * Sm).sum(-1))
+    return A2, B2, C2, int((theta < 1.0).sum())
+
+
+def _split_all(means, covs, logw):
+    """Every component split in three along its widest axis (the prior's first refinement)."""
+    lam, U = np.linalg.eigh(covs)
+    u = U[:, :, -1] * np.sqrt(lam[:, -1])[:, None]
+    child = covs - (1.0 - SPLIT_WIDTH**2) * np.einsum("ja,jb->jab", u, u)
+    m = (means[:, None, :] + SPLIT_OFFSETS[None, :, None] * u[:, None, :]).reshape(-1, means.shape[1])
+    P = np.repeat(child, 3, axis=0)
+    w = (logw[:, None] + np.log(SPLIT_WEIGHTS)[None, :]).reshape(-1)
+    return m, P, w
+
+
+def _merge_cheapest(means, covs, logw):
+    """Merge the pair with the smallest Runnalls bound ½[(w_i+w_j) log det P_ij − w_i log det P_i −
+    w_j log det P_j], keeping weight, mean and covariance."""
+    w = np.exp(logw - logw.max())
+    J = len(w)
+    i, j = np.triu_indices(J, 1)
+    wi, wj = w[i], w[j]
+    tot = wi + wj
+    d = means[i] - means[j]
+    Pij = (wi[:, None, None] * covs[i] + wj[:, None, None] * covs[j]) / tot[:, None, None] \
+        + (wi * wj / tot**2)[:, None, None] * np.einsum("pa,pb->pab", d, d)
+    _, ld = np.linalg.slogdet(Pij)
+    _, ldc = np.linalg.slogdet(covs)
+    cost = 0.5 * (tot * ld - wi * ldc[i] - wj * ldc[j])
+    p = int(np.argmin(cost))
+    a, b = int(i[p]), int(j[p])
+    mean = (wi[p] * means[a] + wj[p] * means[b]) / tot[p]
+    keep = [k for k in range(J) if k not in (a, b)]
+    merged_logw = logw.max() + math.log(tot[p])
+    return (np.concatenate([means[keep], mean[None]]), np.concatenate([covs[keep], Pij[p][None]]),
+            np.concatenate([logw[keep], [merged_logw]]))
+
+
+def build(model: Model, offline: Any = None, **_: Any) -> YauJiaFilter:
+    """The registry's constructor (solver/registry.py)."""
+    return YauJiaFilter(model)
