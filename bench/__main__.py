@@ -28,7 +28,6 @@ TOPICS = [
     ("blas_threads", "bench-blas.md"),
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
-    ("yau_jia", "bench-yau-jia.md"),
     ("load", "bench-load.md"),
 ]
 

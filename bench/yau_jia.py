@@ -3,6 +3,9 @@
     .venv/bin/python -m bench.yau_jia            # 3 seeds x 100 steps (~6 min)
     .venv/bin/python -m bench.yau_jia --quick    # 1 seed x 50 steps
 
+Needs the peers: ``pip install particles filterpy`` in a separate virtual environment (particles
+0.3 pins numpy < 2, which the package itself does not support: keep them out of the test venv).
+
 On the same simulated increments of examples/range_only_4d.toml: yau-jia at 8/16/32/64 components,
 the `particles` library's bootstrap filter (N. Chopin) with 10k particles and FilterPy's UKF; the
 reference is a 10⁶-particle bootstrap filter with exact constant-velocity transitions (its Monte Carlo

@@ -131,6 +131,8 @@ def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
 YAU_LAI = "Explicit Solution of DMZ Equation in Nonlinear Filtering via Solution of ODEs"
 SHI_ET_AL = "New Classes of Finite Dimensional Filters With Non-Maximal Rank"
 YAU_2008 = "New Algorithms in Real Time Solution of the Nonlinear Filtering Problem"
+YAU_JIA = ("Filtering Problem with Nonlinear Observations and Drift Terms Equal to Gradient Vector Field "
+           "plus Affine Vector Field")
 
 
 @pytest.mark.parametrize("example, method, cited", [
@@ -173,7 +175,7 @@ def test_json_report_lists_the_references(tmp_path):
     assert "seed" not in done.stdout.lower()
     data = json.loads(done.stdout)
     refs = {r["title"]: r for r in data["references"]}
-    assert set(refs) == {YAU_LAI, YAU_2008, SHI_ET_AL}
+    assert set(refs) == {YAU_LAI, YAU_JIA, YAU_2008, SHI_ET_AL}
     assert refs[YAU_LAI]["authors"] == ["Stephen S.-T. Yau", "Yuen-Tai Lai"]
     assert refs[YAU_LAI]["doi"] == "10.1109/TAC.2003.809169" and refs[YAU_LAI]["year"] == 2003
     assert refs[SHI_ET_AL]["doi"] == "10.1109/LCSYS.2017.2713604" and refs[SHI_ET_AL]["year"] == 2017
@@ -197,7 +199,7 @@ def test_service_report_is_the_same_report_with_references(tmp_path):
     assert r.status_code == 200
     data = r.json()
     assert "seed" not in r.text.lower()
-    assert [ref["title"] for ref in data["references"]] == [YAU_LAI, YAU_2008, SHI_ET_AL]
+    assert [ref["title"] for ref in data["references"]] == [YAU_LAI, YAU_JIA, YAU_2008, SHI_ET_AL]
     assert data["recommendation"]["method"] == "yau-hu" and YAU_LAI in data["recommendation"]["reason"]
 
 

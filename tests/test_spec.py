@@ -44,7 +44,7 @@ def test_expression_builds_exact_sympy(text, expected):
     ({"state": ["x", "x"]}, "state"),
     ({"state": ["exp"]}, "state"),
     ({"state": []}, "state"),
-    ({"state": ["a", "b", "c", "d"]}, "state"),
+    ({"state": ["a", "b", "c", "d", "e", "f", "g"]}, "state"),  # at most 6 (the general engine: 3)
     ({"drift": ["x", "x"]}, "drift"),
     ({"drift": ["q*x"]}, "drift[0]"),
     ({"observation": ["__import__('os')"]}, "observation[0]"),

@@ -156,7 +156,7 @@ def _nonsmooth_report(model: Model, rough: list[str], max_depth: int, max_dimens
     names = ", ".join(rough)
     verb = "is" if len(rough) == 1 else "are"
     why = f"not computed: f or h uses {names}, not differentiable everywhere"
-    facts = Facts(c1=False, c2=False, c3=False, linear=False, structure_holds=False)
+    facts = Facts(c1=False, c2=False, c3=False, linear=False, structure_holds=False, yau_jia=False)
     algebra = EstimationAlgebra(closed=False, dimension=None, basis=[], labels=[], linear_rank=None,
                                 maximal_rank=None, rounds=0, max_depth=max_depth, max_dimension=max_dimension,
                                 exact=False, stopped_by=why)
