@@ -30,6 +30,12 @@ def set_nodelay(transport) -> None:
             pass
 
 
+def _head_size(request: h11.Request) -> int:
+    """Bytes of the request line and headers (as sent, up to whitespace)."""
+    size = len(request.method) + len(request.target) + 12
+    return size + sum(len(name) + len(value) + 4 for name, value in request.headers)
+
+
 class ServiceProtocol(H11Protocol):
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
@@ -38,7 +44,12 @@ class ServiceProtocol(H11Protocol):
 
         def remember_error():
             try:
-                return next_event()
+                event = next_event()
+                if isinstance(event, h11.Request) and _head_size(event) > MAX_HEAD_BYTES:
+                    # h11 bounds only a head still incomplete in its buffer; one that arrives whole
+                    # in a single read would pass, so the size is checked here as well
+                    raise h11.RemoteProtocolError("request head buffer too long", error_status_hint=431)
+                return event
             except h11.RemoteProtocolError as exc:
                 self._protocol_error = exc
                 raise
