@@ -36,6 +36,7 @@ import numpy as np
 import sympy as sp
 
 from ..errors import SpecError
+from ..exact.yau_system import _potential  # φ with ∇φ = w, by successive integration
 from ..model import Model
 from .budget import expand
 from .operators import exact_matrix, is_zero, observation_energy, show
@@ -94,18 +95,6 @@ def quadratic_coefficients(expr: sp.Expr, symbols) -> tuple[np.ndarray, np.ndarr
     if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(q)) and np.isfinite(q0)):
         return None
     return Q, q, q0
-
-
-def _potential(w: list[sp.Expr], symbols) -> sp.Expr:
-    """φ with ∇φ = w (w curl-free), by successive integration."""
-    phi = sp.Integer(0)
-    for i, xi in enumerate(symbols):
-        rest = sp.simplify(w[i] - sp.diff(phi, xi))
-        part = sp.integrate(rest, xi)
-        if part.has(sp.Integral):
-            raise SpecError("drift", "cannot integrate the gradient part of the drift symbolically")
-        phi += part
-    return sp.simplify(phi)
 
 
 def yau_jia_structure(model: Model) -> YauJiaStructure:

@@ -404,3 +404,18 @@ def linear_recursion(W: np.ndarray, b: np.ndarray, x0: np.ndarray) -> np.ndarray
         shift *= 2
     out[1:] = (Wc @ x0) + bc
     return out
+
+
+def mixture_state_from_dict(cls, data, n: int, method: str):
+    """``cls(A=..., B=..., C=..., **rest)`` from a state's ``to_dict`` (the exponents of a Gaussian
+    mixture, as the Yau–Hu and Yau–Jia states store them); InputError('state') naming ``method``."""
+    try:
+        values = dict(data)
+        A = np.asarray(values.pop("A"), float).reshape(-1, n, n)
+        B = np.asarray(values.pop("B"), float).reshape(-1, n)
+        C = np.asarray(values.pop("C"), float).reshape(-1)
+        if not (len(A) == len(B) == len(C)) or not all(np.all(np.isfinite(v)) for v in (A, B, C)):
+            raise ValueError("A, B, C must be finite with matching lengths")
+        return cls(A=A, B=B, C=C, **values)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError("state", f"not a valid {method} state: {exc}") from None

@@ -49,6 +49,7 @@ from .riccati import (
     gaussian_terms_batch,
     gaussian_to_terms,
     linear_recursion,
+    mixture_state_from_dict,
     settle,
 )
 from .schedule import MAX_ENTRIES, MAX_STEPS, Schedule, ScheduleCache
@@ -452,17 +453,7 @@ class YauHuFilter(ChunkedFilter):
         return np.exp(logsumexp(np.stack(logs), axis=0))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauHuState:
-        try:
-            values = dict(data)
-            n = self.model.n
-            A = np.asarray(values.pop("A"), float).reshape(-1, n, n)
-            B = np.asarray(values.pop("B"), float).reshape(-1, n)
-            C = np.asarray(values.pop("C"), float).reshape(-1)
-            if not (len(A) == len(B) == len(C)) or not all(np.all(np.isfinite(v)) for v in (A, B, C)):
-                raise ValueError("A, B, C must be finite with matching lengths")
-            return YauHuState(A=A, B=B, C=C, **values)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError("state", f"not a valid yau-hu state: {exc}") from None
+        return mixture_state_from_dict(YauHuState, data, self.model.n, "yau-hu")
 
 
 def _log_sum_exp(values):

@@ -47,7 +47,13 @@ from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, check_i
 from ..gaussian import log_normal
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
-from .riccati import FlowFamily, GaussianKolmogorov, gaussian_terms_batch, gaussian_to_terms
+from .riccati import (
+    FlowFamily,
+    GaussianKolmogorov,
+    gaussian_terms_batch,
+    gaussian_to_terms,
+    mixture_state_from_dict,
+)
 from .yau_system import _exponential_sum
 
 # the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
@@ -406,17 +412,7 @@ class YauJiaFilter(ChunkedFilter):
         return np.exp(_log_sum_exp(logs, axis=0) - _log_sum_exp(logw))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauJiaState:
-        try:
-            values = dict(data)
-            n = self.model.n
-            A = np.asarray(values.pop("A"), float).reshape(-1, n, n)
-            B = np.asarray(values.pop("B"), float).reshape(-1, n)
-            C = np.asarray(values.pop("C"), float).reshape(-1)
-            if not (len(A) == len(B) == len(C)) or not all(np.all(np.isfinite(v)) for v in (A, B, C)):
-                raise ValueError("A, B, C must be finite with matching lengths")
-            return YauJiaState(A=A, B=B, C=C, **values)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError("state", f"not a valid yau-jia state: {exc}") from None
+        return mixture_state_from_dict(YauJiaState, data, self.model.n, "yau-jia")
 
 
 def _times_exp_quadratic(A, B, C, at, covs, s0, g, S):
