@@ -99,23 +99,32 @@ class Diagnostics:
         return bad, ("the covariance is not positive: the basis cannot resolve the conditional density "
                      "(refine discretization.basis / mesh)")
 
-    def explain_outlier(self, before: np.ndarray, dy: np.ndarray, step: int, why: str) -> str:
-        """``why`` prefixed by the size of the increment's surprise when it is an outlier: |Δy − E[h]dt|
-        in standard deviations √(R_jj dt), E[h] over the nodal density before the step (a glitch
-        collapses the density or throws it at the wall, which is not the basis' or the ball's fault)."""
+    def explain_outlier(self, before: np.ndarray, row: np.ndarray, step: int, why: str,
+                        tau: float | None = None, discrete: bool = False) -> str:
+        """``why`` prefixed by the size of the row's surprise when it is an outlier: |Δy − E[h]τ| in
+        standard deviations √(R_jj τ) (continuous; τ = dt unless given), |z − E[h]| in √R_jj
+        (discrete), E[h] over the nodal density before the step (a glitch collapses the density or
+        throws it at the wall, which is not the basis' or the ball's fault).  Missing components
+        are skipped."""
         weights = self.weights * np.clip(np.nan_to_num(before), 0.0, None)
         total = weights.sum()
         if not total > 0 or not np.all(np.isfinite(self._h_nodes)):
             return why
         expected = weights @ self._h_nodes / total
-        z = np.abs(dy - expected * self.dt) / np.sqrt(self._r_diag * self.dt)
+        tau = self.dt if tau is None else tau
+        scale = 1.0 if discrete else tau
+        with np.errstate(invalid="ignore"):
+            z = np.abs(row - expected * scale) / np.sqrt(self._r_diag * scale)
+        z = np.where(np.isfinite(z), z, 0.0)
         worst = float(np.max(z))
         if not worst > OUTLIER_SIGMAS:
             return why
         j = int(np.argmax(z))
-        return (f"the increment of step {step} is an outlier: observation {j} is {worst:.3g} standard "
+        what = "measurement" if discrete else "increment"
+        return (f"the {what} of step {step} is an outlier: observation {j} is {worst:.3g} standard "
                 f"deviations from what the model predicts, and the filter cannot follow it ({why}); if it "
-                "is a sensor glitch, send that row as missing (null)")
+                "is a sensor glitch, send that value as missing (null), or turn the gate on "
+                "([measurement] gate)")
 
     def boundary_leak(self, sigma: np.ndarray, masses: np.ndarray) -> np.ndarray:
         """Per step, the fraction of ∫σ_k that projection + the next Fokker–Planck flow lose, beyond noise.

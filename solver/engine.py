@@ -47,8 +47,10 @@ from scipy.linalg.blas import dgemv, sgemv
 from .diagnostics import Diagnostics
 from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
-from .filtering import ChunkedFilter, ChunkResult, Estimate, check_increments, marginal_by_quadrature
+from .filtering import ChunkedFilter, ChunkResult, Estimate, marginal_by_quadrature
+from .measurement import Observation, RowTerms, check_gate, check_rows, resolve_times, standard_score
 from .model import Model
+from .semigroup import SpectralFlow
 from .spec import DensityPrior, GaussianPrior, MixturePrior
 
 FORMS = ("stable", "literal")
@@ -84,7 +86,8 @@ class YauYauFilter(ChunkedFilter):
 
     method = "yau-yau"
 
-    def __init__(self, model: Model, offline: Any, form: str = "stable", precision: str = "double"):
+    def __init__(self, model: Model, offline: Any, form: str = "stable", precision: str = "double",
+                 gate: float | None = None):
         if form not in FORMS:
             raise SpecError("form", f"must be one of {', '.join(FORMS)}, got {form!r}")
         if precision not in PRECISIONS:
@@ -93,6 +96,7 @@ class YauYauFilter(ChunkedFilter):
         self.offline = offline
         self.form = form
         self.precision = precision
+        self.gate_override = check_gate(gate)
         self._arith = arith = _ARITHMETIC[precision]
         self.nodes = np.ascontiguousarray(offline.nodes, dtype=float)
         self.weights = np.ascontiguousarray(offline.weights, dtype=float)
@@ -106,11 +110,8 @@ class YauYauFilter(ChunkedFilter):
         self._predict = _with_zero_column(offline.propagator_fp, arith.dtype)
         literal = form == "literal"
         self._observe = _with_zero_column(offline.propagator_k, arith.dtype) if literal else self._predict
-        # h(nodes) R⁻¹ (m, Q) and the penalty ½hᵀR⁻¹h·dt (Q,), precomputed once.
         h_nodes = model.h(self.nodes)
-        self._hR = np.ascontiguousarray((h_nodes @ model.R_inv).T)
-        penalty = 0.5 * model.dt * np.einsum("qi,ij,qj->q", h_nodes, model.R_inv, h_nodes)
-        self._penalty = np.zeros_like(penalty) if literal else penalty  # seed 002 (5.35) vs stable
+        self._h_nodes = h_nodes  # (Q, m): the update factors of every kind (solver/measurement.py)
         self._pairs = [(i, j) for i in range(model.n) for j in range(i, model.n)]
         # rows: w·x_i (i < n), then w·x_i·x_j for the pairs i ≤ j
         w, x = self.weights, self.nodes
@@ -186,39 +187,85 @@ class YauYauFilter(ChunkedFilter):
         return dataclasses.replace(state.last, step=state.step, t=state.t, loglik_increment=0.0,
                                    degenerate=True, reason=state.reason)
 
-    # -- stepping (step and run: ChunkedFilter) -----------------------------------------
-    def run_arrays(self, state: YauYauState, increments: np.ndarray) -> tuple[YauYauState, ChunkResult]:
-        """Advance over a chunk (K, m) of increments; estimates as arrays."""
-        dy = check_increments(increments, self.model.m)
-        K = dy.shape[0]
+    # -- stepping (step, run and predict: ChunkedFilter) -------------------------------------
+    @cached_property
+    def observation(self) -> Observation:
+        """The spec's ``[measurement]``: update factors, predictive log-likelihood, gate."""
+        return Observation(self.model, self.gate_override)
+
+    @cached_property
+    def flow(self) -> SpectralFlow:
+        """e^{τA} on the basis for any gap τ (irregular times; solver/semigroup.py), built on first use."""
+        generator = getattr(self.offline, "fokker_planck_generator", None)
+        if generator is None:
+            raise InputError("times", "these offline arrays have no Fokker-Planck generator: irregular times "
+                                      "need a model precomputed by yauyau precompute")
+        return SpectralFlow(generator(), self.offline.basis, self.offline.projector, self.weights,
+                            dtype=self._arith.dtype)
+
+    def run_arrays(self, state: YauYauState, increments: np.ndarray,
+                   times: np.ndarray | None = None) -> tuple[YauYauState, ChunkResult]:
+        """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
+        model, obs = self.model, self.observation
+        rows = check_rows(increments, model.m)
+        K = rows.shape[0]
+        taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
         if K == 0:
             return state, _stack_results(np.empty(0, int), np.empty(0), *self._empty_moments(), np.empty(0),
                                          np.empty(0), state.last, None)
         steps = state.step + 1 + np.arange(K)
-        times = steps * self.model.dt
+        if taus is not None:
+            times = np.asarray(times, dtype=float).reshape(-1)
+        elif state.t == state.step * model.dt:
+            times = steps * model.dt
+        else:
+            times = state.t + model.dt * np.arange(1, K + 1)
+        if self.form == "literal":
+            self._check_literal(rows, taus)
         if state.degenerate:
             return self._stay_degenerate(state, steps, times, state.reason)
-        missing = np.isnan(dy[:, 0])
-        log_factor, top = self._update_exponents(dy, missing)
+        gaps = np.full(K, model.dt) if taus is None else taus
+        keys, terms, log_factor, top, impossible = self._factors(rows, gaps)
+        missing = keys == 0
+        gate = _Gate(obs, terms, keys, gaps, self) if obs.gating else None
+        skip = missing.copy()
+        if gate is not None:  # rejected before the loop: no finite factor to weigh
+            skip |= impossible
+            gate.scores.update({int(k): math.inf for k in np.flatnonzero(impossible)})
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         top_before = top.copy()  # _rescue may shift top[k]: the growth is relative to the factor's maximum
-        sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, missing.tolist())
+        sigma, masses, carried, done, reason, pll = self._propagate(initial, log_factor, top, skip.tolist(),
+                                                                    gate, taus)
+        if gate is None and impossible[:done].any():
+            done = int(np.argmax(impossible))
+            reason, carried = ("the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the "
+                               "model"), self._carried_after(sigma, masses, done, initial, taus)
+            sigma, masses, pll = sigma[:done], masses[:done], pll[:done]
+        gated = np.zeros(K, dtype=bool)
+        scores = np.full(K, np.nan)
+        if gate is not None:
+            for k, score in gate.scores.items():
+                gated[k], scores[k] = True, standard_score(score, gate.size(k))
+                top[k] = top_before[k] = 0.0
         mean, cov, mode = self._moments(sigma[:done], masses[:done])
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
         if bad is not None:
-            why = self._explained(sigma, state, dy, steps, missing, bad, why)
+            why = self._explained(sigma, state, rows, steps, skip, bad, why, gaps)
         elif reason is not None:  # the hot loop stopped at step `done` (no positive mass, overflow)
-            reason = self._explained(sigma, state, dy, steps, missing, done, reason)
+            reason = self._explained(sigma, state, rows, steps, skip, done, reason, gaps)
         if bad is not None:
             done, reason = bad, why
-            carried = self._carried_after(sigma, masses, bad, initial)
+            carried = self._carried_after(sigma, masses, bad, initial, taus)
             mean, cov, mode = mean[:done], cov[:done], mode[:done]
         masses = masses[:done]
         increments_ll = np.log(masses) + top[:done]
         # sequential sums from the carried value: identical however the data are chunked
         loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+        predictive = np.full(K, np.nan)
+        predictive[:done] = pll[:done] + terms.offset[:done]
+        predictive[missing] = np.nan
         good = done == K
         if done:
             last = Estimate(step=int(steps[done - 1]), t=float(times[done - 1]), mean=mean[-1], cov=cov[-1],
@@ -226,41 +273,73 @@ class YauYauFilter(ChunkedFilter):
                             mode=mode[-1])
         else:
             last = state.last
-        new_state = YauYauState(coefficients=carried[: self.N].astype(float), mass=carried.item(self.N),
+        coefficients = carried[: self.N].astype(float)
+        if taus is not None and not self.flow.exact:
+            coefficients = self.flow.from_modal(coefficients)
+        new_state = YauYauState(coefficients=coefficients, mass=carried.item(self.N),
                                 step=int(steps[-1]), t=float(times[-1]), precision=self.precision,
                                 loglik=last.loglik, last=last, degenerate=not good,
                                 reason=reason, form=self.form)
         result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
-        return new_state, result
+        gated[done:], scores[done:] = False, np.nan
+        return new_state, dataclasses.replace(result, predictive_loglik=predictive, gated=gated,
+                                              gate_score=scores)
 
-    def _explained(self, sigma, state, dy, steps, missing, k: int, why: str) -> str:
+    def _factors(self, rows: np.ndarray, gaps: np.ndarray):
+        """Per row: the pattern key of its observed components, the row terms, log e_k at the nodes
+        minus its maximum (returned apart, 0 on rows without a finite factor) and which observed rows
+        have no finite factor at all (an overflow: impossible under the model)."""
+        obs = self.observation
+        keys = obs.pattern_keys(~np.isnan(rows))
+        missing = keys == 0
+        terms = obs.row_terms(rows, gaps, keys)
+        log_factor = obs.log_factors(self._h_nodes, rows, gaps, keys, terms, self._factor_cache,
+                                     penalty=self.form != "literal")
+        with np.errstate(invalid="ignore"):
+            top = log_factor.max(axis=1)
+        impossible = ~missing & ~np.isfinite(top)
+        top[missing | impossible] = 0.0
+        log_factor -= top[:, None]
+        log_factor[missing | impossible] = 0.0
+        return keys, terms, log_factor, top, impossible
+
+    def _check_literal(self, rows: np.ndarray, taus) -> None:
+        """The literal form of seed 002 (5.35) has the potential inside the stored propagator over dt:
+        regular, whole continuous increments only."""
+        why = None
+        if self.observation.discrete:
+            why = ("measurement.kind", "discrete measurements")
+        elif taus is not None:
+            why = ("times", "irregular times")
+        elif (np.isnan(rows).any(axis=1) & ~np.isnan(rows).all(axis=1)).any():
+            why = ("increments", "partly missing rows")
+        if why is not None:
+            raise InputError(why[0], f"the literal form (propagator_k over dt) cannot take {why[1]}: use the "
+                                     "stable form (the default)")
+
+    def _explained(self, sigma, state, rows, steps, missing, k: int, why: str, gaps) -> str:
         """``why`` the filter failed at row k, led by the outlier it met there, if it was one."""
         if missing[k]:
             return why
         before = sigma[k - 1] if k > 0 else np.asarray(self.offline.basis) @ state.density_coefficients
-        return self._diagnostics.explain_outlier(before, dy[k], int(steps[k]), why)
+        return self._diagnostics.explain_outlier(before, rows[k], int(steps[k]), why, float(gaps[k]),
+                                                 self.observation.discrete)
 
-    def _update_exponents(self, dy: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """log e_k = hᵀR⁻¹Δy_k − ½hᵀR⁻¹h·dt at the nodes, minus its row maximum (returned apart).
+    @cached_property
+    def _factor_cache(self) -> dict:
+        """Per pattern of observed components: h_o R_oo⁻¹ and ½h_oᵀR_oo⁻¹h_o at the nodes."""
+        return {}
 
-        Elementwise numpy only (no BLAS): each row's bits do not depend on the chunk length.
-        """
-        dy = np.where(missing[:, None], 0.0, dy)
-        with np.errstate(over="ignore", invalid="ignore"):
-            log_e = dy[:, 0, None] * self._hR[0]
-            for j in range(1, dy.shape[1]):
-                log_e += dy[:, j, None] * self._hR[j]
-            log_e -= self._penalty
-            top = log_e.max(axis=1)
-            top[missing] = 0.0
-            log_e -= top[:, None]
-        return log_e, top
-
-    def _propagate(self, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray, missing: list[bool]):
+    def _propagate(self, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray, missing: list[bool],
+                   gate: "_Gate | None", taus: np.ndarray | None):
         """The hot loop, two BLAS calls per step.  ``carried`` is [coefficients, ∫σ] (N+1,).
 
+        Regular steps use the stored propagator over dt; with ``taus`` (irregular gaps) the coefficients
+        are carried in the modal coordinates of solver/semigroup.py and scaled by e^{τΛ} before the
+        same two products (or, for an ill-conditioned generator, multiplied by Φe^{τA} per gap).
         Returns nodal σ_k (pre-projection, K×Q, each relative to a unit-mass σ_{k−1}), ∫σ_k, the
-        final carried vector, the number of good steps and the reason it stopped early (or None).
+        final carried vector, the number of good steps, the reason it stopped early (or None) and the
+        log of the factor's predicted mean per step (log E_pred[e_k], before the gate).
         """
         K, Q = log_factor.shape
         N = self.N
@@ -268,48 +347,106 @@ class YauYauFilter(ChunkedFilter):
         factor = np.exp(log_factor).astype(arith.dtype, copy=False)
         factor[factor < arith.negligible] = 0.0
         sigma = np.empty((K, Q), dtype=arith.dtype)
+        scratch = np.empty(Q, dtype=arith.dtype)
         masses = [0.0] * K
+        pll = np.full(K, np.nan)
         predict, observe, project, gemv = self._predict, self._observe, self._project, arith.gemv
-        tiny, huge, multiply = arith.tiny, arith.huge, np.multiply
+        flow = self.flow if taus is not None else None
+        modal = flow is not None and not flow.exact
+        if modal:
+            predict = observe = flow.B
+            project = flow.C
+            real_scale, pair_scale = flow.scales(taus)
+            carried = carried.copy()
+            carried[:N] = flow.to_modal(carried[:N].astype(float))
+        # two buffers, alternately the carried vector and the next projection (views made once)
+        buffers = [carried.copy(), np.empty_like(carried)]
+        r = flow.r if modal else 0
+        real_views = [b[:r] for b in buffers]
+        pairs = modal and flow.pair_rates.size > 0
+        cdtype = np.complex64 if arith.dtype == np.float32 else np.complex128
+        pair_views = [b[r:N].view(cdtype) for b in buffers] if pairs else None
+        tiny, huge, multiply, log = arith.tiny, arith.huge, np.multiply, math.log
         rows, factors = list(sigma), list(factor)  # views made once, not per step
+        current = 0
+        carried = buffers[0]
         mass = carried.item(N)
         for k in range(K):
-            row = rows[k]
+            row, following = rows[k], buffers[1 - current]
+            if modal:
+                multiply(real_views[current], real_scale[k], out=real_views[current])
+                if pairs:
+                    multiply(pair_views[current], pair_scale[k], out=pair_views[current])
+            elif flow is not None:
+                predict = observe = flow.nodal_flow(taus[k])
             # positional gemv arguments (alpha, a, x, beta, y, offx, incx, offy, incy, trans,
             # overwrite_y): keyword parsing costs as much as a small product
             if missing[k]:
                 gemv(1.0 / mass, predict, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
+                s = row
             else:
-                gemv(1.0 / mass, observe, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
-                multiply(row, factors[k], out=row)
-            projected = gemv(1.0, project, row)
-            new_mass = projected.item(N)
+                gemv(1.0 / mass, observe, carried, 0.0, scratch, 0, 1, 0, 1, 0, 1)
+                s = scratch
+                multiply(scratch, factors[k], out=row)
+            gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+            new_mass = following.item(N)
             if not tiny < new_mass < huge:
-                new_mass, reason = self._rescue(carried, mass, log_factor, top, missing[k], k, row)
+                new_mass, reason = self._rescue(s, log_factor, top, missing[k], k, row)
+                if reason is not None and not missing[k] and gate is not None and reason.startswith("no pos"):
+                    new_mass, reason = self._reject(gate, k, math.inf, s, row, project, following)
                 if reason is not None:
-                    return sigma, np.array(masses[:k]), carried, k, reason
-                projected = gemv(1.0, project, row)
-                projected[N] = new_mass
+                    return sigma, np.array(masses[:k]), carried.copy(), k, reason, pll
+                gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+                following[N] = new_mass
+            elif gate is not None and not missing[k]:
+                pll[k] = log(new_mass) + top[k]
+                bound = gate.bias[k] - 2.0 * pll[k]
+                if bound > gate.threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
+                    score = bound - gate.correction(k, s)
+                    if score > gate.threshold[k]:
+                        new_mass, reason = self._reject(gate, k, score, s, row, project, following)
+                        if reason is not None:
+                            return sigma, np.array(masses[:k]), carried.copy(), k, reason, pll
+            if not missing[k] and pll[k] != pll[k]:
+                pll[k] = log(new_mass) + top[k]
             masses[k] = mass = new_mass
-            carried = projected
-        return sigma, np.array(masses), carried, K, None
+            carried, current = following, 1 - current
+        return sigma, np.array(masses), carried.copy(), K, None, pll
 
-    def _carried_after(self, sigma, masses, step: int, initial: np.ndarray) -> np.ndarray:
-        """[coefficients, ∫σ] as the hot loop carried them after row ``step`` − 1 (bit for bit)."""
+    def _reject(self, gate: "_Gate", k: int, score: float, s, row, project, following):
+        """Gate row k: the step only predicts (σ = the propagated density).  (∫σ, reason or None)."""
+        gate.scores[k] = score
+        if s is not row:
+            np.copyto(row, s)
+        self._arith.gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+        new_mass = following.item(self.N)
+        if not self._arith.tiny < new_mass < self._arith.huge:
+            return 0.0, "all probability mass has left the domain ball"
+        return new_mass, None
+
+    def _carried_after(self, sigma, masses, step: int, initial: np.ndarray, taus=None) -> np.ndarray:
+        """[coefficients, ∫σ] as the hot loop carried them after row ``step`` − 1 (bit for bit), in the
+        loop's coordinates (modal for irregular gaps)."""
+        modal = taus is not None and not self.flow.exact
         if step == 0:
+            if modal:
+                initial = initial.copy()
+                initial[: self.N] = self.flow.to_modal(initial[: self.N].astype(float))
             return initial
-        carried = self._arith.gemv(1.0, self._project, sigma[step - 1])
+        project = self.flow.C if modal else self._project
+        carried = self._arith.gemv(1.0, project, sigma[step - 1])
         carried[self.N] = masses[step - 1]
         return carried
 
-    def _rescue(self, carried, mass, log_factor, top, missing, k, row) -> tuple[float, str | None]:
-        """Recompute step k in log scale when ∫σ under/overflows; writes row, may shift top[k]."""
-        s = self._arith.gemv(1.0 / mass, self._predict if missing else self._observe, carried)
-        if not missing and not np.all(np.isfinite(log_factor[k])):
-            return 0.0, "the update factor exp(hᵀR⁻¹Δy) overflows: increment incompatible with the model"
+    def _rescue(self, s, log_factor, top, missing, k, row) -> tuple[float, str | None]:
+        """Recompute step k in log scale when ∫σ under/overflows (s: the propagated nodal values);
+        writes row, may shift top[k]."""
+        s = np.array(s, dtype=float)
         prior_mass = float(self.weights @ s)
         if not prior_mass > 0.0 or not math.isfinite(prior_mass):
             return 0.0, "all probability mass has left the domain ball"
+        if not missing and not np.all(np.isfinite(log_factor[k])):
+            return 0.0, "the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the model"
         with np.errstate(divide="ignore"):
             log_abs = np.log(np.abs(s)) + (0.0 if missing else log_factor[k])
         shift = float(log_abs.max())
@@ -416,6 +553,37 @@ class YauYauFilter(ChunkedFilter):
         return operator
 
 
+class _Gate:
+    """The outlier gate of one chunk (solver/measurement.py): per row the bound's bias and the
+    threshold; ``correction`` the exact term from the predicted density; ``scores`` the gated rows."""
+
+    def __init__(self, obs: Observation, terms: RowTerms, keys: np.ndarray, gaps: np.ndarray,
+                 engine: YauYauFilter):
+        self.obs, self.keys, self.gaps, self.engine = obs, keys, gaps, engine
+        self.terms = terms
+        self.bias = terms.bound_bias().tolist()
+        self.threshold = terms.threshold.tolist()
+        self.scores: dict[int, float] = {}
+
+    def size(self, k: int) -> int:
+        return int(self.keys[k]).bit_count()
+
+    def correction(self, k: int, s: np.ndarray) -> float:
+        """log det(I + κ²S₀⁻¹C), C = Cov(h_o) under the propagated nodal density s."""
+        key = int(self.keys[k])
+        index = self.obs.pattern(key).index
+        ws = self.engine.weights * np.asarray(s, dtype=float)
+        total = float(ws.sum())
+        if not total > 0.0:
+            return 0.0
+        h = self.engine._h_nodes[:, index]
+        centred = h - (ws @ h) / total
+        cov = (centred * ws[:, None]).T @ centred / total
+        tau = float(self.gaps[k])
+        return max(0.0, self.obs.covariance_correction(key, float(self.terms.kappa2[k]), cov,
+                                                       self.obs.S0_scale(tau)))
+
+
 # -- helpers ---------------------------------------------------------------------------------
 def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     matrix = np.asarray(propagator, dtype=float)
@@ -463,6 +631,6 @@ def _check_offline_shapes(nodes, weights, projector, offline, n: int) -> None:
 
 
 def build(model: Model, offline: Any, form: str = "stable", precision: str = "double",
-          **_: Any) -> YauYauFilter:
+          gate: float | None = None, **_: Any) -> YauYauFilter:
     """The registry's constructor (solver/registry.py)."""
-    return YauYauFilter(model, offline, form=form, precision=precision)
+    return YauYauFilter(model, offline, form=form, precision=precision, gate=gate)

@@ -8,10 +8,15 @@ observation increments) to (new state, a :class:`ChunkResult` of arrays) — a f
 serialisable (``to_dict``/``state_from_dict``, JSON-safe) so that the service can store it between
 chunks; the log normalising constant (the log-likelihood) is carried along in it.
 
-Observation times τ_k = k·dt; increment Δy_k = y(τ_k) − y(τ_{k−1}) (shape (m,)).  A row of
-NaN means "no observation at this step": the filter only predicts.  ``step(state, None)`` is the
-same as a row of NaN.  A filter whose representation cannot predict without the observation (the
-Wei–Norman filter: its (12) needs the whole path) raises InputError('increment') saying so.
+A row is what arrives at one time (the spec's ``[measurement]``, solver/measurement.py): an increment
+Δy_k = y(t_k) − y(t_(k−1)) (continuous kind) or a measurement z_k = h(x(t_k)) + v_k (discrete kind),
+shape (m,).  Times are regular, t_k = t_(k−1) + dt, unless the chunk carries ``times`` (absolute,
+strictly increasing): then every row is a step over its own gap.  A NaN component is not observed
+(marginalised); a row of NaN means "no observation at this step": the filter only predicts.
+``step(state, None)`` is the same as a row of NaN, and ``predict(state, t)`` a step to t without an
+observation.  A filter whose representation cannot take a form (irregular times, discrete
+measurements, a partly missing row: the Wei–Norman filter's (12) needs the whole path) raises
+InputError naming the field and what to use instead.
 
 Adding a filter: a module with a class implementing :class:`Filter` (usually ``ChunkedFilter`` plus
 ``initial_state``, ``run_arrays``, ``estimate``, ``density``, ``state_from_dict``) and one line in
@@ -43,8 +48,11 @@ class Estimate:
     loglik: float  # cumulative log-likelihood (log of the normaliser ratio)
     loglik_increment: float  # this step's contribution
     degenerate: bool = False
-    reason: str | None = None
+    reason: str | None = None  # why the step is degenerate, gated or re-initialised
     mode: np.ndarray | None = None  # (n,), where the filter can tell
+    gated: bool = False  # the observation was rejected by the gate: the step only predicted
+    predictive_loglik: float | None = None  # log p(row | rows before); None without an observation
+    reinitialised: bool = False  # the filter degenerated here and started again (on_degenerate)
 
     def to_dict(self) -> dict[str, Any]:
         out = {"step": self.step, "t": self.t, "mean": self.mean.tolist(), "cov": self.cov.tolist(),
@@ -73,23 +81,90 @@ class ChunkResult:
     loglik_increment: np.ndarray  # (K,)
     degenerate: np.ndarray  # (K,) bool
     reason: str | None = None  # of the first degenerate step
+    predictive_loglik: np.ndarray | None = None  # (K,) log p(row_k | rows before); NaN: no observation
+    gated: np.ndarray | None = None  # (K,) bool: the gate rejected the row (it only predicted)
+    gate_score: np.ndarray | None = None  # (K,) predictive standard score of a gated row (NaN elsewhere)
+    reinitialised: np.ndarray | None = None  # (K,) bool: degenerate here, started again from a prior
+    notes: dict[int, str] | None = None  # row -> why it was re-initialised
+
+    def __post_init__(self):
+        K = len(self.step)
+        for name, fill in (("predictive_loglik", np.nan), ("gate_score", np.nan)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(K, fill))
+        for name in ("gated", "reinitialised"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(K, dtype=bool))
 
     def __len__(self) -> int:
         return len(self.step)
 
-    def estimates(self) -> list[Estimate]:
+    def row_reason(self, k: int, gate: float | None = None) -> str | None:
+        """Why row k is flagged (degenerate, re-initialised or gated), or None."""
+        if self.reinitialised[k]:
+            return (self.notes or {}).get(k, "re-initialised after the filter degenerated")
+        if self.degenerate[k]:
+            return self.reason
+        if self.gated[k]:
+            return gate_reason(float(self.gate_score[k]), gate)
+        return None
+
+    def estimates(self, gate: float | None = None) -> list[Estimate]:
         """One :class:`Estimate` per step (new objects; nothing is shared with later chunks)."""
         if self.mode is None:
             modes = [None] * len(self.step)
         else:
             known = (np.isfinite(self.mode).all(axis=1) & ~self.degenerate).tolist()
             modes = [m if ok else None for m, ok in zip(self.mode, known, strict=True)]
+        flagged = (self.degenerate | self.gated | self.reinitialised).tolist()
+        pll = [v if v == v else None for v in self.predictive_loglik.tolist()]  # NaN -> None
         columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
-                      self.loglik_increment.tolist(), self.degenerate.tolist(), modes, strict=True)
-        reason = self.reason
+                      self.loglik_increment.tolist(), self.degenerate.tolist(), modes, self.gated.tolist(),
+                      pll, self.reinitialised.tolist(), flagged, strict=True)
         return [Estimate(step=s, t=t, mean=m, cov=P, loglik=ll, loglik_increment=i, degenerate=bad,
-                         reason=reason if bad else None, mode=mode)
-                for s, t, m, P, ll, i, bad, mode in columns]
+                         reason=self.row_reason(k, gate) if flag else None, mode=mode, gated=gated,
+                         predictive_loglik=p, reinitialised=again)
+                for k, (s, t, m, P, ll, i, bad, mode, gated, p, again, flag) in enumerate(columns)]
+
+
+_ROW_FIELDS = ("step", "t", "mean", "cov", "mode", "loglik", "loglik_increment", "degenerate",
+               "predictive_loglik", "gated", "gate_score", "reinitialised")
+
+
+def slice_result(result: ChunkResult, rows: slice) -> ChunkResult:
+    """The rows ``rows`` (a slice with step 1) of a chunk's result."""
+    start = rows.start or 0
+    values = {name: (None if getattr(result, name) is None else getattr(result, name)[rows])
+              for name in _ROW_FIELDS}
+    K = len(values["step"])
+    notes = {k - start: v for k, v in (result.notes or {}).items() if 0 <= k - start < K}
+    reason = result.reason if values["degenerate"].any() else None
+    return ChunkResult(**values, reason=reason, notes=notes or None)
+
+
+def concat_results(parts: list[ChunkResult]) -> ChunkResult:
+    """One result of consecutive chunks' results (the reason of the first degenerate row)."""
+    if len(parts) == 1:
+        return parts[0]
+    values = {}
+    for name in _ROW_FIELDS:
+        arrays = [getattr(p, name) for p in parts]
+        if name == "mode" and any(a is None for a in arrays):
+            arrays = [p.mean if a is None else a for p, a in zip(parts, arrays, strict=True)]
+        values[name] = np.concatenate(arrays)
+    notes, offset = {}, 0
+    for p in parts:
+        notes.update({offset + k: v for k, v in (p.notes or {}).items()})
+        offset += len(p)
+    reason = next((p.reason for p in parts if p.degenerate.any()), None)
+    return ChunkResult(**values, reason=reason, notes=notes or None)
+
+
+def gate_reason(score: float, gate: float | None = None) -> str:
+    """The note of a gated row: its predictive standard score against the gate."""
+    where = "beyond the gate" if gate is None else f"beyond the gate of {gate:g}"
+    size = "an impossible value" if not np.isfinite(score) else f"{score:.3g} predictive standard deviations"
+    return f"observation gated: {size} from the prediction, {where}; the step only predicted"
 
 
 @runtime_checkable
@@ -126,14 +201,21 @@ class Filter(Protocol):
     def initial_state(self, prior: Any | None = None) -> FilterState:
         """State at t = 0; ``prior`` (a spec prior) overrides the model's."""
 
-    def run_arrays(self, state: FilterState, increments: np.ndarray) -> tuple[FilterState, ChunkResult]:
-        """Advance over a chunk of increments (K, m); rows of NaN are missing observations."""
+    def run_arrays(self, state: FilterState, increments: np.ndarray,
+                   times: np.ndarray | None = None) -> tuple[FilterState, ChunkResult]:
+        """Advance over a chunk of rows (K, m) (NaN: a missing component; a row of NaN: no observation),
+        at ``times`` (K,) if given (absolute, strictly increasing), else one dt apart."""
 
-    def step(self, state: FilterState, increment: np.ndarray | None) -> tuple[FilterState, Estimate]:
-        """Advance by one observation interval dt (``None``: no observation, predict only)."""
+    def step(self, state: FilterState, increment: np.ndarray | None,
+             t: float | None = None) -> tuple[FilterState, Estimate]:
+        """Advance by one row (``None``: no observation, predict only), to time ``t`` (default + dt)."""
 
-    def run(self, state: FilterState, increments: np.ndarray) -> tuple[FilterState, list[Estimate]]:
+    def run(self, state: FilterState, increments: np.ndarray,
+            times: np.ndarray | None = None) -> tuple[FilterState, list[Estimate]]:
         """``run_arrays`` with one :class:`Estimate` per row."""
+
+    def predict(self, state: FilterState, t: float) -> tuple[FilterState, Estimate]:
+        """The state at time ``t`` (after the state's time) without an observation: the forecast."""
 
     def estimate(self, state: FilterState) -> Estimate:
         """The current estimate (without stepping)."""
@@ -146,11 +228,21 @@ class Filter(Protocol):
 
 
 class ChunkedFilter:
-    """``step`` and ``run`` of a filter that advances whole chunks with ``run_arrays``."""
+    """``step``, ``run`` and ``predict`` of a filter that advances whole chunks with ``run_arrays``."""
 
     model: Any
 
-    def step(self, state: Any, increment: np.ndarray | None) -> tuple[Any, Estimate]:
+    gate_override: float | None = None
+
+    @property
+    def gate(self) -> float:
+        """The gate in predictive standard deviations (0: off): the filter's override, else the
+        spec's ``[measurement] gate``."""
+        if self.gate_override is not None:
+            return self.gate_override
+        return float(self.model.spec.measurement.gate)
+
+    def step(self, state: Any, increment: np.ndarray | None, t: float | None = None) -> tuple[Any, Estimate]:
         if increment is None:
             rows = np.full((1, self.model.m), np.nan)
         else:
@@ -158,12 +250,50 @@ class ChunkedFilter:
                 rows = np.reshape(np.asarray(increment, dtype=float), (1, -1))
             except (TypeError, ValueError):
                 raise InputError("increment", "must be a list of numbers (or null)") from None
-        new_state, result = self.run_arrays(state, rows)  # validates the row
-        return new_state, result.estimates()[0]
+        new_state, result = self.run_arrays(state, rows, None if t is None else [t])  # validates the row
+        return new_state, result.estimates(self.gate)[0]
 
-    def run(self, state: Any, increments: np.ndarray) -> tuple[Any, list[Estimate]]:
-        new_state, result = self.run_arrays(state, increments)
-        return new_state, result.estimates()
+    def run(self, state: Any, increments: np.ndarray, times: Any | None = None) -> tuple[Any, list[Estimate]]:
+        new_state, result = self.run_arrays(state, increments, times)
+        return new_state, result.estimates(self.gate)
+
+    def predict(self, state: Any, t: float) -> tuple[Any, Estimate]:
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise InputError("t", "must be a number (the time to forecast to)") from None
+        if t == state.t:
+            return state, self.estimate(state)
+        return self.step(state, None, t)
+
+
+def plain_rows(method: str, increments: Any, times: Any | None, model: Any) -> np.ndarray:
+    """The rows of a filter that takes only regular, continuous, whole rows (NaN rows: missing):
+    validated, and InputError naming what else it was sent (:func:`refuse_form`)."""
+    from .measurement import check_rows
+
+    rows = check_rows(increments, model.m)
+    refuse_form(method, rows, times, model)
+    return check_increments(rows, model.m)
+
+
+def refuse_form(method: str, rows: np.ndarray, times: Any | None, model: Any, *, times_ok: bool = False,
+                discrete_ok: bool = False, partial_ok: bool = False) -> None:
+    """InputError naming what ``method`` cannot take: irregular ``times``, discrete measurements or a
+    partly missing row (the methods that take everything never call this)."""
+    other = "yau-yau (the general engine) takes it"
+    if times is not None and not times_ok:
+        raise InputError("times", f"method {method} cannot take irregular observation times; {other}, "
+                                  "or send regular rows without times")
+    if model.spec.measurement.kind == "discrete" and not discrete_ok:
+        raise InputError("measurement.kind", f"method {method} cannot take discrete measurements; {other}")
+    if not partial_ok:
+        missing = np.isnan(rows)
+        partial = missing.any(axis=1) & ~missing.all(axis=1)
+        if partial.any():
+            row = int(np.argmax(partial))
+            raise InputError(f"increments[{row}]", f"method {method} cannot take a partly missing row; "
+                                                   f"{other} (or send the whole row as missing)")
 
 
 def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray, low: np.ndarray,

@@ -14,6 +14,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from .errors import SpecError
+from .measurement import check_gate
 from .registry import AUTO, METHODS, REGISTRY, check_method
 
 if TYPE_CHECKING:
@@ -60,11 +61,12 @@ def resolve_method(model: "Model", method: str | None = None) -> str:
 
 
 def make_filter(model: "Model", offline: Any | None = None, method: str | None = None,
-                form: str = "stable", precision: str | None = None) -> "Filter":
+                form: str = "stable", precision: str | None = None, gate: float | None = None) -> "Filter":
     """A filter for ``model`` by registry name (``auto``: the analysis chooses, now).  ``offline``
     (the precomputed arrays, solver.offline.OfflineArrays) is needed by the methods that say so;
-    ``form``/``precision`` are the engine's options (precision defaults to the spec's).  A method
-    that is unknown, unavailable or does not apply raises SpecError('method')."""
+    ``form``/``precision`` are the engine's options (precision defaults to the spec's); ``gate``
+    overrides the spec's ``[measurement] gate`` (0: off).  A method that is unknown, unavailable or
+    does not apply raises SpecError('method')."""
     requested = _checked(model.spec.method if method is None else method)
     method = resolve_method(model, requested) if requested == AUTO else requested
     entry = REGISTRY[method]
@@ -76,10 +78,13 @@ def make_filter(model: "Model", offline: Any | None = None, method: str | None =
         raise SpecError("method", f"{method} is not available in this installation") from None
     precision = precision or model.spec.discretization.precision
     try:
-        return module.build(model, offline, form=form, precision=precision)
+        flt = module.build(model, offline, form=form, precision=precision, gate=gate)
     except SpecError as exc:
         if method == "yau-yau" or exc.field in ("form", "precision"):
             raise
         if requested == AUTO and offline is not None:  # the analysis was too optimistic
-            return make_filter(model, offline, "yau-yau", form=form, precision=precision)
+            return make_filter(model, offline, "yau-yau", form=form, precision=precision, gate=gate)
         raise SpecError("method", f"{method} does not apply to this model: {exc}") from None
+    if gate is not None and getattr(flt, "gate_override", None) is None:
+        flt.gate_override = check_gate(gate)
+    return flt

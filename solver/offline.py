@@ -39,6 +39,8 @@ from .model import Model
 
 ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
                "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
+# stored since irregular times; a file without it rebuilds it from its mesh on first use
+OPTIONAL_ARRAYS = ("generator",)
 Progress = Callable[[int, int], None]
 
 
@@ -196,6 +198,7 @@ class OfflineModel:
     eigenvalues: np.ndarray
     node_index: np.ndarray
     element_order: np.ndarray
+    generator: np.ndarray | None = None  # (N, N) Galerkin Fokker–Planck generator Φᵀ K Φ (semigroup.py)
     _space: Any | None = field(default=None, repr=False)  # fem.FESpace, built on first use
     _tree: Any | None = field(default=None, repr=False)  # scipy.spatial.cKDTree of the cells
 
@@ -205,7 +208,9 @@ class OfflineModel:
         return self.basis.shape[1]
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in ARRAY_NAMES}
+        arrays = {name: getattr(self, name) for name in ARRAY_NAMES}
+        arrays["generator"] = self.fokker_planck_generator()
+        return arrays
 
     @classmethod
     def from_arrays(cls, model: Model, arrays: dict[str, np.ndarray]) -> "OfflineModel":
@@ -215,7 +220,24 @@ class OfflineModel:
                 raise InputError(f"arrays.{name}", "is missing")
             values[name] = np.asarray(arrays[name])
         _check_shapes(model, values)
-        return cls(model=model, **values)
+        generator = arrays.get("generator")
+        if generator is not None:
+            generator = np.asarray(generator, dtype=float)
+            size = values["basis"].shape[1]
+            if generator.shape != (size, size) or not np.all(np.isfinite(generator)):
+                raise InputError("arrays.generator", f"must be a finite ({size}, {size}) matrix")
+        return cls(model=model, generator=generator, **values)
+
+    def fokker_planck_generator(self) -> np.ndarray:
+        """A = Φᵀ K Φ, the Fokker–Planck generator on the basis (solver/semigroup.py): stored, or
+        rebuilt once from the mesh (a file written before irregular times)."""
+        if self.generator is None:
+            from . import fem
+            from .semigroup import galerkin_generator
+
+            operators = fem.assemble(self.model, self.space)
+            self.generator = galerkin_generator(self.basis, operators.fokker_planck)
+        return self.generator
 
     # -- evaluation at arbitrary points ----------------------------------------------------
     def evaluate_basis(self, points: np.ndarray) -> np.ndarray:
@@ -313,10 +335,12 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         if not np.all(np.isfinite(arr)):
             raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")
     check_stable(model, disc.nodes, disc.weights, phi.values, phi.projector, prop_fp)
+    from .semigroup import galerkin_generator
+
     return OfflineModel(
         model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
         propagator_fp=prop_fp, propagator_k=prop_k, eigenvalues=phi.eigenvalues, **disc.arrays,
-        _space=disc.space)
+        generator=galerkin_generator(phi.values, disc.fokker_planck), _space=disc.space)
 
 
 def check_stable(model: Model, nodes: np.ndarray, weights: np.ndarray, basis_values: np.ndarray,

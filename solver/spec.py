@@ -103,6 +103,39 @@ class DensityPrior(_Strict):
 Prior = Annotated[Union[GaussianPrior, MixturePrior, DensityPrior], Field(discriminator="kind")]
 
 
+GATE_DEFAULT = 6.0  # predictive standard deviations (docs/measurements.md): 2e-9 of healthy Gaussian data
+
+
+class Measurement(_Strict):
+    """How the observations arrive (docs/measurements.md).
+
+    ``kind = "continuous"`` (default): each row is an increment dy of y over [t_(k-1), t_k],
+    dy = h dt + dw, E[dw dwᵀ] = R dt (seed 002 (5.35)).  ``kind = "discrete"``: each row is a sampled
+    measurement z_k = h(x(t_k)) + v_k, v_k ~ N(0, R) (``likelihood = "gaussian"``) or a Student-t with
+    ``dof`` degrees of freedom and scale matrix R (``likelihood = "student-t"``, heavy-tailed sensors).
+    ``gate = K``: an observation whose predictive standard score exceeds K (for m components: whose
+    predictive probability is below that of K standard deviations) only predicts and is flagged;
+    ``gate = 0`` turns the gate off.
+    """
+
+    kind: Literal["continuous", "discrete"] = "continuous"
+    likelihood: Literal["gaussian", "student-t"] = "gaussian"
+    dof: float | None = Field(default=None, gt=0, le=1e6)
+    gate: float = Field(default=GATE_DEFAULT, ge=0, le=1e6)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Measurement":
+        if self.likelihood == "student-t":
+            if self.kind != "discrete":
+                raise SpecError("measurement.likelihood", 'student-t needs kind = "discrete" (continuous '
+                                "increments dy = h dt + dw have Gaussian noise)")
+            if self.dof is None:
+                raise SpecError("measurement.dof", "student-t needs dof (degrees of freedom, e.g. 4)")
+        elif self.dof is not None:
+            raise SpecError("measurement.dof", 'is only used with likelihood = "student-t"')
+        return self
+
+
 class Domain(_Strict):
     radius: float = Field(gt=0, le=1e6)
     center: list[float] | None = None
@@ -128,7 +161,8 @@ class Discretization(_Strict):
     precision: Literal["double", "single"] = "double"
 
 
-PROBLEM_FIELDS = ("state", "drift", "observation", "diffusion", "observation_noise", "parameters", "initial")
+PROBLEM_FIELDS = ("state", "drift", "observation", "diffusion", "observation_noise", "parameters", "initial",
+                  "measurement")
 DISCRETISATION_FIELDS = ("domain", "discretization")
 
 
@@ -142,6 +176,7 @@ class ProblemSpec(_Strict):
     observation_noise: list[list[float]] | None = None
     parameters: dict[str, float] = Field(default_factory=dict)
     initial: Prior
+    measurement: Measurement = Field(default_factory=Measurement)
 
 
 class DiscretisationSpec(_Strict):
@@ -170,6 +205,7 @@ class ModelSpec(_Strict):
     observation_noise: list[list[float]] | None = None
     parameters: dict[str, float] = Field(default_factory=dict, max_length=64)
     initial: Prior
+    measurement: Measurement = Field(default_factory=Measurement)
     domain: Domain
     discretization: Discretization
     method: str = Field("auto", description="auto or a name of solver/registry.py")
@@ -282,8 +318,12 @@ class ModelSpec(_Strict):
         return self._numeric
 
     def canonical_json(self) -> str:
-        """Deterministic JSON of the spec (the input of the model's content hash)."""
-        return json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        """Deterministic JSON of the spec (the input of the model's content hash).  A default
+        ``[measurement]`` table is left out, so a spec written before it existed keeps its id."""
+        data = self.model_dump(mode="json")
+        if self.measurement == Measurement():
+            del data["measurement"]
+        return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 
 def _numeric_functions(spec: ModelSpec) -> tuple[Any, Any, Any]:

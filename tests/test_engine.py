@@ -220,7 +220,7 @@ def test_impossible_data_flags_degenerate_and_keeps_last_estimate(cubic, impossi
     model, offline = cubic
     dy = simulate(model, 20, np.random.default_rng(4)).increments
     dy[10] = impossible
-    yy = YauYauFilter(model, offline)
+    yy = YauYauFilter(model, offline, gate=0)  # the gate off: the row reaches the update
     state, estimates = yy.run(yy.initial_state(), dy)
     good = estimates[9]
     assert not any(e.degenerate for e in estimates[:10])
@@ -242,7 +242,7 @@ def test_impossible_data_flags_degenerate_and_keeps_last_estimate(cubic, impossi
 
 def test_impossible_first_row_keeps_the_initial_state(cubic):
     model, offline = cubic
-    yy = YauYauFilter(model, offline)
+    yy = YauYauFilter(model, offline, gate=0)
     start = yy.initial_state()
     state, estimates = yy.run(start, [[1e307], [0.01]])
     assert state.degenerate and "overflows" in state.reason and state.step == 2

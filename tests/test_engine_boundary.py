@@ -88,10 +88,9 @@ def test_benes_leaving_the_ball_is_flagged_before_the_estimates_go_wrong(benes, 
 def _unflagged_means(yy: YauYauFilter, dy: np.ndarray) -> np.ndarray:
     """Means of the hot loop with no plausibility check at all (what the engine used to return)."""
     start = yy.initial_state()
-    missing = np.isnan(dy[:, 0])
-    log_factor, top = yy._update_exponents(dy, missing)
+    keys, _, log_factor, top, _ = yy._factors(dy, np.full(len(dy), yy.model.dt))
     sigma, masses, *_ = yy._propagate(np.append(start.coefficients, start.mass), log_factor, top,
-                                      missing.tolist())
+                                      (keys == 0).tolist(), None, None)
     return yy._moments(sigma, masses)[0][:, 0]
 
 

@@ -211,7 +211,7 @@ def test_outlier_is_named_as_the_cause():
     from yauyau.solver import load_spec
 
     model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
-    engine = YauYauFilter(model, precompute(model))
+    engine = YauYauFilter(model, precompute(model), gate=0)  # the gate off: the glitch reaches the update
     dy = simulate(model, 100, np.random.default_rng(1)).increments
     state, _ = engine.run(engine.initial_state(), dy[:50])
     x = np.linspace(-7, 7, 4001)[:, None]
@@ -221,6 +221,6 @@ def test_outlier_is_named_as_the_cause():
     glitch[0] = expected * model.dt + 10 * np.sqrt(model.dt)
     _, estimates = engine.run(state, glitch)
     reason = estimates[0].reason or ""
-    assert "step 51 is an outlier" in reason and "send that row as missing" in reason
+    assert "step 51 is an outlier" in reason and "send that value as missing" in reason
     sigmas = float(reason.split("observation 0 is ")[1].split(" ")[0])
     assert sigmas == pytest.approx(10.0, rel=0.05)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from yauyau.solver import compile_model, load_spec, spec_from_dict
 from yauyau.solver.errors import InputError, SpecError
-from yauyau.solver.offline import ARRAY_NAMES, OfflineModel, precompute
+from yauyau.solver.offline import ARRAY_NAMES, OPTIONAL_ARRAYS, OfflineModel, precompute
 
 
 def make_model(n, radius=3.0, basis=24, mesh=None, order=2, dt=0.02, center=None):
@@ -25,7 +25,7 @@ def disk():
 
 def test_array_contract(disk):
     arrays = disk.to_arrays()
-    assert set(arrays) == set(ARRAY_NAMES)
+    assert set(arrays) == set(ARRAY_NAMES) | set(OPTIONAL_ARRAYS)
     q, n = arrays["nodes"].shape
     size = disk.size
     assert (n, size) == (2, 40)

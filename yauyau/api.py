@@ -172,13 +172,16 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
 
 
 def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: str | None = None, *,
-                prior: Any | None = None, form: str = "stable", precision: str | None = None
-                ) -> "OnlineFilter":
+                prior: Any | None = None, form: str = "stable", precision: str | None = None,
+                gate: float | None = None, on_degenerate: str = "stop", t0: float = 0.0) -> "OnlineFilter":
     """A ready-to-step filter of a stored model.
 
     ``method`` overrides the one chosen at precompute (``yau-yau``, ``kalman-bucy``, ...; an exact
     filter that does not apply raises SpecError('method')); ``prior`` (a spec prior, e.g.
-    ``{"kind": "gaussian", "mean": [0], "cov": [[1]]}``) overrides the model's.
+    ``{"kind": "gaussian", "mean": [0], "cov": [[1]]}``) overrides the model's and holds at time
+    ``t0``; ``gate`` overrides the spec's ``[measurement] gate`` (0: off); ``on_degenerate`` is
+    "stop" (the state stays degenerate until ``reinitialise``) or "reinitialise" (start again from a
+    broadened prior around the last good estimate, yauyau.solver.recovery).
     """
     from .solver.methods import make_filter
 
@@ -187,65 +190,100 @@ def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: st
     loaded = load_model(store, model_id)
     if method == "auto":
         raise SpecError("method", "auto is resolved at precompute; name a method or leave it out")
-    flt = make_filter(loaded.model, loaded.offline, method or loaded.method, form=form, precision=precision)
-    return OnlineFilter(flt, prior=prior)
+    flt = make_filter(loaded.model, loaded.offline, method or loaded.method, form=form, precision=precision,
+                      gate=gate)
+    return OnlineFilter(flt, prior=prior, on_degenerate=on_degenerate, t0=t0)
 
 
 def simulate(spec: ModelSpec | str | os.PathLike | Any, steps: int, seed: int | None = 0,
-             substeps: int = 10) -> Any:
-    """A sample path of the model and its observation increments (Euler–Maruyama with ``substeps``
-    per dt): ``.times`` (K+1,), ``.states`` (K+1, n), ``.increments`` (K, m)."""
+             substeps: int = 10, times: Any | None = None) -> Any:
+    """A sample path of the model and its observations (Euler–Maruyama with ``substeps`` per dt):
+    ``.times`` (K+1,) from 0, ``.states`` (K+1, n), ``.rows`` (K, m): the ``.increments`` of a
+    continuous model or the ``.observations`` of a discrete one (``[measurement] kind``).  ``times``
+    (K,): observe at these times (strictly increasing, > 0) instead of every dt."""
     from .solver.model import Model, compile_model
     from .solver.simulate import simulate as simulate_model
 
     model = spec if isinstance(spec, Model) else compile_model(_as_spec(spec))
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise InputError("steps", "must be a positive integer")
-    return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps)
+    return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps, times=times)
 
 
 class OnlineFilter:
-    """A filter and its current state: ``step`` one increment or ``run`` a chunk; ``estimate``,
-    ``mean``, ``cov``, ``mode`` and ``loglik`` now; the ``density`` and ``marginal`` now.
+    """A filter and its current state: ``step`` one row or ``run`` a chunk (at regular or given times);
+    ``estimate``, ``mean``, ``cov``, ``mode`` and ``loglik`` now; the ``density`` and ``marginal`` now;
+    ``predict(t)`` a forecast.
 
     ``mode`` and ``quantiles(probs)`` summarise a density that a mean cannot (yauyau.solver.summaries).
     ``filter`` is the underlying :class:`yauyau.solver.filtering.Filter` (a pure function of state
     and data); ``state`` is its JSON-safe state (``state_dict()``/``restore`` move it between
-    processes, exactly).
+    processes, exactly).  ``on_degenerate``: "stop" or "reinitialise" (yauyau.solver.recovery).
     """
 
-    def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None):
+    def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None, *,
+                 on_degenerate: str = "stop", t0: float = 0.0):
+        from .solver.recovery import check_policy
+
         self.filter = flt
         self.model = flt.model
         self.method: str = flt.method
-        self.state = flt.initial_state(prior) if state is None else state
+        self.on_degenerate = check_policy(on_degenerate)
+        self.t0 = _check_t0(t0)
+        self.state = self._initial(prior) if state is None else state
+
+    def _initial(self, prior: Any | None) -> Any:
+        import dataclasses
+
+        state = self.filter.initial_state(prior)
+        if self.t0 == 0.0:
+            return state
+        if hasattr(state, "last"):
+            return dataclasses.replace(state, t=self.t0, last=dataclasses.replace(state.last, t=self.t0))
+        return dataclasses.replace(state, t=self.t0)
 
     def __repr__(self) -> str:
         return f"<OnlineFilter {self.model.spec.name!r} method={self.method} step={self.state.step}>"
 
     # -- stepping -----------------------------------------------------------------------
-    def step(self, increment: Any | None = None) -> Estimate:
-        """One observation interval dt: ``increment`` Δy (m numbers), or None to only predict."""
-        self.state, estimate = self.filter.step(self.state, None if increment is None
-                                                else np.asarray(increment, dtype=float))
-        return estimate
+    def step(self, row: Any | None = None, t: float | None = None) -> Estimate:
+        """One row: an increment Δy (continuous kind) or a measurement z (discrete kind), m numbers
+        (NaN: that component missing), or None to only predict; at time ``t`` (default: one dt on)."""
+        rows = np.full((1, self.model.m), np.nan) if row is None else np.reshape(np.asarray(row, dtype=float),
+                                                                                  (1, -1))
+        return self.run(rows, None if t is None else [t]).estimates(self.filter.gate)[0]
 
-    def run(self, increments: Any) -> Any:
-        """A chunk of increments (K, m) (NaN rows: no observation); returns the chunk's estimates as
-        arrays (``step``, ``t``, ``mean`` (K, n), ``cov`` (K, n, n), ``mode``, ``loglik``,
-        ``degenerate``, ``reason``; ``.estimates()`` gives Estimate objects)."""
-        self.state, result = self.filter.run_arrays(self.state, increments)
+    def run(self, rows: Any, times: Any | None = None) -> Any:
+        """A chunk of rows (K, m) (NaN: missing), at ``times`` (K,) (absolute, strictly increasing) or
+        one dt apart; returns the chunk's estimates as arrays (``step``, ``t``, ``mean`` (K, n), ``cov``
+        (K, n, n), ``mode``, ``loglik``, ``predictive_loglik``, ``gated``, ``degenerate``,
+        ``reinitialised``, ``reason``; ``.estimates()`` gives Estimate objects)."""
+        from .solver.recovery import run_with_policy
+
+        self.state, result = run_with_policy(self.filter, self.state, rows, times, self.on_degenerate)
         return result
 
-    def iterate(self, increments: Any):
-        """Yield one Estimate per row of ``increments``, stepping as it goes."""
-        for row in np.asarray(increments, dtype=float).reshape(len(increments), -1):
-            yield self.step(None if np.isnan(row).all() else row)
+    def iterate(self, rows: Any, times: Any | None = None):
+        """Yield one Estimate per row, stepping as it goes."""
+        rows = np.asarray(rows, dtype=float).reshape(len(rows), -1)
+        times = [None] * len(rows) if times is None else list(times)
+        for row, t in zip(rows, times, strict=True):
+            yield self.step(None if np.isnan(row).all() else row, t)
+
+    def predict(self, t: float) -> "OnlineFilter":
+        """The forecast at time ``t`` (after now) with no observation: an OnlineFilter of its own (its
+        ``mean``, ``cov``, ``density(points)``, ``quantiles()``, ...); this one is unchanged."""
+        state, _ = self.filter.predict(self.state, t)
+        return OnlineFilter(self.filter, state=state, on_degenerate=self.on_degenerate, t0=self.t0)
 
     # -- now ------------------------------------------------------------------------------
     @property
     def estimate(self) -> Estimate:
         return self.filter.estimate(self.state)
+
+    @property
+    def t(self) -> float:
+        return float(self.state.t)
 
     @property
     def mean(self) -> np.ndarray:
@@ -306,8 +344,28 @@ class OnlineFilter:
         self.state = self.filter.state_from_dict(data)
 
     def reset(self, prior: Any | None = None) -> None:
-        """Back to t = 0 with the model's prior (or ``prior``)."""
-        self.state = self.filter.initial_state(prior)
+        """Back to the start (t0) with the model's prior (or ``prior``)."""
+        self.state = self._initial(prior)
+
+    def reinitialise(self, prior: Any | None = "last") -> Estimate:
+        """Start again now (same step and time, log-likelihood carried) from ``prior``: "last" (a prior
+        broadened around the last good estimate: a degenerate filter recovers), None (the model's)
+        or a spec prior.  Returns the new estimate."""
+        from .solver.recovery import restart, restart_from_last
+
+        if isinstance(prior, str) and prior == "last":
+            self.state, _ = restart_from_last(self.filter, self.state)
+        else:
+            self.state = restart(self.filter, self.state, prior)
+        return self.estimate
+
+
+def _check_t0(t0: Any) -> float:
+    import math
+
+    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
+        raise InputError("t0", "must be a finite number (the time of the prior)")
+    return float(t0)
 
 
 def _gaussian_box_marginal(flt: OnlineFilter, variable: int, grid: np.ndarray, resolution: int) -> np.ndarray:

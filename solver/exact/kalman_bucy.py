@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, check_increments
+from ..filtering import ChunkedFilter, ChunkResult, plain_rows
 from ..gaussian import GaussianFilter, GaussianState, log_normal
 from ..model import Model
 from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients
@@ -83,9 +83,10 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         return q, r
 
     # -- Filter protocol -----------------------------------------------------------------
-    def run_arrays(self, state: GaussianState, increments: np.ndarray) -> tuple[GaussianState, "ChunkResult"]:
+    def run_arrays(self, state: GaussianState, increments: np.ndarray,
+                   times: Any = None) -> tuple[GaussianState, "ChunkResult"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays."""
-        dy = check_increments(increments, self.model.m)
+        dy = plain_rows(self.method, increments, times, self.model)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
         if K == 0:

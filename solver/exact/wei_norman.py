@@ -40,7 +40,7 @@ import sympy as sp
 from ..analysis import exact_matrix, is_identity, observed_coordinate, seed004_structure
 from ..errors import InputError, SpecError
 from ..expressions import vectorize
-from ..filtering import ChunkResult, Estimate, check_increments
+from ..filtering import ChunkResult, Estimate, plain_rows
 from ..model import Model
 
 DEFAULT_POINTS_PER_AXIS = {1: 801, 2: 161, 3: 61}
@@ -295,19 +295,29 @@ class WeiNormanFilter:
             raise InputError("prior", "the Wei-Norman filter keeps the prior its Kolmogorov flow starts from")
         return WeiNormanState(step=0, t=0.0, y=np.zeros(self.model.m), r=np.zeros(3), loglik=0.0)
 
-    def step(self, state: WeiNormanState, increment: np.ndarray | None) -> tuple[WeiNormanState, Estimate]:
+    gate_override: float | None = None  # the Wei-Norman filter cannot skip a row, so it never gates
+
+    def step(self, state: WeiNormanState, increment: np.ndarray | None,
+             t: float | None = None) -> tuple[WeiNormanState, Estimate]:
         if increment is None:
             raise InputError("increment", MISSING)
-        new, result = self.run_arrays(state, np.reshape(np.asarray(increment, dtype=float), (1, -1)))
+        new, result = self.run_arrays(state, np.reshape(np.asarray(increment, dtype=float), (1, -1)),
+                                      None if t is None else [t])
         return new, result.estimates()[0]
 
-    def run(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, list[Estimate]]:
-        new, result = self.run_arrays(state, increments)
+    def run(self, state: WeiNormanState, increments: np.ndarray,
+            times: Any = None) -> tuple[WeiNormanState, list[Estimate]]:
+        new, result = self.run_arrays(state, increments, times)
         return new, result.estimates()
 
-    def run_arrays(self, state: WeiNormanState, increments: np.ndarray) -> tuple[WeiNormanState, ChunkResult]:
+    def predict(self, state: WeiNormanState, t: float) -> tuple[WeiNormanState, Estimate]:
+        raise InputError("t", "the Wei-Norman representation (12) needs the observation path: it cannot "
+                              "forecast without observations; use method yau-yau")
+
+    def run_arrays(self, state: WeiNormanState, increments: np.ndarray,
+                   times: Any = None) -> tuple[WeiNormanState, ChunkResult]:
         """Advance over a chunk (K, m) of increments; estimates as arrays (the engine's ChunkResult)."""
-        dy = check_increments(increments, self.model.m)
+        dy = plain_rows(self.method, increments, times, self.model)
         if np.isnan(dy).any():
             raise InputError("increments", MISSING)
         K, n = len(dy), self.model.n

@@ -36,7 +36,7 @@ from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, check_increments
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, plain_rows
 from ..gaussian import log_normal
 from ..model import Model
 from ..reference.kalman import affine_coefficients
@@ -213,13 +213,14 @@ class YauHuFilter(ChunkedFilter):
         return best
 
     # -- Filter protocol -----------------------------------------------------------------
-    def run_arrays(self, state: YauHuState, increments: np.ndarray) -> tuple[YauHuState, "ChunkResult"]:
+    def run_arrays(self, state: YauHuState, increments: np.ndarray,
+                   times: Any = None) -> tuple[YauHuState, "ChunkResult"]:
         """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
 
         All-observed chunks use the cached schedule of data-free step coefficients (solver/exact/schedule.py);
         chunks with missing rows (or a path that never settles) take the general chunk code.
         """
-        dy = check_increments(increments, self.model.m)
+        dy = plain_rows(self.method, increments, times, self.model)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
         times = steps * self.model.dt

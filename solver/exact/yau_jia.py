@@ -43,7 +43,7 @@ import sympy as sp
 
 from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, check_increments
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, plain_rows
 from ..gaussian import log_normal
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
@@ -342,8 +342,9 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, splits
 
     # -- Filter protocol ---------------------------------------------------------------------
-    def run_arrays(self, state: YauJiaState, increments: np.ndarray) -> tuple[YauJiaState, ChunkResult]:
-        dy = check_increments(increments, self.model.m)
+    def run_arrays(self, state: YauJiaState, increments: np.ndarray,
+                   times: Any = None) -> tuple[YauJiaState, ChunkResult]:
+        dy = plain_rows(self.method, increments, times, self.model)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)
         times = steps * self.model.dt

@@ -1,0 +1,146 @@
+"""What a filter does when its density degenerates: stop, or start again from a broadened prior.
+
+A degenerate step (solver/diagnostics.py: the data pushed the density out of the ball, the basis
+cannot resolve it, every bit of mass vanished) used to end a stream for good.  Two policies:
+
+* ``on_degenerate = "stop"`` (the default, as before): the state stays degenerate, keeps returning its
+  last good estimate with the reason, and waits for the user to reset it (``restart``; over HTTP
+  ``POST /v1/sessions/{id}/reset``);
+* ``on_degenerate = "reinitialise"``: the filter starts again at the failing row's time from
+  :func:`broadened_prior` of the last good estimate — N(m, 4P + s²I), the standard deviations doubled,
+  s the finest scale the filter resolves — and goes on with the next row.  The failing row's
+  observation is not used; the row is flagged ``reinitialised`` with the reason.  The log-likelihood
+  is carried on across the restart.
+
+"stop" is the default because a restart hides a model that does not fit its data; a stream that must
+not stop (a service) asks for "reinitialise".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError, SpecError
+from .filtering import ChunkResult, Estimate, concat_results, slice_result
+
+POLICIES = ("stop", "reinitialise")
+DEFAULT_POLICY = "stop"
+BROADEN = 2.0  # the restart's standard deviations: the last good ones times this
+
+
+def check_policy(policy: Any, field: str = "on_degenerate") -> str:
+    if policy not in POLICIES:
+        raise InputError(field, f"must be one of {', '.join(POLICIES)}, got {policy!r}")
+    return policy
+
+
+def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
+    """N(m, BROADEN²·P + s²I) around the last good estimate (m, P); s the node spacing of a mesh
+    (the finest feature the engine resolves), else 1e-6 of the state's scale."""
+    mean = np.asarray(estimate.mean, dtype=float)
+    cov = np.asarray(estimate.cov, dtype=float)
+    cov = 0.5 * (cov + cov.T)
+    n = len(mean)
+    spacing = float(getattr(flt, "node_spacing", 0.0) or 0.0)
+    resolved = math.isfinite(spacing) and spacing > 0
+    floor = spacing ** 2 if resolved else 1e-12 * (1.0 + float(np.abs(mean).max()))
+    lam, U = np.linalg.eigh(cov) if np.all(np.isfinite(cov)) else (np.zeros(n), np.eye(n))
+    cov = (U * (BROADEN ** 2 * np.clip(lam, 0.0, None) + floor)) @ U.T
+    return {"kind": "gaussian", "mean": mean.tolist(), "cov": (0.5 * (cov + cov.T)).tolist()}
+
+
+def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
+    """The filter started again at ``state``'s step and time from ``prior`` (a spec prior or its dict;
+    None: the model's), the log-likelihood carried on."""
+    from .spec import spec_from_dict
+
+    if isinstance(prior, dict):
+        doc = flt.model.spec.model_dump(mode="json")
+        doc["initial"] = prior
+        prior = spec_from_dict(doc).initial
+    new = flt.initial_state(prior)
+    fields = {"step": state.step, "t": state.t, "loglik": state.loglik}
+    if hasattr(new, "last"):
+        fields["last"] = dataclasses.replace(new.last, step=state.step, t=state.t, loglik=state.loglik,
+                                             loglik_increment=0.0)
+    return dataclasses.replace(new, **fields)
+
+
+def restart_from_last(flt: Any, state: Any) -> tuple[Any, str]:
+    """Start again around the last good estimate; if that prior does not fit the filter (e.g. too
+    close to the ball's rim), from the model's own prior.  (new state, what was done)."""
+    last = flt.estimate(state)
+    try:
+        return restart(flt, state, broadened_prior(flt, last)), "re-initialised around the last good estimate"
+    except (SpecError, InputError) as exc:
+        return restart(flt, state, None), f"re-initialised from the model's prior ({exc.message})"
+
+
+def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = None,
+                    policy: str = DEFAULT_POLICY) -> tuple[Any, ChunkResult]:
+    """``flt.run_arrays`` under an ``on_degenerate`` policy (module docstring)."""
+    check_policy(policy)
+    if policy == "stop":
+        return flt.run_arrays(state, rows, times)
+    rows = np.asarray(rows, dtype=float)
+    times_arr = None if times is None else np.asarray(times, dtype=float).reshape(-1)
+    parts: list[ChunkResult] = []
+    offset, K = 0, len(rows)
+    restarted_before = None
+    if state.degenerate and K:
+        state, restarted_before = _restart_note(flt, state, state.reason)
+    while True:
+        chunk_times = None if times_arr is None else times_arr[offset:]
+        new_state, result = flt.run_arrays(state, rows[offset:], chunk_times)
+        if restarted_before is not None and len(result):
+            result = _flag(result, 0, restarted_before)
+            restarted_before = None
+        if not result.degenerate.any():
+            parts.append(result)
+            break
+        k = int(np.argmax(result.degenerate))
+        if k:
+            parts.append(slice_result(result, slice(0, k)))
+        at = dataclasses.replace(_degenerate_at(new_state, result, k), degenerate=True)
+        state, note = _restart_note(flt, at, result.reason)
+        parts.append(_restart_row(flt, state, note))
+        offset += k + 1
+        if offset >= K:
+            break
+    return state, concat_results(parts)
+
+
+def _restart_note(flt, state, reason) -> tuple[Any, str]:
+    new_state, how = restart_from_last(flt, state)
+    return new_state, f"the filter degenerated ({reason}); {how}; this row's observation was not used"
+
+
+def _degenerate_at(state: Any, result: ChunkResult, k: int) -> Any:
+    """The degenerate state as of row k (its last good estimate is what the restart broadens)."""
+    loglik = float(result.loglik[k - 1]) if k else float(state.last.loglik if hasattr(state, "last")
+                                                         else state.loglik)
+    return dataclasses.replace(state, step=int(result.step[k]), t=float(result.t[k]), loglik=loglik)
+
+
+def _restart_row(flt: Any, state: Any, note: str) -> ChunkResult:
+    """A one-row result: the restarted state's estimate, flagged reinitialised."""
+    e = flt.estimate(state)
+    n = len(e.mean)
+    mode = np.asarray(e.mode if e.mode is not None else e.mean, dtype=float)[None]
+    return ChunkResult(step=np.array([state.step]), t=np.array([float(state.t)]),
+                       mean=np.asarray(e.mean)[None], cov=np.asarray(e.cov).reshape(1, n, n), mode=mode,
+                       loglik=np.array([float(state.loglik)]),
+                       loglik_increment=np.zeros(1), degenerate=np.zeros(1, dtype=bool),
+                       reinitialised=np.ones(1, dtype=bool), notes={0: note})
+
+
+def _flag(result: ChunkResult, k: int, note: str) -> ChunkResult:
+    again = result.reinitialised.copy()
+    again[k] = True
+    notes = dict(result.notes or {})
+    notes[k] = note
+    return dataclasses.replace(result, reinitialised=again, notes=notes)
