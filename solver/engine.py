@@ -234,19 +234,23 @@ class YauYauFilter(ChunkedFilter):
             gate.scores.update({int(k): math.inf for k in np.flatnonzero(impossible)})
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         top_before = top.copy()  # _rescue may shift top[k]: the growth is relative to the factor's maximum
-        sigma, masses, carried, done, reason, pll = self._propagate(initial, log_factor, top, skip.tolist(),
-                                                                    gate, taus)
+        sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, skip.tolist(), gate,
+                                                               taus)
         if gate is None and impossible[:done].any():
             done = int(np.argmax(impossible))
             reason, carried = ("the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the "
                                "model"), self._carried_after(sigma, masses, done, initial, taus)
-            sigma, masses, pll = sigma[:done], masses[:done], pll[:done]
+            sigma, masses = sigma[:done], masses[:done]
+        with np.errstate(divide="ignore"):
+            pll = np.log(masses) + top[:len(masses)]  # log E_pred[e_k]
         gated = np.zeros(K, dtype=bool)
         scores = np.full(K, np.nan)
         if gate is not None:
             for k, score in gate.scores.items():
                 gated[k], scores[k] = True, standard_score(score, gate.size(k))
                 top[k] = top_before[k] = 0.0
+                if k < len(pll):
+                    pll[k] = gate.attempted.get(k, -math.inf)
         mean, cov, mode = self._moments(sigma[:done], masses[:done])
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
@@ -337,9 +341,10 @@ class YauYauFilter(ChunkedFilter):
         Regular steps use the stored propagator over dt; with ``taus`` (irregular gaps) the coefficients
         are carried in the modal coordinates of solver/semigroup.py and scaled by e^{τΛ} before the
         same two products (or, for an ill-conditioned generator, multiplied by Φe^{τA} per gap).
-        Returns nodal σ_k (pre-projection, K×Q, each relative to a unit-mass σ_{k−1}), ∫σ_k, the
-        final carried vector, the number of good steps, the reason it stopped early (or None) and the
-        log of the factor's predicted mean per step (log E_pred[e_k], before the gate).
+        ``gate``: an observed row whose predictive score exceeds the gate only predicts (its
+        ``scores`` and ``attempted`` log E_pred[e] are recorded there).  Returns nodal σ_k
+        (pre-projection, K×Q, each relative to a unit-mass σ_{k−1}), ∫σ_k, the final carried vector,
+        the number of good steps and the reason it stopped early (or None).
         """
         K, Q = log_factor.shape
         N = self.N
@@ -349,7 +354,6 @@ class YauYauFilter(ChunkedFilter):
         sigma = np.empty((K, Q), dtype=arith.dtype)
         scratch = np.empty(Q, dtype=arith.dtype)
         masses = [0.0] * K
-        pll = np.full(K, np.nan)
         predict, observe, project, gemv = self._predict, self._observe, self._project, arith.gemv
         flow = self.flow if taus is not None else None
         modal = flow is not None and not flow.exact
@@ -359,59 +363,66 @@ class YauYauFilter(ChunkedFilter):
             real_scale, pair_scale = flow.scales(taus)
             carried = carried.copy()
             carried[:N] = flow.to_modal(carried[:N].astype(float))
-        # two buffers, alternately the carried vector and the next projection (views made once)
-        buffers = [carried.copy(), np.empty_like(carried)]
+        # two buffers, alternately the carried vector and the next projection (and their views)
+        carried, following = carried.copy(), np.empty_like(carried)
         r = flow.r if modal else 0
-        real_views = [b[:r] for b in buffers]
         pairs = modal and flow.pair_rates.size > 0
         cdtype = np.complex64 if arith.dtype == np.float32 else np.complex128
-        pair_views = [b[r:N].view(cdtype) for b in buffers] if pairs else None
+        real_c, real_f = carried[:r], following[:r]
+        pair_c, pair_f = (carried[r:N].view(cdtype), following[r:N].view(cdtype)) if pairs else (None, None)
+        gating = gate is not None
+        bias, threshold = (gate.bias, gate.threshold) if gating else (None, None)
         tiny, huge, multiply, log = arith.tiny, arith.huge, np.multiply, math.log
-        rows, factors = list(sigma), list(factor)  # views made once, not per step
-        current = 0
-        carried = buffers[0]
+        rows, factors, tops = list(sigma), list(factor), top.tolist()  # made once, not per step
         mass = carried.item(N)
         for k in range(K):
-            row, following = rows[k], buffers[1 - current]
+            row = rows[k]
             if modal:
-                multiply(real_views[current], real_scale[k], out=real_views[current])
+                multiply(real_c, real_scale[k], out=real_c)
                 if pairs:
-                    multiply(pair_views[current], pair_scale[k], out=pair_views[current])
+                    multiply(pair_c, pair_scale[k], out=pair_c)
             elif flow is not None:
                 predict = observe = flow.nodal_flow(taus[k])
+            observed = not missing[k]
             # positional gemv arguments (alpha, a, x, beta, y, offx, incx, offy, incy, trans,
             # overwrite_y): keyword parsing costs as much as a small product
-            if missing[k]:
+            if observed:
+                gemv(1.0 / mass, observe, carried, 0.0, scratch, 0, 1, 0, 1, 0, 1)
+                multiply(scratch, factors[k], out=row)
+                s = scratch
+            else:
                 gemv(1.0 / mass, predict, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
                 s = row
-            else:
-                gemv(1.0 / mass, observe, carried, 0.0, scratch, 0, 1, 0, 1, 0, 1)
-                s = scratch
-                multiply(scratch, factors[k], out=row)
             gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
             new_mass = following.item(N)
             if not tiny < new_mass < huge:
-                new_mass, reason = self._rescue(s, log_factor, top, missing[k], k, row)
-                if reason is not None and not missing[k] and gate is not None and reason.startswith("no pos"):
+                new_mass, reason = self._rescue(s, log_factor, top, not observed, k, row)
+                if reason is not None and observed and gating and reason.startswith("no pos"):
+                    gate.attempted[k] = -math.inf
                     new_mass, reason = self._reject(gate, k, math.inf, s, row, project, following)
+                    observed = False
+                elif reason is None:
+                    gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+                    following[N] = new_mass
+                    tops[k] = top.item(k)
                 if reason is not None:
-                    return sigma, np.array(masses[:k]), carried.copy(), k, reason, pll
-                gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
-                following[N] = new_mass
-            elif gate is not None and not missing[k]:
-                pll[k] = log(new_mass) + top[k]
-                bound = gate.bias[k] - 2.0 * pll[k]
-                if bound > gate.threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
+                    return sigma, np.array(masses[:k]), carried.copy(), k, reason
+            if gating and observed:
+                ll = log(new_mass) + tops[k]
+                bound = bias[k] - 2.0 * ll
+                if bound > threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
                     score = bound - gate.correction(k, s)
-                    if score > gate.threshold[k]:
+                    if score > threshold[k]:
+                        gate.attempted[k] = ll
                         new_mass, reason = self._reject(gate, k, score, s, row, project, following)
                         if reason is not None:
-                            return sigma, np.array(masses[:k]), carried.copy(), k, reason, pll
-            if not missing[k] and pll[k] != pll[k]:
-                pll[k] = log(new_mass) + top[k]
+                            return sigma, np.array(masses[:k]), carried.copy(), k, reason
             masses[k] = mass = new_mass
-            carried, current = following, 1 - current
-        return sigma, np.array(masses), carried.copy(), K, None, pll
+            carried, following = following, carried
+            if modal:
+                real_c, real_f = real_f, real_c
+                pair_c, pair_f = pair_f, pair_c
+        return sigma, np.array(masses), carried.copy(), K, None
 
     def _reject(self, gate: "_Gate", k: int, score: float, s, row, project, following):
         """Gate row k: the step only predicts (σ = the propagated density).  (∫σ, reason or None)."""
@@ -563,7 +574,8 @@ class _Gate:
         self.terms = terms
         self.bias = terms.bound_bias().tolist()
         self.threshold = terms.threshold.tolist()
-        self.scores: dict[int, float] = {}
+        self.scores: dict[int, float] = {}  # gated row -> d²
+        self.attempted: dict[int, float] = {}  # gated row -> log E_pred[e] of the rejected update
 
     def size(self, k: int) -> int:
         return int(self.keys[k]).bit_count()

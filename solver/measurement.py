@@ -184,27 +184,40 @@ class Observation:
         nodes are fixed).  ``penalty=False``: the continuous factor without −½hᵀR⁻¹h τ (the literal
         form of seed 002 (5.35), whose propagator carries it)."""
         K, P = len(rows), h_points.shape[0]
-        out = np.zeros((K, P))
+        unique = np.unique(keys).tolist()
+        whole = len(unique) == 1  # one pattern (the usual chunk): work in place on the whole array
+        out = np.empty((K, P)) if whole else np.zeros((K, P))
         with np.errstate(over="ignore", invalid="ignore"):
-            for key in np.unique(keys).tolist():
+            for key in unique:
                 if key == 0:
+                    out[keys == 0] = 0.0
                     continue
                 pat = self.pattern(key)
                 hR, half = self._point_terms(h_points, key, pat, cache)
-                sel = np.flatnonzero(keys == key)
-                y = rows[np.ix_(sel, pat.index)]
-                linear = y[:, 0, None] * hR[0]
+                sel = slice(None) if whole else np.flatnonzero(keys == key)
+                y = rows[sel][:, pat.index]
+                block = out if whole else np.empty((len(y), P))
+                np.multiply(y[:, 0, None], hR[0], out=block)
                 for j in range(1, len(pat.index)):
-                    linear += y[:, j, None] * hR[j]
+                    block += y[:, j, None] * hR[j]
                 if not self.discrete:
-                    out[sel] = linear - taus[sel, None] * half if penalty else linear
+                    if penalty:
+                        tau = taus[sel]
+                        block -= tau[0] * half if np.all(tau == tau[0]) else np.multiply.outer(tau, half)
                 elif self.likelihood == "gaussian":
-                    out[sel] = linear - half + terms.constant[sel, None]
+                    block -= half
+                    block += terms.constant[sel, None]
                 else:  # Student-t: T = (z − h)ᵀR⁻¹(z − h) = zᵀR⁻¹z − 2hᵀR⁻¹z + hᵀR⁻¹h
-                    T = terms.quadratic[sel, None] - 2.0 * linear + 2.0 * half
-                    power = 0.5 * (float(self.dof) + len(pat.index))
-                    spread = np.log1p(np.maximum(T, 0.0) / float(self.dof))
-                    out[sel] = terms.constant[sel, None] - power * spread
+                    block *= -2.0
+                    block += 2.0 * half
+                    block += terms.quadratic[sel, None]
+                    np.maximum(block, 0.0, out=block)
+                    block /= float(self.dof)
+                    np.log1p(block, out=block)
+                    block *= -0.5 * (float(self.dof) + len(pat.index))
+                    block += terms.constant[sel, None]
+                if not whole:
+                    out[sel] = block
         return out
 
     def _point_terms(self, h_points, key: int, pat: Pattern, cache: dict | None):
