@@ -81,18 +81,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(limits=settings.blas_threads, user_api="blas")  # this worker process, for good
+        # A lifespan that ends gives back what was there before it: one application object may be run
+        # by two lifespans at once (a test client inside a fuzzer's), and the outer one goes on.
+        before = {name: getattr(app.state, name, None) for name in ("registry", "sessions", "ready")}
         registry = Registry.open(settings.store, settings.model_cache)
+        sessions = _open_sessions(settings, registry)
         app.state.registry = registry
-        app.state.sessions = _open_sessions(settings, registry)
+        app.state.sessions = sessions
         app.state.ready = True
         yield
         app.state.ready = False
-        app.state.sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
+        sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
+        if before["sessions"] is not None:
+            app.state.registry, app.state.sessions = before["registry"], before["sessions"]
+            app.state.ready = bool(before["ready"])
 
     app = FastAPI(title="yauyau", version=__version__, lifespan=lifespan,
                   summary="Real-time optimal nonlinear filtering (the Yau–Yau algorithm) as a service",
-                  description="Stream observation increments of dy = h(x)dt + dw into a session and get the "
-                              "conditional mean and covariance of x(t) after every step.")
+                  description="Stream observations into a session — increments of dy = h(x)dt + dw, or "
+                              "measurements z = h(x(t)) + v at any times, partly missing or not — and get "
+                              "the conditional mean and covariance of x(t) after every row, outliers gated, "
+                              "degenerate sessions reset or re-initialised.")
     app.state.ready = False
     app.state.settings = settings
     install_handlers(app)

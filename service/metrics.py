@@ -26,6 +26,12 @@ OBSERVATIONS = Counter("yauyau_observations_total", "observation increments appl
 CHUNKS = Counter("yauyau_chunks_total", "observation chunks", ["outcome"])  # applied | replayed
 SESSIONS = Counter("yauyau_sessions_created_total", "sessions created", ["method"])
 DEGENERATE = Counter("yauyau_degenerate_chunks_total", "chunks whose answer was degenerate")
+GATED = Counter("yauyau_gated_observations_total",
+                "rows rejected by the outlier gate (the step only predicted)")
+REINITIALISED = Counter("yauyau_reinitialised_total",
+                        "rows where a degenerate filter started again by itself "
+                        "(on_degenerate = reinitialise)")
+RESETS = Counter("yauyau_resets_total", "sessions reset over HTTP (POST /v1/sessions/{id}/reset)")
 
 
 def render() -> tuple[bytes, str]:

@@ -22,6 +22,7 @@ from yauyau.storage.errors import NotFound
 from yauyau.storage.model_store import ModelStore
 
 log = logging.getLogger("yauyau.service")
+FILTER_VARIANTS = 16  # (method, gate) filters kept per loaded model: sessions may choose their gate
 
 
 @dataclass
@@ -32,19 +33,25 @@ class LoadedModel:
     offline: Any
     basis: int
     method: str  # chosen at precompute
-    filters: dict[str, Filter] = field(default_factory=dict)
+    filters: OrderedDict[tuple[str, float | None], Filter] = field(default_factory=OrderedDict)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    def filter(self, method: str | None = None) -> Filter:
-        """The filter for ``method`` (None: the one chosen at precompute), built once and shared by all
-        sessions of this worker."""
-        key = method or self.method
+    def filter(self, method: str | None = None, gate: float | None = None) -> Filter:
+        """The filter for ``method`` (None: the one chosen at precompute) with the outlier ``gate``
+        (None: the spec's), built once (a few ms) and shared by all sessions of this worker.  At most
+        ``FILTER_VARIANTS`` (method, gate) pairs are kept (least recently used dropped first)."""
+        key = (method or self.method, None if gate is None else float(gate))
         with self._lock:
-            if key not in self.filters:
+            flt = self.filters.get(key)
+            if flt is None:
                 from yauyau.solver.methods import make_filter
 
-                self.filters[key] = make_filter(self.model, self.offline, key)
-            return self.filters[key]
+                flt = self.filters[key] = make_filter(self.model, self.offline, key[0], gate=key[1])
+                while len(self.filters) > FILTER_VARIANTS:
+                    self.filters.popitem(last=False)
+            else:
+                self.filters.move_to_end(key)
+            return flt
 
     def summary(self) -> dict[str, Any]:
         spec = self.model.spec

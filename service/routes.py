@@ -25,10 +25,13 @@ from .schemas import (
     AnalyzeReport,
     ChunkResult,
     DensityOut,
+    Forecast,
     Health,
     ModelDetail,
     ModelSummary,
     Observations,
+    Reset,
+    ResetResult,
     SessionCreate,
     SessionCreated,
     SessionInfo,
@@ -97,16 +100,33 @@ def get_model(registry: RegistryDep, model_id: ModelId) -> Response:
 
 @sessions.post("", status_code=201, response_model=SessionCreated, responses=_errors(400, 404, 413, 422))
 def create_session(service: SessionsDep, body: SessionCreate) -> Response:
-    return _json(service.create(body.model, body.prior, body.method), 201)
+    """A filtering session of a stored model: its prior (at time ``t0``), method, outlier ``gate`` and
+    what it does when the density degenerates (``on_degenerate``), all kept with the session."""
+    return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate),
+                 201)
 
 
 @sessions.post("/{session_id}/observations", response_model=ChunkResult,
                responses=_errors(400, 404, 409, 413, 422))
 async def observe(service: SessionsDep, session_id: SessionId, body: Observations) -> Response:
+    """Apply chunk ``seq`` exactly once: ``increments`` (continuous models) or ``observations``
+    (discrete models), optionally at ``times``; null marks a missing row or component.  A re-sent
+    seq returns the stored answer (the same bytes); other data under a used seq, or a gap, is 409."""
     # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
     extras = Extras(body.quantiles, body.mode)
     text = await asyncio.get_running_loop().run_in_executor(
-        service.chunk_executor, service.observe, session_id, body.seq, body.increments, True, extras)
+        service.chunk_executor, lambda: service.observe(session_id, body.seq, body.increments, True, extras,
+                                                        observations=body.observations, times=body.times))
+    return Response(text, media_type="application/json")
+
+
+@sessions.post("/{session_id}/reset", response_model=ResetResult, responses=_errors(400, 404, 409, 413, 422))
+async def reset(service: SessionsDep, session_id: SessionId, body: Reset) -> Response:
+    """Start the session again at its step and time (the log-likelihood goes on) from ``prior`` or
+    ``from`` "last" (a prior broadened around the last good estimate: a degenerate session recovers)
+    or "model".  Numbered like a chunk: it takes seq, a replay returns the stored answer."""
+    text = await asyncio.get_running_loop().run_in_executor(
+        service.chunk_executor, lambda: service.reset(session_id, body.seq, body.prior, body.from_, True))
     return Response(text, media_type="application/json")
 
 
@@ -120,6 +140,17 @@ def get_session(service: SessionsDep, session_id: SessionId, quantiles: Quantile
                 mode: Annotated[bool, Query(description="add the mode (MAP point) to the estimate")] = False
                 ) -> Response:
     return _json(service.info(session_id, Extras(quantiles, mode)))
+
+
+@sessions.get("/{session_id}/forecast", response_model=Forecast, responses=_errors(404, 422))
+def forecast(service: SessionsDep, session_id: SessionId,
+             t: Annotated[float, Query(allow_inf_nan=False, description=(
+                 "the time to forecast to: at or after the session's time"))],
+             quantiles: Quantiles = None,
+             mode: Annotated[bool, Query(description="add the mode (MAP point) to the estimate")] = False
+             ) -> Response:
+    """The estimate at time ``t`` without an observation (the prediction); the session is unchanged."""
+    return _json(service.forecast(session_id, t, Extras(quantiles, mode)))
 
 
 @sessions.get("/{session_id}/view", response_class=HTMLResponse, responses=_errors(404))

@@ -1,7 +1,8 @@
 """Request and response bodies of the HTTP API (pydantic; they spell out the OpenAPI at /docs).
 
 Numbers are strict and finite: JSON has no NaN, and the NaN/Infinity tokens Python's parser
-accepts are rejected here, naming the offending entry (``increments[3][0]``).
+accepts are rejected here, naming the offending entry (``increments[3][0]``).  A missing value is
+JSON null: a whole row (no observation at that time) or one component of it (partly missing).
 """
 
 from __future__ import annotations
@@ -20,21 +21,47 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)  # "1", true and 1.0 are not a seq
 
 
+Policy = Literal["stop", "reinitialise"]
+Row = list[Number | None] | None
+ROWS_DOC = ("one row of m numbers per time; null for a whole row: no observation then (the filter only "
+            "predicts); null for one component: that component is missing (the others are used)")
+
+
 class SessionCreate(_Body):
     model: str = Field(min_length=1, max_length=200, description="id of a stored model (GET /v1/models)")
-    prior: Prior | None = Field(None, description="prior density at t = 0 (default: the model's)")
+    prior: Prior | None = Field(None, description="prior density at t0 (default: the model's)")
     method: Method | None = Field(None, description="filter to run (default: the model spec's method)")
+    on_degenerate: Policy = Field(
+        "stop", description="when the density degenerates (data the model cannot follow): 'stop' keeps the "
+                            "session degenerate, answering its last good estimate with the reason, until "
+                            "POST /v1/sessions/{id}/reset; 'reinitialise' starts again at once from a prior "
+                            "broadened around the last good estimate (the row is flagged reinitialised)")
+    t0: Number = Field(0.0, description="the time of the prior (chunks with times start after it)")
+    gate: Number | None = Field(
+        None, ge=0, le=1e6, description="outlier gate in predictive standard deviations (0: off); default: "
+                                        "the model spec's [measurement] gate (6)")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}}]})
+        {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
+        {"model": "3f9c2a...", "on_degenerate": "reinitialise", "t0": 12.5, "gate": 4.0}]})
 
 
 class Observations(_Body):
-    seq: int = Field(ge=0, le=2**53, description="chunk number: 0 for the first chunk, then +1 per chunk")
-    increments: list[list[Number] | None] = Field(
-        min_length=1,
-        description="observation increments Δy_k = y(k·dt) − y((k−1)·dt), one row of m numbers per step; "
-                    "null marks a step without an observation (prediction only)")
+    seq: int = Field(ge=0, le=2**53, description="chunk number: 0 for the first chunk, then +1 per chunk "
+                                                 "(a reset takes a number too)")
+    increments: list[Row] | None = Field(
+        None, min_length=1,
+        description="continuous models ([measurement] kind = continuous): observation increments "
+                    "Δy_k = y(t_k) − y(t_(k−1)); " + ROWS_DOC + ". Send either increments or observations, "
+                    "as the model's kind says")
+    observations: list[Row] | None = Field(
+        None, min_length=1,
+        description="discrete models ([measurement] kind = discrete): measurements z_k = h(x(t_k)) + v_k; "
+                    + ROWS_DOC)
+    times: list[Number] | None = Field(
+        None, min_length=1,
+        description="absolute time of each row, strictly increasing and after the session's time (at it "
+                    "for the first row of a session that has not stepped yet); default: one dt apart")
     quantiles: list[Number] | None = Field(
         None, min_length=1, max_length=99,
         description="also return these marginal quantiles of every state variable with each estimate "
@@ -43,23 +70,60 @@ class Observations(_Body):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"seq": 0, "increments": [[0.0012], [-0.0031], None, [0.0008]]},
-        {"seq": 1, "increments": [[0.0009]], "quantiles": [0.05, 0.5, 0.95], "mode": True}]})
+        {"seq": 1, "increments": [[0.0009]], "quantiles": [0.05, 0.5, 0.95], "mode": True},
+        {"seq": 0, "observations": [[0.93], [None], [1.12]], "times": [0.25, 0.61, 1.4]},
+        {"seq": 0, "observations": [[3.1, None], None, [2.7, 0.4]], "times": [0.5, 0.75, 1.0]}]})
+
+
+class Reset(_Body):
+    seq: int = Field(ge=0, le=2**53, description="the session's next seq (a reset is numbered like a chunk "
+                                                 "and applied exactly once)")
+    prior: Prior | None = Field(None, description="start again from this prior (a spec prior)")
+    from_: Literal["last", "model"] | None = Field(
+        None, alias="from", description="start again from 'last': a prior broadened around the last good "
+                                        "estimate (a degenerate session recovers), or 'model': the model's "
+                                        "prior")
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"seq": 3, "from": "last"},
+        {"seq": 3, "prior": {"kind": "gaussian", "mean": [0.0], "cov": [[2.0]]}}]})
 
 
 class EstimateOut(BaseModel):
-    step: int = Field(description="number of steps taken since t = 0")
-    t: float = Field(description="time step·dt")
-    mean: list[float] | None = Field(description="conditional mean E[x(t) | y]; null when degenerate")
-    cov: list[list[float]] | None = Field(description="conditional covariance; null when degenerate")
+    step: int = Field(description="number of rows taken since the session started")
+    t: float = Field(description="time of the estimate (t0 + step·dt for regular rows; the row's time when "
+                                 "the chunk carries times)")
+    mean: list[float] | None = Field(description="conditional mean E[x(t) | y]; null when not finite")
+    cov: list[list[float]] | None = Field(description="conditional covariance; null when not finite")
     mode: list[float] | None = Field(None, description="MAP point (when asked for; null when degenerate)")
     quantiles: dict[str, list[float]] | None = Field(
         None, description="per state variable, the marginal quantiles asked for, in the order asked")
+
+
+class RowEstimate(EstimateOut):
+    predictive_loglik: float | None = Field(
+        None, description="log p(row | rows before): the row's predictive log-likelihood (low: surprising "
+                          "data); null when the row had no observation")
+    gated: bool = Field(False, description="present, true, only when the outlier gate rejected the row (the "
+                                           "step only predicted)")
+    reinitialised: bool = Field(False, description="present, true, only when the filter degenerated at this "
+                                                   "row and started again (on_degenerate = reinitialise)")
+    degenerate: bool = Field(False, description="present, true, only when the density is degenerate here "
+                                                "(the estimate repeats the last good one)")
+    reason: str | None = Field(None, description="why the row is gated, re-initialised or degenerate (only "
+                                                 "then)")
 
 
 class EstimateFull(EstimateOut):
     loglik: float | None = Field(description="log-likelihood of the observations so far")
     degenerate: bool = Field(description="the density lost its mass (e.g. observations far outside the ball)")
     reason: str | None = None
+
+
+class SessionOptions(BaseModel):
+    on_degenerate: Policy
+    t0: float = Field(description="time of the prior")
+    gate: float = Field(description="the outlier gate in force, in predictive standard deviations (0: off)")
 
 
 class SessionCreated(BaseModel):
@@ -69,26 +133,46 @@ class SessionCreated(BaseModel):
     step: int
     t: float
     estimate: EstimateFull
+    options: SessionOptions
 
     model_config = ConfigDict(json_schema_extra={"examples": [{
         "id": "b1c2...", "model": "3f9c2a...", "method": "yau-yau", "step": 0, "t": 0.0,
         "estimate": {"step": 0, "t": 0.0, "mean": [0.5], "cov": [[1.0]], "loglik": 0.0,
-                     "degenerate": False, "reason": None}}]})
+                     "degenerate": False, "reason": None},
+        "options": {"on_degenerate": "stop", "t0": 0.0, "gate": 6.0}}]})
 
 
 class ChunkResult(BaseModel):
     seq: int
     step: int
     t: float
-    estimates: list[EstimateOut] = Field(description="one estimate per increment row, in order")
+    estimates: list[RowEstimate] = Field(description="one estimate per row, in order")
     loglik: float | None
-    degenerate: bool
-    reason: str | None = None
+    degenerate: bool = Field(description="some row is degenerate (the session stays so until a reset, with "
+                                         "on_degenerate = stop)")
+    reason: str | None = Field(None, description="why: of the first degenerate row")
+    gated: list[int] = Field(default_factory=list, description="rows of this chunk (0-based) that the "
+                                                               "outlier gate rejected")
+    reinitialised: list[int] = Field(default_factory=list, description="rows of this chunk (0-based) where "
+                                                                       "the filter started again")
 
     model_config = ConfigDict(json_schema_extra={"examples": [{
-        "seq": 0, "step": 2, "t": 0.02, "loglik": 0.013, "degenerate": False, "reason": None,
-        "estimates": [{"step": 1, "t": 0.01, "mean": [0.49], "cov": [[0.97]]},
-                      {"step": 2, "t": 0.02, "mean": [0.47], "cov": [[0.95]]}]}]})
+        "seq": 0, "step": 3, "t": 1.4, "loglik": -2.71, "degenerate": False, "reason": None,
+        "gated": [1], "reinitialised": [],
+        "estimates": [{"step": 1, "t": 0.25, "mean": [0.91], "cov": [[0.33]], "predictive_loglik": -1.02},
+                      {"step": 2, "t": 0.61, "mean": [0.76], "cov": [[0.41]], "predictive_loglik": -187.3,
+                       "gated": True, "reason": "observation gated: 19.2 predictive standard deviations "
+                                                "from the prediction, beyond the gate of 6; the step only "
+                                                "predicted"},
+                      {"step": 3, "t": 1.4, "mean": [0.98], "cov": [[0.31]], "predictive_loglik": -1.69}]}]})
+
+
+class ResetResult(BaseModel):
+    seq: int
+    step: int = Field(description="unchanged by a reset: the session starts again where it is")
+    t: float
+    estimate: EstimateFull
+    note: str = Field(description="what was done")
 
 
 class SessionInfo(BaseModel):
@@ -97,7 +181,15 @@ class SessionInfo(BaseModel):
     method: str
     step: int
     t: float
-    next_seq: int = Field(description="seq the next chunk must carry")
+    next_seq: int = Field(description="seq the next chunk (or reset) must carry")
+    estimate: EstimateFull
+    options: SessionOptions
+
+
+class Forecast(BaseModel):
+    id: str
+    step: int = Field(description="the session's step (a forecast adds no observation)")
+    t: float = Field(description="the time forecast to")
     estimate: EstimateFull
 
 

@@ -1,13 +1,21 @@
-"""Filtering sessions over HTTP: create, feed chunks of increments exactly once, read back.
+"""Filtering sessions over HTTP: create, feed chunks of rows exactly once, reset, read back.
 
 The filter state lives in the :class:`storage.session_store.SessionStore` (SQLite).  A chunk is
 applied inside ``apply_chunk``: the new state and the response are written in the same
 transaction, so a repeated ``seq`` gets the stored response and a gap is refused (409) — a client
 that lost an answer (server killed) re-sends the same chunk and nothing is lost or applied twice.
+A reset (start again from a prior, at the session's step and time) is numbered and applied the
+same way.
+
+A chunk's rows are the model's kind of data ([measurement] kind): ``increments`` Δy of a continuous
+model or ``observations`` z of a discrete one, optionally at ``times``; null marks a missing row or
+component.  The session's options (stored with it): ``on_degenerate`` (solver/recovery.py), ``t0``
+(the prior's time) and ``gate`` (the outlier gate; None: the spec's).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import threading
@@ -18,11 +26,14 @@ from typing import Any
 import numpy as np
 import orjson
 from yauyau.solver.errors import InputError, SpecError
-from yauyau.solver.filtering import Estimate, check_increments
+from yauyau.solver.filtering import ChunkResult, Estimate
 from yauyau.storage.protocols import SessionStore
 
 from . import metrics
 from .registry import LoadedModel, Registry
+
+ROW_FIELDS = {"continuous": "increments", "discrete": "observations"}
+DEFAULT_OPTIONS = {"on_degenerate": "stop", "t0": 0.0, "gate": None}
 
 
 def estimate_rows(steps, times, mean: np.ndarray, cov: np.ndarray) -> list[dict[str, Any]]:
@@ -48,26 +59,52 @@ def estimate_full(est: Estimate) -> dict[str, Any]:
     return row
 
 
-def run_chunk(filt: Any, state: Any, increments: np.ndarray) -> tuple[Any, list[dict], bool, str | None]:
-    """Advance the filter; (new state, estimate rows, any row degenerate, reason).
+def result_rows(result: ChunkResult,
+                gate: float | None) -> tuple[list[dict], list[int], list[int], str | None]:
+    """A chunk's :class:`ChunkResult` as JSON rows: step, t, mean, cov and the predictive
+    log-likelihood on every row; ``gated``, ``reinitialised``, ``degenerate`` (true) and ``reason``
+    only on the rows they concern.  (rows, gated rows, re-initialised rows, first degenerate reason)."""
+    rows = estimate_rows(result.step, result.t, result.mean, result.cov)
+    for row, value in zip(rows, result.predictive_loglik.tolist(), strict=True):
+        row["predictive_loglik"] = value if math.isfinite(value) else None
+    degenerate = np.asarray(result.degenerate, dtype=bool)
+    flagged = degenerate | result.gated | result.reinitialised
+    first_reason = None
+    for k in np.flatnonzero(flagged).tolist():
+        row = rows[k]
+        if result.gated[k]:
+            row["gated"] = True
+        if result.reinitialised[k]:
+            row["reinitialised"] = True
+        if degenerate[k]:
+            row["degenerate"] = True
+        row["reason"] = result.row_reason(k, gate) or "degenerate density"
+        if degenerate[k] and first_reason is None:
+            first_reason = row["reason"]
+    for row in rows:
+        if row["mean"] is None and not row.get("degenerate"):  # estimate_rows nulled a non-finite row
+            row["degenerate"], row["reason"] = True, row.get("reason") or "non-finite estimate"
+            first_reason = first_reason or row["reason"]
+    gated = np.flatnonzero(result.gated).tolist()
+    again = np.flatnonzero(result.reinitialised).tolist()
+    return rows, gated, again, first_reason
 
-    Filters with ``run_arrays`` (the engine, Kalman–Bucy) return the estimates as arrays: no
-    per-row objects on the hot path."""
-    if hasattr(filt, "run_arrays"):
-        state, res = filt.run_arrays(state, increments)
-        rows = estimate_rows(res.step, res.t, res.mean, res.cov)
-        flagged = bool(np.any(res.degenerate))
-        reason = res.reason
-    else:
-        state, estimates = filt.run(state, increments)
-        mean = np.array([e.mean for e in estimates], float)  # chunks are never empty
-        cov = np.array([e.cov for e in estimates], float)
-        rows = estimate_rows([e.step for e in estimates], [e.t for e in estimates], mean, cov)
-        bad = [e for e in estimates if e.degenerate]
-        flagged, reason = bool(bad), (bad[0].reason if bad else None)
-    if any(r["mean"] is None for r in rows):
-        flagged, reason = True, reason or "non-finite estimate"
-    return state, rows, flagged, reason
+
+def _gate_of(filt: Any) -> float | None:
+    gate = getattr(filt, "gate", None)
+    return None if gate is None else float(gate)
+
+
+def run_chunk(filt: Any, state: Any, rows: np.ndarray, times: list[float] | None = None,
+              policy: str = "stop") -> tuple[Any, list[dict], list[int], list[int], str | None]:
+    """Advance the filter over a chunk under the session's policy (solver/recovery.py):
+    (new state, estimate rows, gated rows, re-initialised rows, first degenerate reason).  The
+    estimates come as arrays (``run_arrays``): no per-row objects on the hot path."""
+    from yauyau.solver.recovery import run_with_policy
+
+    state, result = run_with_policy(filt, state, rows, times, policy)
+    out, gated, again, reason = result_rows(result, _gate_of(filt))
+    return state, out, gated, again, reason
 
 
 def summaries_of(filt: Any, state: Any, estimate: Estimate, extras: "Extras") -> dict[str, Any]:
@@ -100,34 +137,41 @@ class Extras:
         return self.quantiles is not None or self.mode
 
 
-def run_chunk_with_summaries(filt: Any, state: Any, increments: np.ndarray, extras: Extras):
+def run_chunk_with_summaries(filt: Any, state: Any, rows: np.ndarray, extras: Extras,
+                             times: list[float] | None = None, policy: str = "stop"):
     """Like :func:`run_chunk`, stepping row by row to summarise the density after each step."""
-    rows, bad = [], []
-    for row in increments:
-        state, estimate = filt.step(state, row)
-        out = estimate_full(estimate)
-        row = {k: out[k] for k in ("step", "t", "mean", "cov")}
-        rows.append(row | summaries_of(filt, state, estimate, extras))
-        if out["degenerate"]:
-            bad.append(out["reason"])
-    return state, rows, bool(bad), (bad[0] if bad else None)
+    from yauyau.solver.recovery import run_with_policy
+
+    out, gated, again, reason = [], [], [], None
+    gate = _gate_of(filt)
+    for k in range(len(rows)):
+        state, result = run_with_policy(filt, state, rows[k:k + 1], None if times is None else times[k:k + 1],
+                                        policy)
+        row_out, row_gated, row_again, row_reason = result_rows(result, gate)
+        estimate = result.estimates(gate)[0]
+        out.append(row_out[0] | summaries_of(filt, state, estimate, extras))
+        gated += [k] * len(row_gated)
+        again += [k] * len(row_again)
+        reason = reason or row_reason
+    return state, out, gated, again, reason
 
 
-def chunk_response(seq: int, state: Any, increments: np.ndarray, filt: Any,
-                   extras: Extras | None = None) -> tuple[Any, dict[str, Any]]:
+def chunk_response(seq: int, state: Any, rows: np.ndarray, filt: Any, extras: Extras | None = None,
+                   times: list[float] | None = None, policy: str = "stop") -> tuple[Any, dict[str, Any]]:
     if extras:
-        state, rows, flagged, reason = run_chunk_with_summaries(filt, state, increments, extras)
+        state, out, gated, again, reason = run_chunk_with_summaries(filt, state, rows, extras, times, policy)
     else:
-        state, rows, flagged, reason = run_chunk(filt, state, increments)
+        state, out, gated, again, reason = run_chunk(filt, state, rows, times, policy)
+    flagged = reason is not None
     loglik = float(state.loglik)
     if not math.isfinite(loglik):
         flagged, reason = True, reason or "non-finite log-likelihood"
     degenerate = flagged or bool(state.degenerate)
     if degenerate and reason is None:
         reason = getattr(state, "reason", None) or "degenerate density"
-    return state, {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": rows,
+    return state, {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": out,
                    "loglik": loglik if math.isfinite(loglik) else None, "degenerate": degenerate,
-                   "reason": reason}
+                   "reason": reason, "gated": gated, "reinitialised": again}
 
 
 def encode_response(response: dict[str, Any]) -> str:
@@ -138,29 +182,116 @@ def encode_response(response: dict[str, Any]) -> str:
     return orjson.dumps(response).decode()
 
 
-def request_digest(rows: list[list[float] | None], extras: "Extras | None") -> str:
-    """A digest of what a chunk asks (its increments and extras): a re-sent seq must carry the same."""
+def _digest(payload: Any) -> str:
+    return hashlib.blake2b(orjson.dumps(payload), digest_size=16).hexdigest()
+
+
+def request_digest(rows: list[list[float | None] | None], extras: "Extras | None", field: str = "increments",
+                   times: list[float] | None = None) -> str:
+    """A digest of what a chunk asks (its rows, their kind and times, the extras): a re-sent seq must
+    carry the same.  A regular chunk of increments keeps the digest it had before rows had kinds and
+    times (a replay across an upgrade is still a replay)."""
     quantiles = None if extras is None or extras.quantiles is None else list(map(float, extras.quantiles))
     mode = bool(extras.mode) if extras is not None else False
-    payload = orjson.dumps([rows, quantiles, mode])
-    return hashlib.blake2b(payload, digest_size=16).hexdigest()
+    if field == "increments" and times is None:
+        return _digest([rows, quantiles, mode])
+    return _digest([rows, quantiles, mode, field, times])
 
 
-def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
-    """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
+def rows_array(rows: list[list[float | None] | None], m: int, field: str = "increments") -> np.ndarray:
+    """Rows of m numbers (null: a missing row or component) -> (K, m) floats with NaN for missing,
+    naming a row of the wrong width."""
     out = np.empty((len(rows), m))
     for i, row in enumerate(rows):
         if row is None:
             out[i] = np.nan
         elif len(row) != m:
-            raise InputError(f"increments[{i}]", f"needs {m} number(s) (one per observation), got {len(row)}")
+            raise InputError(f"{field}[{i}]", f"needs {m} number(s) (one per observation component; null for "
+                                              f"a missing one), got {len(row)}")
         else:
-            out[i] = row
-    return check_increments(out, m)
+            out[i] = row  # None -> NaN
+    return out
+
+
+def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
+    """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
+    return rows_array(rows, m, "increments")
+
+
+def checked_times(times: list[float] | None, K: int, t_now: float = -math.inf,
+                  started: bool = True) -> list[float] | None:
+    """The times of a chunk of K rows: one per row, strictly increasing, the first after the session's
+    time ``t_now`` (or at it, when the session has not stepped yet: not ``started``).  InputError names
+    ``times`` or the row ``times[i]`` at fault (pydantic already refused non-numbers and null)."""
+    if times is None:
+        return None
+    if len(times) != K:
+        raise InputError("times", f"needs one time per row: {K} row(s), got {len(times)} time(s)")
+    t = [float(v) for v in times]
+    for i, value in enumerate(t):
+        if not math.isfinite(value):
+            raise InputError(f"times[{i}]", "must be a finite number (the row's absolute time)")
+    if not (t[0] > t_now or (t[0] == t_now and not started)):
+        raise InputError("times[0]", f"t = {t[0]:.17g} is not after the session's time {t_now:.17g}: times "
+                                     "must increase strictly from one chunk to the next (GET the session for "
+                                     "its time)")
+    for i in range(1, K):
+        if not t[i] > t[i - 1]:
+            raise InputError(f"times[{i}]", f"t = {t[i]:.17g} is not after t = {t[i - 1]:.17g} "
+                                            f"(times[{i - 1}]): times must increase strictly")
+    return t
 
 
 def _record(rec: Any, name: str) -> Any:
     return rec[name] if isinstance(rec, dict) else getattr(rec, name)
+
+
+def _options(rec: Any) -> dict[str, Any]:
+    """A session's stored options, the defaults filled in (a session stored before options: all)."""
+    stored = rec.get("options") if isinstance(rec, dict) else getattr(rec, "options", None)
+    return {**DEFAULT_OPTIONS, **(stored or {})}
+
+
+def _shown_options(options: dict[str, Any], filt: Any) -> dict[str, Any]:
+    """The options as GET shows them: the gate in force (the session's, else the spec's)."""
+    gate = _gate_of(filt)
+    if gate is None:
+        gate = float(filt.model.spec.measurement.gate)
+    return {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate}
+
+
+def _check_t0(t0: Any) -> float:
+    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
+        raise InputError("t0", "must be a finite number (the time of the prior)")
+    return float(t0)
+
+
+def _at_time(state: Any, t0: float) -> Any:
+    """The initial state held at time ``t0`` (the prior's time) instead of 0."""
+    if t0 == 0.0:
+        return state
+    if hasattr(state, "last"):
+        return dataclasses.replace(state, t=t0, last=dataclasses.replace(state.last, t=t0))
+    return dataclasses.replace(state, t=t0)
+
+
+def _chunk_rows(loaded: LoadedModel, given: dict[str, Any]) -> tuple[str, list]:
+    """(field, rows) of a chunk: the one row field the model's kind takes, else InputError saying which."""
+    kind = loaded.model.spec.measurement.kind
+    wanted = ROW_FIELDS.get(kind, "increments")
+    other = "observations" if wanted == "increments" else "increments"
+    what = {"increments": "increments dy of y over each interval",
+            "observations": "measurements z = h(x(t)) + v"}
+    if wanted in given and other in given:
+        raise InputError(other, f"send either increments or observations, not both: this model ({kind} "
+                                f"measurements) takes \"{wanted}\" ({what[wanted]})")
+    if wanted not in given:
+        if other in given:
+            raise InputError(other, f"this model's measurements are {kind} ([measurement] kind = {kind}): "
+                                    f"send the rows as \"{wanted}\" ({what[wanted]}), not \"{other}\"")
+        raise InputError(wanted, f"required: the rows of the chunk ({what[wanted]}; this model's "
+                                 f"measurements are {kind})")
+    return wanted, given[wanted]
 
 
 class Sessions:
@@ -192,38 +323,61 @@ class Sessions:
             self._deep_checked = time.monotonic()
         return health(deep=deep)
 
-    def create(self, model_id: str, prior: Any | None, method: str | None) -> dict[str, Any]:
+    def create(self, model_id: str, prior: Any | None, method: str | None, on_degenerate: str = "stop",
+               t0: float = 0.0, gate: float | None = None) -> dict[str, Any]:
+        """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``) are stored
+        with it."""
+        from yauyau.solver.measurement import check_gate
+        from yauyau.solver.recovery import check_policy
+
+        options = {"on_degenerate": check_policy(on_degenerate), "t0": _check_t0(t0),
+                   "gate": check_gate(gate)}
         loaded = self.registry.get(model_id)
-        filt = loaded.filter(method)
+        filt = loaded.filter(method, options["gate"])
         try:
             state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
         except SpecError as exc:  # the prior of the request, not the spec's: name it so
             raise (_as_prior_error(exc) if prior is not None else exc) from None
+        state = _at_time(state, options["t0"])
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
-                    "estimate": estimate}
-        session_id = self.store.create(model_id, filt.method, state.to_dict(), response)
+                    "estimate": estimate, "options": _shown_options(options, filt)}
+        session_id = self.store.create(model_id, filt.method, state.to_dict(), response, options)
         metrics.SESSIONS.labels(filt.method).inc()
         return {"id": session_id, **response}
 
     def _session(self, session_id: str) -> tuple[Any, LoadedModel, Any]:
         rec = self.store.get(session_id)
         loaded = self.registry.get(_record(rec, "model_id"), "session.model")
-        return rec, loaded, loaded.filter(_record(rec, "method"))
+        return rec, loaded, loaded.filter(_record(rec, "method"), _options(rec)["gate"])
 
-    def observe(self, session_id: str, seq: int, rows: list[list[float] | None],
-                encoded: bool = False, extras: Extras | None = None) -> Any:
+    def observe(self, session_id: str, seq: int, rows: list[list[float | None] | None] | None,
+                encoded: bool = False, extras: Extras | None = None, *,
+                observations: list[list[float | None] | None] | None = None,
+                times: list[float] | None = None) -> Any:
         """Apply chunk ``seq`` exactly once; the response (``encoded``: its stored JSON text).
-        ``extras``: quantiles and/or the mode with every estimate (a replay returns what was stored)."""
-        if len(rows) > self.max_chunk_rows:
-            raise InputError("increments", f"at most {self.max_chunk_rows} rows per chunk, got {len(rows)}")
+        ``rows`` are increments (continuous models), ``observations`` measurements (discrete models):
+        exactly one of the two, as the model's kind says; ``times`` their absolute times (default:
+        one dt apart).  ``extras``: quantiles and/or the mode with every estimate (a replay returns
+        what was stored)."""
+        given = {name: value for name, value in (("increments", rows), ("observations", observations))
+                 if value is not None}
+        for name, value in given.items():
+            if len(value) > self.max_chunk_rows:
+                raise InputError(name, f"at most {self.max_chunk_rows} rows per chunk, got {len(value)}")
         rec, loaded, filt = self._session(session_id)
-        increments = increments_array(rows, loaded.model.m)
-        digest = request_digest(rows, extras)
+        field, data = _chunk_rows(loaded, given)
+        array = rows_array(data, loaded.model.m, field)
+        times = checked_times(times, len(data))
+        policy = _options(rec)["on_degenerate"]
+        digest = request_digest(data, extras, field, times)
         applied: list[dict[str, Any]] = []
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
-            state, response = chunk_response(seq, filt.state_from_dict(state_dict), increments, filt, extras)
+            state = filt.state_from_dict(state_dict)
+            if times is not None:
+                checked_times(times, len(times), float(state.t), state.step > 0)
+            state, response = chunk_response(seq, state, array, filt, extras, times, policy)
             applied.append(response)
             return state.to_dict(), encode_response(response)
 
@@ -232,10 +386,76 @@ class Sessions:
                                                         digest=digest)
         metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
         if not replayed:
-            metrics.OBSERVATIONS.inc(len(rows))
-            if applied[-1]["degenerate"]:
+            metrics.OBSERVATIONS.inc(len(data))
+            done = applied[-1]
+            if done["degenerate"]:
                 metrics.DEGENERATE.inc()
+            if done["gated"]:
+                metrics.GATED.inc(len(done["gated"]))
+            if done["reinitialised"]:
+                metrics.REINITIALISED.inc(len(done["reinitialised"]))
         return response
+
+    def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
+              encoded: bool = False) -> Any:
+        """Start the session again at its step and time, exactly once under ``seq`` (like a chunk): from
+        ``prior`` (a spec prior), or ``source`` "last" (a prior broadened around the last good estimate:
+        a degenerate session recovers) or "model" (the model's prior).  The log-likelihood goes on."""
+        from yauyau.solver.recovery import restart, restart_from_last
+
+        if (prior is None) == (source is None):
+            raise InputError("prior" if prior is None else "from",
+                             'send exactly one of "prior" (a spec prior) and "from" ("last": around the last '
+                             'good estimate; "model": the model\'s prior)')
+        rec, loaded, filt = self._session(session_id)
+        checked = _checked_prior(prior, loaded) if prior is not None else None
+        digest = _digest(["reset", source if prior is None else prior.model_dump(mode="json")])
+
+        def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
+            state = filt.state_from_dict(state_dict)
+            if source == "last":
+                new, note = restart_from_last(filt, state)
+            else:
+                try:
+                    new = restart(filt, state, checked)
+                except SpecError as exc:
+                    raise (_as_prior_error(exc) if checked is not None else exc) from None
+                note = "re-initialised from the " + ("prior sent" if checked is not None else "model's prior")
+            note += f" at step {int(new.step)}, t = {float(new.t):g}"
+            response = {"seq": seq, "step": int(new.step), "t": float(new.t),
+                        "estimate": estimate_full(filt.estimate(new)), "note": note}
+            return new.to_dict(), encode_response(response)
+
+        with self._write_lock:
+            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded,
+                                                        digest=digest)
+        metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
+        if not replayed:
+            metrics.RESETS.inc()
+        return response
+
+    def forecast(self, session_id: str, t: float, extras: Extras | None = None) -> dict[str, Any]:
+        """The estimate at time ``t`` (not before the session's time) without an observation; the session
+        is unchanged."""
+        rec, loaded, filt = self._session(session_id)
+        state = filt.state_from_dict(_record(rec, "state"))
+        if not math.isfinite(t):
+            raise InputError("t", "must be a finite number (the time to forecast to)")
+        if t < state.t:
+            raise InputError("t", f"t = {t!r} is before the session's time {float(state.t)!r}: a forecast "
+                                  "looks ahead (the estimates of past times are in the chunk responses)")
+        try:
+            ahead, estimate = filt.predict(state, t)
+        except InputError as exc:
+            if exc.field.startswith("times"):
+                why = f"method {filt.method} cannot forecast to a given time: {exc.message}"
+                raise InputError("t", why) from None
+            raise
+        out = estimate_full(estimate)
+        out["step"] = int(state.step)
+        if extras:
+            out.update(summaries_of(filt, ahead, estimate, extras))
+        return {"id": session_id, "step": int(state.step), "t": float(t), "estimate": out}
 
     def info(self, session_id: str, extras: Extras | None = None) -> dict[str, Any]:
         rec, loaded, filt = self._session(session_id)
@@ -245,7 +465,8 @@ class Sessions:
         if extras:
             out.update(summaries_of(filt, state, estimate, extras))
         return {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
-                "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out}
+                "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out,
+                "options": _shown_options(_options(rec), filt)}
 
     def version(self, session_id: str) -> int:
         """The seq the next chunk must carry (changes when a chunk is applied): what /events polls."""

@@ -170,7 +170,8 @@ class Observation:
                                  - 0.5 * size * math.log(nu * math.pi) - 0.5 * pat.log_det_R)
                 scale = nu / (nu - 2.0) if nu > 2.0 else 1.0
                 log_det_S0[sel] = pat.log_det_R + size * (LOG_2PI + math.log(scale))
-        kappa2 = taus * taus if not self.discrete else np.ones(K)
+        with np.errstate(over="ignore"):
+            kappa2 = taus * taus if not self.discrete else np.ones(K)
         return RowTerms(offset=offset, log_det_S0=log_det_S0, kappa2=kappa2, threshold=threshold,
                         constant=constant, quadratic=quadratic)
 
@@ -307,11 +308,12 @@ def resolve_times(t_now: float, started: bool, K: int, dt: float, times: Any,
     taus = np.diff(t, prepend=t_now)
     first_ok = taus[0] > 0 or (taus[0] == 0 and not started)
     if not first_ok:
-        raise InputError(f"{field}[0]", f"t = {t[0]!r} is not after the filter's time {t_now!r}: times must "
-                                       "increase strictly")
+        raise InputError(f"{field}[0]", f"t = {float(t[0]):.17g} is not after the filter's time "
+                                       f"{float(t_now):.17g}: times must increase strictly")
     later = taus[1:] <= 0
     if later.any():
         row = int(np.argmax(later)) + 1
-        raise InputError(f"{field}[{row}]", f"t = {t[row]!r} is not after t = {t[row - 1]!r} "
-                                            f"(row {row - 1}): times must increase strictly")
+        raise InputError(f"{field}[{row}]", f"t = {float(t[row]):.17g} is not after t = "
+                                            f"{float(t[row - 1]):.17g} (row {row - 1}): times must increase "
+                                            "strictly")
     return taus

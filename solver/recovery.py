@@ -100,6 +100,7 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
             result = _flag(result, 0, restarted_before)
             restarted_before = None
         if not result.degenerate.any():
+            state = new_state
             parts.append(result)
             break
         k = int(np.argmax(result.degenerate))

@@ -18,17 +18,19 @@ Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], "dict[str, Any] | str
 @runtime_checkable
 class SessionStore(Protocol):
     def create(self, model_id: str, method: str, state: dict[str, Any],
-               initial_response: dict[str, Any] | None = None) -> str:
-        """A new session at seq 0; returns its id."""
+               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> str:
+        """A new session at seq 0 with its ``options`` (a JSON object kept as given); returns its id."""
 
     def get(self, session_id: str) -> Any:
-        """The session's record (id, model_id, method, state, next_seq, ...); NotFound if absent."""
+        """The session's record (id, model_id, method, state, next_seq, options, ...; ``options`` is
+        ``{}`` for a session stored without); NotFound if absent."""
 
     def apply_chunk(self, session_id: str, seq: int, compute: Compute,
                     encoded: bool = False, digest: str | None = None) -> tuple[Any, bool]:
         """Apply chunk ``seq`` exactly once: (response, replayed).  A seq past the next one is a
         Conflict and changes nothing; a seq already applied returns the stored response, or is a
-        Conflict when its ``digest`` (of the request) differs from the stored one."""
+        Conflict when its ``digest`` (of the request) differs from the stored one.  Any numbered
+        operation on a session goes through here (a chunk of rows, a reset), one seq each."""
 
     def delete(self, session_id: str) -> None:
         """Remove the session; NotFound if absent."""

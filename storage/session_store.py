@@ -2,7 +2,9 @@
 advanced by numbered chunks, each applied exactly once.
 
 A session holds the filter state (any JSON-able dict), ``next_seq`` (the seq the next chunk must
-carry; the first chunk is seq 0) and a ``version``.  ``apply_chunk(id, seq, compute)``:
+carry; the first chunk is seq 0), a ``version`` and its ``options`` (a JSON object the service
+gives at creation, e.g. its policy on degeneracy and its outlier gate; a file written before the
+column existed gets it, ``{}``, when opened).  ``apply_chunk(id, seq, compute)``:
 
 * seq == next_seq: ``compute(state) -> (new_state, response)`` runs outside any lock, then the new
   state and the response are written in ONE transaction, only if the version is unchanged
@@ -50,7 +52,7 @@ import sqlite3
 import struct
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -73,7 +75,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     loglik REAL,
     created TEXT NOT NULL,
     updated TEXT NOT NULL,
-    version INTEGER NOT NULL
+    version INTEGER NOT NULL,
+    options TEXT NOT NULL DEFAULT '{}'
 );
 CREATE TABLE IF NOT EXISTS chunks (
     session_id TEXT NOT NULL,
@@ -89,7 +92,11 @@ CREATE TABLE IF NOT EXISTS meta (
 );
 INSERT OR IGNORE INTO meta VALUES ('generation', 0);
 """
-_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL"}  # added to files written before they existed
+# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
+_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL"}
+_SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'"}  # older sessions: no options (the defaults)
+_SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next_seq", "step", "t", "loglik",
+                   "created", "updated", "version", "options")
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _WAL_MAGIC = (0x377F0682, 0x377F0683)  # little- / big-endian checksums
 DISK_FULL_RETRY_S = 10
@@ -111,6 +118,7 @@ class SessionRecord:
     created: str
     updated: str
     version: int
+    options: dict[str, Any] = field(default_factory=dict)  # per-session settings, as the service stored them
 
 
 def _utc_now() -> str:
@@ -203,10 +211,11 @@ class SqliteSessionStore:
         with self._transaction(write=False) as db:
             for statement in filter(str.strip, _SCHEMA.split(";")):
                 db.execute(statement)
-            present = {row[1] for row in db.execute("PRAGMA table_info(chunks)")}
-            for column, kind in _CHUNK_COLUMNS.items():
-                if column not in present:
-                    db.execute(f"ALTER TABLE chunks ADD COLUMN {column} {kind}")
+            for table, columns in (("chunks", _CHUNK_COLUMNS), ("sessions", _SESSION_COLUMNS)):
+                present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+                for column, kind in columns.items():
+                    if column not in present:
+                        db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
 
     # -- connections ----------------------------------------------------------------
     def _connection(self) -> sqlite3.Connection:
@@ -329,17 +338,20 @@ class SqliteSessionStore:
 
     # -- records --------------------------------------------------------------------
     def create(self, model_id: str, method: str, state: dict[str, Any],
-               initial_response: dict[str, Any] | None = None) -> str:
-        """A new session at seq 0; returns its random url-safe id."""
+               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> str:
+        """A new session at seq 0; returns its random url-safe id.  ``options``: the session's own
+        settings (a JSON object with finite numbers), kept with it and returned by :meth:`get`."""
         state_text = _dumps(state, "state")
         initial_text = _dumps(initial_response or {}, "initial_response")
+        options_text = _dumps(options or {}, "options")
         session_id = secrets.token_urlsafe(16)
         now = _utc_now()
         step, t, loglik = _progress(state, initial_response or {}, (0, 0.0, None))
+        columns = ", ".join(_SESSION_FIELDS)
         with self._transaction() as db:
-            db.execute("INSERT INTO sessions VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+            db.execute(f"INSERT INTO sessions ({columns}) VALUES ({', '.join('?' * len(_SESSION_FIELDS))})",
                        (session_id, str(model_id), str(method), state_text, initial_text, 0, step, t,
-                        loglik, now, now, 0))
+                        loglik, now, now, 0, options_text))
         return session_id
 
     def get(self, session_id: str) -> SessionRecord:
@@ -363,7 +375,7 @@ class SqliteSessionStore:
             initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
             step=row["step"],
             t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
-            version=row["version"])
+            version=row["version"], options=orjson.loads(row["options"] or "{}"))
 
     def delete(self, session_id: str) -> None:
         with self._transaction() as db:

@@ -143,7 +143,9 @@ def test_chunks_are_applied_exactly_once(api):
     _problem(api.delete(f"/v1/sessions/{sid}"), 404)
 
 
-def test_far_out_observations_give_a_degenerate_answer_not_nan(api):
+def test_far_out_observations_give_a_gated_or_degenerate_answer_not_nan(api):
+    """With the outlier gate on (the default) the rows are gated; with it off the density degenerates
+    (tests/test_service_fast_path.py); either way the answer is strict JSON without NaN."""
     sid = _session(api)["id"]
     r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": [[1e8], [-1e8]]})
     assert r.status_code == 200
@@ -159,8 +161,15 @@ def test_far_out_observations_give_a_degenerate_answer_not_nan(api):
     ('{"seq": 0, "increments": [["0.1"]]}', 422, "increments[0][0]"),
     ('{"seq": 0, "increments": [[true]]}', 422, "increments[0][0]"),
     ('{"seq": 0, "increments": [[0.1, 0.2]]}', 422, "increments[0]"),
-    ('{"seq": 0, "increments": [[null]]}', 422, "increments[0][0]"),
+    ('{"seq": 0, "increments": [["x", null]]}', 422, "increments[0][0]"),
     ('{"seq": 0, "increments": []}', 422, "increments"),
+    ('{"seq": 0}', 422, "increments"),
+    ('{"seq": 0, "observations": [[0.1]]}', 422, "observations"),
+    ('{"seq": 0, "increments": [[0.1]], "observations": [[0.1]]}', 422, "observations"),
+    ('{"seq": 0, "increments": [[0.1]], "times": [NaN]}', 422, "times[0]"),
+    ('{"seq": 0, "increments": [[0.1]], "times": [null]}', 422, "times[0]"),
+    ('{"seq": 0, "increments": [[0.1], [0.2]], "times": [0.5, 0.5]}', 422, "times[1]"),
+    ('{"seq": 0, "increments": [[0.1], [0.2]], "times": [0.5]}', 422, "times"),
     ('{"seq": -1, "increments": [[0.1]]}', 422, "seq"),
     ('{"increments": [[0.1]]}', 422, "seq"),
     ('{"seq": 0, "increments": [[0.1]], "extra": 1}', 422, "extra"),

@@ -133,7 +133,18 @@ def test_chunk_answers_are_strict_json_and_replays_are_byte_identical(api):
     body = json.loads(answers[1][1], parse_constant=lambda c: pytest.fail(f"{c} in a response"))
     assert [e["step"] for e in body["estimates"]] == list(range(101, 201))
     assert body["estimates"][-1]["t"] == pytest.approx(2.0, abs=1e-12)
-    # far outside the ball: degenerate, still no NaN token
+    # far outside the ball: the outlier gate (on by default) rejects the rows, no NaN token
     r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 2, "increments": [[1e6]] * 3})
     body = json.loads(r.content, parse_constant=lambda c: pytest.fail(f"{c} in a response"))
-    assert r.status_code == 200 and body["degenerate"] is True
+    assert r.status_code == 200 and body["degenerate"] is False and body["gated"] == [0, 1, 2]
+    assert all(e["gated"] is True and "gated" in e["reason"] for e in body["estimates"])
+    # the gate off: the same rows make the density degenerate, still no NaN token, and a replay of the
+    # degenerate answer is the same bytes
+    off = api.post("/v1/sessions", json={"model": api.ids["cubic_sensor"], "gate": 0}).json()["id"]
+    assert api.get(f"/v1/sessions/{off}").json()["options"]["gate"] == 0.0
+    chunk = {"seq": 0, "increments": [[1e6]] * 3}
+    r = api.post(f"/v1/sessions/{off}/observations", json=chunk)
+    body = json.loads(r.content, parse_constant=lambda c: pytest.fail(f"{c} in a response"))
+    assert r.status_code == 200 and body["degenerate"] is True and body["gated"] == []
+    assert body["reason"] and all(e["degenerate"] is True for e in body["estimates"])
+    assert api.post(f"/v1/sessions/{off}/observations", json=chunk).content == r.content

@@ -22,16 +22,19 @@ OPERATIONS = [("GET", "/livez"), ("GET", "/readyz"), ("GET", "/v1/models"), ("GE
               ("POST", "/v1/sessions"), ("POST", "/v1/sessions/{session_id}/observations"),
               ("GET", "/v1/sessions/{session_id}"), ("GET", "/v1/sessions/{session_id}/density"),
               ("GET", "/v1/sessions/{session_id}/view"), ("DELETE", "/v1/sessions/{session_id}"),
+              ("POST", "/v1/sessions/{session_id}/reset"), ("GET", "/v1/sessions/{session_id}/forecast"),
               ("POST", "/v1/analyze")]
 # /v1/sessions/{id}/events is a stream that ends when the session does: tests/test_live_page.py
 # Every check is on, positive_data_acceptance (schema-valid data must get 2xx) too, except where a
 # rule the schema cannot state makes schema-valid data invalid (422 naming the field, by design): a
 # row of increments has m numbers and seq is the next one; a prior's covariance is positive
 # definite and its weights sum to more than 0; a spec's expressions parse; density points have n
-# coordinates; quantile probabilities lie strictly between 0 and 1.
+# coordinates; quantile probabilities lie strictly between 0 and 1; a chunk's times increase and its
+# rows are those of the model's kind; a reset's seq is the next one; a forecast's t is not in the past.
 SEMANTIC = {("POST", "/v1/sessions"), ("POST", "/v1/sessions/{session_id}/observations"),
             ("POST", "/v1/analyze"), ("GET", "/v1/sessions/{session_id}/density"),
-            ("GET", "/v1/sessions/{session_id}")}
+            ("GET", "/v1/sessions/{session_id}"), ("POST", "/v1/sessions/{session_id}/reset"),
+            ("GET", "/v1/sessions/{session_id}/forecast")}
 
 
 @pytest.fixture(scope="module")

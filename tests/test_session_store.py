@@ -263,3 +263,49 @@ def test_the_sqlite_store_implements_the_protocol_the_service_takes(store: Sqlit
     assert isinstance(store, SessionStore)
     annotation = inspect.signature(Sessions.__init__).parameters["store"].annotation
     assert annotation in ("SessionStore", SessionStore)
+
+
+def test_options_are_kept_with_the_session(store: SqliteSessionStore):
+    options = {"on_degenerate": "reinitialise", "t0": 12.5, "gate": 0.0}
+    sid = store.create("m", "yau-yau", {"values": []}, {"estimate": {}}, options)
+    assert store.get(sid).options == options
+    store.apply_chunk(sid, 0, append_seq(0))  # a chunk leaves them alone
+    assert store.get(sid).options == options
+    assert store.get(store.create("m", "yau-yau", {"values": []})).options == {}
+    again = SqliteSessionStore(store.path)  # another process's view: read from the file
+    assert again.get(sid).options == options
+    for bad in ({"gate": float("nan")}, {"t0": float("inf")}):
+        with pytest.raises(StoreError) as err:
+            store.create("m", "yau-yau", {"values": []}, None, bad)
+        assert err.value.field == "options"
+    assert store.count() == 2  # nothing stored by the refused ones
+
+
+OLD_SCHEMA = """
+CREATE TABLE sessions (id TEXT PRIMARY KEY, model_id TEXT NOT NULL, method TEXT NOT NULL, state TEXT NOT NULL,
+    initial_response TEXT NOT NULL, next_seq INTEGER NOT NULL, step INTEGER NOT NULL, t REAL NOT NULL,
+    loglik REAL, created TEXT NOT NULL, updated TEXT NOT NULL, version INTEGER NOT NULL);
+CREATE TABLE chunks (session_id TEXT NOT NULL, seq INTEGER NOT NULL, response TEXT NOT NULL,
+    PRIMARY KEY (session_id, seq)) WITHOUT ROWID;
+INSERT INTO sessions VALUES ('old', 'm', 'yau-yau', '{"values":[0]}', '{}', 1, 1, 0.5, -0.0,
+    '2025-01-01T00:00:00.000+00:00', '2025-01-01T00:00:00.000+00:00', 1);
+INSERT INTO chunks VALUES ('old', 0, '{"seq":0,"before":[]}');
+"""
+
+
+def test_a_file_written_before_options_and_digests_is_migrated_in_place(tmp_path: Path):
+    """A database of an older release (no options, digest or stored columns) opens, keeps its session
+    (options {}: the service's defaults) and its stored replay, and takes sessions with options."""
+    path = tmp_path / "old.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(OLD_SCHEMA)
+    db.close()
+    store = SqliteSessionStore(path)
+    columns = {r[1] for r in sqlite3.connect(path).execute("PRAGMA table_info(sessions)")}
+    assert "options" in columns
+    old = store.get("old")
+    assert (old.options, old.state, old.next_seq) == ({}, {"values": [0]}, 1)
+    assert store.apply_chunk("old", 0, append_seq(0)) == ({"seq": 0, "before": []}, True)  # the old replay
+    assert store.apply_chunk("old", 1, append_seq(1)) == ({"seq": 1, "before": [0]}, False)
+    sid = store.create("m", "yau-yau", {"values": []}, None, {"t0": 2.0})
+    assert SqliteSessionStore(path).get(sid).options == {"t0": 2.0}  # opening again: no second migration
