@@ -15,8 +15,8 @@ import sys
 COMMANDS = {
     "precompute": "solve the Kolmogorov propagators offline and store the model (prints its id)",
     "models": "list the stored models",
-    "filter": "run a filter over a file of observation increments",
-    "simulate": "simulate a sample path and its observation increments (CSV files filter reads)",
+    "filter": "run a filter over a file of observations (increments or measurements, regular or timed)",
+    "simulate": "simulate a sample path and its observations (CSV files filter reads)",
     "plot": "plot a filtered run: mean and 95 percent band, truth, density heat map (PNG or SVG)",
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",

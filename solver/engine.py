@@ -48,7 +48,15 @@ from .diagnostics import Diagnostics
 from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, Estimate, marginal_by_quadrature
-from .measurement import Observation, RowTerms, check_gate, check_rows, resolve_times, standard_score
+from .measurement import (
+    Observation,
+    RowTerms,
+    check_first_gap,
+    check_gate,
+    check_rows,
+    resolve_times,
+    standard_score,
+)
 from .model import Model
 from .semigroup import SpectralFlow
 from .spec import DensityPrior, GaussianPrior, MixturePrior
@@ -210,6 +218,7 @@ class YauYauFilter(ChunkedFilter):
         rows = check_rows(increments, model.m)
         K = rows.shape[0]
         taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
+        check_first_gap(taus, rows, obs.discrete)
         if K == 0:
             return state, _stack_results(np.empty(0, int), np.empty(0), *self._empty_moments(), np.empty(0),
                                          np.empty(0), state.last, None)

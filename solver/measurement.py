@@ -285,6 +285,15 @@ def check_rows(rows: Any, m: int, field: str = "increments") -> np.ndarray:
     return arr
 
 
+def check_first_gap(taus: np.ndarray | None, rows: np.ndarray, discrete: bool, field: str = "times") -> None:
+    """A continuous increment needs an interval: a first row at the prior's time itself (τ = 0) may be a
+    discrete measurement or carry nothing, not an increment."""
+    if taus is not None and len(taus) and taus[0] == 0.0 and not discrete and not np.isnan(rows[0]).all():
+        raise InputError(f"{field}[0]", "an increment dy over an empty interval (t equal to the prior's "
+                                        "time): the first increment needs a time after the prior's (t0), or "
+                                        "send that row as missing")
+
+
 def resolve_times(t_now: float, started: bool, K: int, dt: float, times: Any,
                   field: str = "times") -> np.ndarray | None:
     """The gaps τ_k (K,) of a chunk that carries ``times`` (absolute t_k, strictly increasing, after

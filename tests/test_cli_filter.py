@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.stats import norm
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec, spec_from_dict
 from yauyau.solver.engine import YauYauFilter
@@ -52,7 +53,7 @@ def _filter(store, key, tmp_path, increments_file, *extra) -> tuple[int, Path]:
 def _read(out: Path) -> tuple[list[str], np.ndarray]:
     with out.open() as fh:
         rows = list(csv.reader(fh))
-    return rows[0], np.array(rows[1:], dtype=float)
+    return rows[0], np.array([[float(v) if v else np.nan for v in r] for r in rows[1:]])
 
 
 def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
@@ -65,7 +66,8 @@ def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
     code, out = _filter(store, "ou", tmp_path, source, "--method", "yau-yau")  # the spec says auto
     assert code == 0
     columns, table = _read(out)
-    assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate"]
+    assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate", "gated", "predictive_loglik",
+                       "reinitialised"]
     assert np.array_equal(table[:, 0], np.arange(1, 121)) and np.allclose(table[:, 1], 0.01 * table[:, 0])
     kalman = DiscreteKalmanFilter(model)
     _, ref = kalman.run(kalman.initial_state(), dy)
@@ -73,7 +75,14 @@ def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
     assert np.max(np.abs(table[:, 3] / [e.cov[0, 0] for e in ref] - 1)) < 0.01
     assert np.max(np.abs(table[:, 4] - [e.loglik for e in ref])) < 1e-3
     assert abs(table[10, 4] - table[9, 4]) < 1e-6  # a missing row adds no likelihood
-    assert not table[:, 5].any()
+    assert not table[:, 5].any() and not table[:, 6].any() and not table[:, 8].any()
+    # predictive log-likelihood log p(dy_k | dy_1..k-1): the Kalman loglik's increment (relative to the
+    # Wiener measure) plus log N(dy_k; 0, R dt); empty (NaN here) on the missing rows
+    seen = ~np.isnan(dy[:, 0])
+    expected = np.diff([e.loglik for e in ref], prepend=0.0) + norm.logpdf(dy[:, 0], 0.0,
+                                                                           np.sqrt(model.R[0, 0] * model.dt))
+    assert np.isnan(table[~seen, 7]).all()
+    assert np.max(np.abs(table[seen, 7] - expected[seen])) < 1e-3
     # the same data as .npy, in chunks of 7: the identical file
     npy = tmp_path / "in.npy"
     np.save(npy, dy)
@@ -94,8 +103,9 @@ def test_filter_two_dimensional_layout(store, tmp_path):
     assert code in (0, 3)  # basis 30 is coarse: it may degenerate (exit 3), the layout is the point
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_p", "mean_q", "cov_p_p", "cov_p_q", "cov_q_q", "loglik",
-                       "degenerate"]
-    assert table.shape == (31, 9) and np.all(np.isfinite(table))
+                       "degenerate", "gated", "predictive_loglik", "reinitialised"]
+    assert table.shape == (31, 12) and np.all(np.isfinite(table[:, :10]))
+    assert np.isnan(table[-1, 10]) and np.isfinite(table[:30, 10][table[:30, 8] == 0]).all()
     assert table[-1, 7] == pytest.approx(table[-2, 7], abs=1e-3)  # last row missing (coarse basis)
 
 
@@ -184,11 +194,21 @@ def test_blas_threads_refused_when_not_positive(store, tmp_path, capsys, monkeyp
     assert code == 2 and "YAUYAU_BLAS_THREADS" in capsys.readouterr().err
 
 
-def test_bad_2d_rows_and_missing_model(store, tmp_path, capsys):
-    source = tmp_path / "bad.csv"
+def test_partly_missing_2d_rows_and_missing_model(store, tmp_path, capsys):
+    """A partly missing row (empty field): the general engine marginalises it; a form that cannot take
+    it (the literal form of (5.35): the potential inside the stored propagator) refuses it up front, in
+    one line naming the row, its line and the fix, before anything else is said or written."""
+    source = tmp_path / "partial.csv"
     source.write_text("0.1,0.2\n0.1,\n")
-    code, out = _filter(store, "2d", tmp_path, source)
-    assert code == 2 and not out.exists() and "increments[1]" in capsys.readouterr().err
+    code, out = _filter(store, "2d", tmp_path, source, "--method", "yau-yau", "--form", "literal")
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists() and err.count("\n") == 1
+    assert "error: increments[1] (line 2): " in err and "stable form" in err
+    code, out = _filter(store, "2d", tmp_path, source, "--method", "yau-yau")
+    assert code == 0, capsys.readouterr().err
+    _, table = _read(out)
+    assert table.shape == (2, 12) and np.isfinite(table[1, 10])  # the observed component counts
+    out.unlink()
     directory, _, _ = store
     code = main(["filter", "0" * 20, "--store", str(directory), "--increments", str(source),
                  "--out", str(tmp_path / "x.csv")])

@@ -121,7 +121,7 @@ def test_quantile_and_mode_columns_against_the_normal_posterior(store, tmp_path)
     _, kb = _read(exact)
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_x", "cov_x_x", "mode_x", "q0.05_x", "q0.5_x", "q0.95_x",
-                       "loglik", "degenerate"]
+                       "loglik", "degenerate", "gated", "predictive_loglik", "reinitialised"]
     truth = norm.ppf([0.05, 0.5, 0.95], loc=kb[:, 2:3], scale=np.sqrt(kb[:, 3:4]))
     assert np.abs(table[:, 5:8] - truth).max() < 1e-3
     assert np.abs(table[:, 4] - kb[:, 2]).max() < 1e-3  # the mode of a normal is its mean
@@ -179,6 +179,8 @@ def test_plot_draws_band_truth_and_heat_map(store, tmp_path):
 
 
 def test_degenerate_run_exits_3_and_says_from_where(store, tmp_path, capsys):
+    """An increment of 1e5 with the outlier gate off (--gate 0; the default gate would reject it:
+    tests/test_cli_measurements.py) pushes the density out of the ball: exit 3, flagged from there."""
     directory, ids = store
     run = _simulate(tmp_path, "cubic_sensor", 30, seed=6)
     rows = (run / "increments.csv").read_text().splitlines()
@@ -187,13 +189,15 @@ def test_degenerate_run_exits_3_and_says_from_where(store, tmp_path, capsys):
     bad.write_text("\n".join(rows) + "\n")
     out = tmp_path / "out.csv"
     code = main(["filter", ids["cubic_sensor"], "--store", str(directory), "--increments", str(bad),
-                 "--out", str(out), "--quantiles", "0.5", "--mode"])
+                 "--out", str(out), "--quantiles", "0.5", "--mode", "--gate", "0"])
     assert code == 3
     err = capsys.readouterr().err
     assert re.search(r"degenerate from step 12 \(t = 0\.12\)", err), err
     columns, table = _read(out)
-    assert table[:11, -1].sum() == 0 and table[11:, -1].all()
+    flagged = table[:, columns.index("degenerate")]
+    assert flagged[:11].sum() == 0 and flagged[11:].all()
     assert np.isnan(table[11:, columns.index("q0.5_x")]).all()  # no quantile of a lost density
+    assert not table[:, columns.index("gated")].any() and not table[:, columns.index("reinitialised")].any()
 
 
 def test_cumulative_observations_are_recognised(store, tmp_path, capsys):

@@ -244,6 +244,13 @@ def test_first_row_may_be_at_the_prior_time_but_later_times_must_move_on():
     assert result.t.tolist() == [0.0] and state.step == 1
     with pytest.raises(InputError, match="not after"):
         flt.run_arrays(state, [[0.2]], [0.0])
+    # an increment needs an interval: not at the prior's time (a missing row there is fine)
+    continuous = _engine(CUBIC)
+    with pytest.raises(InputError, match="empty interval") as err:
+        continuous.run_arrays(continuous.initial_state(), [[0.2]], [0.0])
+    assert err.value.field == "times[0]"
+    state, _ = continuous.run_arrays(continuous.initial_state(), [[np.nan], [0.1]], [0.0, 0.01])
+    assert state.step == 2
 
 
 def test_chunks_at_irregular_times_continue_where_the_last_ended():

@@ -1,13 +1,18 @@
-"""`yauyau filter MODEL_ID --store DIR --increments IN --out OUT.csv`: run a filter over a file.
+"""`yauyau filter MODEL_ID --store DIR (--increments IN | --observations IN.csv) --out OUT.csv`.
 
 The input and output formats are in EPILOG (what ``yauyau filter -h`` prints).  The stored model
 (storage.model_store) is filtered with the method of --method (default: the one chosen at precompute
 and stored with the model; no analysis runs here) in chunks of --chunk rows, with --blas-threads
-BLAS threads (default 1: docs/bench-blas.md).  --quantiles, --mode and --density add what the
-density says beyond mean and covariance (yauyau.solver.summaries; storage.density_file).  All
-input is validated before anything is written; OUT (and the density file) appear atomically.
-Exit status: 0 done, 2 bad input (nothing written), 3 the filter degenerated (OUT is written, the
-steps from the first degenerate one on are flagged; stderr says from which step and why).
+BLAS threads (default 1: docs/bench-blas.md).  Rows are the spec's ``[measurement]`` kind: increments
+dy (continuous) or measurements z (discrete); --increments reads regular rows (t_k = t0 + k·dt),
+--observations rows with their own times.  --gate overrides the spec's outlier gate, --on-degenerate
+says what a degenerate density does (solver/recovery.py).  --quantiles, --mode and --density add what
+the density says beyond mean and covariance (yauyau.solver.summaries; storage.density_file).  All
+input is validated before anything is written; OUT (and the density file) appear atomically.  The
+output columns are built from the chunks' arrays (ChunkResult), not per-row objects.
+Exit status: 0 done, 2 bad input (nothing written), 3 the filter degenerated under --on-degenerate
+stop (OUT is written, the steps from the first degenerate one on are flagged; stderr says from which
+step and why).
 """
 
 from __future__ import annotations
@@ -24,28 +29,62 @@ from .precompute import store_argument
 DEFAULT_CHUNK = 1000
 EXIT_DEGENERATE = 3
 DENSITY_POINTS = {1: 401, 2: 101, 3: 61}
+POLICIES = ("stop", "reinitialise")  # yauyau.solver.recovery.POLICIES (not imported here: start-up cost)
 
 EPILOG = """\
-input (--increments IN):
-  CSV: one row per step tau_k = k*dt, m comma-separated numbers (the observation increments
-  dy_k = y(tau_k) - y(tau_(k-1)), not the cumulative y); an optional header line (any names);
-  a row of empty fields is a missing observation (the filter only predicts). Or a .npy array
-  of shape (K, m), NaN rows missing. `yauyau simulate SPEC --out DIR` writes such a file.
+input, one of:
+  --increments IN   regular rows, t_k = t0 + k*dt (dt of the spec; t0 = --t0, default 0): CSV of
+                    m comma-separated numbers per row, an optional header line (any names), or a
+                    .npy array (K, m). Continuous models only ([measurement] kind = "continuous"):
+                    the rows are the increments dy_k = y(t_k) - y(t_(k-1)), not the cumulative y.
+  --observations IN.csv
+                    rows with their own times: a header whose first column is t, then one column
+                    per observation component (any names; m of them), e.g. "t,z_1"; one row per
+                    time, times finite and strictly increasing (they need not be regular). For a
+                    discrete model ([measurement] kind = "discrete") a row holds the measurements
+                    z = h(x(t)) + v at t; for a continuous one the increments dy of y over
+                    [t_(k-1), t_k], t_0 = --t0. A discrete model reads only --observations.
+  In both, an empty field is a missing component (only the others update) and a row of empty
+  fields no observation at that time (the filter only predicts). `yauyau simulate SPEC --out DIR`
+  writes DIR/increments.csv or DIR/observations.csv.
 
-output (--out OUT.csv), one row per step:
-  step, t                 step k and time t = k*dt
-  mean_<var>              conditional mean E[x(t) | y], one column per state variable
+time of the prior (--t0 T): the model's prior holds at t = T. With --observations the default is
+  the first row's time: the prior holds at the first observation, which is an update with no
+  propagation before it (for a continuous model that first row covers no interval: leave its
+  values empty or give --t0, e.g. --t0 0 for the files of yauyau simulate, whose paths start at 0).
+  An earlier T propagates the prior from T to the first row. With --increments the default is 0.
+
+outliers (--gate K): a row whose predictive standard score exceeds K is not used (the step only
+  predicts) and is flagged gated = 1; default: the spec's [measurement] gate (6 unless set); 0
+  turns the gate off. A method that cannot gate (wei-norman: its path integrals need every row)
+  takes every row and leaves gated = 0.
+
+degenerate density (--on-degenerate): stop (default): the rows from the first degenerate one on
+  are flagged degenerate = 1 (their estimates repeat the last good one) and the exit status is 3;
+  reinitialise: the filter starts again there from a prior broadened around the last good
+  estimate (that row's observation is not used, the row is flagged reinitialised = 1) and goes on;
+  the exit status is then 0. stderr says how many rows were gated and re-initialised, and why.
+
+output (--out OUT.csv), one row per input row:
+  step, t                 step k (1, 2, ...) and its time t_k
+  mean_<var>              conditional mean E[x(t) | observations up to t], one column per variable
   cov_<var>_<var>         conditional covariance (upper triangle)
   mode_<var>              with --mode: the MAP point (tallest node, refined)
   q<p>_<var>              with --quantiles p1,p2,...: marginal quantiles, e.g. q0.05_x
-  loglik                  cumulative log-likelihood of the observations
+  loglik                  cumulative log-likelihood of the observations used (discrete: the sum
+                          of their predictive_loglik; continuous: relative to pure noise, dy = dw)
   degenerate              1 from the step the density lost its mass on (see stderr), else 0
+  gated                   1 when the gate rejected this row's observation, else 0
+  predictive_loglik       log p(this row | the rows before) (-inf: impossible under the model);
+                          empty when the row has no observation (or the method does not compute it)
+  reinitialised           1 when the filter started again at this row (--on-degenerate), else 0
 
 density (--density OUT.h5): the density every --density-every steps on a grid over the ball
   (--density-points per axis): joint density for 1-D and 2-D, each marginal always; CF-style
   HDF5 (time, step, one coordinate per variable); `yauyau plot` draws it.
 
-exit status: 0 done; 2 bad input (nothing written); 3 the filter degenerated (OUT written).
+exit status: 0 done; 2 bad input (one line on stderr naming the field or row, nothing written);
+  3 the filter degenerated under --on-degenerate stop (OUT written, rows flagged).
 """
 
 
@@ -79,8 +118,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)
-    parser.add_argument("--increments", required=True, help="observation increments: .csv or .npy")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--increments", metavar="IN",
+                        help="regular rows (continuous models): observation increments, .csv or .npy")
+    source.add_argument("--observations", metavar="IN.csv",
+                        help="rows with their times: CSV with a header t,<one column per component>")
     parser.add_argument("--out", required=True, help="output CSV of the estimates")
+    parser.add_argument("--t0", type=float, default=None, metavar="T",
+                        help="time of the prior (default: the first row's time with --observations, "
+                             "0 with --increments)")
+    parser.add_argument("--gate", type=float, default=None, metavar="K",
+                        help="outlier gate in predictive standard deviations (default: the spec's "
+                             "[measurement] gate; 0: off)")
+    parser.add_argument("--on-degenerate", choices=POLICIES, default="stop",
+                        help="stop (default: flag the rest, exit 3) or reinitialise (start again from a "
+                             "broadened prior and go on)")
     parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
                         help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
@@ -106,47 +158,152 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
+class Source:
+    """The rows read from --increments or --observations: ``rows`` (K, m) (NaN: missing), ``times``
+    (K,) or None (regular), the prior's time ``t0``, and ``field``/``lines`` to name a row at fault."""
+
+    def __init__(self, rows, times, t0: float, field: str, lines=None):
+        self.rows = rows
+        self.times = times
+        self.t0 = t0
+        self.field = field
+        self.lines = lines  # the file's line number of each row (CSV), else None
+
+    def where(self, k: int) -> str:
+        """``field[k]`` with the line number when the rows came from a CSV."""
+        line = f" (line {self.lines[k]})" if self.lines is not None and k < len(self.lines) else ""
+        return f"{self.field}[{k}]{line}"
+
+
 def run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
     from yauyau.solver.errors import InputError
     from yauyau.solver.filtering import cumulative_hint
+    from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
 
-    from yauyau.api import load_model
+    from yauyau.api import OnlineFilter, load_model
 
     if args.chunk < 1:
         raise InputError("chunk", "must be a positive integer")
+    if args.t0 is not None and not math.isfinite(args.t0):
+        raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
+    gate = check_gate(args.gate)
     outputs = Outputs.from_args(args)
     threads = blas_threads(args.blas_threads)
     stored = load_model(args.store, args.model_id)
     model = stored.model
     outputs.check(model)
-    increments = read_increments(args.increments, model.m)
+    kind = model.spec.measurement.kind
+    if args.observations is not None:
+        source = read_observations(args.observations, model.m, kind, args.t0)
+    else:
+        if kind == "discrete":
+            raise InputError("increments", f"model {stored.id} has discrete measurements ([measurement] "
+                                           'kind = "discrete"): give them with their times, --observations '
+                                           "IN.csv (a header t,<one column per component>)")
+        numbers: list[int] = []
+        source = Source(read_increments(args.increments, model.m, numbers), None,
+                        0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
     method = args.method or stored.method
+    flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
+    state = OnlineFilter(flt, t0=source.t0).state
+    preflight(flt, state, source, args.method is None)
     why = "--method" if args.method else f"stored at precompute: {stored.method_reason}"
     print(f"yauyau filter: method {method} ({why})", file=sys.stderr)
-    hint = cumulative_hint(increments, model)
+    hint = cumulative_hint(source.rows, model) if source.times is None else None
     if hint:
         print(f"yauyau filter: warning: {hint}", file=sys.stderr)
-    flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision)
     writer = outputs.density_writer(flt, stored, method)
     try:
-        bar = progress_bar(args.progress, len(increments))
+        bar = progress_bar(args.progress, len(source.rows))
         with threadpool_limits(limits=threads, user_api="blas"), bar:
-            rows, first_degenerate = filter_rows(flt, increments, args.chunk, outputs, writer, bar)
-        write_csv(args.out, header(model, outputs), rows)
+            lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
+                                        times=source.times, state=state, policy=args.on_degenerate)
+        write_lines(args.out, header(model, outputs), lines)
     except BaseException:
         if writer is not None:
             writer.abort()
         raise
     if writer is not None:
         writer.close()
-    if first_degenerate is not None:
-        print(f"yauyau filter: degenerate from step {first_degenerate.step} (t = {first_degenerate.t:g}): "
-              f"{first_degenerate.reason}; the rows from there on are flagged degenerate = 1"
+    report.print(len(source.rows), flt.gate if hasattr(flt, "gate") else None)
+    if report.degenerate is not None:
+        step, t, reason = report.degenerate
+        print(f"yauyau filter: degenerate from step {step} (t = {t:g}): {reason}; the rows from there on are "
+              "flagged degenerate = 1 (--on-degenerate reinitialise starts again instead)"
               + (f". {hint}" if hint else ""), file=sys.stderr)
         return EXIT_DEGENERATE
     return 0
+
+
+def preflight(flt, state, source: Source, stored_method: bool) -> None:
+    """One step of the row a method is likeliest to refuse (the first partly missing row, else the
+    first) before anything runs: a method that cannot take these rows (irregular times, discrete
+    measurements, a partly missing row) says so now, naming the row and the fix; the step is
+    discarded (a filter's state is a value)."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+
+    rows = source.rows
+    if not len(rows):
+        return
+    missing = np.isnan(rows)
+    partial = missing.any(axis=1) & ~missing.all(axis=1)
+    k = int(np.argmax(partial)) if partial.any() else 0
+    times = None if source.times is None else source.times[k:k + 1]
+    try:
+        flt.run_arrays(state, rows[k:k + 1], times)
+    except InputError as exc:
+        field = exc.field  # about the probe's one row k (increments[0], increments) or the whole input
+        if field.startswith("increments[0]"):
+            field = source.where(k) + field[len("increments[0]"):]
+        elif field == "increments":
+            field = source.where(k)
+        elif field.startswith("times[0]") and source.times is not None:
+            field = source.where(k).replace(source.field, "times", 1) + field[len("times[0]"):]
+        message = exc.message
+        if "(the general engine) takes it" in message:
+            stored_with = f" (the model was stored with {flt.method})" if stored_method else ""
+            message += f"; use --method yau-yau{stored_with}"
+        raise InputError(field, message) from None
+
+
+class Report:
+    """What a run flagged: gated and re-initialised rows (count and the first with its reason), the
+    first degenerate row (step, t, reason) or None."""
+
+    def __init__(self):
+        self.gated = 0
+        self.reinitialised = 0
+        self.first_gated = None
+        self.first_reinitialised = None
+        self.degenerate = None
+
+    def add(self, result, gate) -> None:
+        import numpy as np
+
+        if self.degenerate is None and result.degenerate.any():
+            k = int(np.argmax(result.degenerate))
+            self.degenerate = (int(result.step[k]), float(result.t[k]), result.row_reason(k, gate))
+        for name in ("gated", "reinitialised"):
+            flags = getattr(result, name)
+            count = int(flags.sum())
+            if count:
+                if getattr(self, f"first_{name}") is None:
+                    k = int(np.argmax(flags))
+                    setattr(self, f"first_{name}", (int(result.step[k]), float(result.t[k]),
+                                                    result.row_reason(k, gate)))
+                setattr(self, name, getattr(self, name) + count)
+
+    def print(self, rows: int, gate) -> None:
+        gate_text = "gate off" if not gate else f"gate {gate:g} sd"
+        print(f"yauyau filter: {rows} row(s), {self.gated} gated ({gate_text}), {self.reinitialised} "
+              "re-initialised", file=sys.stderr)
+        for what, first in (("gated", self.first_gated), ("re-initialised", self.first_reinitialised)):
+            if first is not None:
+                step, t, reason = first
+                print(f"yauyau filter: first {what} row: step {step} (t = {t:g}): {reason}", file=sys.stderr)
 
 
 class Outputs:
@@ -213,11 +370,12 @@ def progress_bar(mode: str, total: int):
                 mininterval=0.5, dynamic_ncols=True)
 
 
-def read_increments(path: str, m: int):
-    """(K, m) floats from .npy or CSV; NaN rows are missing observations."""
+def read_increments(path: str, m: int, numbers: list[int] | None = None):
+    """(K, m) floats from .npy or CSV; NaN is a missing component, a NaN row a missing observation.
+    ``numbers`` (a list) receives each row's line number in a CSV."""
     import numpy as np
     from yauyau.solver.errors import InputError
-    from yauyau.solver.filtering import check_increments
+    from yauyau.solver.measurement import check_rows
 
     if Path(path).suffix.lower() == ".npy":
         try:
@@ -226,25 +384,26 @@ def read_increments(path: str, m: int):
             raise InputError("increments", f"cannot read {path}: {exc}") from None
         if data.dtype.kind not in "iuf":
             raise InputError("increments", f"{path} must hold numbers, not {data.dtype}")
-        return check_increments(data, m)
+        return check_rows(data, m)
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError("increments", f"cannot read {path}: {exc}") from None
-    return check_increments(parse_csv(text, m), m)
+    return check_rows(parse_csv(text, m, numbers), m)
 
 
-def parse_csv(text: str, m: int) -> list[list[float]]:
-    """Rows of m fields; empty fields (or a blank line) are a missing observation (NaN row); the
-    first line is a header when none of its fields is a number (a first line with some numbers is
-    data, and a bad field in it an error: never silently shift every step by one); blank lines at
-    the end are ignored."""
+def parse_csv(text: str, m: int, numbers: list[int] | None = None) -> list[list[float]]:
+    """Rows of m fields; an empty field is a missing component (NaN), a blank line a missing
+    observation (a NaN row); the first line is a header when none of its fields is a number (a first
+    line with some numbers is data, and a bad field in it an error: never silently shift every step
+    by one); blank lines at the end are ignored.  ``numbers`` receives each row's line number."""
     from yauyau.solver.errors import InputError
 
     lines = text.splitlines()
     while lines and not lines[-1].strip():
         lines.pop()
     rows: list[list[float]] = []
+    nan = math.nan
     for number, line in enumerate(lines, start=1):
         fields = [f.strip() for f in line.split(",")] if line.strip() else [""] * m
         values = [_number(f) for f in fields]
@@ -255,9 +414,92 @@ def parse_csv(text: str, m: int) -> list[list[float]]:
             raise InputError(where, f"line {number}: expected {m} field(s), got {len(fields)}")
         for j, (field, value) in enumerate(zip(fields, values, strict=True)):
             if value is None:
-                raise InputError(f"{where}[{j}]", f"line {number}: {field[:40]!r} is not a finite number")
-        rows.append([math.nan if v == "" else v for v in values])
+                raise InputError(f"{where}[{j}]", f"line {number}: {field[:40]!r} is not a finite number "
+                                                  "(leave the field empty for a missing value)")
+        rows.append([nan if v == "" else v for v in values])
+        if numbers is not None:
+            numbers.append(number)
     return rows
+
+
+def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
+    """The rows and times of an --observations CSV (EPILOG); InputError names the row (observations[k],
+    times[k], with the line number) or the file at fault."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+
+    if Path(path).suffix.lower() == ".npy":
+        raise InputError("observations", f"{path}: --observations reads a CSV with a header t,<one column "
+                                          "per component>; a .npy array of regular rows goes to --increments")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError("observations", f"cannot read {path}: {exc}") from None
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    example = "t," + ",".join(f"z_{j + 1}" for j in range(m))
+    if not lines:
+        raise InputError("observations", f"{path} is empty: expected a header {example!r} and one row per "
+                                          "time")
+    names = [f.strip().strip('"').strip() for f in lines[0].split(",")]
+    if names[0].lower() != "t":
+        got = "a row of numbers" if _number(names[0]) not in (None, "") else f"{names[0][:40]!r}"
+        raise InputError("observations", f"{path} line 1: the header must start with the time column t "
+                                          f"(then one column per component, e.g. {example!r}); its first "
+                                          f"field is {got}")
+    if len(names) - 1 != m:
+        raise InputError("observations", f"{path} has {len(names) - 1} column(s) after t "
+                                          f"({','.join(names[1:]) or 'none'}); the model has m = {m} "
+                                          f"observation component(s): expected t and {m} column(s), e.g. "
+                                          f"{example!r}")
+    width = m + 1
+    times: list[float] = []
+    rows: list[list[float]] = []
+    numbers: list[int] = []
+    nan = math.nan
+    previous = -math.inf
+    for number, line in enumerate(lines[1:], start=2):
+        k = len(rows)
+        if not line.strip():
+            raise InputError(f"times[{k}]", f"{path} line {number}: a blank line has no time t; a row with "
+                                            "its time and empty fields (e.g. '1.5,') is a time with nothing "
+                                            "observed")
+        fields = [f.strip() for f in line.split(",")]
+        if len(fields) != width:
+            raise InputError(f"observations[{k}]", f"{path} line {number}: expected {width} fields (t and "
+                                                   f"{m} component(s)), got {len(fields)}")
+        t = _number(fields[0])
+        if t is None or t == "":
+            raise InputError(f"times[{k}]", f"{path} line {number}: t = {fields[0][:40]!r} is not a finite "
+                                            "number (every row needs its time)")
+        if t <= previous:
+            raise InputError(f"times[{k}]", f"{path} line {number}: t = {t!r} is not after t = {previous!r} "
+                                            f"(line {number - 1}): times must increase strictly")
+        values = [_number(f) for f in fields[1:]]
+        for j, (field, value) in enumerate(zip(fields[1:], values, strict=True)):
+            if value is None:
+                raise InputError(f"observations[{k}][{j}]", f"{path} line {number}: {field[:40]!r} is not "
+                                                            "a finite number (leave the field empty for a "
+                                                            "missing component)")
+        previous = t
+        times.append(t)
+        rows.append([nan if v == "" else v for v in values])
+        numbers.append(number)
+    if not rows:
+        raise InputError("observations", f"{path} has a header and no rows: one row per observation time")
+    start = times[0] if t0 is None else float(t0)
+    if times[0] < start:
+        raise InputError("times[0]", f"{path} line 2: t = {times[0]!r} is before --t0 {start!r}: the first "
+                                     "row must be at or after the time of the prior")
+    data = np.array(rows, dtype=float).reshape(len(rows), m)
+    if kind == "continuous" and times[0] == start and not np.isnan(data[0]).all():
+        raise InputError("observations[0]", f"{path} line 2: an increment of a continuous model covers "
+                                            f"[t_(k-1), t_k], and the first row's t = {times[0]!r} is the "
+                                            "prior's time, an empty interval: give --t0 (the start of the "
+                                            "first interval, e.g. --t0 0 for the files of yauyau simulate) "
+                                            "or leave that row's values empty")
+    return Source(data, np.array(times, dtype=float), start, "observations", numbers)
 
 
 def _number(field: str):
@@ -271,35 +513,55 @@ def _number(field: str):
     return value if math.isfinite(value) else None
 
 
-def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, writer=None, bar=None):
-    """One output row per step (step, t, means, upper-triangle covariances[, modes, quantiles],
-    loglik, degenerate) and the first degenerate estimate (or None)."""
+def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, writer=None, bar=None, *,
+                times=None, state=None, policy: str = "stop"):
+    """The output lines (CSV text, one per row: step, t, means, upper-triangle covariances[, modes,
+    quantiles], loglik, degenerate, gated, predictive_loglik, reinitialised) and the :class:`Report`
+    of the run.  ``times`` (K,) or None (regular), from ``state`` (default: the filter's initial
+    state), under the ``on_degenerate`` ``policy``."""
+    from yauyau.solver.recovery import run_with_policy
+
     outputs = outputs or Outputs()
-    state = flt.initial_state()
-    rows: list[list] = []
-    first_degenerate = None
+    state = flt.initial_state() if state is None else state
+    gate = getattr(flt, "gate", None)
+    lines: list[str] = []
+    report = Report()
     if writer is not None:
-        snapshot(flt, state, flt.estimate(state), outputs, writer)  # the prior, t = 0
+        snapshot(flt, state, flt.estimate(state), outputs, writer)  # the prior, at t0
     for start in range(0, len(increments), chunk):
-        block = increments[start:start + chunk]
+        stop = min(start + chunk, len(increments))
         if outputs.per_step:
-            estimates = []
-            for row in block:
-                state, estimate = flt.step(state, row)
-                estimates.append((estimate, summary_columns(flt, state, estimate, outputs, writer)))
+            for k in range(start, stop):
+                state, result = run_with_policy(flt, state, increments[k:k + 1],
+                                                None if times is None else times[k:k + 1], policy)
+                extra = summary_columns(flt, state, result.estimates(gate)[0], outputs, writer)
+                lines += csv_lines(result, [extra])
+                report.add(result, gate)
         else:
-            state, result = flt.run(state, block)
-            estimates = [(e, []) for e in result]
-        for e, extra in estimates:
-            n = len(e.mean)
-            cov = [float(e.cov[i][j]) for i in range(n) for j in range(i, n)]
-            mean = [float(v) for v in e.mean]
-            rows.append([int(e.step), float(e.t), *mean, *cov, *extra, float(e.loglik), int(e.degenerate)])
-            if e.degenerate and first_degenerate is None:
-                first_degenerate = e
+            state, result = run_with_policy(flt, state, increments[start:stop],
+                                            None if times is None else times[start:stop], policy)
+            lines += csv_lines(result)
+            report.add(result, gate)
         if bar is not None:
-            bar.update(len(block))
-    return rows, first_degenerate
+            bar.update(stop - start)
+    return lines, report
+
+
+def csv_lines(result, extras: list[list] | None = None) -> list[str]:
+    """The CSV lines of a chunk's result, column by column from its arrays (``extras``: the mode and
+    quantile fields of each row, between the covariances and loglik)."""
+    import numpy as np
+
+    n = result.mean.shape[1]
+    i, j = np.triu_indices(n)
+    head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
+               *result.cov[:, i, j].T.tolist(), strict=True)
+    pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
+    tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
+               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), strict=True)
+    if extras is None:
+        return [",".join(map(str, (*a, *b))) for a, b in zip(head, tail, strict=True)]
+    return [",".join(map(str, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
 
 
 def summary_columns(flt, state, estimate, outputs: Outputs, writer) -> list:
@@ -340,24 +602,31 @@ def header(model, outputs: Outputs | None = None) -> list[str]:
     extra = [f"mode_{v}" for v in names] if outputs.mode else []
     if outputs.probs is not None:
         extra += [f"q{p}_{v}" for v in names for p in outputs.probs_text]
-    return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate"]
+    return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate", "gated",
+            "predictive_loglik", "reinitialised"]
 
 
-def write_csv(path: str, columns: list[str], rows: list[list]) -> None:
-    """Write atomically (temporary file in the same directory, then rename)."""
+def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
+    """Write the header and the lines atomically (temporary file in the same directory, then rename)."""
     from yauyau.solver.errors import InputError
 
     target = Path(path)
     try:
         handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=target.parent)
     except OSError as exc:
-        raise InputError("out", f"cannot write {path}: {exc}") from None
+        raise InputError(field, f"cannot write {path}: {exc}") from None
     try:
         with os.fdopen(handle, "w", encoding="utf-8", newline="") as out:
             out.write(",".join(columns) + "\n")
-            for row in rows:
-                out.write(",".join(repr(v) if isinstance(v, float) else str(v) for v in row) + "\n")
+            for start in range(0, len(lines), 10_000):
+                out.write("\n".join(lines[start:start + 10_000]) + "\n")
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_csv(path: str, columns: list[str], rows: list[list], field: str = "out") -> None:
+    """Rows of values (floats as repr, NaN as an empty field), written atomically."""
+    lines = [",".join("" if isinstance(v, float) and v != v else str(v) for v in row) for row in rows]
+    write_lines(path, columns, lines, field)

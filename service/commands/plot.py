@@ -2,8 +2,10 @@
 
 One row of panels per state variable: the conditional mean against time with a 95% band (the
 marginal quantiles q0.025/q0.975 when OUT.csv has them, else mean ± 1.96 sd), the truth overlaid
-(`yauyau simulate` writes it), and with --density the marginal density as a heat map over time with
-the mean and truth on top.  PNG or SVG by the suffix of --out (matplotlib, no screen needed).
+(`yauyau simulate` writes it), rows the outlier gate rejected marked x on the mean (column gated),
+re-initialisations as dotted vertical lines (column reinitialised), degenerate rows shaded, and
+with --density the marginal density as a heat map over time with the mean and truth on top.  PNG or
+SVG by the suffix of --out (matplotlib, no screen needed).
 """
 
 from __future__ import annotations
@@ -82,7 +84,9 @@ def draw(estimates: dict, names: list[str], truth: dict | None, density, title: 
     fig = Figure(figsize=(6.4 * ncols, 2.6 * n + 0.6), layout="constrained")
     axes = np.atleast_2d(fig.subplots(n, ncols, squeeze=False))
     t = np.array(estimates["t"])
-    bad = np.array(estimates.get("degenerate", [0] * len(t))) > 0
+    bad = _flags(estimates, "degenerate", len(t))
+    gated = _flags(estimates, "gated", len(t))  # yauyau filter's outlier gate: marked x
+    again = _flags(estimates, "reinitialised", len(t))  # --on-degenerate reinitialise: a dotted line
     for i, var in enumerate(names):
         ax = axes[i, 0]
         mean = np.array(estimates[f"mean_{var}"])
@@ -95,6 +99,12 @@ def draw(estimates: dict, names: list[str], truth: dict | None, density, title: 
             ax.plot(truth["t"], truth[var], color="black", linewidth=0.9, label="truth")
         if bad.any():
             ax.axvspan(t[np.argmax(bad)], t[-1], color="tab:red", alpha=0.12, label="degenerate")
+        if gated.any():
+            ax.plot(t[gated], mean[gated], linestyle="none", marker="x", markersize=5, color="tab:orange",
+                    label=f"gated ({int(gated.sum())})")
+        for k, when in enumerate(t[again]):
+            ax.axvline(when, color="tab:purple", linewidth=0.8, linestyle=":",
+                       label=f"re-initialised ({int(again.sum())})" if k == 0 else None)
         ax.set_ylabel(var)
         ax.legend(loc="upper right", fontsize="small", ncols=2)
         if density is not None:
@@ -105,6 +115,25 @@ def draw(estimates: dict, names: list[str], truth: dict | None, density, title: 
     return fig
 
 
+def _flags(columns: dict[str, list[float]], name: str, count: int):
+    """A 0/1 column as booleans (all False when the file has no such column: older outputs)."""
+    import numpy as np
+
+    values = np.array(columns.get(name, [0.0] * count))
+    return np.nan_to_num(values) > 0
+
+
+def _edges(times):
+    """Cell edges around the snapshot times (midpoints: the times may be irregular)."""
+    import numpy as np
+
+    if len(times) == 1:
+        return np.array([times[0] - 0.5, times[0] + 0.5])
+    middle = 0.5 * (times[1:] + times[:-1])
+    return np.concatenate([[times[0] - (middle[0] - times[0])], middle,
+                           [times[-1] + (times[-1] - middle[-1])]])
+
+
 def _heat_map(ax, density, var, t, mean, truth) -> None:
     import numpy as np
     from yauyau.solver.errors import InputError
@@ -113,12 +142,7 @@ def _heat_map(ax, density, var, t, mean, truth) -> None:
         raise InputError("density", f"the density file has no variable {var!r} (it has {density.state})")
     k = density.state.index(var)
     grid, values = density.axes[k], density.marginals[k]
-    times = density.time
-    if len(times) > 1:
-        dt = np.diff(times).mean()
-        edges_t = np.concatenate([times - dt / 2, [times[-1] + dt / 2]])
-    else:
-        edges_t = np.array([times[0] - 0.5, times[0] + 0.5])
+    edges_t = _edges(np.asarray(density.time, dtype=float))
     dx = grid[1] - grid[0]
     edges_x = np.concatenate([grid - dx / 2, [grid[-1] + dx / 2]])
     mesh = ax.pcolormesh(edges_t, edges_x, values.T, shading="flat", cmap="magma", rasterized=True)
