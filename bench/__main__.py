@@ -28,6 +28,7 @@ TOPICS = [
     ("blas_threads", "bench-blas.md"),
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
+    ("measurements", "bench-measurements.md"),
     ("load", "bench-load.md"),
 ]
 
