@@ -13,7 +13,8 @@ COPY scripts ./scripts
 COPY examples ./examples
 RUN python3 scripts/provision.py install --venv /opt/venv \
  && python3 scripts/provision.py precompute --venv /opt/venv --store /opt/store \
-        examples/cubic_sensor.toml examples/ou.toml examples/benes.toml examples/range_2d.toml
+        examples/cubic_sensor.toml examples/ou.toml examples/benes.toml examples/range_2d.toml \
+        examples/power_meter.toml
 
 # Runtime stage: the virtual environment, the store (read-only) and the script; no build tools.
 FROM python:3.11-slim

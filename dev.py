@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Developer entry point; needs only python3.
 
-    python3 dev.py serve   # venv + install, precompute the bundled example if missing, serve on :8000
+    python3 dev.py serve   # venv + install, precompute the bundled examples if missing, serve on :8000
     python3 dev.py test    # venv + install (with test tools and the test browser), run the whole test suite
 
 The virtual environment is ``.venv`` beside this file (``YAUYAU_VENV`` overrides); pip runs again
@@ -22,13 +22,13 @@ import provision  # noqa: E402
 
 VENV = Path(os.environ.get("YAUYAU_VENV", ROOT / ".venv"))
 STORE = Path(os.environ.get("YAUYAU_STORE", ROOT / "var" / "store"))
-EXAMPLE = ROOT / "examples" / "cubic_sensor.toml"
+EXAMPLES = [ROOT / "examples" / "cubic_sensor.toml", ROOT / "examples" / "power_meter.toml"]
 EXTRAS = "test,bench"
 
 
 def serve(args: list[str]) -> int:
     provision.install(VENV, editable=True, extras=EXTRAS)
-    provision.precompute(VENV, STORE, [EXAMPLE])
+    provision.precompute(VENV, STORE, EXAMPLES)
     port = int(os.environ.get("YAUYAU_PORT", "8000"))
     provision.serve(VENV, STORE, os.environ.get("YAUYAU_HOST", "127.0.0.1"), port, None)
     return 0  # not reached: serve replaces this process

@@ -296,7 +296,7 @@ class YauYauFilter(ChunkedFilter):
         result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
         gated[done:], scores[done:] = False, np.nan
         return new_state, dataclasses.replace(result, predictive_loglik=predictive, gated=gated,
-                                              gate_score=scores)
+                                              gate_score=scores, gate=obs.gate)
 
     def _factors(self, rows: np.ndarray, gaps: np.ndarray):
         """Per row: the pattern key of its observed components, the row terms, log e_k at the nodes
@@ -407,8 +407,10 @@ class YauYauFilter(ChunkedFilter):
             if not tiny < new_mass < huge:
                 new_mass, reason = self._rescue(s, log_factor, top, not observed, k, row)
                 if reason is not None and observed and gating and reason.startswith("no pos"):
-                    gate.attempted[k] = -math.inf
-                    new_mass, reason = self._reject(gate, k, math.inf, s, row, project, following)
+                    ll = self._log_mean_factor(s, log_factor[k]) + tops[k]  # in log scale throughout
+                    gate.attempted[k] = ll
+                    score = bias[k] - 2.0 * ll - gate.correction(k, s) if ll > -math.inf else math.inf
+                    new_mass, reason = self._reject(gate, k, score, s, row, project, following)
                     observed = False
                 elif reason is None:
                     gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
@@ -432,6 +434,19 @@ class YauYauFilter(ChunkedFilter):
                 real_c, real_f = real_f, real_c
                 pair_c, pair_f = pair_f, pair_c
         return sigma, np.array(masses), carried.copy(), K, None
+
+    def _log_mean_factor(self, s, log_factor_row) -> float:
+        """log Σ_q w_q s_q e_q over the nodes where s > 0 (e relative to its maximum), by log-sum-exp: what
+        the hot loop's log ∫σ would be for a factor too small to sum directly (−inf: nothing left)."""
+        s = np.asarray(s, dtype=float)
+        positive = s > 0.0
+        if not positive.any():
+            return -math.inf
+        terms = np.log(self.weights[positive] * s[positive]) + log_factor_row[positive]
+        top = float(terms.max())
+        if not math.isfinite(top):
+            return -math.inf
+        return top + math.log(float(np.exp(terms - top).sum()))
 
     def _reject(self, gate: "_Gate", k: int, score: float, s, row, project, following):
         """Gate row k: the step only predicts (σ = the propagated density).  (∫σ, reason or None)."""

@@ -86,6 +86,7 @@ class ChunkResult:
     gate_score: np.ndarray | None = None  # (K,) predictive standard score of a gated row (NaN elsewhere)
     reinitialised: np.ndarray | None = None  # (K,) bool: degenerate here, started again from a prior
     notes: dict[int, str] | None = None  # row -> why it was re-initialised
+    gate: float | None = None  # the gate the rows were checked against (predictive sd; 0: off)
 
     def __post_init__(self):
         K = len(self.step)
@@ -106,7 +107,7 @@ class ChunkResult:
         if self.degenerate[k]:
             return self.reason
         if self.gated[k]:
-            return gate_reason(float(self.gate_score[k]), gate)
+            return gate_reason(float(self.gate_score[k]), self.gate if gate is None else gate)
         return None
 
     def estimates(self, gate: float | None = None) -> list[Estimate]:
@@ -139,7 +140,7 @@ def slice_result(result: ChunkResult, rows: slice) -> ChunkResult:
     K = len(values["step"])
     notes = {k - start: v for k, v in (result.notes or {}).items() if 0 <= k - start < K}
     reason = result.reason if values["degenerate"].any() else None
-    return ChunkResult(**values, reason=reason, notes=notes or None)
+    return ChunkResult(**values, reason=reason, notes=notes or None, gate=result.gate)
 
 
 def concat_results(parts: list[ChunkResult]) -> ChunkResult:
@@ -157,7 +158,8 @@ def concat_results(parts: list[ChunkResult]) -> ChunkResult:
         notes.update({offset + k: v for k, v in (p.notes or {}).items()})
         offset += len(p)
     reason = next((p.reason for p in parts if p.degenerate.any()), None)
-    return ChunkResult(**values, reason=reason, notes=notes or None)
+    gate = next((p.gate for p in parts if p.gate is not None), None)
+    return ChunkResult(**values, reason=reason, notes=notes or None, gate=gate)
 
 
 def gate_reason(score: float, gate: float | None = None) -> str:
