@@ -29,6 +29,7 @@ sequential recursion B_k = W_k B_{k−1} + v_k, and ``StepBatch.finish`` the C g
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,8 @@ from ..errors import InputError, SpecError
 
 _GAUSS_NODES = 8  # Gauss–Legendre nodes for ∫(½BᵀaB + dᵀB) over one step
 _BLOW_UP = "the Riccati solution blows up within the step (det X <= 0)"
+SPECTRAL_COND = 1e4  # eigenvector condition number up to which gap flows use M's eigen-decomposition
+MAX_PIECES = 4096  # most pieces a gap flow is split into (gap_pieces)
 
 
 def _matrix(value, n: int, field: str) -> np.ndarray:
@@ -155,6 +158,60 @@ class GaussianKolmogorov:
     def flow(self, dt: float) -> "GaussianFlow":
         return GaussianFlow(self, dt)
 
+    # -- flows over arbitrary gaps (irregular observation times) ------------------------------
+    @property
+    def hamiltonian(self) -> np.ndarray:
+        """M = [[D, 2a], [Q, −Dᵀ]]: [X; Y]' = M [X; Y] linearises the Riccati equation."""
+        return np.block([[self.D, 2.0 * self.a], [self.Q, -self.D.T]])
+
+    def spectrum(self):
+        """((λ, V, V⁻¹) of M = V diag(λ) V⁻¹, or None when M is (nearly) defective (cond V >
+        SPECTRAL_COND); ρ = max |λ|).  Computed once per equation."""
+        found = self.__dict__.get("_spectrum")
+        if found is None:
+            M = self.hamiltonian
+            lam, V = np.linalg.eig(M)
+            rho = float(np.abs(lam).max()) if len(lam) else 0.0
+            ok = np.all(np.isfinite(V)) and np.linalg.cond(V) <= SPECTRAL_COND
+            found = self._spectrum = ((lam, V, np.linalg.inv(V)) if ok else None, rho)
+        return found
+
+    def gap_flow(self, dt: float) -> "GaussianFlow":
+        """The flow over a gap dt with e^{Ms} from the eigen-decomposition of M (a few products per gap
+        instead of nine matrix exponentials; expm where M is nearly defective)."""
+        return GaussianFlow(self, dt, spectral=True)
+
+
+def gap_pieces(tau: float, rho: float, delta: float) -> tuple[float, ...]:
+    """Lengths that add up to a gap τ, over each of which a flow's Gauss–Legendre rule (the C
+    integral) is accurate to ~1e-12.  The integrand is analytic but for the zeros of det X(s), the
+    nearest where the covariance would reach 0 backwards in time, at a distance δ ≈ λ_min(P)/λ_max(a)
+    (``delta``); the rule converges like that distance over the piece's length.  So the first piece
+    is δ/2, each next at most twice the previous (the prediction widens P, pushing the zero away),
+    and none longer than 1/ρ (``rho``: the spectral radius of the linear system, the rate at which
+    the exponentials vary).  Measured on a scalar flow against 8192 pieces: 1e-13 to 1e-10 in the
+    log-mass where one piece errs by 1e-6 (P = 0.8, τ = 3) to 39 (P = 0.001, τ = 1).  Splitting is
+    exact: the observation path is linear over the gap.  At most MAX_PIECES (equal pieces beyond:
+    a gap of thousands of the model's time scales costs bounded work, less accurately)."""
+    cap = 1.0 / rho if rho > 0 and math.isfinite(rho) else math.inf
+    first = 0.5 * delta if delta > 0 else math.inf
+    if tau <= min(first, cap):
+        return (float(tau),)
+    if tau > MAX_PIECES * cap:
+        return (tau / MAX_PIECES,) * MAX_PIECES
+    pieces, done = [], 0.0
+    length = max(min(first, cap), tau * 1e-12)
+    while done < tau and len(pieces) < MAX_PIECES - 1:
+        piece = min(length, cap, tau - done)
+        if tau - done - piece < 1e-6 * piece:
+            piece = tau - done
+        pieces.append(piece)
+        done += piece
+        length = 2.0 * piece
+    if done < tau:
+        pieces.append(tau - done)
+    return tuple(pieces)
+
 
 class GaussianFlow:
     """Exact map (A, B, C)(t) -> (A, B, C)(t + dt) of a :class:`GaussianKolmogorov`.
@@ -164,7 +221,7 @@ class GaussianFlow:
     exponentials are computed once.
     """
 
-    def __init__(self, eq: GaussianKolmogorov, dt: float):
+    def __init__(self, eq: GaussianKolmogorov, dt: float, spectral: bool = False):
         if not (np.isfinite(dt) and dt > 0):
             raise SpecError("dt", "must be positive")
         self.eq = eq
@@ -174,6 +231,18 @@ class GaussianFlow:
         nodes, w = np.polynomial.legendre.leggauss(_GAUSS_NODES)
         self.s = 0.5 * self.dt * (nodes + 1.0)
         self.w = 0.5 * self.dt * w
+        self._family = None
+        decomposed = eq.spectrum()[0] if spectral else None
+        if decomposed is not None:
+            # Φ(s) = V e^{Λs} V⁻¹, Ψ(s) = ∫0^s Φ = V diag(s·(e^{λs} − 1)/(λs)) V⁻¹
+            lam, V, V_inv = decomposed
+            at = np.append(self.s, self.dt)[:, None]
+            z = lam[None, :] * at
+            with np.errstate(invalid="ignore", divide="ignore"):
+                phi1 = np.where(z == 0, 1.0, np.expm1(z) / np.where(z == 0, 1.0, z))
+            self.Phi = np.einsum("ij,sj,jk->sik", V, np.exp(z), V_inv).real
+            self.Psi = np.einsum("ij,sj,jk->sik", V, at * phi1, V_inv).real
+            return
         # Φ(s) = e^{Ms} and Ψ(s) = ∫0^s e^{Mτ}dτ, at the nodes and at dt (Van Loan block trick)
         big = np.zeros((4 * n, 4 * n))
         big[: 2 * n, : 2 * n] = M
@@ -181,7 +250,6 @@ class GaussianFlow:
         blocks = [expm(big * s) for s in np.append(self.s, self.dt)]
         self.Phi = np.stack([b[: 2 * n, : 2 * n] for b in blocks])
         self.Psi = np.stack([b[: 2 * n, 2 * n:] for b in blocks])
-        self._family = None
 
     @property
     def family(self) -> "FlowFamily":

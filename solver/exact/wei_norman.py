@@ -40,7 +40,8 @@ import sympy as sp
 from ..analysis import exact_matrix, is_identity, observed_coordinate, seed004_structure
 from ..errors import InputError, SpecError
 from ..expressions import vectorize
-from ..filtering import ChunkResult, Estimate, plain_rows
+from ..filtering import ChunkResult, Estimate, refuse_form
+from ..measurement import check_rows
 from ..model import Model
 
 DEFAULT_POINTS_PER_AXIS = {1: 801, 2: 161, 3: 61}
@@ -85,6 +86,10 @@ class WeiNormanFilter:
     def __init__(self, model: Model, kolmogorov_flow: Callable[[float, np.ndarray], np.ndarray], *,
                  log_flow: bool = False, nodes: np.ndarray | None = None, weights: np.ndarray | None = None,
                  points_per_axis: int | None = None):
+        if model.spec.measurement.kind == "discrete":
+            raise SpecError("measurement.kind", "the Wei-Norman representation (12) is driven by the "
+                                                "observation path y(t) of continuous increments; discrete "
+                                                "measurements: use yau-yau (the general engine)")
         self.model = model
         self.flow = kolmogorov_flow
         self.log_flow = log_flow
@@ -317,8 +322,9 @@ class WeiNormanFilter:
     def run_arrays(self, state: WeiNormanState, increments: np.ndarray,
                    times: Any = None) -> tuple[WeiNormanState, ChunkResult]:
         """Advance over a chunk (K, m) of increments; estimates as arrays (the engine's ChunkResult)."""
-        dy = plain_rows(self.method, increments, times, self.model)
-        if np.isnan(dy).any():
+        dy = check_rows(increments, self.model.m)
+        refuse_form(self.method, dy, times, self.model, partial_ok=True)  # irregular times, discrete rows
+        if np.isnan(dy).any():  # a missing row or component
             raise InputError("increments", MISSING)
         K, n = len(dy), self.model.n
         steps = state.step + 1 + np.arange(K)

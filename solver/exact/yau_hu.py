@@ -22,6 +22,24 @@ gain quadratic in (B_prev, Δy)) until the path settles, and reuses them (solver
 Moments need ∫e^{F}·Gaussian in closed form: e^{F} must be a finite sum of positive multiples of
 exponentials of affine functions (F = 0, log cosh, ...), found symbolically; otherwise SpecError.
 Log-likelihood: log ratio of ∫σ (the Brownian-reference convention of KalmanBucyFilter).
+
+The spec's ``[measurement]`` (solver/measurement.py):
+
+* rows at irregular ``times``: each interval is its gap τ_k (y(s) = s·Δy/τ_k), with flows and maps
+  per gap (kept in a bounded cache; the Riccati flow from the eigen-decomposition of its linear
+  system); a long gap is taken in pieces, each with its share of the linear path
+  (riccati.gap_pieces: the Gauss–Legendre rules stay accurate; splitting is exact);
+* a partly missing row: the method with the observed components o only (whitened by R_oo, η with
+  |h_o|² in place of |h|² — still quadratic as h is affine);
+* discrete measurements z = Hx(t_k) + h0 + v, v ~ N(0, R): the prediction over the gap (the
+  observation-free flow), then every component times N(z_o; H_o x + h0_o, R_oo) — a Gaussian
+  factor, so A, B, C change in closed form and the filter stays exact; log-likelihoods are the
+  densities log p(z_o | past).  Student-t noise is refused (SpecError; use yau-yau);
+* ``predictive_loglik``: log p(row | past) (continuous: the Girsanov increment plus log N(Δy_o; 0,
+  R_oo τ)); the gate's score uses the exact predictive covariance S = κ²H_o Cov_pred(x) H_oᵀ + S₀,
+  Cov_pred(x) from the predicted mixture (solver/exact/schedule.py ``gated_chunk``).
+
+Rows at irregular times, partly missing or discrete go row by row (no cached schedules).
 """
 
 from __future__ import annotations
@@ -36,8 +54,9 @@ from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, plain_rows
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState
 from ..gaussian import log_normal
+from ..measurement import LOG_2PI, Observation, check_gate, check_rows, resolve_times
 from ..model import Model
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
@@ -46,42 +65,78 @@ from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
     affine_path,
+    gap_pieces,
     gaussian_terms_batch,
     gaussian_to_terms,
     linear_recursion,
     mixture_state_from_dict,
     settle,
 )
-from .schedule import MAX_ENTRIES, MAX_STEPS, Schedule, ScheduleCache
+from .schedule import (
+    MAX_ENTRIES,
+    MAX_STEPS,
+    BoundedCache,
+    Schedule,
+    ScheduleCache,
+    Segment,
+    check_gaps,
+    chunk_clock,
+    gated_chunk,
+    regular_gaps,
+)
 from .yau_system import YauSystem, yau_system
 
 _NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
 
 
 # -- the online step -------------------------------------------------------------------
-class _Step:
-    """One observation interval of the method for a given (whitened) H, h0."""
+def _step_equations(D, d, E, e, e0, H):
+    """The observation-free Kolmogorov equation (3.1) and the matrix of the (b, a, y) ODEs (3.3)–(3.4)."""
+    n = len(d)
+    # (3.1) as u_t = ½Δu − ℓ·∇u − (tr D + xᵀQx + qᵀx + r)u: Q, q, r from ½(η − |ℓ|² + tr D)
+    kolmogorov = GaussianKolmogorov(D, d, Q=0.5 * (E - D.T @ D), q=0.5 * e - D.T @ d,
+                                    r=0.5 * (e0 - d @ d - np.trace(D)))
+    # (3.3)–(3.4) with y(s) = s ẏ:  b' = a + Db − Hᵀy,  a' = E b − Dᵀb'  (E symmetric)
+    m = H.shape[0]
+    M = np.zeros((2 * n + 2 * m, 2 * n + 2 * m))
+    M[:n, :n], M[:n, n:2 * n], M[:n, 2 * n:2 * n + m] = D, np.eye(n), -H.T
+    M[n:2 * n] = -D.T @ M[:n]
+    M[n:2 * n, :n] += E
+    M[2 * n:2 * n + m, 2 * n + m:] = np.eye(m)  # y' = ẏ
+    return kolmogorov, M
 
-    def __init__(self, system: YauSystem, H: np.ndarray, h0: np.ndarray, eta_shift, dt: float):
+
+class _Step:
+    """One observation interval of the method for a given (whitened) H, h0.
+
+    ``gap=True``: a flow over an irregular gap (the Riccati flow from the eigen-decomposition,
+    the (a, b, y) maps in one batched call; solver/exact/riccati.py ``gap_flow``)."""
+
+    def __init__(self, system: YauSystem, H: np.ndarray, h0: np.ndarray, eta_shift, dt: float,
+                 gap: bool = False):
         D, d, n = system.D, system.d, len(system.d)
         E, e, e0 = system.E + eta_shift[0], system.e + eta_shift[1], system.e0 + eta_shift[2]
         self.E, self.e, self.D, self.d, self.H, self.h0, self.dt = E, e, D, d, H, h0, dt
-        # (3.1) as u_t = ½Δu − ℓ·∇u − (tr D + xᵀQx + qᵀx + r)u: Q, q, r from ½(η − |ℓ|² + tr D)
-        kolmogorov = GaussianKolmogorov(D, d, Q=0.5 * (E - D.T @ D), q=0.5 * e - D.T @ d,
-                                        r=0.5 * (e0 - d @ d - np.trace(D)))
-        self.flow = kolmogorov.flow(dt)
-        # (3.3)–(3.4) with y(s) = s ẏ:  b' = a + Db − Hᵀy,  a' = E b − Dᵀb'  (E symmetric)
+        kolmogorov, M = _step_equations(D, d, E, e, e0, H)
+        self.flow = kolmogorov.gap_flow(dt) if gap else kolmogorov.flow(dt)
         m = H.shape[0]
-        M = np.zeros((2 * n + 2 * m, 2 * n + 2 * m))
-        M[:n, :n], M[:n, n:2 * n], M[:n, 2 * n:2 * n + m] = D, np.eye(n), -H.T
-        M[n:2 * n] = -D.T @ M[:n]
-        M[n:2 * n, :n] += E
-        M[2 * n:2 * n + m, 2 * n + m:] = np.eye(m)  # y' = ẏ
         nodes, w = np.polynomial.legendre.leggauss(_NODES)
         self.s, self.w = 0.5 * dt * (nodes + 1), 0.5 * dt * w
         # state (b, a, y) at s as a linear map of ẏ (everything starts at 0)
-        self.maps = np.stack([expm(M * s)[:2 * n + m, 2 * n + m:] for s in np.append(self.s, dt)])
+        if gap:
+            self.maps = expm(M[None] * np.append(self.s, dt)[:, None, None])[:, :2 * n + m, 2 * n + m:]
+        else:
+            self.maps = np.stack([expm(M * s)[:2 * n + m, 2 * n + m:] for s in np.append(self.s, dt)])
         self.n = n
+
+    @staticmethod
+    def rate(system: YauSystem, H: np.ndarray, eta_shift) -> float:
+        """The larger spectral radius of the Riccati flow's and the (b, a, y) maps' linear systems:
+        a long gap is split into pieces no longer than its inverse (riccati.gap_pieces)."""
+        D, d = system.D, system.d
+        E, e, e0 = system.E + eta_shift[0], system.e + eta_shift[1], system.e0 + eta_shift[2]
+        kolmogorov, M = _step_equations(D, d, E, e, e0, H)
+        return max(kolmogorov.spectrum()[1], float(np.abs(np.linalg.eigvals(M)).max()))
 
     def increment_terms(self):
         """(Ga, Gb, Qc, lc): a = Ga y, b = Gb y, c = yᵀQc y + lcᵀy for the whitened increment y = ẏ dt.
@@ -111,6 +166,16 @@ class _Step:
 
 
 @dataclass(frozen=True)
+class _Kit:
+    """A step over a gap (or a piece of one): the method's maps and its flow."""
+
+    step: _Step
+    family: FlowFamily
+    q: np.ndarray
+    r: np.ndarray
+
+
+@dataclass(frozen=True)
 class YauHuState(StepState):
     """v = e^{−F}σ = Σ_i exp(−xᵀA_ix − B_iᵀx − C_i), normalised so that ∫σ = 1."""
 
@@ -130,19 +195,28 @@ class YauHuFilter(ChunkedFilter):
 
     method = "yau-hu"
 
-    def __init__(self, model: Model, n_components: int = 8):
+    def __init__(self, model: Model, n_components: int = 8, gate: float | None = None):
         self.model = model
         if not isinstance(n_components, int) or not 1 <= n_components <= 64:
             raise SpecError("n_components", "must be an integer in 1..64")
+        measurement = model.spec.measurement
+        if measurement.likelihood != "gaussian":
+            raise SpecError("measurement.likelihood", f"yau-hu is exact for Gaussian noise, not "
+                                                      f"{measurement.likelihood}; use yau-yau (the general "
+                                                      "engine)")
+        self.discrete = measurement.kind == "discrete"  # measurements z = h(x(t_k)) + v
+        self.gate_override = check_gate(gate)
         self.n_components = n_components
         self.system = yau_system(model)
         L = np.linalg.cholesky(model.R)
         self.L_inv = np.linalg.inv(L)
         H, h0 = affine_coefficients(model.observation, model.symbols, "observation")
+        self.H, self.h0 = H, h0
         Hw, h0w = self.L_inv @ H, self.L_inv @ h0
         self._observed = _Step(self.system, Hw, h0w, (0, 0, 0), model.dt)
         # a missing row: the signal alone, η without |h|²
         minus_h = (-Hw.T @ Hw, -2 * Hw.T @ h0w, -float(h0w @ h0w))
+        self._minus_h = minus_h
         predicted = _Step(self.system, np.zeros_like(Hw), np.zeros_like(h0w), minus_h, model.dt)
         flows = [self._observed.flow, predicted.flow]  # choice 0: observed step, 1: missing row
         self._family = FlowFamily(flows)
@@ -151,6 +225,19 @@ class YauHuFilter(ChunkedFilter):
         self._Hw, self._h0w = Hw, h0w
         self._scalar_whitening = float(self.L_inv[0, 0])  # the one-row path (n = m = 1)
         self._schedules = ScheduleCache()  # exponents A -> (schedule, step index)
+        self._kits = BoundedCache()  # (gap, pattern) -> _Kit (irregular gaps, partly missing rows)
+        self._steps_by_key: dict[int, tuple] = {}
+        self._patterns: dict[int, tuple] = {}
+        self._observations: dict[float, Observation] = {}
+
+    @property
+    def observation(self) -> Observation:
+        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.py)."""
+        gate = self.gate
+        found = self._observations.get(gate)
+        if found is None:
+            found = self._observations[gate] = Observation(self.model, gate)
+        return found
 
     # -- mixtures of e^{F}·exp(−xᵀAx − Bᵀx − C) ------------------------------------------
     def _components(self, A, B, C):
@@ -215,51 +302,93 @@ class YauHuFilter(ChunkedFilter):
     # -- Filter protocol -----------------------------------------------------------------
     def run_arrays(self, state: YauHuState, increments: np.ndarray,
                    times: Any = None) -> tuple[YauHuState, "ChunkResult"]:
-        """Advance over a chunk (K, m) of increments (NaN rows: prediction only); estimates as arrays.
+        """Advance over a chunk (K, m) of rows (NaN: a missing component; a NaN row: prediction only)
+        at ``times`` (absolute, strictly increasing) or one dt apart; estimates as arrays.
 
-        All-observed chunks use the cached schedule of data-free step coefficients (solver/exact/schedule.py);
-        chunks with missing rows (or a path that never settles) take the general chunk code.
+        Regular chunks of whole continuous increments use the cached schedule of data-free step
+        coefficients (solver/exact/schedule.py); chunks with missing rows (or a path that never
+        settles) take the general chunk code; irregular gaps, partly missing rows and discrete
+        measurements go row by row (:meth:`_steps`).  The outlier gate: solver/exact/schedule.py.
         """
-        dy = plain_rows(self.method, increments, times, self.model)
-        K, n = len(dy), self.model.n
-        steps = state.step + 1 + np.arange(K)
-        times = steps * self.model.dt
+        model = self.model
+        rows = check_rows(increments, model.m)
+        K, n = len(rows), model.n
+        taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
+        steps, times = chunk_clock(state, K, model.dt, times, taus)
         if K == 0:
             return state, ChunkResult(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
                                        np.empty(0), np.empty(0), np.zeros(0, bool))
-        missing = np.isnan(dy[:, 0])
-        done = None
-        if not missing.any():
-            if K == 1 and n == 1 and self.model.m == 1:
-                lean = self._one_row(state, float(dy[0, 0]) * self._scalar_whitening)
-                if lean is not None:
-                    return _one_row_result(state, self.model.dt, *lean)
-            done = self._scheduled_chunk(state, dy @ self.L_inv.T)  # whitened increments
-        if done is None:
-            done = self._general_chunk(state, dy, missing)
-        (mean, cov, increments_ll), (A, B, C) = done
+        check_gaps(taus, self.discrete, self.method)
+        taus = regular_gaps(taus, model.dt, times, state.t)
+        obs = self.observation
+        if taus is None and K == 1 and n == 1 and model.m == 1 and not self.discrete \
+                and not np.isnan(rows[0, 0]):
+            lean = self._lean_row(state, float(rows[0, 0]), obs)
+            if lean is not None:
+                return _one_row_result(state, int(steps[0]), float(times[0]), *lean, obs.gate)
+        keys = obs.pattern_keys(~np.isnan(rows))
+        gaps = np.full(K, model.dt) if taus is None else taus
+        terms = obs.row_terms(rows, gaps, keys)
+        done = gated_chunk(state, rows, keys, taus, gaps, obs, terms, self._segment, self._h_cov)
+        increments_ll, last = done.ll, done.last
         loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
         new_state = replace(state, step=int(steps[-1]), t=float(times[-1]), loglik=float(loglik[-1]),
-                            loglik_increment=float(increments_ll[-1]), A=A, B=B, C=C)
-        return new_state, ChunkResult(steps, times, mean, cov, None, loglik, increments_ll,
-                                       np.zeros(K, bool))
+                            loglik_increment=float(increments_ll[-1]), A=last.A, B=last.B, C=last.C)
+        return new_state, ChunkResult(steps, times, done.mean, done.cov, None, loglik, increments_ll,
+                                       np.zeros(K, bool), predictive_loglik=done.predictive, gated=done.gated,
+                                       gate_score=done.score, gate=obs.gate)
 
-    def _general_chunk(self, state: YauHuState, dy: np.ndarray, missing: np.ndarray):
-        """Any chunk: Riccati path of the A_k, B as an affine recursion in the data, C, the normaliser
-        log Σ∫σ_i and the moments in batch (cumulative, renormalised at the end)."""
-        dyw = np.where(missing[:, None], 0.0, dy) @ self.L_inv.T  # whitened; 0 on missing rows
-        choice = missing.astype(int)
-        A = self._family.path(choice, state.A)  # (K+1, J, n, n)
-        batch = self._family.batch(choice, A[:-1], self._q[choice], self._r[choice])
-        obs = self._observed
-        a, b, c = obs.observation_terms(dyw / self.model.dt)  # 0 on missing rows
+    def _segment(self, state: YauHuState, rows: np.ndarray, keys: np.ndarray, taus) -> Segment:
+        """Estimates, log-likelihood increments and the exponents after each row (the gate's unit)."""
+        whole = (1 << self.model.m) - 1
+        if taus is None and not self.discrete and np.all((keys == 0) | (keys == whole)):
+            missing = keys == 0
+            done = None
+            if not missing.any():
+                done = self._scheduled_chunk(state, rows @ self.L_inv.T)  # whitened increments
+            if done is None:
+                done = self._general_chunk(state, rows, missing)
+        else:
+            done = self._steps(state, rows, keys, taus)
+        (mean, cov, increments_ll), (A, B, C) = done
+        return Segment(mean, cov, increments_ll, lambda i: replace(state, A=A[i], B=B[i], C=C[i]))
+
+    def _lean_row(self, state: YauHuState, dy: float, obs: Observation):
+        """One observed row of a scalar model at dt in plain floats (the service's chunk of 1), or
+        None (no schedule, or the gate must look at it)."""
+        lean = self._one_row(state, dy * self._scalar_whitening)
+        if lean is None:
+            return None
+        ll = lean[2]
+        pattern, dt = obs.pattern(1), self.model.dt
+        log_det_S0 = pattern.log_det_R + LOG_2PI + math.log(dt)
+        pll = ll - 0.5 * dy * dy * float(pattern.R_inv[0, 0]) / dt - 0.5 * log_det_S0
+        if -2.0 * pll - log_det_S0 > pattern.threshold:  # maybe an outlier: the general code decides
+            return None
+        return (*lean, float(pll))
+
+    def _advance(self, family: FlowFamily, q, r, obs: "_Step", choice, dyw, A0, B0, C0):
+        """The exponent paths (K+1) of K steps of one flow family from (A0, B0, C0): the Riccati path
+        of the A_k, B as an affine recursion in the (whitened) data, C by sums."""
+        A = family.path(choice, A0)  # (K+1, J, n, n)
+        batch = family.batch(choice, A[:-1], q[choice], r[choice])
+        a, b, c = obs.observation_terms(dyw / obs.dt)  # 0 on missing rows
         # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (_Step's (a, b, c) shift)
         Ab = batch.mm(A[1:], b[:, None, :, None])[..., 0]  # (K, J, n)
         shift = -2.0 * Ab + (a - dyw @ obs.H)[:, None]
-        B = affine_path(batch.W, batch.v + shift, state.B)  # (K+1, J, n)
+        B = affine_path(batch.W, batch.v + shift, B0)  # (K+1, J, n)
         B_flow, gain = batch.finish(B[:-1])
         dC = gain + ((Ab - B_flow) * b[:, None]).sum(-1) + (c - (a * b).sum(-1) - dyw @ obs.h0)[:, None]
-        C = np.concatenate([state.C[None], state.C + np.cumsum(dC, axis=0)])
+        C = np.concatenate([C0[None], C0 + np.cumsum(dC, axis=0)])
+        return A, B, C
+
+    def _general_chunk(self, state: YauHuState, dy: np.ndarray, missing: np.ndarray):
+        """Any regular chunk: Riccati path of the A_k, B as an affine recursion in the data, C, the
+        normaliser log Σ∫σ_i and the moments in batch (cumulative, renormalised at the end)."""
+        dyw = np.where(missing[:, None], 0.0, dy) @ self.L_inv.T  # whitened; 0 on missing rows
+        choice = missing.astype(int)
+        A, B, C = self._advance(self._family, self._q, self._r, self._observed, choice, dyw, state.A, state.B,
+                                state.C)
         try:
             logw, means, covs = self._components(A, B, C)
         except InputError:
@@ -268,7 +397,108 @@ class YauHuFilter(ChunkedFilter):
         log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
         increments_ll = np.where(missing, 0.0, log_mass[1:] - log_mass[:-1])
         mean, cov = _mixture_moments(logw[1:], means[1:], covs[1:])
-        return (mean, cov, increments_ll), (A[-1], B[-1], C[-1] + log_mass[-1])
+        return (mean, cov, increments_ll), (A[1:], B[1:], C[1:] + log_mass[1:, None])
+
+    # -- irregular gaps, partly missing rows, discrete measurements: row by row ----------------
+    def _pattern(self, key: int):
+        """(index, L_o⁻¹, H_o, h0_o, R_oo⁻¹, ½ log det 2πR_oo) of the observed components ``key``."""
+        found = self._patterns.get(key)
+        if found is None:
+            pat = self.observation.pattern(key)
+            index = pat.index
+            R_oo = np.asarray(self.model.R, float)[np.ix_(index, index)]
+            L_inv = np.linalg.inv(np.linalg.cholesky(R_oo))
+            found = self._patterns[key] = (index, L_inv, self.H[index], self.h0[index], pat.R_inv,
+                                           0.5 * (pat.log_det_R + len(index) * LOG_2PI))
+        return found
+
+    def _whitened(self, key: int):
+        """(Hw, h0w, η shift, rate) of the step with the observed components ``key`` (0: none)."""
+        found = self._steps_by_key.get(key)
+        if found is None:
+            if key == 0:
+                Hw, h0w = np.zeros_like(self._Hw), np.zeros_like(self._h0w)
+                shift = self._minus_h
+            else:
+                _, L_inv, H_o, h0_o, _, _ = self._pattern(key)
+                Hw, h0w = L_inv @ H_o, L_inv @ h0_o
+                # η with |h_o|² (whitened by R_oo) in place of |h|²
+                shift = tuple(full + part for full, part in zip(self._minus_h, (
+                    Hw.T @ Hw, 2 * Hw.T @ h0w, float(h0w @ h0w)), strict=True))
+            found = self._steps_by_key[key] = (Hw, h0w, shift, _Step.rate(self.system, Hw, shift))
+        return found
+
+    def _kit(self, length: float, key: int) -> "_Kit":
+        """The step over ``length`` with the observed components ``key`` (0: prediction only), cached."""
+        def make():
+            Hw, h0w, shift, _ = self._whitened(key)
+            step = _Step(self.system, Hw, h0w, shift, length, gap=True)
+            return _Kit(step, FlowFamily([step.flow]), step.flow.eq.q[None], np.array([step.flow.eq.r]))
+        return self._kits.get((float(length), key), make)
+
+    def _pieces(self, A: np.ndarray, tau: float, key: int) -> tuple[float, ...]:
+        """The pieces of a gap (riccati.gap_pieces; δ: the narrowest component, a = I)."""
+        delta = 1.0 / (2.0 * float(np.linalg.eigvalsh(A)[..., -1].max()))
+        return gap_pieces(tau, self._whitened(key)[3], delta)
+
+    def _predicted(self, A, B, C, tau: float):
+        """The exponents after the prediction (no observation) over τ."""
+        return self._observed_over(A, B, C, tau, 0, np.zeros(self.model.m))
+
+    def _observed_over(self, A, B, C, tau: float, key: int, yw: np.ndarray):
+        """The exponents after a gap τ with the whitened increment ``yw`` of the observed components
+        ``key`` (0: none), over the gap's pieces, each with its share of the linear path."""
+        zero = np.zeros(1, dtype=int)
+        for piece in self._pieces(A, tau, key):
+            kit = self._kit(piece, key)
+            share = (yw * (piece / tau))[None]
+            path = self._advance(kit.family, kit.q, kit.r, kit.step, zero, share, A, B, C)
+            A, B, C = path[0][-1], path[1][-1], path[2][-1]
+        return A, B, C
+
+    def _steps(self, state: YauHuState, rows: np.ndarray, keys: np.ndarray, taus):
+        """Rows one by one, each over its own gap.  Continuous increments: the method restarted over
+        the gap (or its substeps, each with its share of the linear path) with the observed
+        components; discrete measurements: the prediction over the gap, then each component times
+        N(z_o; H_o x + h0_o, R_oo) (a Gaussian factor: A, B, C change in closed form)."""
+        K = len(rows)
+        A, B, C = state.A, state.B, state.C
+        paths = []
+        for k in range(K):
+            tau = self.model.dt if taus is None else float(taus[k])
+            key = int(keys[k])
+            if self.discrete:
+                A, B, C = self._predicted(A, B, C, tau)
+                if key:
+                    index, _, H_o, h0_o, R_inv, half_log_det = self._pattern(key)
+                    resid = rows[k, index] - h0_o
+                    A = A + 0.5 * H_o.T @ R_inv @ H_o
+                    B = B - H_o.T @ (R_inv @ resid)
+                    C = C + 0.5 * resid @ R_inv @ resid + half_log_det
+            elif key == 0:
+                A, B, C = self._predicted(A, B, C, tau)
+            else:
+                index, L_inv = self._pattern(key)[:2]
+                A, B, C = self._observed_over(A, B, C, tau, key, L_inv @ rows[k, index])
+            paths.append((A, B, C))
+        A, B, C = (np.stack(v) for v in zip(*paths, strict=True))
+        try:
+            logw, means, covs = self._components(A, B, C)
+        except InputError:
+            raise InputError("increments", "the mixture lost integrability (a component is not "
+                                           "positive definite)") from None
+        log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
+        start_mass = float(_log_sum_exp(self._components(state.A, state.B, state.C)[0]))
+        increments_ll = np.where(keys == 0, 0.0, np.diff(log_mass, prepend=start_mass))
+        mean, cov = _mixture_moments(logw, means, covs)
+        return (mean, cov, increments_ll), (A, B, C + log_mass[:, None])
+
+    def _h_cov(self, state: YauHuState, tau: float, index: np.ndarray) -> np.ndarray:
+        """Cov_pred(h_o) = H_o Cov_pred(x) H_oᵀ under the mixture predicted over τ (the gate's exact S)."""
+        A, B, C = self._predicted(state.A, state.B, state.C, tau)
+        _, cov = _mixture_moments(*self._components(A, B, C))
+        H_o = self.H[index]
+        return H_o @ cov @ H_o.T
 
     # -- scheduled chunks (observed rows from remembered exponents A) -----------------------
     def _schedule_at(self, state: YauHuState) -> tuple[Schedule, int]:
@@ -348,9 +578,9 @@ class YauHuFilter(ChunkedFilter):
             outputs, (B, C) = self._scalar_chunk(state, schedule.row_view(), idx, y[:, 0])
         else:
             outputs, (B, C) = self._matrix_chunk(state, schedule.parts, idx, y)
-        A_last = schedule.parts["A"][idx][-1].copy()
-        self._schedules.remember(A_last, schedule, j + len(y))
-        return outputs, (A_last, B, C)
+        A = np.array(schedule.parts["A"][idx])  # (K, J, n, n), a copy
+        self._schedules.remember(A[-1], schedule, j + len(y))
+        return outputs, (A, B, C)
 
     def _matrix_chunk(self, state: YauHuState, parts: dict, idx, y: np.ndarray):
         """Any n, m: coefficients (K, J, ...) from the schedule, recursion per component."""
@@ -369,7 +599,7 @@ class YauHuFilter(ChunkedFilter):
         start_mass = _log_sum_exp(self._components(state.A, state.B, state.C)[0])
         increments_ll = np.diff(log_mass, prepend=start_mass)
         mean, cov = _mixture_moments(logw, means, covs)
-        return (mean, cov, increments_ll), (B[-1], C[-1] + log_mass[-1])
+        return (mean, cov, increments_ll), (B[1:], C + log_mass[:, None])
 
     def _scalar_chunk(self, state: YauHuState, rows: dict, idx, y: np.ndarray):
         """n = m = 1: coefficient rows (J, K) (time last, so sums over components are vectorised)."""
@@ -401,7 +631,7 @@ class YauHuFilter(ChunkedFilter):
         start_mass = _scalar_mixture((0.5 / state.A[:, 0, 0]).tolist(), None, state.B[:, 0].tolist(),
                                      state.C.tolist(), slopes.tolist(), logc.tolist())[0]
         increments_ll = np.diff(log_mass, prepend=start_mass)
-        return (mean[:, None], cov[:, None, None], increments_ll), (B[:, -1:], C[:, -1] + log_mass[-1])
+        return (mean[:, None], cov[:, None, None], increments_ll), (B[:, 1:].T[..., None], (C + log_mass).T)
 
     def _terms(self, cov, half_log_det, B, C):
         """:meth:`_components` from cached covariances: cov (K, J, n, n), B (K, J, n), C (K, J)."""
@@ -483,15 +713,16 @@ def _mixture_terms(prior):
     return (np.stack([t.A for t in terms]), np.stack([t.B for t in terms]), np.array([t.C for t in terms]))
 
 
-def _one_row_result(state: YauHuState, dt: float, mean: float, var: float, ll: float, A, B: list, C: list):
+def _one_row_result(state: YauHuState, step: int, t: float, mean: float, var: float, ll: float, A, B: list,
+                    C: list, pll: float, gate: float):
     """The new state and the one-row ChunkResult of a scalar step (plain floats in, arrays out)."""
-    step = state.step + 1
-    t, loglik = step * dt, state.loglik + ll
+    loglik = state.loglik + ll
     new_state = replace(state, step=step, t=t, loglik=loglik, loglik_increment=ll, A=A,
                         B=np.array(B)[:, None], C=np.array(C))
     return new_state, ChunkResult(step=np.array([step]), t=np.array([t]), mean=np.array([[mean]]),
                                  cov=np.array([[[var]]]), mode=None, loglik=np.array([loglik]),
-                                 loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool))
+                                 loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool),
+                                 predictive_loglik=np.array([pll]), gate=gate)
 
 
 def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
@@ -526,6 +757,6 @@ def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
 # (to rounding), then reuses the last (steady) entry.  Positions are keyed by the bytes of A:
 # the coefficients of a step depend only on the A it starts from.
 
-def build(model: Model, offline: Any = None, **_: Any) -> YauHuFilter:
+def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauHuFilter:
     """The registry's constructor (solver/registry.py)."""
-    return YauHuFilter(model)
+    return YauHuFilter(model, gate=gate)

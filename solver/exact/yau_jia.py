@@ -30,6 +30,13 @@ integrability is reported degenerate and the state keeps the last good mixture.
 
 σ = e^{φ}v: moments need ∫e^{φ}·Gaussian in closed form, so e^{φ} must be a sum of exponentials of
 affine functions (φ = 0: linear drift; log cosh: Beneš); otherwise SpecError.
+
+Rows at irregular ``times``: the step over each gap τ (ẏ = Δy/τ, flows per gap in a bounded cache),
+a long gap in pieces (riccati.gap_pieces), each with its share of the path and the error control
+after it.  ``predictive_loglik`` = the Girsanov increment + log N(Δy; 0, Rτ); the outlier gate is
+described at ``run_arrays``.  Refused: discrete measurements (SpecError 'measurement.kind') and
+partly missing rows (InputError 'increments[k]': the class condition is on hᵀR⁻¹h of the whole
+sensor); yau-yau takes both.
 """
 
 from __future__ import annotations
@@ -43,17 +50,20 @@ import sympy as sp
 
 from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, plain_rows
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, refuse_form
 from ..gaussian import log_normal
+from ..measurement import Observation, check_gate, check_rows, resolve_times, standard_score
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
+    gap_pieces,
     gaussian_terms_batch,
     gaussian_to_terms,
     mixture_state_from_dict,
 )
+from .schedule import BoundedCache, check_gaps, chunk_clock, regular_gaps
 from .yau_system import _exponential_sum
 
 # the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
@@ -129,11 +139,16 @@ class YauJiaFilter(ChunkedFilter):
     method = "yau-jia"
 
     def __init__(self, model: Model, max_components: int = MAX_COMPONENTS,
-                 split_tolerance: float = SPLIT_TOLERANCE):
+                 split_tolerance: float = SPLIT_TOLERANCE, gate: float | None = None):
         if not isinstance(max_components, int) or not 1 <= max_components <= 256:
             raise SpecError("max_components", "must be an integer in 1..256")
         if not (math.isfinite(split_tolerance) and split_tolerance > 0):
             raise SpecError("split_tolerance", "must be a positive number")
+        if model.spec.measurement.kind == "discrete":
+            raise SpecError("measurement.kind", "yau-jia filters continuous increments dy = h dt + dw (its "
+                                                "data term rides on the Kolmogorov flow); discrete "
+                                                "measurements: use yau-yau (the general engine)")
+        self.gate_override = check_gate(gate)
         self.model = model
         self.max_components, self.split_tolerance = max_components, float(split_tolerance)
         self.structure: YauJiaStructure = yau_jia_structure(model)
@@ -156,6 +171,10 @@ class YauJiaFilter(ChunkedFilter):
             flows.append(GaussianKolmogorov(s.L, s.ell, Q=0.5 * Qp, q=0.5 * qp, r=0.5 * q0p,
                                             a=model.a).flow(model.dt))
         self._family = FlowFamily(flows)
+        self._equations = [f.eq for f in flows]
+        self._gap_families = BoundedCache()  # piece length -> FlowFamily (irregular times)
+        self._a_max = float(np.linalg.eigvalsh(np.asarray(model.a, float))[-1])
+        self._observations: dict[float, Observation] = {}
         self._q = [f.eq.q for f in flows]
         self._r = [f.eq.r for f in flows]
         self.sensor = _Sensor(model)
@@ -234,10 +253,13 @@ class YauJiaFilter(ChunkedFilter):
         return (h.reshape(J_count, 2 * n, m).mean(1), Jh.reshape(J_count, 2 * n, m, n).mean(1),
                 H.reshape(J_count, 2 * n, m, n, n).mean(1))
 
-    def _step(self, A, B, C, row):
-        """One interval dt: the exact flow with the statistically linearised data term, then the
-        second-order (Hermite) expansion of the remainder factor.  Returns (A, B, C, clipped)."""
+    def _step(self, A, B, C, row, tau: float | None = None, family: FlowFamily | None = None):
+        """One interval τ (default dt, over the flows ``family``): the exact flow with the
+        statistically linearised data term, then the second-order (Hermite) expansion of the
+        remainder factor.  Returns (A, B, C, clipped)."""
         model = self.model
+        tau = model.dt if tau is None else tau
+        family = self._family if family is None else family
         means, covs, _ = gaussian_terms_batch(A, B, C)
         J_count = len(C)
         if row is None:
@@ -247,7 +269,7 @@ class YauJiaFilter(ChunkedFilter):
         else:
             choice = 0
             c = self.R_inv @ row
-            c_dot = c / model.dt
+            c_dot = c / tau
             h0, J0, H0 = self._expected(means, covs)  # h ≈ h0 + J0 (x − m_j) over component j
             # Strang splitting: half of exp(Δyᵀ R⁻¹ ρ_j) before the flow, half after.  Before, ρ_j
             # has mean and mean gradient 0 over the component: only its curvature term is left.
@@ -256,8 +278,8 @@ class YauJiaFilter(ChunkedFilter):
             A, B, C, damped0 = _times_exp_quadratic(A, B, C, means, covs, s0, np.zeros_like(means), S)
             q = self._q[0] - np.einsum("jmn,m->jn", J0, c_dot)
             r = self._r[0] - (h0 - np.einsum("jmn,jn->jm", J0, means)) @ c_dot
-        A1 = self._family.path([choice], A)[1]
-        batch = self._family.batch([choice], A[None], q[None], r[None])
+        A1 = family.path([choice], A)[1]
+        batch = family.batch([choice], A[None], q[None], r[None])
         B1, gain = batch.finish(B[None])
         B1, C1 = B1[0], C + gain[0]
         means1, covs1, _ = gaussian_terms_batch(A1, B1, C1)
@@ -272,7 +294,7 @@ class YauJiaFilter(ChunkedFilter):
         if not self._predict_exact:  # the flow took ½hᵀR⁻¹h dt off: put it back, to second order
             h1, J1, H1 = self.sensor(means1)
             Rh = h1 @ self.R_inv
-            dt = model.dt
+            dt = tau
             s0 = 0.5 * (Rh * h1).sum(-1) * dt
             g = np.einsum("jmn,jm->jn", J1, Rh) * dt
             S = (np.einsum("jma,mk,jkb->jab", J1, self.R_inv, J1) + np.einsum("jmab,jm->jab", H1, Rh)) * dt
@@ -342,14 +364,42 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, splits
 
     # -- Filter protocol ---------------------------------------------------------------------
+    @property
+    def observation(self) -> Observation:
+        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.py)."""
+        gate = self.gate
+        found = self._observations.get(gate)
+        if found is None:
+            found = self._observations[gate] = Observation(self.model, gate)
+        return found
+
     def run_arrays(self, state: YauJiaState, increments: np.ndarray,
                    times: Any = None) -> tuple[YauJiaState, ChunkResult]:
-        dy = plain_rows(self.method, increments, times, self.model)
-        K, n = len(dy), self.model.n
-        steps = state.step + 1 + np.arange(K)
-        times = steps * self.model.dt
+        """Advance over a chunk (K, m) of increments (a NaN row: prediction only) at ``times``
+        (absolute, strictly increasing) or one dt apart.  A gap longer than the flow's accuracy
+        allows is taken in pieces (riccati.gap_pieces), each with its share of the linear path and
+        the mixture's error control after it.  Partly missing rows are refused (the class condition
+        (4.2) is on hᵀR⁻¹h of the whole sensor).
+
+        The gate: g = −2 log p(row | past) − log det 2πR τ, over the threshold, is corrected by
+        log det(I + τ S₀⁻¹ C) with C = Cov(h) under the predicted mixture (each component by the
+        third-degree cubature of ``_expected``: exact for affine h, else an approximation of the
+        exact score d² ≤ g); a gated row keeps the prediction-only step."""
+        model = self.model
+        rows = check_rows(increments, model.m)
+        refuse_form(self.method, rows, times, model, times_ok=True)
+        K, n = len(rows), model.n
+        taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
+        steps, times = chunk_clock(state, K, model.dt, times, taus)
+        check_gaps(taus, False, self.method)
+        taus = regular_gaps(taus, model.dt, times, state.t)
+        obs = self.observation
+        keys = obs.pattern_keys(~np.isnan(rows))
+        gaps = np.full(K, model.dt) if taus is None else taus
+        terms = obs.row_terms(rows, gaps, keys)
         mean_out, cov_out = np.empty((K, n)), np.empty((K, n, n))
         ll_inc, bad = np.zeros(K), np.zeros(K, bool)
+        pll, gated, scores = np.full(K, np.nan), np.zeros(K, bool), np.full(K, np.nan)
         A, B, C = state.A, state.B, state.C
         splits, clipped, reason = state.splits, state.clipped, state.reason
         mean, cov = self._moments(A, B, C)
@@ -357,16 +407,25 @@ class YauJiaFilter(ChunkedFilter):
         if state.degenerate:
             done = 0
         for k in range(done):
-            row = dy[k]
-            row = None if np.isnan(row[0]) else row
+            row = rows[k] if keys[k] else None
+            tau = None if taus is None else float(taus[k])
             try:
-                A1, B1, C1, damped = self._step(A, B, C, row)
-                C1, log_mass = self._normalise(A1, B1, C1)
-                A1, B1, C1, split = self._control(A1, B1, C1)
-                C1, _ = self._normalise(A1, B1, C1)
+                A1, B1, C1, log_mass, damped, split = self._row(A, B, C, row, tau)
+                if row is not None:
+                    pll[k] = log_mass + terms.offset[k]
+                    bound = -2.0 * pll[k] - terms.log_det_S0[k]
+                    if obs.gating and bound > terms.threshold[k]:
+                        predicted = self._row(A, B, C, None, tau)
+                        score = bound - obs.covariance_correction(int(keys[k]), float(terms.kappa2[k]),
+                                                                  self._h_cov(*predicted[:3]),
+                                                                  obs.S0_scale(float(gaps[k])))
+                        if score > terms.threshold[k]:
+                            (A1, B1, C1, _, damped, split), row = predicted, None
+                            gated[k], scores[k] = True, standard_score(score, model.m)
                 mean1, cov1 = self._moments(A1, B1, C1)
             except (InputError, np.linalg.LinAlgError) as exc:
                 done = k
+                pll[k] = np.nan
                 reason = (f"step {int(steps[k])}: the Gaussian mixture lost integrability "
                           f"({getattr(exc, 'message', str(exc))}); reset the session or use the general "
                           "engine (method = \"yau-yau\")")
@@ -388,7 +447,48 @@ class YauJiaFilter(ChunkedFilter):
                             degenerate=bool(state.degenerate or done < K),
                             reason=reason if (state.degenerate or done < K) else None)
         return new_state, ChunkResult(steps, times, mean_out, cov_out, None, loglik, ll_inc, bad,
-                                      reason=new_state.reason if bad.any() else None)
+                                      reason=new_state.reason if bad.any() else None, predictive_loglik=pll,
+                                      gated=gated, gate_score=scores, gate=obs.gate)
+
+    def _row(self, A, B, C, row, tau: float | None):
+        """One row: the step over dt (``tau`` None) or over the pieces of a gap τ, each followed by
+        the error control.  Returns (A, B, C, log ∫σ_k/∫σ_(k−1), clipped, splits)."""
+        if tau is None:
+            pieces, families = (None,), (self._family,)
+        else:
+            means, covs, _ = gaussian_terms_batch(A, B, C)
+            narrowest = float(np.linalg.eigvalsh(covs)[..., 0].min())
+            delta = narrowest / self._a_max if self._a_max > 0 else math.inf
+            pieces = gap_pieces(tau, self._equations[0].spectrum()[1], delta)
+            families = [self._gap_family(piece) for piece in pieces]
+        log_mass, damped, splits = 0.0, 0, 0
+        for piece, family in zip(pieces, families, strict=True):
+            share = row if row is None or piece is None else row * (piece / tau)
+            A, B, C, clip = self._step(A, B, C, share, piece, family)
+            C, gain = self._normalise(A, B, C)
+            A, B, C, split = self._control(A, B, C)
+            C, _ = self._normalise(A, B, C)
+            log_mass, damped, splits = log_mass + gain, damped + clip, splits + split
+        return A, B, C, log_mass, damped, splits
+
+    def _gap_family(self, length: float) -> FlowFamily:
+        """The flows (observed, and exact prediction where the class has one) over ``length``."""
+        return self._gap_families.get(float(length), lambda: FlowFamily([eq.gap_flow(length)
+                                                                         for eq in self._equations]))
+
+    def _h_cov(self, A, B, C) -> np.ndarray:
+        """Cov(h) under the mixture σ = e^{φ}Σ_j exp(−xᵀA_jx − B_jᵀx − C_j): per component E[h] and
+        E[hhᵀ] by the 2n-point cubature of :meth:`_expected` (exact for affine h)."""
+        logw, means, covs = self._components(A, B, C)
+        w = np.exp(logw - _log_sum_exp(logw))
+        J_count, n = means.shape
+        lam, U = np.linalg.eigh(covs)
+        axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
+        points = np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)  # (J, 2n, n)
+        h = self.sensor(points.reshape(-1, n))[0].reshape(J_count, 2 * n, -1)
+        first = np.einsum("j,jpm->m", w, h) / (2 * n)
+        second = np.einsum("j,jpa,jpb->ab", w, h, h) / (2 * n)
+        return second - np.outer(first, first)
 
     def _moments(self, A, B, C):
         logw, means, covs = self._components(A, B, C)
@@ -467,6 +567,6 @@ def _merge_cheapest(means, covs, logw):
             np.concatenate([logw[keep], [merged_logw]]))
 
 
-def build(model: Model, offline: Any = None, **_: Any) -> YauJiaFilter:
+def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauJiaFilter:
     """The registry's constructor (solver/registry.py)."""
-    return YauJiaFilter(model)
+    return YauJiaFilter(model, gate=gate)
