@@ -93,9 +93,10 @@ class SpectralFlow:
     def scales(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per step, the factors of the real modes (K, r) and of the pairs (K, p), complex."""
         taus = np.asarray(taus, dtype=float)[:, None]
-        real = np.exp(taus * self.real_rates[None, :]).astype(self.dtype)
         cdtype = np.complex64 if self.dtype == np.float32 else np.complex128
-        pairs = np.exp(taus * self.pair_rates[None, :]).astype(cdtype)
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # far ahead: e^{-inf} = 0
+            real = np.exp(taus * self.real_rates[None, :]).astype(self.dtype)
+            pairs = np.exp(taus * self.pair_rates[None, :]).astype(cdtype)
         return real, pairs
 
     # -- the exact form -------------------------------------------------------------------------

@@ -103,18 +103,19 @@ def _at_step(step: int):
     return lambda d: d.find_element("tag name", "body").get_attribute("data-step") == str(step)
 
 
-def _open_page(browser, server, model: str):
-    """A new session of ``model`` and its live page, shown at step 0; (client, session id)."""
+def _open_page(browser, server, model: str, **options):
+    """A new session of ``model`` (with session ``options``) and its live page, shown at step 0;
+    (client, session id)."""
     srv, ids = server
     client = httpx.Client(base_url=srv.url, timeout=30)
-    sid = client.post("/v1/sessions", json={"model": ids[model]}).json()["id"]
+    sid = client.post("/v1/sessions", json={"model": ids[model], **options}).json()["id"]
     browser.get(f"{srv.url}/v1/sessions/{sid}/view")
     _wait(browser, _at_step(0), "step 0")
     return client, sid
 
 
 def test_page_follows_a_1d_stream(browser, server, tmp_path):
-    client, sid = _open_page(browser, server, "cubic_sensor")
+    client, sid = _open_page(browser, server, "cubic_sensor", gate=0)  # the gate off: 1e6 degenerates
     before = _canvas(browser)
     assert (before[..., :3].sum(axis=-1) < 2.5).mean() > 0.01  # a curve is drawn, not a blank canvas
     rows = _increments("cubic_sensor", 300, seed=2)
