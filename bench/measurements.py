@@ -18,8 +18,8 @@
    to say where the engine could not resolve it.
 2. Accuracy at irregular times (1-D cubic sensor, continuous and discrete, 5 seeds × 500 steps): the
    gap |E[x] − E_ref[x]| to a fine-grid point-mass filter exact in time (tests/irregular_refs.py
-   ``GridReference``: 1024 cells, e^{τL} per gap; a small fallback here if that file is absent), for
-   the example's discretization and one twice as fine.
+   ``GridReference``: 1024 cells, e^{τL} per gap, increments over long gaps in the engine's pieces),
+   for the example's discretization and one twice as fine.
 3. Discrete readings against the `particles` library's bootstrap filter (N. Chopin, 10k particles) on
    the same data (mean gaps dt and 10 dt): speed ratio and the gap of each to the reference.
    particles pins numpy < 2, so it runs in its own venv (bench/out/peers-venv) as a subprocess
@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine import PIECE, YauYauFilter
 from yauyau.solver.model import Model, compile_model
 from yauyau.solver.offline import OfflineModel, precompute
 from yauyau.solver.simulate import simulate
@@ -243,59 +243,13 @@ def _breakdown(flt: YauYauFilter, times: np.ndarray) -> dict[str, float]:
 
 # -- 2./3. accuracy and the particles peer ---------------------------------------------------------
 def grid_reference(model: Model):
-    """tests/irregular_refs.py's GridReference (1024 cells, exact in time), or the fallback below."""
+    """tests/irregular_refs.py's GridReference (1024 cells, exact in time over each gap)."""
     tests = str(ROOT / "tests")
     if tests not in sys.path:
         sys.path.insert(0, tests)
-    try:
-        from irregular_refs import GridReference
-    except ImportError:
-        return _PointMass(model), "point-mass (bench fallback, 2048 cells, expm_multiply)"
+    from irregular_refs import GridReference
+
     return GridReference(model), "GridReference (tests/irregular_refs.py, 1024 cells)"
-
-
-class _PointMass:
-    """1-D fine-grid point-mass filter exact in time (fallback when tests/irregular_refs.py is absent):
-    finite volumes on 2048 cells, zero flux at the ends, e^{τL}w by expm_multiply per gap."""
-
-    def __init__(self, model: Model, cells: int = 2048):
-        import scipy.sparse as sps
-
-        self.model, self.cells = model, cells
-        r, c = float(model.radius), float(np.ravel(model.center)[0])
-        h = 2 * r / cells
-        self.x = c - r + h * (np.arange(cells) + 0.5)
-        faces = c - r + h * np.arange(1, cells)
-        f = model.f(faces[:, None])[:, 0]
-        a = float(model.a[0, 0])
-        k = np.arange(cells - 1)
-        # flux through face k: f (p_k + p_{k+1})/2 − a/2 (p_{k+1} − p_k)/h; dp_i/dt = −(F_i − F_{i−1})/h
-        flux = sps.csr_matrix((np.r_[f / 2 + a / (2 * h), f / 2 - a / (2 * h)],
-                               (np.r_[k, k], np.r_[k, k + 1])), shape=(cells - 1, cells))
-        div = sps.csr_matrix((np.r_[np.full(cells - 1, -1 / h), np.full(cells - 1, 1 / h)],
-                              (np.r_[k, k + 1], np.r_[k, k])), shape=(cells, cells - 1))
-        self.L = (div @ flux).tocsr()
-        lp = model.log_prior(self.x[:, None])
-        self.w0 = np.exp(lp - lp.max()) / np.exp(lp - lp.max()).sum()
-        self.hx = model.h(self.x[:, None])[:, 0]
-
-    def run(self, rows, times, kind):
-        from scipy.sparse.linalg import expm_multiply
-
-        r = float(self.model.R[0, 0])
-        w, means, covs = self.w0.copy(), np.empty((len(times), 1)), np.empty((len(times), 1, 1))
-        for k, tau in enumerate(np.diff(times, prepend=0.0)):
-            w = np.clip(expm_multiply(tau * self.L, w), 0, None)
-            z = rows[k, 0]
-            if kind == "continuous":
-                ell = -0.5 * (z - self.hx * tau) ** 2 / (r * tau)
-            else:
-                ell = -0.5 * (z - self.hx) ** 2 / r
-            w = w * np.exp(ell - ell.max())
-            w /= w.sum()
-            means[k, 0] = w @ self.x
-            covs[k, 0, 0] = w @ (self.x - means[k, 0]) ** 2
-        return type("Result", (), {"mean": means, "cov": covs})
 
 
 def _datasets(case: Case, kind: str, seeds: int, steps: int, mean_gap: float):
@@ -320,12 +274,14 @@ def measure_accuracy(case: Case, kind: str, seeds: int, steps: int, mean_gap: fl
     filters' runs on each seed interleaved (``repeats`` times) for their cost."""
     doc, model, sets = _datasets(case, kind, seeds, steps, mean_gap)
     reference, ref_name = grid_reference(model)
-    runs = [reference.run(rows, times, kind) for _, rows, times in sets]
+    # increments over gaps longer than 2.25 dt: the engine's pieces of about 2 dt (solver/engine.py PIECE)
+    piece = PIECE * float(model.dt) if kind == "continuous" else None
+    runs = [reference.run(rows, times, kind, max_piece=piece) for _, rows, times in sets]
     refs = [r.mean for r in runs]
     ref_min_sd = float(min(np.sqrt(np.min(r.cov[:, 0, 0])) for r in runs))
     # the reference's own error: 2× finer grid on the first seed
     fine = type(reference)(model, cells=2 * reference.cells)
-    ref_error = float(np.abs(fine.run(sets[0][1], sets[0][2], kind).mean - refs[0]).mean())
+    ref_error = float(np.abs(fine.run(sets[0][1], sets[0][2], kind, max_piece=piece).mean - refs[0]).mean())
     refined = spec_doc(case.example, kind, {"basis": 256, "mesh": 80})
     engines = {}
     for name, edoc in ((EXAMPLE_ENGINE, doc), (REFINED_ENGINE, refined)):

@@ -81,6 +81,7 @@ class _Arithmetic:
 _ARITHMETIC = {"double": _Arithmetic(np.float64, dgemv, 1e-280, 1e280, 1e-250),
                "single": _Arithmetic(np.float32, sgemv, 1e-30, 1e30, 1e-25)}
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
+PIECE = 2.0  # an increment over a gap longer than (PIECE + 1/4)·dt is filtered in pieces of about PIECE·dt
 
 
 class YauYauFilter(ChunkedFilter):
@@ -233,10 +234,20 @@ class YauYauFilter(ChunkedFilter):
             self._check_literal(rows, taus)
         if state.degenerate:
             return self._stay_degenerate(state, steps, times, state.reason)
+        pieces = self._pieces(rows, taus)
+        if pieces is not None:
+            return self._run_in_pieces(state, rows, steps, times, taus, pieces)
+        return self._run(state, rows, steps, times, taus, gating=True)
+
+    def _run(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+             taus: np.ndarray | None, gating: bool) -> tuple[YauYauState, ChunkResult]:
+        """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
+        model, obs = self.model, self.observation
+        K = len(rows)
         gaps = np.full(K, model.dt) if taus is None else taus
         keys, terms, log_factor, top, impossible = self._factors(rows, gaps)
         missing = keys == 0
-        gate = _Gate(obs, terms, keys, gaps, self) if obs.gating else None
+        gate = _Gate(obs, terms, keys, gaps, self) if obs.gating and gating else None
         skip = missing.copy()
         if gate is not None:  # rejected before the loop: no finite factor to weigh
             skip |= impossible
@@ -297,6 +308,79 @@ class YauYauFilter(ChunkedFilter):
         gated[done:], scores[done:] = False, np.nan
         return new_state, dataclasses.replace(result, predictive_loglik=predictive, gated=gated,
                                               gate_score=scores, gate=obs.gate)
+
+    def _pieces(self, rows: np.ndarray, taus: np.ndarray | None) -> np.ndarray | None:
+        """How many pieces each row's gap is filtered in: an increment over a gap longer than
+        (PIECE + ¼)·dt in ⌈τ/(PIECE·dt) − ¼⌉ equal pieces (None: every row in one)."""
+        if taus is None or self.observation.discrete or self.form == "literal":
+            return None
+        observed = ~np.isnan(rows).all(axis=1)
+        count = np.where(observed, np.maximum(1, np.ceil(taus / (PIECE * self.model.dt) - 0.25)), 1)
+        return count.astype(int) if count.max() > 1 else None
+
+    def _run_in_pieces(self, state: YauYauState, rows, steps, times, taus, pieces):
+        """Increments over long gaps, each in ``pieces[k]`` equal pieces of its gap and of its increment
+        (y taken linear over the gap, as the exact filters do: the factor of seed 002 (5.35) freezes x
+        over each piece only).  The gate judges whole rows: a chunk runs without it, then again with
+        a rejected row left out, until no row is over its threshold (outliers are rare)."""
+        obs = self.observation
+        keys = obs.pattern_keys(~np.isnan(rows))
+        terms = obs.row_terms(rows, taus, keys)
+        data, rejected = rows.copy(), {}
+        while True:
+            count = np.where(np.isnan(data).all(axis=1), 1, pieces)
+            owner = np.repeat(np.arange(len(data)), count)
+            first = np.cumsum(count) - count
+            share = taus[owner] / count[owner]
+            before = np.concatenate([[state.t], times[:-1]])
+            piece_times = before[owner] + share * (np.arange(len(owner)) - first[owner] + 1)
+            piece_times[first + count - 1] = times  # each row ends exactly at its time
+            new_state, sub = self._run(state, data[owner] / count[owner, None], steps[owner], piece_times,
+                                       share, gating=False)
+            ll = np.add.reduceat(sub.loglik_increment, first)
+            last = first + count - 1
+            found = (self._first_rejected(state, data, times, taus, ll, terms, keys, sub.degenerate[last],
+                                          rejected) if obs.gating else None)
+            if found is None:
+                break
+            data[found] = np.nan
+        predictive = np.where(keys == 0, np.nan, ll + terms.offset)
+        gated, scores = np.zeros(len(rows), dtype=bool), np.full(len(rows), np.nan)
+        for k, (score, attempted) in rejected.items():
+            gated[k], scores[k] = True, standard_score(score, int(keys[k]).bit_count())
+            predictive[k] = attempted + terms.offset[k]
+        degenerate = sub.degenerate[last]
+        predictive[degenerate] = np.nan
+        return new_state, ChunkResult(step=steps, t=times, mean=sub.mean[last], cov=sub.cov[last],
+                                      mode=sub.mode[last], loglik=sub.loglik[last],
+                                      loglik_increment=np.where(degenerate, 0.0, ll), degenerate=degenerate,
+                                      reason=sub.reason, predictive_loglik=predictive, gated=gated,
+                                      gate_score=scores, gate=obs.gate)
+
+    def _first_rejected(self, state, data, times, taus, ll, terms, keys, degenerate, rejected):
+        """The first row over the gate (recorded in ``rejected``: its d² and log E_pred[e]), or None.
+        The bound g first; the exact score predicts the state to the row (rare: rows over the bound)."""
+        obs = self.observation
+        bias = terms.bound_bias()
+        bound = bias - 2.0 * ll
+        gate = _Gate(obs, terms, keys, taus, self)
+        observed = ~np.isnan(data).all(axis=1)
+        suspects = observed & ~degenerate & (bound > terms.threshold)
+        if degenerate.any():  # the first degenerate row may be an outlier the pieces could not carry
+            suspects[int(np.argmax(degenerate))] |= observed[int(np.argmax(degenerate))]
+        for k in np.flatnonzero(suspects).tolist():
+            at, _ = self.run_arrays(state, data[:k], times[:k]) if k else (state, None)
+            predicted, _ = self.predict(at, times[k])
+            s = np.asarray(self.offline.basis) @ predicted.density_coefficients
+            attempted = float(ll[k])
+            if degenerate[k]:  # its pieces never finished: the whole row's factor on the prediction
+                _, _, log_factor, top, _ = self._factors(data[k:k + 1], taus[k:k + 1])
+                attempted = self._log_mean_factor(s, log_factor[0]) + float(top[0])
+            score = bias[k] - 2.0 * attempted - gate.correction(k, s)
+            if score > terms.threshold[k]:
+                rejected[k] = (score, attempted)
+                return k
+        return None
 
     def _factors(self, rows: np.ndarray, gaps: np.ndarray):
         """Per row: the pattern key of its observed components, the row terms, log e_k at the nodes

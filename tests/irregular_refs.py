@@ -276,9 +276,14 @@ class GridReference:
         return mean, (d * w[:, None]).T @ d
 
     def run(self, rows, times, kind: str, R=None, likelihood: str = "gaussian", dof: float | None = None,
-            t0: float = 0.0) -> FilterResult:
+            t0: float = 0.0, max_piece: float | None = None) -> FilterResult:
         """Filter rows (K, m) observed at times (K,) (strictly increasing, > t0).  ``R`` overrides
-        model.R; ``likelihood`` ("gaussian" or "student-t" with ``dof``) applies to kind "discrete"."""
+        model.R; ``likelihood`` ("gaussian" or "student-t" with ``dof``) applies to kind "discrete".
+
+        ``max_piece`` (continuous kind): an increment over a gap τ is taken with y linear over the
+        gap, in n = max(1, ⌈τ/max_piece − ¼⌉) equal pieces: predict over τ/n, multiply by the
+        Girsanov ratio N(dy/n; h τ/n, R τ/n) / N(dy/n; 0, R τ/n), n times; the row's predictive
+        log-likelihood is the sum of the pieces' log normalisers plus log N(dy; 0, R τ)."""
         rows, times, gaps = _check_rows(rows, times, kind, t0, self.m)
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood must be one of {LIKELIHOODS}")
@@ -291,13 +296,33 @@ class GridReference:
         pll = np.full(K, np.nan)
         w = self.w0.copy()
         with threadpool_limits(1):  # dense 1024² products ("eigh"): one BLAS thread is far faster under load
-            self._loop(rows, gaps, kind, R, likelihood, dof, w, means, covs, pll)
+            self._loop(rows, gaps, kind, R, likelihood, dof, w, means, covs, pll, max_piece)
         return FilterResult(means, covs, pll, _cumulative(pll))
 
-    def _loop(self, rows, gaps, kind, R, likelihood, dof, w, means, covs, pll) -> None:
+    def _loop(self, rows, gaps, kind, R, likelihood, dof, w, means, covs, pll, max_piece=None) -> None:
         for k in range(gaps.size):
-            w = self.predict_masses(w, gaps[k])
             row = rows[k]
+            observed = ~np.isnan(row)
+            n = 1
+            if kind == "continuous" and max_piece is not None and observed.any():
+                n = max(1, math.ceil(gaps[k] / max_piece - 0.25))
+            if n > 1:
+                tau = gaps[k] / n
+                R_oo = R[np.ix_(observed, observed)]
+                total = log_gaussian(row[observed][None, :], R_oo * gaps[k])[0]
+                for _ in range(n):
+                    w = self.predict_masses(w, tau)
+                    ell = self.loglik_cells(row / n, tau, kind, R, likelihood, dof)
+                    ell = ell - log_gaussian(row[observed][None, :] / n, R_oo * tau)[0]  # the Girsanov ratio
+                    top = ell.max()
+                    u = w * np.exp(ell - top)
+                    s = u.sum()
+                    total += top + math.log(s)
+                    w = u / s
+                pll[k] = total
+                means[k], covs[k] = self.moments(w)
+                continue
+            w = self.predict_masses(w, gaps[k])
             if not np.all(np.isnan(row)):
                 ell = self.loglik_cells(row, gaps[k], kind, R, likelihood, dof)
                 top = ell.max()
@@ -337,7 +362,8 @@ def linear_prediction(F, f0, a, tau: float) -> tuple[np.ndarray, np.ndarray, np.
     return Phi, Eb[:n, n], Q
 
 
-def kalman_irregular(F, f0, a, H, h0, R, m0, P0, rows, times, kind: str, t0: float = 0.0) -> FilterResult:
+def kalman_irregular(F, f0, a, H, h0, R, m0, P0, rows, times, kind: str, t0: float = 0.0,
+                     max_piece: float | None = None) -> FilterResult:
     """Exact Kalman filter of f = F x + f0, h = H x + h0 with rows at irregular times.
 
     Predict over τ_k:  m ← Φ m + shift,  P ← Φ P Φᵀ + Q_τ  (:func:`linear_prediction`).
@@ -346,7 +372,11 @@ def kalman_irregular(F, f0, a, H, h0, R, m0, P0, rows, times, kind: str, t0: flo
         continuous:  dy_o = H_o x τ + h0_o τ + N(0, R_oo τ)      → C = H_o τ, c = h0_o τ, V = R_oo τ
     (x = the state at t_k after the prediction);  S = C P Cᵀ + V,  K = P Cᵀ S⁻¹,
     m ← m + K (row_o − C m − c),  P ← (I − K C) P (I − K C)ᵀ + K V Kᵀ,
-    predictive_loglik = log N(row_o; C m + c, S) (NaN for an all-missing row)."""
+    predictive_loglik = log N(row_o; C m + c, S) (NaN for an all-missing row).
+
+    ``max_piece`` (continuous kind): y linear over the gap, in n = max(1, ⌈τ/max_piece − ¼⌉) equal
+    pieces (predict over τ/n, update with dy/n); the row's predictive log-likelihood is then
+    Σ_j [log N(dy/n; ŷ_j, S_j) − log N(dy/n; 0, R τ/n)] + log N(dy; 0, R τ) (the Girsanov form)."""
     F = np.atleast_2d(np.asarray(F, float))
     n = F.shape[0]
     H = np.asarray(H, float).reshape(-1, n)
@@ -361,12 +391,34 @@ def kalman_irregular(F, f0, a, H, h0, R, m0, P0, rows, times, kind: str, t0: flo
     covs = np.empty((K_, n, n))
     pll = np.full(K_, np.nan)
     for k in range(K_):
+        row = rows[k]
+        o = ~np.isnan(row)
+        pieces = 1
+        if kind == "continuous" and max_piece is not None and o.any():
+            pieces = max(1, math.ceil(gaps[k] / max_piece - 0.25))
+        if pieces > 1:
+            tau = gaps[k] / pieces
+            Phi, shift, Q = linear_prediction(F, f0, a, tau)
+            V = R[np.ix_(o, o)] * tau
+            total = log_gaussian(row[o][None, :], R[np.ix_(o, o)] * gaps[k])[0]
+            for _ in range(pieces):
+                mean, P = Phi @ mean + shift, Phi @ P @ Phi.T + Q
+                C, c, piece = H[o] * tau, h0[o] * tau, row[o] / pieces
+                S = C @ P @ C.T + V
+                resid = piece - C @ mean - c
+                total += log_gaussian(resid[None, :], S)[0] - log_gaussian(piece[None, :], V)[0]
+                Kg = sla.solve(S, C @ P, assume_a="pos").T
+                mean = mean + Kg @ resid
+                IKC = np.eye(n) - Kg @ C
+                P = IKC @ P @ IKC.T + Kg @ V @ Kg.T
+                P = 0.5 * (P + P.T)
+            pll[k] = total
+            means[k], covs[k] = mean, P
+            continue
         tau = gaps[k]
         Phi, shift, Q = linear_prediction(F, f0, a, tau)
         mean = Phi @ mean + shift
         P = Phi @ P @ Phi.T + Q
-        row = rows[k]
-        o = ~np.isnan(row)
         if o.any():
             scale = tau if kind == "continuous" else 1.0
             C = H[o] * scale

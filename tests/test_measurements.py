@@ -58,9 +58,12 @@ def _engine(doc, gate=None, **measurement):
     return YauYauFilter(model, _CACHE[key], gate=gate)
 
 
+PIECE = 2 * 0.01  # the engine takes an increment over a gap longer than 2.25 dt in pieces of about 2 dt
+
+
 def _ou_kalman(model, rows, times, kind):
     return kalman_irregular([[-0.5]], [0.0], model.a, [[1.0]], [0.0], model.R, [1.0], [[0.5]], rows, times,
-                            kind)
+                            kind, max_piece=PIECE)
 
 
 # -- linear: the exact Kalman filter at irregular times ---------------------------------------------
@@ -110,7 +113,7 @@ def test_nonlinear_sensors_at_random_times_match_the_fine_grid(doc, kind):
         times = random_times(rng, 300, 0.01)
         _, rows = simulate_irregular(flt.model, times, kind, rng)
         _, result = flt.run_arrays(flt.initial_state(), rows, times)
-        truth = ref.run(rows, times, kind)
+        truth = ref.run(rows, times, kind, max_piece=PIECE)
         assert not result.degenerate.any() and not result.gated.any()
         worst = max(worst, float(np.max(np.abs(result.mean[:, 0] - truth.mean[:, 0]))))
         pll = np.max(np.abs(result.predictive_loglik - truth.predictive_loglik))
@@ -141,7 +144,7 @@ def test_partly_missing_rows_drop_only_the_missing_component(kind):
     rows[holes[30:50], 1] = np.nan
     rows[holes[50:]] = np.nan  # whole rows: prediction only
     _, result = flt.run_arrays(flt.initial_state(), rows, times)
-    truth = GridReference(flt.model, cells=1024).run(rows, times, kind)
+    truth = GridReference(flt.model, cells=1024).run(rows, times, kind, max_piece=PIECE)
     assert np.max(np.abs(result.mean[:, 0] - truth.mean[:, 0])) <= 0.01
     assert np.isnan(result.predictive_loglik[holes[50:]]).all()
     observed = ~np.isnan(truth.predictive_loglik)
@@ -197,6 +200,31 @@ def test_one_1000_sigma_outlier_and_missing_components_stay_healthy():
     assert np.max(gap[:150]) <= 0.01 and np.max(gap[170:]) <= 0.01
     recovered = 150 + int(np.argmax(gap[150:] <= 0.01))
     print(f"outlier at row 150: back within 0.01 of the reference at row {recovered}")
+
+
+def test_increments_over_long_gaps_come_in_pieces_and_are_gated_whole():
+    """Gaps of mean 5 dt: an increment over τ is filtered in ⌈τ/(2 dt) − ¼⌉ pieces (y linear over the
+    gap), as the exact Kalman–Bucy filter takes it — against the Kalman filter of the same pieces; a
+    1000σ increment is gated as a whole row and the rest equals the run without it."""
+    flt = _engine(OU)
+    rng = np.random.default_rng(12)
+    times = random_times(rng, 300, 0.05)
+    _, rows = simulate_irregular(flt.model, times, "continuous", rng)
+    _, result = flt.run_arrays(flt.initial_state(), rows, times)
+    exact = _ou_kalman(flt.model, rows, times, "continuous")
+    assert np.max(np.abs(result.mean[:, 0] - exact.mean[:, 0])) <= 1e-3
+    assert np.max(np.abs(result.cov[:, 0, 0] / exact.cov[:, 0, 0] - 1)) <= 0.01
+    assert np.max(np.abs(result.predictive_loglik - exact.predictive_loglik)) <= 1e-3
+    assert result.t.tolist() == times.tolist() and result.step.tolist() == list(range(1, 301))
+    bad = rows.copy()
+    k = int(np.argmax(np.diff(times, prepend=0.0)))  # the longest gap: the most pieces
+    bad[k] += 1000.0 * np.sqrt(times[k] - times[k - 1])
+    _, gated = flt.run_arrays(flt.initial_state(), bad, times)
+    assert gated.gated.tolist() == [i == k for i in range(300)] and gated.gate_score[k] > 900
+    skipped = rows.copy()
+    skipped[k] = np.nan
+    _, clean = flt.run_arrays(flt.initial_state(), skipped, times)
+    assert np.array_equal(gated.mean, clean.mean) and not gated.degenerate.any()
 
 
 def test_gate_off_lets_the_outlier_through():
