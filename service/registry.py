@@ -38,15 +38,19 @@ class LoadedModel:
 
     def filter(self, method: str | None = None, gate: float | None = None) -> Filter:
         """The filter for ``method`` (None: the one chosen at precompute) with the outlier ``gate``
-        (None: the spec's), built once (a few ms) and shared by all sessions of this worker.  At most
+        (None: the spec's), built once per method and shared by all sessions of this worker; another
+        gate is a shallow copy sharing the method's arrays (``with_gate``).  At most
         ``FILTER_VARIANTS`` (method, gate) pairs are kept (least recently used dropped first)."""
         key = (method or self.method, None if gate is None else float(gate))
         with self._lock:
             flt = self.filters.get(key)
             if flt is None:
-                from yauyau.solver.methods import make_filter
+                base = self.filters.get((key[0], None))
+                if base is None:
+                    from yauyau.solver.methods import make_filter
 
-                flt = self.filters[key] = make_filter(self.model, self.offline, key[0], gate=key[1])
+                    base = self.filters[(key[0], None)] = make_filter(self.model, self.offline, key[0])
+                flt = self.filters[key] = base if key[1] is None else base.with_gate(key[1])
                 while len(self.filters) > FILTER_VARIANTS:
                     self.filters.popitem(last=False)
             else:

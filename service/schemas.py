@@ -38,8 +38,8 @@ class SessionCreate(_Body):
                             "broadened around the last good estimate (the row is flagged reinitialised)")
     t0: Number = Field(0.0, description="the time of the prior (chunks with times start after it)")
     gate: Number | None = Field(
-        None, ge=0, le=1e6, description="outlier gate in predictive standard deviations (0: off); default: "
-                                        "the model spec's [measurement] gate (6)")
+        None, ge=0, le=37, description="outlier gate in predictive standard deviations (0: off; at most 37); "
+                                       "default: the model spec's [measurement] gate (6)")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
@@ -91,8 +91,9 @@ class Reset(_Body):
 
 class EstimateOut(BaseModel):
     step: int = Field(description="number of rows taken since the session started")
-    t: float = Field(description="time of the estimate (t0 + step·dt for regular rows; the row's time when "
-                                 "the chunk carries times)")
+    t: float = Field(description="time of the estimate: the row's time when the chunk carries times, "
+                                 "else one dt after the previous row (t0 + step·dt while every chunk was "
+                                 "regular)")
     mean: list[float] | None = Field(description="conditional mean E[x(t) | y]; null when not finite")
     cov: list[list[float]] | None = Field(description="conditional covariance; null when not finite")
     mode: list[float] | None = Field(None, description="MAP point (when asked for; null when degenerate)")
@@ -103,7 +104,8 @@ class EstimateOut(BaseModel):
 class RowEstimate(EstimateOut):
     predictive_loglik: float | None = Field(
         None, description="log p(row | rows before): the row's predictive log-likelihood (low: surprising "
-                          "data); null when the row had no observation")
+                          "data); null when the row had no observation, when the density is degenerate "
+                          "there, and when the row was impossible under the model (-inf, gated)")
     gated: bool = Field(False, description="present, true, only when the outlier gate rejected the row (the "
                                            "step only predicted)")
     reinitialised: bool = Field(False, description="present, true, only when the filter degenerated at this "

@@ -15,7 +15,6 @@ component.  The session's options (stored with it): ``on_degenerate`` (solver/re
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import math
 import threading
@@ -26,7 +25,8 @@ from typing import Any
 import numpy as np
 import orjson
 from yauyau.solver.errors import InputError, SpecError
-from yauyau.solver.filtering import ChunkResult, Estimate
+from yauyau.solver.filtering import ChunkResult, Estimate, at_time, check_t0
+from yauyau.solver.measurement import resolve_times
 from yauyau.storage.protocols import SessionStore
 
 from . import metrics
@@ -213,33 +213,14 @@ def rows_array(rows: list[list[float | None] | None], m: int, field: str = "incr
     return out
 
 
-def increments_array(rows: list[list[float] | None], m: int) -> np.ndarray:
-    """Rows of m numbers (null: missing) -> (K, m) floats with NaN rows, naming a bad row."""
-    return rows_array(rows, m, "increments")
-
-
-def checked_times(times: list[float] | None, K: int, t_now: float = -math.inf,
-                  started: bool = True) -> list[float] | None:
-    """The times of a chunk of K rows: one per row, strictly increasing, the first after the session's
-    time ``t_now`` (or at it, when the session has not stepped yet: not ``started``).  InputError names
-    ``times`` or the row ``times[i]`` at fault (pydantic already refused non-numbers and null)."""
+def checked_times(times: list[float] | None, K: int) -> list[float] | None:
+    """The times of a chunk of K rows, checked before the session is touched: one per row, finite,
+    strictly increasing (InputError naming ``times`` or ``times[i]``); that the first comes after the
+    session's time, the filter checks as it applies the chunk."""
     if times is None:
         return None
-    if len(times) != K:
-        raise InputError("times", f"needs one time per row: {K} row(s), got {len(times)} time(s)")
-    t = [float(v) for v in times]
-    for i, value in enumerate(t):
-        if not math.isfinite(value):
-            raise InputError(f"times[{i}]", "must be a finite number (the row's absolute time)")
-    if not (t[0] > t_now or (t[0] == t_now and not started)):
-        raise InputError("times[0]", f"t = {t[0]:.17g} is not after the session's time {t_now:.17g}: times "
-                                     "must increase strictly from one chunk to the next (GET the session for "
-                                     "its time)")
-    for i in range(1, K):
-        if not t[i] > t[i - 1]:
-            raise InputError(f"times[{i}]", f"t = {t[i]:.17g} is not after t = {t[i - 1]:.17g} "
-                                            f"(times[{i - 1}]): times must increase strictly")
-    return t
+    resolve_times(-math.inf, True, K, 0.0, times)
+    return [float(v) for v in times]
 
 
 def _record(rec: Any, name: str) -> Any:
@@ -258,21 +239,6 @@ def _shown_options(options: dict[str, Any], filt: Any) -> dict[str, Any]:
     if gate is None:
         gate = float(filt.model.spec.measurement.gate)
     return {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate}
-
-
-def _check_t0(t0: Any) -> float:
-    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
-        raise InputError("t0", "must be a finite number (the time of the prior)")
-    return float(t0)
-
-
-def _at_time(state: Any, t0: float) -> Any:
-    """The initial state held at time ``t0`` (the prior's time) instead of 0."""
-    if t0 == 0.0:
-        return state
-    if hasattr(state, "last"):
-        return dataclasses.replace(state, t=t0, last=dataclasses.replace(state.last, t=t0))
-    return dataclasses.replace(state, t=t0)
 
 
 def _chunk_rows(loaded: LoadedModel, given: dict[str, Any]) -> tuple[str, list]:
@@ -330,7 +296,7 @@ class Sessions:
         from yauyau.solver.measurement import check_gate
         from yauyau.solver.recovery import check_policy
 
-        options = {"on_degenerate": check_policy(on_degenerate), "t0": _check_t0(t0),
+        options = {"on_degenerate": check_policy(on_degenerate), "t0": check_t0(t0),
                    "gate": check_gate(gate)}
         loaded = self.registry.get(model_id)
         filt = loaded.filter(method, options["gate"])
@@ -338,7 +304,7 @@ class Sessions:
             state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
         except SpecError as exc:  # the prior of the request, not the spec's: name it so
             raise (_as_prior_error(exc) if prior is not None else exc) from None
-        state = _at_time(state, options["t0"])
+        state = at_time(state, options["t0"])
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
                     "estimate": estimate, "options": _shown_options(options, filt)}
@@ -375,8 +341,6 @@ class Sessions:
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
             state = filt.state_from_dict(state_dict)
-            if times is not None:
-                checked_times(times, len(times), float(state.t), state.step > 0)
             state, response = chunk_response(seq, state, array, filt, extras, times, policy)
             applied.append(response)
             return state.to_dict(), encode_response(response)
@@ -446,11 +410,11 @@ class Sessions:
                                   "looks ahead (the estimates of past times are in the chunk responses)")
         try:
             ahead, estimate = filt.predict(state, t)
-        except InputError as exc:
-            if exc.field.startswith("times"):
-                why = f"method {filt.method} cannot forecast to a given time: {exc.message}"
-                raise InputError("t", why) from None
-            raise
+        except InputError as exc:  # the only input is t: whatever the filter objects to is about it
+            if exc.field == "t":
+                raise
+            why = f"method {filt.method} cannot forecast to t = {t!r}: {exc.message}"
+            raise InputError("t", why) from None
         out = estimate_full(estimate)
         out["step"] = int(state.step)
         if extras:

@@ -47,7 +47,7 @@ from scipy.linalg.blas import dgemv, sgemv
 from .diagnostics import Diagnostics
 from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
-from .filtering import ChunkedFilter, ChunkResult, Estimate, marginal_by_quadrature
+from .filtering import ChunkedFilter, ChunkResult, Estimate, chunk_clock, marginal_by_quadrature
 from .measurement import (
     Observation,
     RowTerms,
@@ -82,6 +82,7 @@ _ARITHMETIC = {"double": _Arithmetic(np.float64, dgemv, 1e-280, 1e280, 1e-250),
                "single": _Arithmetic(np.float32, sgemv, 1e-30, 1e30, 1e-25)}
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 PIECE = 2.0  # an increment over a gap longer than (PIECE + 1/4)·dt is filtered in pieces of about PIECE·dt
+_NO_MASS_AFTER_UPDATE = "no positive mass after the update: observation impossible under the model"
 
 
 class YauYauFilter(ChunkedFilter):
@@ -198,11 +199,6 @@ class YauYauFilter(ChunkedFilter):
 
     # -- stepping (step, run and predict: ChunkedFilter) -------------------------------------
     @cached_property
-    def observation(self) -> Observation:
-        """The spec's ``[measurement]``: update factors, predictive log-likelihood, gate."""
-        return Observation(self.model, self.gate_override)
-
-    @cached_property
     def flow(self) -> SpectralFlow:
         """e^{τA} on the basis for any gap τ (irregular times; solver/semigroup.py), built on first use."""
         generator = getattr(self.offline, "fokker_planck_generator", None)
@@ -216,20 +212,14 @@ class YauYauFilter(ChunkedFilter):
                    times: np.ndarray | None = None) -> tuple[YauYauState, ChunkResult]:
         """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
         model, obs = self.model, self.observation
-        rows = check_rows(increments, model.m)
+        rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
         K = rows.shape[0]
         taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
-        check_first_gap(taus, rows, obs.discrete)
+        check_first_gap(taus, obs.discrete)
         if K == 0:
             return state, _stack_results(np.empty(0, int), np.empty(0), *self._empty_moments(), np.empty(0),
                                          np.empty(0), state.last, None)
-        steps = state.step + 1 + np.arange(K)
-        if taus is not None:
-            times = np.asarray(times, dtype=float).reshape(-1)
-        elif state.t == state.step * model.dt:
-            times = steps * model.dt
-        else:
-            times = state.t + model.dt * np.arange(1, K + 1)
+        steps, times = chunk_clock(state, K, model.dt, times, taus)
         if self.form == "literal":
             self._check_literal(rows, taus)
         if state.degenerate:
@@ -258,9 +248,10 @@ class YauYauFilter(ChunkedFilter):
                                                                taus)
         if gate is None and impossible[:done].any():
             done = int(np.argmax(impossible))
-            reason, carried = ("the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the "
-                               "model"), self._carried_after(sigma, masses, done, initial, taus)
+            reason = "the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the model"
             sigma, masses = sigma[:done], masses[:done]
+        if reason is not None:  # the loop stopped early (and may have scaled its vector for the next gap)
+            carried = self._carried_after(sigma, masses, done, initial, taus)
         with np.errstate(divide="ignore"):
             pll = np.log(masses) + top[:len(masses)]  # log E_pred[e_k]
         gated = np.zeros(K, dtype=bool)
@@ -304,10 +295,10 @@ class YauYauFilter(ChunkedFilter):
                                 step=int(steps[-1]), t=float(times[-1]), precision=self.precision,
                                 loglik=last.loglik, last=last, degenerate=not good,
                                 reason=reason, form=self.form)
-        result = _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason)
         gated[done:], scores[done:] = False, np.nan
-        return new_state, dataclasses.replace(result, predictive_loglik=predictive, gated=gated,
-                                              gate_score=scores, gate=obs.gate)
+        return new_state, _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason,
+                                         predictive_loglik=predictive, gated=gated, gate_score=scores,
+                                         gate=obs.gate)
 
     def _pieces(self, rows: np.ndarray, taus: np.ndarray | None) -> np.ndarray | None:
         """How many pieces each row's gap is filtered in: an increment over a gap longer than
@@ -490,12 +481,13 @@ class YauYauFilter(ChunkedFilter):
             new_mass = following.item(N)
             if not tiny < new_mass < huge:
                 new_mass, reason = self._rescue(s, log_factor, top, not observed, k, row)
-                if reason is not None and observed and gating and reason.startswith("no pos"):
+                if reason is _NO_MASS_AFTER_UPDATE and observed and gating:
                     ll = self._log_mean_factor(s, log_factor[k]) + tops[k]  # in log scale throughout
-                    gate.attempted[k] = ll
                     score = bias[k] - 2.0 * ll - gate.correction(k, s) if ll > -math.inf else math.inf
-                    new_mass, reason = self._reject(gate, k, score, s, row, project, following)
-                    observed = False
+                    if score > threshold[k]:
+                        gate.attempted[k] = ll
+                        new_mass, reason = self._reject(gate, k, score, s, row, project, following)
+                        observed = False
                 elif reason is None:
                     gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
                     following[N] = new_mass
@@ -572,7 +564,7 @@ class YauYauFilter(ChunkedFilter):
         row[:] = np.sign(s) * np.exp(log_abs - shift)
         new_mass = float(self.weights @ row)
         if not self._arith.tiny < new_mass < self._arith.huge:
-            return 0.0, "no positive mass after the update: observation impossible under the model"
+            return 0.0, _NO_MASS_AFTER_UPDATE
         top[k] += shift
         return new_mass, None
 
@@ -710,8 +702,9 @@ def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
 
 
-def _stack_results(steps, times, mean, cov, mode, loglik, increments, last: Estimate, reason):
-    """Pad the good steps' estimates with the last good one for the degenerate tail."""
+def _stack_results(steps, times, mean, cov, mode, loglik, increments, last: Estimate, reason, **rows):
+    """Pad the good steps' estimates with the last good one for the degenerate tail (``rows``: the
+    ChunkResult's other per-row arrays, as they are)."""
     K, done = len(steps), len(loglik)
     if done < K:
         tail = K - done
@@ -723,7 +716,7 @@ def _stack_results(steps, times, mean, cov, mode, loglik, increments, last: Esti
         increments = np.concatenate([increments, np.zeros(tail)])
     degenerate = np.arange(K) >= done
     return ChunkResult(step=steps, t=times, mean=mean, cov=cov, mode=mode, loglik=loglik,
-                       loglik_increment=increments, degenerate=degenerate, reason=reason)
+                       loglik_increment=increments, degenerate=degenerate, reason=reason, **rows)
 
 
 def _override_model(model: Model, prior: Any) -> Model:

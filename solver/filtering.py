@@ -237,6 +237,30 @@ class ChunkedFilter:
     gate_override: float | None = None
 
     @property
+    def observation(self):
+        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.Observation), one
+        per gate, kept."""
+        from .measurement import Observation
+
+        cache = self.__dict__.setdefault("_observations", {})
+        gate = self.gate
+        found = cache.get(gate)
+        if found is None:
+            found = cache[gate] = Observation(self.model, gate)
+        return found
+
+    def with_gate(self, gate: float | None) -> Any:
+        """This filter with another gate (None: the spec's): a shallow copy that shares every array
+        and cache of this one (cheap: what a service keeps per session option)."""
+        import copy
+
+        from .measurement import check_gate
+
+        new = copy.copy(self)
+        new.gate_override = check_gate(gate)
+        return new
+
+    @property
     def gate(self) -> float:
         """The gate in predictive standard deviations (0: off): the filter's override, else the
         spec's ``[measurement] gate``."""
@@ -264,19 +288,44 @@ class ChunkedFilter:
             t = float(t)
         except (TypeError, ValueError):
             raise InputError("t", "must be a number (the time to forecast to)") from None
+        if not np.isfinite(t) or t < state.t:
+            raise InputError("t", f"must be a finite time not before the filter's time "
+                                  f"{float(state.t):.17g}, got {t!r}")
         if t == state.t:
             return state, self.estimate(state)
         return self.step(state, None, t)
 
 
-def plain_rows(method: str, increments: Any, times: Any | None, model: Any) -> np.ndarray:
-    """The rows of a filter that takes only regular, continuous, whole rows (NaN rows: missing):
-    validated, and InputError naming what else it was sent (:func:`refuse_form`)."""
-    from .measurement import check_rows
+def check_t0(t0: Any, field: str = "t0") -> float:
+    """The time of a prior: a finite real number, else InputError naming ``field``."""
+    import math
+    import numbers
 
-    rows = check_rows(increments, model.m)
-    refuse_form(method, rows, times, model)
-    return check_increments(rows, model.m)
+    if isinstance(t0, bool) or not isinstance(t0, numbers.Real) or not math.isfinite(t0):
+        raise InputError(field, "must be a finite number (the time of the prior)")
+    return float(t0)
+
+
+def at_time(state: Any, t0: float) -> Any:
+    """An initial state held at time ``t0`` (the prior's time) instead of 0."""
+    import dataclasses
+
+    if t0 == 0.0:
+        return state
+    if hasattr(state, "last"):
+        return dataclasses.replace(state, t=t0, last=dataclasses.replace(state.last, t=t0))
+    return dataclasses.replace(state, t=t0)
+
+
+def chunk_clock(state: Any, K: int, dt: float, times: Any, taus: np.ndarray | None):
+    """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
+    while the state is on it, as the regular filters always were)."""
+    steps = state.step + 1 + np.arange(K)
+    if taus is not None:
+        return steps, np.asarray(times, dtype=float).reshape(-1)
+    if state.t == state.step * dt:
+        return steps, steps * dt
+    return steps, state.t + dt * np.arange(1, K + 1)
 
 
 def refuse_form(method: str, rows: np.ndarray, times: Any | None, model: Any, *, times_ok: bool = False,
@@ -294,8 +343,9 @@ def refuse_form(method: str, rows: np.ndarray, times: Any | None, model: Any, *,
         partial = missing.any(axis=1) & ~missing.all(axis=1)
         if partial.any():
             row = int(np.argmax(partial))
-            raise InputError(f"increments[{row}]", f"method {method} cannot take a partly missing row; "
-                                                   f"{other} (or send the whole row as missing)")
+            field = "observations" if model.spec.measurement.kind == "discrete" else "increments"
+            raise InputError(f"{field}[{row}]", f"method {method} cannot take a partly missing row; "
+                                                f"{other} (or send the whole row as missing)")
 
 
 def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray, low: np.ndarray,

@@ -34,6 +34,7 @@ a filter checks the cheap bound g first and computes C only when g is over the t
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -45,13 +46,17 @@ from .errors import InputError
 LOG_2PI = math.log(2.0 * math.pi)
 
 
+GATE_MAX = 37.0  # beyond, the two-sided tail probability of K standard deviations underflows double precision
+
+
 def check_gate(gate: Any) -> float | None:
-    """A gate override (None: the spec's): a finite number >= 0, else InputError('gate')."""
+    """A gate override (None: the spec's): a number in [0, GATE_MAX], else InputError('gate')."""
     if gate is None:
         return None
-    if isinstance(gate, bool) or not isinstance(gate, (int, float)) or not math.isfinite(gate) or gate < 0:
-        raise InputError("gate", f"must be a number >= 0 (predictive standard deviations; 0 turns the gate "
-                                 f"off), got {gate!r}")
+    if isinstance(gate, bool) or not isinstance(gate, numbers.Real) or not math.isfinite(gate) \
+            or not 0 <= gate <= GATE_MAX:
+        raise InputError("gate", f"must be a number from 0 to {GATE_MAX:g} (predictive standard deviations; "
+                                 f"0 turns the gate off), got {gate!r}")
     return float(gate)
 
 
@@ -61,23 +66,32 @@ def gate_threshold(gate: float, components: int) -> float:
     two-sided tail probability of ``gate`` standard deviations (inf: the gate is off)."""
     if gate <= 0 or components < 1:
         return math.inf
+    if components == 1:
+        return float(gate * gate)
     from scipy.special import chdtri, ndtr
 
-    tail = 2.0 * ndtr(-gate)  # P(|N(0, 1)| > K)
-    if tail <= 0.0:
-        return math.inf
-    return float(gate * gate) if components == 1 else float(chdtri(components, tail))
+    return float(chdtri(components, 2.0 * ndtr(-gate)))  # P(|N(0, 1)| > K), positive up to GATE_MAX
 
 
 def standard_score(d2: float, components: int) -> float:
     """The number of one-dimensional standard deviations with the same tail probability as d² of a
-    χ²_components variable (d itself for one component)."""
-    if components <= 1 or not math.isfinite(d2):
-        return math.sqrt(max(d2, 0.0)) if math.isfinite(d2) else math.inf
-    from scipy.special import chdtrc, ndtri
+    χ²_components variable (d itself for one component); in log scale where the tail underflows."""
+    if not math.isfinite(d2):
+        return math.inf
+    d2 = max(d2, 0.0)
+    if components <= 1:
+        return math.sqrt(d2)
+    from scipy.special import chdtrc, gammaln, log_ndtr, ndtri
 
-    tail = float(chdtrc(components, max(d2, 0.0)))
-    return float(-ndtri(tail / 2.0)) if tail > 0.0 else math.inf
+    tail = float(chdtrc(components, d2))
+    if tail > 1e-300:
+        return float(-ndtri(tail / 2.0))
+    # log Q(a, y) = log Γ(a, y)/Γ(a) ~ (a − 1) log y − y − log Γ(a) + log(1 + (a − 1)/y), y = d²/2
+    a, y = 0.5 * components, 0.5 * d2
+    log_tail = (a - 1.0) * math.log(y) - y - float(gammaln(a)) + math.log1p((a - 1.0) / y)
+    from scipy.optimize import brentq
+
+    return float(brentq(lambda z: math.log(2.0) + float(log_ndtr(-z)) - log_tail, 1.0, math.sqrt(d2) + 10.0))
 
 
 @dataclass(frozen=True)
@@ -137,21 +151,44 @@ class Observation:
         return (observed.astype(np.int64) << np.arange(observed.shape[1], dtype=np.int64)).sum(axis=1)
 
     # -- per-row constants -------------------------------------------------------------------
+    @staticmethod
+    def groups(keys: np.ndarray) -> list[tuple[int, Any]]:
+        """(key, rows) per pattern of a chunk: a slice over the whole chunk when it has one pattern
+        (the usual case: no fancy indexing), else the row indices."""
+        if len(keys) == 0:
+            return []
+        first = int(keys[0])
+        if (keys == first).all():
+            return [(first, slice(None))]
+        return [(int(key), np.flatnonzero(keys == key)) for key in np.unique(keys).tolist()]
+
     def row_terms(self, rows: np.ndarray, taus: np.ndarray, keys: np.ndarray) -> "RowTerms":
         """Per row: the offset b_k to the predictive log-likelihood, log det 2πS₀, κ², the gate's
         threshold, and (discrete) −½ zᵀR⁻¹z − ½ log det 2πR (gaussian) or the t constant."""
         K = len(rows)
         offset, log_det_S0 = np.zeros(K), np.zeros(K)
-        threshold, constant = np.full(K, math.inf), np.zeros(K)
+        threshold, constant = np.empty(K), np.zeros(K)
+        threshold.fill(math.inf)
         quadratic = np.zeros(K)  # yᵀR_oo⁻¹y (the row's own quadratic form)
-        for key in np.unique(keys).tolist():
+        groups = self.groups(keys)
+        with np.errstate(over="ignore", invalid="ignore"):  # a row of 1e307: inf, the gate's business
+            self._fill_terms(rows, taus, groups, offset, log_det_S0, threshold, constant, quadratic)
+        with np.errstate(over="ignore"):
+            kappa2 = taus * taus if not self.discrete else np.ones(K)
+        return RowTerms(offset=offset, log_det_S0=log_det_S0, kappa2=kappa2, threshold=threshold,
+                        constant=constant, quadratic=quadratic, groups=groups)
+
+    def _fill_terms(self, rows, taus, groups, offset, log_det_S0, threshold, constant, quadratic) -> None:
+        for key, sel in groups:
             if key == 0:
                 continue
             pat = self.pattern(key)
-            sel = keys == key
-            y = rows[np.ix_(sel, pat.index)]
-            quadratic[sel] = np.einsum("ki,ij,kj->k", y, pat.R_inv, y)
+            y = rows[sel][:, pat.index]
             size = len(pat.index)
+            if size == 1:
+                quadratic[sel] = y[:, 0] * y[:, 0] * pat.R_inv[0, 0]
+            else:
+                quadratic[sel] = np.einsum("ki,ij,kj->k", y, pat.R_inv, y)
             threshold[sel] = pat.threshold
             if not self.discrete:
                 tau = taus[sel]
@@ -168,12 +205,7 @@ class Observation:
 
                 constant[sel] = (gammaln(0.5 * (nu + size)) - gammaln(0.5 * nu)
                                  - 0.5 * size * math.log(nu * math.pi) - 0.5 * pat.log_det_R)
-                scale = nu / (nu - 2.0) if nu > 2.0 else 1.0
-                log_det_S0[sel] = pat.log_det_R + size * (LOG_2PI + math.log(scale))
-        with np.errstate(over="ignore"):
-            kappa2 = taus * taus if not self.discrete else np.ones(K)
-        return RowTerms(offset=offset, log_det_S0=log_det_S0, kappa2=kappa2, threshold=threshold,
-                        constant=constant, quadratic=quadratic)
+                log_det_S0[sel] = pat.log_det_R + size * (LOG_2PI + math.log(self.S0_scale(0.0)))
 
     # -- the factor at given points ----------------------------------------------------------
     def log_factors(self, h_points: np.ndarray, rows: np.ndarray, taus: np.ndarray, keys: np.ndarray,
@@ -185,17 +217,16 @@ class Observation:
         nodes are fixed).  ``penalty=False``: the continuous factor without −½hᵀR⁻¹h τ (the literal
         form of seed 002 (5.35), whose propagator carries it)."""
         K, P = len(rows), h_points.shape[0]
-        unique = np.unique(keys).tolist()
-        whole = len(unique) == 1  # one pattern (the usual chunk): work in place on the whole array
+        groups = terms.groups
+        whole = len(groups) == 1  # one pattern (the usual chunk): work in place on the whole array
         out = np.empty((K, P)) if whole else np.zeros((K, P))
         with np.errstate(over="ignore", invalid="ignore"):
-            for key in unique:
+            for key, sel in groups:
                 if key == 0:
-                    out[keys == 0] = 0.0
+                    out[sel] = 0.0
                     continue
                 pat = self.pattern(key)
                 hR, half = self._point_terms(h_points, key, pat, cache)
-                sel = slice(None) if whole else np.flatnonzero(keys == key)
                 y = rows[sel][:, pat.index]
                 block = out if whole else np.empty((len(y), P))
                 np.multiply(y[:, 0, None], hR[0], out=block)
@@ -259,6 +290,7 @@ class RowTerms:
     threshold: np.ndarray  # d² gate threshold (inf: not gated)
     constant: np.ndarray  # the discrete factor's constant part
     quadratic: np.ndarray  # yᵀR_oo⁻¹y
+    groups: list = ()  # (key, rows) per pattern (Observation.groups)
 
     def bound_bias(self) -> np.ndarray:
         """g = bias − 2 log E_pred[e]: −2·offset − log det 2πS₀."""
@@ -285,13 +317,16 @@ def check_rows(rows: Any, m: int, field: str = "increments") -> np.ndarray:
     return arr
 
 
-def check_first_gap(taus: np.ndarray | None, rows: np.ndarray, discrete: bool, field: str = "times") -> None:
-    """A continuous increment needs an interval: a first row at the prior's time itself (τ = 0) may be a
-    discrete measurement or carry nothing, not an increment."""
-    if taus is not None and len(taus) and taus[0] == 0.0 and not discrete and not np.isnan(rows[0]).all():
-        raise InputError(f"{field}[0]", "an increment dy over an empty interval (t equal to the prior's "
-                                        "time): the first increment needs a time after the prior's (t0), or "
-                                        "send that row as missing")
+def check_first_gap(taus: np.ndarray | None, discrete: bool, method: str | None = None,
+                    field: str = "times") -> None:
+    """A continuous increment covers [t_(k−1), t_k]: a first row at the prior's time itself (τ = 0) is
+    an empty interval, allowed for discrete measurements only."""
+    if taus is not None and len(taus) and taus[0] <= 0.0 and not discrete:
+        who = f"method {method}: " if method else ""
+        raise InputError(f"{field}[0]", f"{who}an increment dy over [t_(k-1), t_k] needs t_k after the "
+                                        "filter's time (a row at the prior's time t0 is for discrete "
+                                        "measurements only): start the rows after t0, or give the prior an "
+                                        "earlier t0")
 
 
 def resolve_times(t_now: float, started: bool, K: int, dt: float, times: Any,

@@ -58,6 +58,10 @@ def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
     None: the model's), the log-likelihood carried on."""
     from .spec import spec_from_dict
 
+    if not getattr(flt, "restartable", True):
+        raise InputError("on_degenerate", f"method {flt.method} cannot start again mid-stream (its "
+                                          "representation runs from t = 0): use yau-yau, or start a new "
+                                          "session")
     if isinstance(prior, dict):
         doc = flt.model.spec.model_dump(mode="json")
         doc["initial"] = prior
@@ -84,7 +88,7 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
                     policy: str = DEFAULT_POLICY) -> tuple[Any, ChunkResult]:
     """``flt.run_arrays`` under an ``on_degenerate`` policy (module docstring)."""
     check_policy(policy)
-    if policy == "stop":
+    if policy == "stop" or not getattr(flt, "restartable", True):  # wei-norman cannot start mid-stream
         return flt.run_arrays(state, rows, times)
     rows = np.asarray(rows, dtype=float)
     times_arr = None if times is None else np.asarray(times, dtype=float).reshape(-1)
@@ -92,7 +96,7 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
     offset, K = 0, len(rows)
     restarted_before = None
     if state.degenerate and K:
-        state, restarted_before = _restart_note(flt, state, state.reason)
+        state, restarted_before = _restart_note(flt, state, state.reason, before=True)
     while True:
         chunk_times = None if times_arr is None else times_arr[offset:]
         new_state, result = flt.run_arrays(state, rows[offset:], chunk_times)
@@ -115,8 +119,10 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
     return state, concat_results(parts)
 
 
-def _restart_note(flt, state, reason) -> tuple[Any, str]:
+def _restart_note(flt, state, reason, before: bool = False) -> tuple[Any, str]:
     new_state, how = restart_from_last(flt, state)
+    if before:  # the state came degenerate from an earlier chunk: the restart precedes this row
+        return new_state, f"the filter was degenerate ({reason}); {how} before this row, which was used"
     return new_state, f"the filter degenerated ({reason}); {how}; this row's observation was not used"
 
 

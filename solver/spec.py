@@ -121,7 +121,7 @@ class Measurement(_Strict):
     kind: Literal["continuous", "discrete"] = "continuous"
     likelihood: Literal["gaussian", "student-t"] = "gaussian"
     dof: float | None = Field(default=None, gt=0, le=1e6)
-    gate: float = Field(default=GATE_DEFAULT, ge=0, le=1e6)
+    gate: float = Field(default=GATE_DEFAULT, ge=0, le=37)  # beyond 37 sd the tail probability underflows
 
     @model_validator(mode="after")
     def _consistent(self) -> "Measurement":

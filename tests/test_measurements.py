@@ -262,7 +262,7 @@ def test_bad_times_name_the_row_and_change_nothing(times, field):
     assert err.value.field == field
     with pytest.raises(InputError) as err:
         flt.run_arrays(start, np.zeros((3, 2)), [0.1, 0.2, 0.3])
-    assert err.value.field == "increments" and "1 number" in err.value.message
+    assert err.value.field == "observations" and "1 number" in err.value.message  # a discrete model's rows
     assert start.step == 0 and start.t == 0.0
 
 
@@ -272,13 +272,12 @@ def test_first_row_may_be_at_the_prior_time_but_later_times_must_move_on():
     assert result.t.tolist() == [0.0] and state.step == 1
     with pytest.raises(InputError, match="not after"):
         flt.run_arrays(state, [[0.2]], [0.0])
-    # an increment needs an interval: not at the prior's time (a missing row there is fine)
+    # an increment covers an interval: no row of a continuous model at the prior's time
     continuous = _engine(CUBIC)
-    with pytest.raises(InputError, match="empty interval") as err:
-        continuous.run_arrays(continuous.initial_state(), [[0.2]], [0.0])
-    assert err.value.field == "times[0]"
-    state, _ = continuous.run_arrays(continuous.initial_state(), [[np.nan], [0.1]], [0.0, 0.01])
-    assert state.step == 2
+    for row in ([0.2], [np.nan]):
+        with pytest.raises(InputError, match="needs t_k after") as err:
+            continuous.run_arrays(continuous.initial_state(), [row], [0.0])
+        assert err.value.field == "times[0]"
 
 
 def test_chunks_at_irregular_times_continue_where_the_last_ended():
@@ -313,8 +312,9 @@ def test_predict_forecasts_without_changing_the_state():
     assert forecast.cov[0, 0] == pytest.approx(a * a * P + (1 - a * a), rel=1e-3)
     assert forecast.t == pytest.approx(state.t + 2.0) and forecast.predictive_loglik is None
     assert state.step == 100 and forecast_state.step == 101
-    with pytest.raises(InputError, match="not after"):
+    with pytest.raises(InputError, match="not before the filter's time") as err:
         flt.predict(state, state.t - 1.0)
+    assert err.value.field == "t"
 
 
 def test_ill_conditioned_generators_use_the_exact_exponential(monkeypatch):

@@ -223,24 +223,20 @@ class OnlineFilter:
 
     def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None, *,
                  on_degenerate: str = "stop", t0: float = 0.0):
+        from .solver.filtering import check_t0
         from .solver.recovery import check_policy
 
         self.filter = flt
         self.model = flt.model
         self.method: str = flt.method
         self.on_degenerate = check_policy(on_degenerate)
-        self.t0 = _check_t0(t0)
+        self.t0 = check_t0(t0)
         self.state = self._initial(prior) if state is None else state
 
     def _initial(self, prior: Any | None) -> Any:
-        import dataclasses
+        from .solver.filtering import at_time
 
-        state = self.filter.initial_state(prior)
-        if self.t0 == 0.0:
-            return state
-        if hasattr(state, "last"):
-            return dataclasses.replace(state, t=self.t0, last=dataclasses.replace(state.last, t=self.t0))
-        return dataclasses.replace(state, t=self.t0)
+        return at_time(self.filter.initial_state(prior), self.t0)
 
     def __repr__(self) -> str:
         return f"<OnlineFilter {self.model.spec.name!r} method={self.method} step={self.state.step}>"
@@ -249,8 +245,13 @@ class OnlineFilter:
     def step(self, row: Any | None = None, t: float | None = None) -> Estimate:
         """One row: an increment Δy (continuous kind) or a measurement z (discrete kind), m numbers
         (NaN: that component missing), or None to only predict; at time ``t`` (default: one dt on)."""
-        rows = np.full((1, self.model.m), np.nan) if row is None else np.reshape(np.asarray(row, dtype=float),
-                                                                                  (1, -1))
+        if row is None:
+            rows = np.full((1, self.model.m), np.nan)
+        else:
+            try:
+                rows = np.reshape(np.asarray(row, dtype=float), (1, -1))
+            except (TypeError, ValueError):
+                raise InputError("row", f"must be {self.model.m} number(s) (NaN: missing), or None") from None
         return self.run(rows, None if t is None else [t]).estimates(self.filter.gate)[0]
 
     def run(self, rows: Any, times: Any | None = None) -> Any:
@@ -265,8 +266,12 @@ class OnlineFilter:
 
     def iterate(self, rows: Any, times: Any | None = None):
         """Yield one Estimate per row, stepping as it goes."""
-        rows = np.asarray(rows, dtype=float).reshape(len(rows), -1)
+        from .solver.measurement import check_rows
+
+        rows = check_rows(rows, self.model.m)
         times = [None] * len(rows) if times is None else list(times)
+        if len(times) != len(rows):
+            raise InputError("times", f"needs one time per row: {len(rows)} row(s), got {len(times)} time(s)")
         for row, t in zip(rows, times, strict=True):
             yield self.step(None if np.isnan(row).all() else row, t)
 
@@ -358,14 +363,6 @@ class OnlineFilter:
         else:
             self.state = restart(self.filter, self.state, prior)
         return self.estimate
-
-
-def _check_t0(t0: Any) -> float:
-    import math
-
-    if isinstance(t0, bool) or not isinstance(t0, (int, float)) or not math.isfinite(t0):
-        raise InputError("t0", "must be a finite number (the time of the prior)")
-    return float(t0)
 
 
 def _gaussian_box_marginal(flt: OnlineFilter, variable: int, grid: np.ndarray, resolution: int) -> np.ndarray:

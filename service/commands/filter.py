@@ -493,12 +493,11 @@ def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
         raise InputError("times[0]", f"{path} line 2: t = {times[0]!r} is before --t0 {start!r}: the first "
                                      "row must be at or after the time of the prior")
     data = np.array(rows, dtype=float).reshape(len(rows), m)
-    if kind == "continuous" and times[0] == start and not np.isnan(data[0]).all():
+    if kind == "continuous" and times[0] == start:
         raise InputError("observations[0]", f"{path} line 2: an increment of a continuous model covers "
                                             f"[t_(k-1), t_k], and the first row's t = {times[0]!r} is the "
                                             "prior's time, an empty interval: give --t0 (the start of the "
-                                            "first interval, e.g. --t0 0 for the files of yauyau simulate) "
-                                            "or leave that row's values empty")
+                                            "first interval, e.g. --t0 0 for the files of yauyau simulate)")
     return Source(data, np.array(times, dtype=float), start, "observations", numbers)
 
 
@@ -560,8 +559,13 @@ def csv_lines(result, extras: list[list] | None = None) -> list[str]:
     tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
                result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), strict=True)
     if extras is None:
-        return [",".join(map(str, (*a, *b))) for a, b in zip(head, tail, strict=True)]
-    return [",".join(map(str, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
+        return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
+    return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
+
+
+def _field(value) -> str:
+    """A CSV field: NaN (not known) as an empty field, everything else as Python writes it."""
+    return "" if value != value else str(value)
 
 
 def summary_columns(flt, state, estimate, outputs: Outputs, writer) -> list:

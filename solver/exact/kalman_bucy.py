@@ -62,9 +62,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult
+from ..filtering import ChunkedFilter, ChunkResult, chunk_clock
 from ..gaussian import GaussianFilter, GaussianState, log_normal
-from ..measurement import LOG_2PI, Observation, check_gate, check_rows, resolve_times
+from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
 from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
 from .riccati import (
@@ -83,8 +83,6 @@ from .schedule import (
     Schedule,
     ScheduleCache,
     Segment,
-    check_gaps,
-    chunk_clock,
     gated_chunk,
     regular_gaps,
 )
@@ -147,7 +145,6 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         self._kalman = self._linear_steps()  # None: the continuous (Kalman–Bucy) kind
         self._schedules = ScheduleCache()  # covariance -> (schedule, step index)
         self._patterns: dict[int, tuple] = {}  # pattern -> its observation pieces
-        self._observations: dict[float, Observation] = {}
 
     def _linear_steps(self) -> _LinearSteps | None:
         model = self.model
@@ -167,15 +164,6 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         r = 0.5 * self.h0 @ R_inv @ self.h0 - ydot @ (R_inv @ self.h0)
         return q, r
 
-    @property
-    def observation(self) -> Observation:
-        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.py)."""
-        gate = self.gate
-        found = self._observations.get(gate)
-        if found is None:
-            found = self._observations[gate] = Observation(self.model, gate)
-        return found
-
     # -- Filter protocol -----------------------------------------------------------------
     def run_arrays(self, state: GaussianState, increments: np.ndarray,
                    times: Any = None) -> tuple[GaussianState, "ChunkResult"]:
@@ -190,7 +178,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
             empty = np.empty((0, n))
             return state, ChunkResult(steps, t_out, empty, np.empty((0, n, n)), empty, np.empty(0),
                                       np.empty(0), np.zeros(0, bool))
-        check_gaps(taus, self.discrete, self.method)
+        check_first_gap(taus, self.discrete, self.method)
         taus = regular_gaps(taus, model.dt, t_out, state.t)
         obs = self.observation
         if taus is None and K == 1 and n == 1 and model.m == 1 and not np.isnan(rows[0, 0]):

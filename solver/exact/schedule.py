@@ -17,7 +17,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import InputError
 from ..measurement import standard_score
 
 EXTEND = 512  # most steps added beyond the need (the length doubles up to it: one-row chunks share the cost)
@@ -134,25 +133,6 @@ class BoundedCache:
 
 
 _ABSENT = object()
-
-
-def chunk_clock(state: Any, K: int, dt: float, times: Any, taus: np.ndarray | None):
-    """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
-    while the state is on it, as the regular filters always were)."""
-    steps = state.step + 1 + np.arange(K)
-    if taus is not None:
-        return steps, np.asarray(times, dtype=float).reshape(-1)
-    if state.t == state.step * dt:
-        return steps, steps * dt
-    return steps, state.t + dt * np.arange(1, K + 1)
-
-
-def check_gaps(taus: np.ndarray | None, discrete: bool, method: str) -> None:
-    """A continuous increment needs an interval: InputError('times[0]') for a first row at the
-    prior's time (a gap 0, allowed for discrete measurements only)."""
-    if taus is not None and not discrete and len(taus) and taus[0] <= 0.0:
-        raise InputError("times[0]", f"method {method}: an increment dy over [t_(k-1), t_k] needs t_k after "
-                                     "the filter's time (gap 0 is only for discrete measurements)")
 
 
 def regular_gaps(taus: np.ndarray | None, dt: float, times: np.ndarray, t0: float) -> np.ndarray | None:

@@ -40,7 +40,7 @@ import sympy as sp
 from ..analysis import exact_matrix, is_identity, observed_coordinate, seed004_structure
 from ..errors import InputError, SpecError
 from ..expressions import vectorize
-from ..filtering import ChunkResult, Estimate, refuse_form
+from ..filtering import ChunkResult, Estimate, chunk_clock, refuse_form
 from ..measurement import check_rows
 from ..model import Model
 
@@ -301,6 +301,7 @@ class WeiNormanFilter:
         return WeiNormanState(step=0, t=0.0, y=np.zeros(self.model.m), r=np.zeros(3), loglik=0.0)
 
     gate_override: float | None = None  # the Wei-Norman filter cannot skip a row, so it never gates
+    restartable = False  # its representation (12) runs from t = 0: no restart mid-stream
 
     def step(self, state: WeiNormanState, increment: np.ndarray | None,
              t: float | None = None) -> tuple[WeiNormanState, Estimate]:
@@ -315,6 +316,9 @@ class WeiNormanFilter:
         new, result = self.run_arrays(state, increments, times)
         return new, result.estimates()
 
+    def with_gate(self, gate: float | None) -> "WeiNormanFilter":
+        return self  # it never gates
+
     def predict(self, state: WeiNormanState, t: float) -> tuple[WeiNormanState, Estimate]:
         raise InputError("t", "the Wei-Norman representation (12) needs the observation path: it cannot "
                               "forecast without observations; use method yau-yau")
@@ -327,8 +331,7 @@ class WeiNormanFilter:
         if np.isnan(dy).any():  # a missing row or component
             raise InputError("increments", MISSING)
         K, n = len(dy), self.model.n
-        steps = state.step + 1 + np.arange(K)
-        times = steps * self.model.dt
+        steps, times = chunk_clock(state, K, self.model.dt, None, None)  # t0 + k·dt
         if K == 0:
             return state, ChunkResult(steps, times, np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n)),
                                      np.empty(0), np.empty(0), np.zeros(0, bool))

@@ -54,9 +54,9 @@ from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
-from ..measurement import LOG_2PI, Observation, check_gate, check_rows, resolve_times
+from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
@@ -79,8 +79,6 @@ from .schedule import (
     Schedule,
     ScheduleCache,
     Segment,
-    check_gaps,
-    chunk_clock,
     gated_chunk,
     regular_gaps,
 )
@@ -228,16 +226,6 @@ class YauHuFilter(ChunkedFilter):
         self._kits = BoundedCache()  # (gap, pattern) -> _Kit (irregular gaps, partly missing rows)
         self._steps_by_key: dict[int, tuple] = {}
         self._patterns: dict[int, tuple] = {}
-        self._observations: dict[float, Observation] = {}
-
-    @property
-    def observation(self) -> Observation:
-        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.py)."""
-        gate = self.gate
-        found = self._observations.get(gate)
-        if found is None:
-            found = self._observations[gate] = Observation(self.model, gate)
-        return found
 
     # -- mixtures of e^{F}·exp(−xᵀAx − Bᵀx − C) ------------------------------------------
     def _components(self, A, B, C):
@@ -318,7 +306,7 @@ class YauHuFilter(ChunkedFilter):
         if K == 0:
             return state, ChunkResult(steps, times, np.empty((0, n)), np.empty((0, n, n)), None,
                                        np.empty(0), np.empty(0), np.zeros(0, bool))
-        check_gaps(taus, self.discrete, self.method)
+        check_first_gap(taus, self.discrete, self.method)
         taus = regular_gaps(taus, model.dt, times, state.t)
         obs = self.observation
         if taus is None and K == 1 and n == 1 and model.m == 1 and not self.discrete \

@@ -50,9 +50,9 @@ import sympy as sp
 
 from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, refuse_form
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock, refuse_form
 from ..gaussian import log_normal
-from ..measurement import Observation, check_gate, check_rows, resolve_times, standard_score
+from ..measurement import check_first_gap, check_gate, check_rows, resolve_times, standard_score
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .riccati import (
@@ -63,7 +63,7 @@ from .riccati import (
     gaussian_to_terms,
     mixture_state_from_dict,
 )
-from .schedule import BoundedCache, check_gaps, chunk_clock, regular_gaps
+from .schedule import BoundedCache, regular_gaps
 from .yau_system import _exponential_sum
 
 # the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
@@ -174,7 +174,6 @@ class YauJiaFilter(ChunkedFilter):
         self._equations = [f.eq for f in flows]
         self._gap_families = BoundedCache()  # piece length -> FlowFamily (irregular times)
         self._a_max = float(np.linalg.eigvalsh(np.asarray(model.a, float))[-1])
-        self._observations: dict[float, Observation] = {}
         self._q = [f.eq.q for f in flows]
         self._r = [f.eq.r for f in flows]
         self.sensor = _Sensor(model)
@@ -364,15 +363,6 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, splits
 
     # -- Filter protocol ---------------------------------------------------------------------
-    @property
-    def observation(self) -> Observation:
-        """The spec's ``[measurement]`` with this filter's gate (solver/measurement.py)."""
-        gate = self.gate
-        found = self._observations.get(gate)
-        if found is None:
-            found = self._observations[gate] = Observation(self.model, gate)
-        return found
-
     def run_arrays(self, state: YauJiaState, increments: np.ndarray,
                    times: Any = None) -> tuple[YauJiaState, ChunkResult]:
         """Advance over a chunk (K, m) of increments (a NaN row: prediction only) at ``times``
@@ -391,7 +381,7 @@ class YauJiaFilter(ChunkedFilter):
         K, n = len(rows), model.n
         taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
         steps, times = chunk_clock(state, K, model.dt, times, taus)
-        check_gaps(taus, False, self.method)
+        check_first_gap(taus, False, self.method)
         taus = regular_gaps(taus, model.dt, times, state.t)
         obs = self.observation
         keys = obs.pattern_keys(~np.isnan(rows))
