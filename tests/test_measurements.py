@@ -381,3 +381,28 @@ def test_measurement_table_is_validated():
     assert _model(CUBIC).spec.canonical_json() == default.spec.canonical_json()
     assert "measurement" not in _model(CUBIC).spec.canonical_json()
     assert "measurement" in _model(CUBIC, gate=3.0).spec.canonical_json()
+
+
+def test_gates_beyond_37_sd_are_refused_and_scores_stay_finite():
+    """2Φ(−38) underflows double precision: such a gate would be off, so it is refused; the score of a
+    huge outlier with several components is found in log scale (for χ²_2, d² = 1e4 is ~99.95 sd)."""
+    from scipy.stats import chi2, norm
+
+    with pytest.raises(SpecError) as err:
+        _model(CUBIC, gate=38.0)
+    assert err.value.field == "measurement.gate"
+    with pytest.raises(InputError) as err:
+        _engine(CUBIC, gate=38.0)
+    assert err.value.field == "gate"
+    assert gate_threshold(37.0, 1) == 37.0 ** 2 and np.isfinite(gate_threshold(37.0, 3))
+    assert standard_score(100.0, 2) == pytest.approx(norm.isf(chi2.sf(100.0, 2) / 2), rel=1e-9)
+    huge = standard_score(1e4, 2)  # the tail (e^-5000) underflows; the asymptotic series does not
+    assert 99.9 < huge < 100.0
+
+
+def test_a_gate_is_a_cheap_copy_sharing_the_engine():
+    flt = _engine(CUBIC, kind="discrete")
+    other = flt.with_gate(3.0)
+    assert other.gate == 3.0 and flt.gate == 6.0
+    assert other._predict is flt._predict and other.offline is flt.offline
+    assert other.observation.gate == 3.0 and flt.observation.gate == 6.0

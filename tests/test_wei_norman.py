@@ -317,6 +317,24 @@ def test_bad_online_input_is_refused():
     with pytest.raises(InputError) as err:
         wn.state_from_dict({"step": 1})
     assert err.value.field == "state"
+    # (12) runs from t = 0: no irregular times, no forecast, no restart mid-stream; t0 only shifts the clock
+    with pytest.raises(InputError) as err:
+        wn.run_arrays(state, [[0.1]], [0.5])
+    assert err.value.field == "times" and "yau-yau" in err.value.message
+    with pytest.raises(InputError) as err:
+        wn.predict(state, 1.0)
+    assert err.value.field == "t"
+    from yauyau.solver.filtering import at_time
+    from yauyau.solver.recovery import restart, run_with_policy
+
+    later, result = wn.run_arrays(at_time(state, 2.0), [[0.1], [0.2]])
+    dt = wn.model.dt
+    assert result.t.tolist() == pytest.approx([2.0 + dt, 2.0 + 2 * dt]) and later.t == result.t[-1]
+    with pytest.raises(InputError) as err:
+        restart(wn, later, None)
+    assert err.value.field == "on_degenerate"
+    _, same = run_with_policy(wn, state, [[0.1], [0.2]], None, "reinitialise")  # = "stop" for wei-norman
+    assert np.array_equal(same.mean, wn.run_arrays(state, [[0.1], [0.2]])[1].mean)
 
 
 def test_flow_that_vanishes_is_reported_as_degenerate():
