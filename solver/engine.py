@@ -444,7 +444,7 @@ class YauYauFilter(ChunkedFilter):
         if modal:
             predict = observe = flow.B
             project = flow.C
-            real_scale, pair_scale = flow.scales(taus)
+            real_scale, pair_scale = (list(part) for part in flow.scales(taus))  # row views made once
             carried = carried.copy()
             carried[:N] = flow.to_modal(carried[:N].astype(float))
         # two buffers, alternately the carried vector and the next projection (and their views)
@@ -454,10 +454,11 @@ class YauYauFilter(ChunkedFilter):
         cdtype = np.complex64 if arith.dtype == np.float32 else np.complex128
         real_c, real_f = carried[:r], following[:r]
         pair_c, pair_f = (carried[r:N].view(cdtype), following[r:N].view(cdtype)) if pairs else (None, None)
-        gating = gate is not None
-        bias, threshold = (gate.bias, gate.threshold) if gating else (None, None)
-        tiny, huge, multiply, log = arith.tiny, arith.huge, np.multiply, math.log
-        rows, factors, tops = list(sigma), list(factor), top.tolist()  # made once, not per step
+        # the gate's bound g = bias − 2(log ∫σ + top) ≤ threshold is ∫σ ≥ floor: one comparison a step
+        floors = [0.0] * K if gate is None else gate.floors(top, missing)
+        observed = [not m for m in missing]
+        tiny, huge, multiply = arith.tiny, arith.huge, np.multiply
+        rows, factors = list(sigma), list(factor)  # made once, not per step
         mass = carried.item(N)
         for k in range(K):
             row = rows[k]
@@ -467,49 +468,54 @@ class YauYauFilter(ChunkedFilter):
                     multiply(pair_c, pair_scale[k], out=pair_c)
             elif flow is not None:
                 predict = observe = flow.nodal_flow(taus[k])
-            observed = not missing[k]
             # positional gemv arguments (alpha, a, x, beta, y, offx, incx, offy, incy, trans,
             # overwrite_y): keyword parsing costs as much as a small product
-            if observed:
+            if observed[k]:
                 gemv(1.0 / mass, observe, carried, 0.0, scratch, 0, 1, 0, 1, 0, 1)
                 multiply(scratch, factors[k], out=row)
-                s = scratch
             else:
                 gemv(1.0 / mass, predict, carried, 0.0, row, 0, 1, 0, 1, 0, 1)
-                s = row
             gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
             new_mass = following.item(N)
-            if not tiny < new_mass < huge:
-                new_mass, reason = self._rescue(s, log_factor, top, not observed, k, row)
-                if reason is _NO_MASS_AFTER_UPDATE and observed and gating:
-                    ll = self._log_mean_factor(s, log_factor[k]) + tops[k]  # in log scale throughout
-                    score = bias[k] - 2.0 * ll - gate.correction(k, s) if ll > -math.inf else math.inf
-                    if score > threshold[k]:
-                        gate.attempted[k] = ll
-                        new_mass, reason = self._reject(gate, k, score, s, row, project, following)
-                        observed = False
-                elif reason is None:
-                    gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
-                    following[N] = new_mass
-                    tops[k] = top.item(k)
+            if not tiny < new_mass < huge or new_mass < floors[k]:  # rare: rescue, or a row near the gate
+                s = scratch if observed[k] else row
+                new_mass, reason = self._slow_step(k, new_mass, s, row, observed[k], log_factor, top, gate,
+                                                   project, following)
                 if reason is not None:
                     return sigma, np.array(masses[:k]), carried.copy(), k, reason
-            if gating and observed:
-                ll = log(new_mass) + tops[k]
-                bound = bias[k] - 2.0 * ll
-                if bound > threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
-                    score = bound - gate.correction(k, s)
-                    if score > threshold[k]:
-                        gate.attempted[k] = ll
-                        new_mass, reason = self._reject(gate, k, score, s, row, project, following)
-                        if reason is not None:
-                            return sigma, np.array(masses[:k]), carried.copy(), k, reason
             masses[k] = mass = new_mass
             carried, following = following, carried
             if modal:
                 real_c, real_f = real_f, real_c
                 pair_c, pair_f = pair_f, pair_c
         return sigma, np.array(masses), carried.copy(), K, None
+
+    def _slow_step(self, k, new_mass, s, row, observed, log_factor, top, gate, project, following):
+        """Step k when ∫σ under/overflowed (recomputed in log scale) or an observed row's cheap gate
+        bound is over the threshold (the exact score decides).  Returns (∫σ, reason or None); writes
+        row and ``following`` as the hot loop would have."""
+        arith, N = self._arith, self.N
+        if not arith.tiny < new_mass < arith.huge:
+            new_mass, reason = self._rescue(s, log_factor, top, not observed, k, row)
+            if reason is _NO_MASS_AFTER_UPDATE and observed and gate is not None:
+                ll = self._log_mean_factor(s, log_factor[k]) + float(top[k])  # in log scale throughout
+                score = gate.bias[k] - 2.0 * ll - gate.correction(k, s) if ll > -math.inf else math.inf
+                if score > gate.threshold[k]:
+                    gate.attempted[k] = ll
+                    return self._reject(gate, k, score, s, row, project, following)
+            if reason is not None:
+                return 0.0, reason
+            arith.gemv(1.0, project, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+            following[N] = new_mass
+        if gate is not None and observed:
+            ll = math.log(new_mass) + float(top[k])
+            bound = gate.bias[k] - 2.0 * ll
+            if bound > gate.threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
+                score = bound - gate.correction(k, s)
+                if score > gate.threshold[k]:
+                    gate.attempted[k] = ll
+                    return self._reject(gate, k, score, s, row, project, following)
+        return new_mass, None
 
     def _log_mean_factor(self, s, log_factor_row) -> float:
         """log Σ_q w_q s_q e_q over the nodes where s > 0 (e relative to its maximum), by log-sum-exp: what
@@ -679,6 +685,14 @@ class _Gate:
 
     def size(self, k: int) -> int:
         return int(self.keys[k]).bit_count()
+
+    def floors(self, top: np.ndarray, missing: np.ndarray) -> list[float]:
+        """Per row, the ∫σ below which the cheap bound is over the threshold: exp((bias − threshold)/2
+        − top) (0 where nothing is gated: a row without observation, the gate off for its size)."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            floor = np.exp(0.5 * (self.terms.bound_bias() - self.terms.threshold) - top)
+        floor[missing | ~np.isfinite(self.terms.threshold)] = 0.0
+        return np.nan_to_num(floor, nan=np.inf).tolist()
 
     def correction(self, k: int, s: np.ndarray) -> float:
         """log det(I + κ²S₀⁻¹C), C = Cov(h_o) under the propagated nodal density s."""
