@@ -278,6 +278,14 @@ class Sessions:
         self.chunk_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="yauyau-chunk")
         self._deep_checked = 0.0
 
+    def _apply(self, session_id: str, seq: int, compute, encoded: bool, digest: str):
+        """Apply numbered step ``seq`` (a chunk or a reset) exactly once: (response, replayed)."""
+        with self._write_lock:
+            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded,
+                                                        digest=digest)
+        metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
+        return response, replayed
+
     def store_health(self, deep_every: float = 30.0) -> str | None:
         """None when the session store is usable, else why not (SQLite's quick_check at most every
         ``deep_every`` seconds; the cheap file checks every time)."""
@@ -345,10 +353,7 @@ class Sessions:
             applied.append(response)
             return state.to_dict(), encode_response(response)
 
-        with self._write_lock:
-            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded,
-                                                        digest=digest)
-        metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
+        response, replayed = self._apply(session_id, seq, compute, encoded, digest)
         if not replayed:
             metrics.OBSERVATIONS.inc(len(data))
             done = applied[-1]
@@ -390,10 +395,7 @@ class Sessions:
                         "estimate": estimate_full(filt.estimate(new)), "note": note}
             return new.to_dict(), encode_response(response)
 
-        with self._write_lock:
-            response, replayed = self.store.apply_chunk(session_id, seq, compute, encoded=encoded,
-                                                        digest=digest)
-        metrics.CHUNKS.labels("replayed" if replayed else "applied").inc()
+        response, replayed = self._apply(session_id, seq, compute, encoded, digest)
         if not replayed:
             metrics.RESETS.inc()
         return response

@@ -377,15 +377,19 @@ class YauHuFilter(ChunkedFilter):
         choice = missing.astype(int)
         A, B, C = self._advance(self._family, self._q, self._r, self._observed, choice, dyw, state.A, state.B,
                                 state.C)
-        try:
-            logw, means, covs = self._components(A, B, C)
-        except InputError:
-            raise InputError("increments", "the mixture lost integrability (a component is not "
-                                           "positive definite)") from None
+        logw, means, covs = self._integrable(A, B, C)
         log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
         increments_ll = np.where(missing, 0.0, log_mass[1:] - log_mass[:-1])
         mean, cov = _mixture_moments(logw[1:], means[1:], covs[1:])
         return (mean, cov, increments_ll), (A[1:], B[1:], C[1:] + log_mass[1:, None])
+
+    def _integrable(self, A, B, C):
+        """The mixture's (log weights, means, covs); InputError when a component lost integrability."""
+        try:
+            return self._components(A, B, C)
+        except InputError:
+            raise InputError("increments", "the mixture lost integrability (a component is not "
+                                           "positive definite)") from None
 
     # -- irregular gaps, partly missing rows, discrete measurements: row by row ----------------
     def _pattern(self, key: int):
@@ -470,11 +474,7 @@ class YauHuFilter(ChunkedFilter):
                 A, B, C = self._observed_over(A, B, C, tau, key, L_inv @ rows[k, index])
             paths.append((A, B, C))
         A, B, C = (np.stack(v) for v in zip(*paths, strict=True))
-        try:
-            logw, means, covs = self._components(A, B, C)
-        except InputError:
-            raise InputError("increments", "the mixture lost integrability (a component is not "
-                                           "positive definite)") from None
+        logw, means, covs = self._integrable(A, B, C)
         log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
         start_mass = float(_log_sum_exp(self._components(state.A, state.B, state.C)[0]))
         increments_ll = np.where(keys == 0, 0.0, np.diff(log_mass, prepend=start_mass))
