@@ -47,7 +47,14 @@ from scipy.linalg.blas import dgemv, sgemv
 from .diagnostics import Diagnostics
 from .engine_state import YauYauState, state_from_dict
 from .errors import InputError, SpecError
-from .filtering import ChunkedFilter, ChunkResult, Estimate, chunk_clock, marginal_by_quadrature
+from .filtering import (
+    ChunkedFilter,
+    ChunkResult,
+    Estimate,
+    chunk_clock,
+    concat_results,
+    marginal_by_quadrature,
+)
 from .measurement import (
     Observation,
     RowTerms,
@@ -82,6 +89,8 @@ _ARITHMETIC = {"double": _Arithmetic(np.float64, dgemv, 1e-280, 1e280, 1e-250),
                "single": _Arithmetic(np.float32, sgemv, 1e-30, 1e30, 1e-25)}
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 PIECE = 2.0  # an increment over a gap longer than (PIECE + 1/4)·dt is filtered in pieces of about PIECE·dt
+MAX_PIECES = 64  # pieces of one increment at most (a longer gap gets longer pieces)
+MAX_CHUNK_PIECES = 8192  # pieces filtered at once (the rest of a chunk follows, block by block)
 _NO_MASS_AFTER_UPDATE = "no positive mass after the update: observation impossible under the model"
 
 
@@ -225,9 +234,19 @@ class YauYauFilter(ChunkedFilter):
         if state.degenerate:
             return self._stay_degenerate(state, steps, times, state.reason)
         pieces = self._pieces(rows, taus)
-        if pieces is not None:
-            return self._run_in_pieces(state, rows, steps, times, taus, pieces)
-        return self._run(state, rows, steps, times, taus, gating=True)
+        if pieces is None:
+            return self._run(state, rows, steps, times, taus, gating=True)
+        parts, start = [], 0
+        for stop in _blocks(pieces, MAX_CHUNK_PIECES):  # bounded memory: the pieces of a block at a time
+            if state.degenerate:  # an earlier block degenerated: the rest stays so
+                state, part = self._stay_degenerate(state, steps[start:], times[start:], state.reason)
+                parts.append(part)
+                break
+            state, part = self._run_in_pieces(state, rows[start:stop], steps[start:stop], times[start:stop],
+                                              taus[start:stop], pieces[start:stop])
+            parts.append(part)
+            start = stop
+        return state, concat_results(parts)
 
     def _run(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, gating: bool) -> tuple[YauYauState, ChunkResult]:
@@ -306,7 +325,9 @@ class YauYauFilter(ChunkedFilter):
         if taus is None or self.observation.discrete or self.form == "literal":
             return None
         observed = ~np.isnan(rows).all(axis=1)
-        count = np.where(observed, np.maximum(1, np.ceil(taus / (PIECE * self.model.dt) - 0.25)), 1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            wanted = np.ceil(np.minimum(taus / (PIECE * self.model.dt), MAX_PIECES) - 0.25)
+        count = np.where(observed, np.clip(wanted, 1, MAX_PIECES), 1)
         return count.astype(int) if count.max() > 1 else None
 
     def _run_in_pieces(self, state: YauYauState, rows, steps, times, taus, pieces):
@@ -711,6 +732,17 @@ class _Gate:
 
 
 # -- helpers ---------------------------------------------------------------------------------
+def _blocks(pieces: np.ndarray, limit: int) -> list[int]:
+    """Ends of consecutive blocks of rows whose pieces add up to at most ``limit`` (at least one row)."""
+    ends, total = [], 0
+    for k, count in enumerate(pieces.tolist()):
+        if total and total + count > limit:
+            ends.append(k)
+            total = 0
+        total += count
+    return ends + [len(pieces)]
+
+
 def _with_zero_column(propagator: np.ndarray, dtype) -> np.ndarray:
     matrix = np.asarray(propagator, dtype=float)
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)

@@ -406,3 +406,21 @@ def test_a_gate_is_a_cheap_copy_sharing_the_engine():
     assert other.gate == 3.0 and flt.gate == 6.0
     assert other._predict is flt._predict and other.offline is flt.offline
     assert other.observation.gate == 3.0 and flt.observation.gate == 6.0
+
+
+def test_huge_gaps_and_long_chunks_of_increments_stay_bounded(monkeypatch):
+    """A gap of 1e6 dt is at most MAX_PIECES pieces; a chunk's pieces go through in blocks of
+    MAX_CHUNK_PIECES rows: the same numbers as one block."""
+    from yauyau.solver import engine
+
+    flt = _engine(OU)
+    rng = np.random.default_rng(13)
+    times = random_times(rng, 200, 0.05)
+    _, rows = simulate_irregular(flt.model, times, "continuous", rng)
+    _, whole = flt.run_arrays(flt.initial_state(), rows, times)
+    monkeypatch.setattr(engine, "MAX_CHUNK_PIECES", 40)
+    _, blocks = flt.run_arrays(flt.initial_state(), rows, times)
+    assert np.allclose(blocks.mean, whole.mean, rtol=0, atol=1e-10)
+    assert blocks.step.tolist() == list(range(1, 201))
+    state, far = flt.run_arrays(flt.initial_state(), [[0.5]], [1e4])
+    assert np.isfinite(far.mean).all() and abs(far.mean[0, 0]) < 0.05 and not state.degenerate
