@@ -99,7 +99,8 @@ class Pattern:
     """The observed components ``index`` of a row and what its factor needs of R."""
 
     index: np.ndarray  # observed components (sorted)
-    R_inv: np.ndarray  # (|o|, |o|) of R_oo
+    R: np.ndarray  # R_oo (|o|, |o|)
+    R_inv: np.ndarray  # its inverse
     log_det_R: float  # log det R_oo
     threshold: float  # d² gate threshold for |o| components
 
@@ -139,7 +140,7 @@ class Observation:
         if found is None:
             index = np.array([j for j in range(self.m) if key >> j & 1], dtype=int)
             R_oo = self.R[np.ix_(index, index)]
-            found = Pattern(index=index, R_inv=np.linalg.inv(R_oo),
+            found = Pattern(index=index, R=R_oo, R_inv=np.linalg.inv(R_oo),
                             log_det_R=float(np.linalg.slogdet(R_oo)[1]),
                             threshold=gate_threshold(self.gate, len(index)))
             self._patterns[key] = found

@@ -279,8 +279,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         found = self._patterns.get(key)
         if found is None:
             pat = self.observation.pattern(key)
-            index = pat.index
-            R_oo = np.asarray(self.model.R, float)[np.ix_(index, index)]
+            index, R_oo = pat.index, pat.R
             found = self._patterns[key] = (index, self.H[index], self.h0[index], R_oo, pat.R_inv)
         return found
 

@@ -397,8 +397,7 @@ class YauHuFilter(ChunkedFilter):
         found = self._patterns.get(key)
         if found is None:
             pat = self.observation.pattern(key)
-            index = pat.index
-            R_oo = np.asarray(self.model.R, float)[np.ix_(index, index)]
+            index, R_oo = pat.index, pat.R
             L_inv = np.linalg.inv(np.linalg.cholesky(R_oo))
             found = self._patterns[key] = (index, L_inv, self.H[index], self.h0[index], pat.R_inv,
                                            0.5 * (pat.log_det_R + len(index) * LOG_2PI))
