@@ -269,13 +269,7 @@ class ChunkedFilter:
         return float(self.model.spec.measurement.gate)
 
     def step(self, state: Any, increment: np.ndarray | None, t: float | None = None) -> tuple[Any, Estimate]:
-        if increment is None:
-            rows = np.full((1, self.model.m), np.nan)
-        else:
-            try:
-                rows = np.reshape(np.asarray(increment, dtype=float), (1, -1))
-            except (TypeError, ValueError):
-                raise InputError("increment", "must be a list of numbers (or null)") from None
+        rows = one_row(increment, self.model.m, "increment")
         new_state, result = self.run_arrays(state, rows, None if t is None else [t])  # validates the row
         return new_state, result.estimates(self.gate)[0]
 
@@ -294,6 +288,17 @@ class ChunkedFilter:
         if t == state.t:
             return state, self.estimate(state)
         return self.step(state, None, t)
+
+
+def one_row(row: Any | None, m: int, field: str) -> np.ndarray:
+    """A single row (m numbers, NaN: missing; None: no observation) as a (1, m) chunk; InputError
+    naming ``field`` when it is not numbers (its width is checked with the chunk)."""
+    if row is None:
+        return np.full((1, m), np.nan)
+    try:
+        return np.reshape(np.asarray(row, dtype=float), (1, -1))
+    except (TypeError, ValueError):
+        raise InputError(field, f"must be {m} number(s) (NaN: missing), or None") from None
 
 
 def check_t0(t0: Any, field: str = "t0") -> float:

@@ -245,13 +245,9 @@ class OnlineFilter:
     def step(self, row: Any | None = None, t: float | None = None) -> Estimate:
         """One row: an increment Δy (continuous kind) or a measurement z (discrete kind), m numbers
         (NaN: that component missing), or None to only predict; at time ``t`` (default: one dt on)."""
-        if row is None:
-            rows = np.full((1, self.model.m), np.nan)
-        else:
-            try:
-                rows = np.reshape(np.asarray(row, dtype=float), (1, -1))
-            except (TypeError, ValueError):
-                raise InputError("row", f"must be {self.model.m} number(s) (NaN: missing), or None") from None
+        from .solver.filtering import one_row
+
+        rows = one_row(row, self.model.m, "row")
         return self.run(rows, None if t is None else [t]).estimates(self.filter.gate)[0]
 
     def run(self, rows: Any, times: Any | None = None) -> Any:
