@@ -29,6 +29,7 @@ TOPICS = [
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
     ("measurements", "bench-measurements.md"),
+    ("yau_jia", "bench-yau-jia.md"),
     ("engine_revision", "bench-engine-revision.md"),
     ("load", "bench-load.md"),
 ]

@@ -411,10 +411,11 @@ class ParticlesPeer:
 
 
 def setup_peers() -> int:
-    """Create bench/out/peers-venv and install particles (pulls numba and scikit-learn: minutes, once)."""
+    """Create bench/out/peers-venv and install the peers, particles and FilterPy (particles pulls numba
+    and scikit-learn: minutes, once).  bench/yau_jia.py uses the same venv."""
     OUT.mkdir(parents=True, exist_ok=True)
     subprocess.run(["python3", "-m", "venv", str(PEER_VENV)], check=True)
-    subprocess.run([str(PEER_PYTHON), "-m", "pip", "install", "--quiet", "particles"], check=True)
+    subprocess.run([str(PEER_PYTHON), "-m", "pip", "install", "--quiet", "particles", "filterpy"], check=True)
     print(f"peer venv ready: {PEER_PYTHON}")
     return 0
 

@@ -1,23 +1,27 @@
 """Range-only tracking in 4-D: the Yau–Jia filter against the peers users would pick, side by side.
 
-    .venv/bin/python -m bench.yau_jia            # 3 seeds x 100 steps (~6 min)
-    .venv/bin/python -m bench.yau_jia --quick    # 1 seed x 50 steps
+    .venv/bin/python -m bench.yau_jia            # 5 seeds x 100 steps (~5 min)
+    .venv/bin/python -m bench.yau_jia --quick    # 2 seeds x 50 steps
+    .venv/bin/python -m bench.measurements --setup-peers   # once: the peers' venv
 
-Needs the peers: ``pip install particles filterpy`` in a separate virtual environment (particles
-0.3 pins numpy < 2, which the package itself does not support: keep them out of the test venv).
-
-On the same simulated increments of examples/range_only_4d.toml: yau-jia at 8/16/32/64 components,
-the `particles` library's bootstrap filter (N. Chopin) with 10k particles and FilterPy's UKF; the
-reference is a 10⁶-particle bootstrap filter with exact constant-velocity transitions (its Monte Carlo
-error is measured by a second run).  Gap: |E[x] − E_ref[x]| averaged over steps, coordinates and
-seeds.  Cost: ms per observation (median over seeds), one BLAS thread.  Then the dimension: n = 2, 4,
-6 (1-, 2-, 3-D constant velocity with a range sensor √(1 + |p|²) / |p| / |p|), cost per observation
-and gap to a 10⁵-particle reference.  Writes docs/bench-yau-jia.md.
+On the same simulated increments of examples/range_only_4d.toml: yau-jia at 8/16/32/64 components
+(32 is the default from 3-D on), the `particles` library's bootstrap filter (N. Chopin) with 10k
+particles and FilterPy's UKF; the reference is a 10⁶-particle bootstrap filter with exact
+constant-velocity transitions written here (its Monte Carlo error is measured by a second run).
+The peers run in their own venv (bench/out/peers-venv: particles pins numpy < 2) through
+bench/peer_range_only.py, one subprocess per seed, interleaved with our runs so that both see the
+same machine load.  Gap: |E[x] − E_ref[x]| averaged over steps, coordinates and seeds.  Cost: ms per
+observation, median over seeds, one BLAS thread.  Then the dimension: n = 2, 4, 6 (1-, 2-, 3-D
+constant velocity with a range sensor √(1 + |p|²) / |p| / |p|), cost per observation and gap to a
+10⁵-particle reference.  Writes docs/bench-yau-jia.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,56 +73,25 @@ def reference_pf(model, increments, N, rng, substeps=2):
     return np.array(means)
 
 
-def particles_bootstrap(model, increments, N, seed):
-    """The `particles` library's bootstrap filter on the sampled model: x_k = Φx_{k−1} + N(0, Q_dt),
-    Δy_k ~ N(h(x_k) dt, R dt).  Returns the filtering means and the seconds."""
-    import particles
-    from particles import distributions as dists
-    from particles import state_space_models as ssm
+PEER_PYTHON = ROOT / "bench" / "out" / "peers-venv" / "bin" / "python"
+PEER_SCRIPT = Path(__file__).resolve().parent / "peer_range_only.py"
 
+
+def peers(model, increments, seed: int, N: int = 10**4) -> dict | None:
+    """particles' bootstrap filter (N particles) and FilterPy's UKF on one seed's increments, in the
+    peers' venv; None when that venv is missing."""
+    if not PEER_PYTHON.exists():
+        return None
     Phi, Qd = _cv_matrices(model, model.dt)
     prior = model.spec.initial
-    dt, r = model.dt, float(model.R[0, 0])
-    h = model.h
-
-    class RangeCV(ssm.StateSpaceModel):
-        def PX0(self):
-            return dists.MvNormal(loc=np.array(prior.mean), cov=np.array(prior.cov))
-
-        def PX(self, t, xp):
-            return dists.MvNormal(loc=xp @ Phi.T, cov=Qd)
-
-        def PY(self, t, xp, x):
-            return dists.Normal(loc=h(x)[:, 0] * dt, scale=np.sqrt(r * dt))
-
-    fk = ssm.Bootstrap(ssm=RangeCV(), data=increments[:, 0])
-    np.random.seed(seed)
-    alg = particles.SMC(fk=fk, N=N, collect=[particles.collectors.Moments()])
-    start = time.perf_counter()
-    alg.run()
-    seconds = time.perf_counter() - start
-    return np.array([m["mean"] for m in alg.summaries.moments]), seconds
-
-
-def filterpy_ukf(model, increments):
-    """FilterPy's UKF on the same sampled model (Merwe sigma points, α = 0.1)."""
-    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
-
-    Phi, Qd = _cv_matrices(model, model.dt)
-    n, dt = model.n, model.dt
-    prior = model.spec.initial
-    points = MerweScaledSigmaPoints(n, alpha=0.1, beta=2.0, kappa=0.0)
-    ukf = UnscentedKalmanFilter(dim_x=n, dim_z=1, dt=dt, points=points,
-                                fx=lambda x, _dt: Phi @ x, hx=lambda x: model.h(x[None])[0] * dt)
-    ukf.x, ukf.P = np.array(prior.mean, float), np.array(prior.cov, float)
-    ukf.Q, ukf.R = Qd, np.array([[float(model.R[0, 0]) * dt]])
-    means = []
-    start = time.perf_counter()
-    for dy in increments:
-        ukf.predict()
-        ukf.update(dy)
-        means.append(ukf.x.copy())
-    return np.array(means), time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
+        np.savez(src, increments=increments[None, :, 0], seeds=np.array([seed]), Phi=Phi, Q=Qd,
+                 prior_mean=np.array(prior.mean, float), prior_cov=np.array(prior.cov, float),
+                 dt=model.dt, noise_var=float(model.R[0, 0]), offset=0.0, particles=N)
+        subprocess.run([str(PEER_PYTHON), str(PEER_SCRIPT), str(src), str(dst)], check=True)
+        out = np.load(dst)
+        return {k: out[k] for k in out.files}
 
 
 def ours(model, increments, components):
@@ -151,24 +124,28 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.yau_jia", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
-    seeds, steps = (1, 50) if args.quick else (3, 100)
+    seeds, steps = (2, 50) if args.quick else (5, 100)
     model = compile_model(load_spec(ROOT / "examples" / "range_only_4d.toml"))
     rows: dict[str, list[tuple[float, float]]] = {}
-    mc = []
+    mc, versions = [], None
     with threadpool_limits(1):
         for seed in range(seeds):
             dy = simulate(model, steps, np.random.default_rng(seed)).increments
             ref = reference_pf(model, dy, 10**6, np.random.default_rng(1000 + seed))
             if seed == 0:
                 mc.append(np.abs(reference_pf(model, dy, 10**6, np.random.default_rng(7)) - ref).mean())
+            ours(model, dy[:5], 32)  # warm-up: the sensor's generated code, the flows
+            peer = peers(model, dy, seed)
             for J in (8, 16, 32, 64):
                 mean, sec = ours(model, dy, J)
                 gap = np.abs(mean - ref).mean()
                 rows.setdefault(f"yau-jia, {J} components", []).append((gap, sec / steps))
-            mean, sec = particles_bootstrap(model, dy, 10**4, seed)
-            rows.setdefault("particles bootstrap, 10k", []).append((np.abs(mean - ref).mean(), sec / steps))
-            mean, sec = filterpy_ukf(model, dy)
-            rows.setdefault("FilterPy UKF", []).append((np.abs(mean - ref).mean(), sec / steps))
+            if peer is not None:
+                versions = ", ".join(str(v) for v in peer["versions"])
+                rows.setdefault("particles bootstrap, 10k", []).append(
+                    (np.abs(peer["pf_means"][0] - ref).mean(), float(peer["pf_seconds"][0]) / steps))
+                rows.setdefault("FilterPy UKF", []).append(
+                    (np.abs(peer["ukf_means"][0] - ref).mean(), float(peer["ukf_seconds"][0]) / steps))
         dims = []
         for d in (1, 2, 3):
             m = cv_model(d)
@@ -176,17 +153,21 @@ def main(argv: list[str] | None = None) -> int:
             ref = reference_pf(m, dy, 10**5, np.random.default_rng(12))
             mean, sec = ours(m, dy, 32)
             dims.append((m.n, np.abs(mean - ref).mean(), sec / steps * 1e3))
-    pf_cost = np.median([c for _, c in rows["particles bootstrap, 10k"]])
+    pf = rows.get("particles bootstrap, 10k")
+    pf_cost = float(np.median([c for _, c in pf])) if pf else math.nan
     lines = ["## Yau-Jia filter: 4-D range-only tracking", "",
              f"`python -m bench.yau_jia{' --quick' if args.quick else ''}`: examples/range_only_4d.toml, "
              f"{seeds} seed(s) x {steps} steps (dt = 0.02); reference: 10^6-particle bootstrap filter "
-             f"(Monte Carlo error, measured by a second run: {np.mean(mc):.4f}). One BLAS thread.", "",
+             f"(Monte Carlo error, measured by a second run: {np.mean(mc):.4f}). One BLAS thread. Peers: "
+             + (versions or "not run (no bench/out/peers-venv: `python -m bench.measurements --setup-peers`)")
+             + ".", "",
              "| filter | mean gap to 10^6 particles | ms per observation | speed vs particles 10k |",
              "|---|---|---|---|"]
     for name, values in rows.items():
         gap = float(np.mean([g for g, _ in values]))
         cost = float(np.median([c for _, c in values]))
-        lines.append(f"| {name} | {gap:.4f} | {cost * 1e3:.3f} | {pf_cost / cost:.1f}x |")
+        speed = f"{pf_cost / cost:.1f}x" if math.isfinite(pf_cost) else "—"
+        lines.append(f"| {name} | {gap:.4f} | {cost * 1e3:.3f} | {speed} |")
     lines += ["", "Dimension (constant velocity in 1, 2, 3 dimensions with a range sensor; yau-jia with 32 "
               "components; reference 10^5 particles):", "", "| n | mean gap | ms per observation |",
               "|---|---|---|"]
