@@ -338,6 +338,8 @@ def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shap
     disc = spec.get("discretization") or {}
     domain = spec.get("domain") or {}
     basis = int(basis_shape[-1]) if basis_shape else disc.get("basis")
+    if (attrs or {}).get("offline") is False:  # a mesh-free model (yau-jia): no basis, whatever the spec says
+        basis = 0
     state, obs = spec.get("state"), spec.get("observation")
     return ModelSummary(
         id=mid, name=spec.get("name"), state=state if isinstance(state, list) else None,

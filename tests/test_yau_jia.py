@@ -318,6 +318,9 @@ def test_cli_and_http_session_run_the_4d_model(tmp_path):
     assert "mean_p1" in header and "mean_v2" in header
     settings = Settings(store=store, session_db=tmp_path / "s.sqlite3")
     with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+        listed = {m["id"]: m for m in api.get("/v1/models").json()}
+        assert listed[mid]["basis"] == 0  # mesh-free: no basis, whatever the spec's unused `basis` says
+        assert listed[mid]["method"] == "yau-jia"
         r = api.post("/v1/sessions", json={"model": mid})
         assert r.status_code == 201, r.text
         sid = r.json()["id"]

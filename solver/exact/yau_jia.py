@@ -20,12 +20,16 @@ Per observation interval (ẏ = Δy/dt, as the Kalman–Bucy filter takes the pa
 The error is the third-order remainder of h over each component.  It is controlled by splitting:
 after each step, for every component the sensor's departure from its quadratic model at the
 ±√3σ points of each principal axis, ε, is measured (whitened by R); the log-likelihood error it
-causes accumulates at about ε·(|h(m)|_R + 1) per unit time, and a component whose rate exceeds
-``split_tolerance`` is split along that axis into three (moment-preserving weights 0.2252, 0.5496,
-0.2252, offsets ±1.0575σ).  Components whose weight falls below e^{−30} of the largest are pruned;
-when ``max_components`` is reached, the two components whose merge costs least (Runnalls'
-bound) are merged with their moments kept.  Log-scale weights throughout; the log-likelihood (log
-of the ratio of ∫σ, the convention of KalmanBucyFilter) is carried; a step that loses
+causes accumulates at about ε·(|h(m)|_R + 1) per unit time, and the ``split_budget`` components
+(default max_components / 8) with the largest rates above ``split_tolerance`` are split along that
+axis into three (moment-preserving weights 0.2252, 0.5496, 0.2252, offsets ±1.0575σ).  The budget
+grows with the cap because the diffusion widens every component at every step: with one split per
+step a large mixture starves and its components grow wide (a 2-D ring-shaped posterior was then
+*less* accurate at 128 components than at 32).  Room for the splits is made first, by merging the
+cheapest pairs (Runnalls' bound, moments kept) among the other components, so that a fresh split is
+never merged back.  Components whose weight falls below e^{−30} of the largest are pruned.  The cap
+(``default_components``) is 64 in 1-D, 128 in 2-D and 32 above.  Log-scale weights throughout; the
+log-likelihood (log of the ratio of ∫σ, the convention of KalmanBucyFilter) is carried; a step that loses
 integrability is reported degenerate and the state keeps the last good mixture.
 
 σ = e^{φ}v: moments need ∫e^{φ}·Gaussian in closed form, so e^{φ} must be a sum of exponentials of
@@ -203,11 +207,13 @@ class YauJiaFilter(ChunkedFilter):
         cov = np.broadcast_to(cov, (len(C), len(logc), n, n))
         return log_mass.reshape(-1), mean.reshape(-1, n), cov.reshape(-1, n, n)
 
-    def _normalise(self, A, B, C) -> tuple[np.ndarray, float]:
-        log_mass = float(_log_sum_exp(self._components(A, B, C)[0]))
+    def _normalise(self, A, B, C, components=None):
+        """C of ∫σ = 1, log ∫σ before, and σ's components (log weights, means, covs) after."""
+        logw, means, covs = self._components(A, B, C) if components is None else components
+        log_mass = float(_log_sum_exp(logw))
         if not math.isfinite(log_mass):
             raise InputError("increments", "the mixture has no finite mass")
-        return C + log_mass, log_mass
+        return C + log_mass, log_mass, (logw - log_mass, means, covs)
 
     # -- prior ------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauJiaState:
@@ -229,9 +235,9 @@ class YauJiaFilter(ChunkedFilter):
         C = np.array([t.C for t in terms])
         if self.structure.phi != 0:
             A, B, C = self._times_exp_minus_phi(A, B, C)
-        C, _ = self._normalise(A, B, C)
-        A, B, C, splits = self._control(A, B, C)
-        C, _ = self._normalise(A, B, C)
+        C = self._normalise(A, B, C)[0]
+        A, B, C, splits, _ = self._control(A, B, C)
+        C = self._normalise(A, B, C)[0]
         return YauJiaState(A=A, B=B, C=C, splits=splits)
 
     def _times_exp_minus_phi(self, A, B, C):
@@ -337,11 +343,16 @@ class YauJiaFilter(ChunkedFilter):
         rate = err * size[:, None]
         return np.where(np.isfinite(rate), rate, np.inf), U, lam
 
-    def _control(self, A, B, C):
+    def _control(self, A, B, C, components=None):
         """Prune the negligible components; split the ``split_budget`` worst of those whose rate
         exceeds the tolerance, first merging the cheapest pairs among the others to make room
-        (merging before splitting keeps a fresh split from being merged back at once)."""
-        means, covs, logw = gaussian_terms_batch(A, B, C)
+        (merging before splitting keeps a fresh split from being merged back at once).  Returns
+        (A, B, C, splits, σ's components where φ = 0 (they are v's), else None); ``components``:
+        v's, if known."""
+        if components is None or self.structure.phi != 0:
+            means, covs, logw = gaussian_terms_batch(A, B, C)
+        else:
+            logw, means, covs = components
         keep = logw >= logw.max() + PRUNE_LOG_WEIGHT
         if not keep.all():
             means, covs, logw = means[keep], covs[keep], logw[keep]
@@ -366,8 +377,9 @@ class YauJiaFilter(ChunkedFilter):
         elif len(logw) > self.max_components:  # a prior with more components than the cap
             means, covs, logw = _merge_to(means, covs, logw, self.max_components)
         if len(chosen) or len(logw) != len(C):
-            A, B, C = _terms(means, 0.5 * (covs + np.swapaxes(covs, -1, -2)), logw)
-        return A, B, C, int(len(chosen))
+            covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
+            A, B, C = _terms(means, covs, logw)
+        return A, B, C, int(len(chosen)), ((logw, means, covs) if self.structure.phi == 0 else None)
 
     # -- Filter protocol ---------------------------------------------------------------------
     def run_arrays(self, state: YauJiaState, increments: np.ndarray,
@@ -407,7 +419,7 @@ class YauJiaFilter(ChunkedFilter):
             row = rows[k] if keys[k] else None
             tau = None if taus is None else float(taus[k])
             try:
-                A1, B1, C1, log_mass, damped, split = self._row(A, B, C, row, tau)
+                A1, B1, C1, log_mass, damped, split, components = self._row(A, B, C, row, tau)
                 if row is not None:
                     pll[k] = log_mass + terms.offset[k]
                     bound = -2.0 * pll[k] - terms.log_det_S0[k]
@@ -417,9 +429,9 @@ class YauJiaFilter(ChunkedFilter):
                                                                   self._h_cov(*predicted[:3]),
                                                                   obs.S0_scale(float(gaps[k])))
                         if score > terms.threshold[k]:
-                            (A1, B1, C1, _, damped, split), row = predicted, None
+                            (A1, B1, C1, _, damped, split, components), row = predicted, None
                             gated[k], scores[k] = True, standard_score(score, model.m)
-                mean1, cov1 = self._moments(A1, B1, C1)
+                mean1, cov1 = self._moments(A1, B1, C1, components)
             except (InputError, np.linalg.LinAlgError) as exc:
                 done = k
                 pll[k] = np.nan
@@ -462,11 +474,11 @@ class YauJiaFilter(ChunkedFilter):
         for piece, family in zip(pieces, families, strict=True):
             share = row if row is None or piece is None else row * (piece / tau)
             A, B, C, clip = self._step(A, B, C, share, piece, family)
-            C, gain = self._normalise(A, B, C)
-            A, B, C, split = self._control(A, B, C)
-            C, _ = self._normalise(A, B, C)
+            C, gain, components = self._normalise(A, B, C)
+            A, B, C, split, components = self._control(A, B, C, components)
+            C, _, components = self._normalise(A, B, C, components)
             log_mass, damped, splits = log_mass + gain, damped + clip, splits + split
-        return A, B, C, log_mass, damped, splits
+        return A, B, C, log_mass, damped, splits, components
 
     def _gap_family(self, length: float) -> FlowFamily:
         """The flows (observed, and exact prediction where the class has one) over ``length``."""
@@ -487,8 +499,9 @@ class YauJiaFilter(ChunkedFilter):
         second = np.einsum("j,jpa,jpb->ab", w, h, h) / (2 * n)
         return second - np.outer(first, first)
 
-    def _moments(self, A, B, C):
-        logw, means, covs = self._components(A, B, C)
+    def _moments(self, A, B, C, components=None):
+        """Mean and covariance of σ (its components if known)."""
+        logw, means, covs = self._components(A, B, C) if components is None else components
         w = np.exp(logw - _log_sum_exp(logw))
         mean = w @ means
         dev = means - mean
@@ -520,9 +533,14 @@ def _times_exp_quadratic(A, B, C, at, covs, s0, g, S):
     a convex factor) S is damped to θS with θ = 0.9/λ_max(PS) (counted in ``clipped``).
     """
     S = 0.5 * (S + np.swapaxes(S, -1, -2))
-    top = np.linalg.eigvals(covs @ S).real.max(-1)  # λ_max(PS): P⁻¹ − θS > 0 iff θλ_max < 1
-    theta = np.where(top > 0.9, 0.9 / np.where(top > 0.9, top, 1.0), 1.0)
-    S = theta[:, None, None] * S
+    try:  # λ_max(PS) < 0.9 iff P⁻¹ − S/0.9 = 2A − S/0.9 > 0: no damping (the common case)
+        np.linalg.cholesky(2.0 * A - S / 0.9)
+    except np.linalg.LinAlgError:
+        top = np.linalg.eigvals(covs @ S).real.max(-1)  # λ_max(PS): P⁻¹ − θS > 0 iff θλ_max < 1
+        theta = np.where(top > 0.9, 0.9 / np.where(top > 0.9, top, 1.0), 1.0)
+        S = theta[:, None, None] * S
+    else:
+        theta = np.ones(len(S))
     Sm = (S @ at[..., None])[..., 0]
     A2 = A - 0.5 * S
     B2 = B - (g - Sm)
@@ -568,8 +586,10 @@ def _merge_to(means, covs, logw, cap: int):
     for _ in range(J - max(cap, 1)):
         a, b = divmod(int(np.argmin(cost)), J)
         tot = w[a] + w[b]
-        P = _pair_costs(means, covs, w, ld, np.array([a]), np.array([b]))[1][0]
-        means[a], covs[a], w[a] = (w[a] * means[a] + w[b] * means[b]) / tot, P, tot
+        d = means[a] - means[b]
+        covs[a] = (w[a] * covs[a] + w[b] * covs[b]) / tot + (w[a] * w[b] / tot**2) * np.outer(d, d)
+        means[a], w[a] = (w[a] * means[a] + w[b] * means[b]) / tot, tot
+        P = covs[a]
         ld[a] = np.linalg.slogdet(P)[1]
         alive[b] = False
         cost[b, :] = cost[:, b] = np.inf
