@@ -222,12 +222,13 @@ def main(argv: list[str] | None = None) -> int:
         smaller = all(g < gaps["particles bootstrap, 10k"] for k, g in gaps.items() if "yau" in k)
         lines += ["", "Target (issue 13): at least 10x faster than the 10k-particle filter with a smaller "
                   f"gap: {verdict}.  The gap is {'smaller' if smaller else 'NOT smaller'} at every component "
-                  "count.  Why the speed is missed: a yau-jia step is about 150 small numpy calls on "
-                  "(J, 4, 4) stacks (two cubatures with derivatives, the exact flow at 8 Gauss nodes, the "
-                  "split check, the merges), each a few microseconds of call overhead, while the particle "
-                  "filter's step is a few dozen calls vectorised over 10^4 particles; at 8 components the "
-                  "fixed part (about 0.45 ms) dominates.  Closing it needs a fused (compiled) step, not "
-                  "fewer components."]
+                  "count.  Why the speed is missed: a yau-jia step makes about 1 800 Python function "
+                  "calls (cProfile, 32 components), mostly numpy's wrappers around small (J, 4, 4) stacks "
+                  "(two cubatures with derivatives, the exact flow at 8 Gauss nodes, the split check, the "
+                  "merges), each a few microseconds of overhead, while the particle filter's step is a "
+                  "few dozen calls vectorised over 10^4 particles; below 8 components the fixed part "
+                  "(about 0.45 ms) dominates.  Closing it needs a fused (compiled) step, not fewer "
+                  "components."]
     lines += ["", f"2-D ring posterior (tests/test_yau_jia.py's model, {2 if args.quick else 5} seeds x "
               f"{300 if args.quick else 1000} steps): max gap of the mean to the point-mass reference "
               "(worst seed, and mean over seeds) and cost, by the cap on components and the splits "
