@@ -211,6 +211,22 @@ def test_2d_nonlinear_sensor_against_the_point_mass_reference():
     assert gaps.max() <= 0.01
 
 
+@pytest.mark.parametrize("cap", [1, 2, 3, 4, 7])
+def test_the_mixture_never_exceeds_its_cap(cap):
+    """Splits make room by merging first: at no step does the mixture hold more than the cap, and a
+    cap of 3 still lets a single wide component split (into 3)."""
+    model = compile_model(load_spec(EXAMPLES / "yau_jia_1d.toml"))
+    dy = simulate(model, 120, np.random.default_rng(0)).increments
+    flt = YauJiaFilter(model, max_components=cap)
+    state, sizes = flt.initial_state(), []
+    for row in dy:
+        state, result = flt.run_arrays(state, row[None])
+        sizes.append(len(state.C))
+        assert np.isfinite(result.mean).all() and not result.degenerate.any()
+    assert max(sizes) <= cap
+    assert (state.splits > 0) == (cap >= 3)
+
+
 def _cv_particle_filter(model, increments, N, rng, substeps=2):
     """Bootstrap particle filter for the constant-velocity model with range sensor: exact Gaussian
     transitions (Van Loan) over dt/substeps, ∫h dt by the trapezoid rule, Δy ~ N(∫h, R dt)."""

@@ -360,8 +360,11 @@ class YauJiaFilter(ChunkedFilter):
         worst = rates.max(-1)
         order = np.argsort(-worst)[:self.split_budget]
         chosen = order[worst[order] > self.split_tolerance]
-        # each split adds two components; at most (cap − 1) // 3 splits leave one other to merge into
-        chosen = chosen[:max(0, (self.max_components - 1) // 3)]
+        # k splits need 3k places, plus one for the others merged into one (if there are others)
+        k = min(len(chosen), self.max_components // 3)
+        if k and len(logw) > k and 3 * k + 1 > self.max_components:
+            k -= 1
+        chosen = chosen[:k]
         if len(chosen):
             split = np.zeros(len(logw), bool)
             split[chosen] = True
