@@ -266,9 +266,7 @@ class YauJiaFilter(ChunkedFilter):
         """E[h], E[∂h], E[∂²h] over each component N(m_j, P_j): the mean over the 2n points
         m ± √n·√λ_k u_k (third-degree cubature, exact for quadratic integrands)."""
         J_count, n = means.shape
-        lam, U = np.linalg.eigh(covs)
-        axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
-        points = np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)  # (J, 2n, n)
+        points = _cubature_points(means, covs)
         h, Jh, H = self.sensor(points.reshape(-1, n))
         m = h.shape[1]
         return (h.reshape(J_count, 2 * n, m).mean(1), Jh.reshape(J_count, 2 * n, m, n).mean(1),
@@ -494,9 +492,7 @@ class YauJiaFilter(ChunkedFilter):
         logw, means, covs = self._components(A, B, C)
         w = np.exp(logw - _log_sum_exp(logw))
         J_count, n = means.shape
-        lam, U = np.linalg.eigh(covs)
-        axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
-        points = np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)  # (J, 2n, n)
+        points = _cubature_points(means, covs)
         h = self.sensor(points.reshape(-1, n))[0].reshape(J_count, 2 * n, -1)
         first = np.einsum("j,jpm->m", w, h) / (2 * n)
         second = np.einsum("j,jpa,jpb->ab", w, h, h) / (2 * n)
@@ -527,6 +523,15 @@ class YauJiaFilter(ChunkedFilter):
 
     def state_from_dict(self, data: dict[str, Any]) -> YauJiaState:
         return mixture_state_from_dict(YauJiaState, data, self.model.n, "yau-jia")
+
+
+def _cubature_points(means, covs) -> np.ndarray:
+    """The 2n points m ± √n·√λ_k u_k of each component N(m, P) (P = U diag(λ) Uᵀ), equally weighted:
+    the third-degree cubature of ``_expected`` and ``_h_cov``.  Returns (J, 2n, n)."""
+    n = means.shape[-1]
+    lam, U = np.linalg.eigh(covs)
+    axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
+    return np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)
 
 
 def _times_exp_quadratic(A, B, C, at, covs, s0, g, S):
