@@ -59,7 +59,8 @@ def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     store = SqliteSessionStore(path, synchronous=settings.session_synchronous)
-    return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points)
+    return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points,
+                    settings.batch_window, settings.max_batch)
 
 
 def _configure_logging(level: str) -> None:

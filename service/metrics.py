@@ -31,6 +31,8 @@ GATED = Counter("yauyau_gated_observations_total",
 REINITIALISED = Counter("yauyau_reinitialised_total",
                         "rows where a degenerate filter started again by itself "
                         "(on_degenerate = reinitialise)")
+BATCH_SIZE = Histogram("yauyau_chunk_batch_size", "chunks applied together in one batch (micro-batching)",
+                       buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
 RESETS = Counter("yauyau_resets_total", "sessions reset over HTTP (POST /v1/sessions/{id}/reset)")
 
 

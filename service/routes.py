@@ -36,7 +36,7 @@ from .schemas import (
     SessionCreated,
     SessionInfo,
 )
-from .sessions import Extras
+from .sessions import ChunkRequest, Extras
 
 SessionId = Annotated[str, Path(min_length=1, max_length=100, description="session id")]
 ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model id")]
@@ -113,10 +113,9 @@ async def observe(service: SessionsDep, session_id: SessionId, body: Observation
     (discrete models), optionally at ``times``; null marks a missing row or component.  A re-sent
     seq returns the stored answer (the same bytes); other data under a used seq, or a gap, is 409."""
     # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
-    extras = Extras(body.quantiles, body.mode)
-    text = await asyncio.get_running_loop().run_in_executor(
-        service.chunk_executor, lambda: service.observe(session_id, body.seq, body.increments, True, extras,
-                                                        observations=body.observations, times=body.times))
+    request = ChunkRequest(session_id, body.seq, body.increments, Extras(body.quantiles, body.mode),
+                           observations=body.observations, times=body.times)
+    text = await asyncio.wrap_future(service.chunk_executor.submit_chunk(request))  # applied in a batch
     return Response(text, media_type="application/json")
 
 

@@ -19,7 +19,6 @@ import hashlib
 import math
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -30,6 +29,7 @@ from yauyau.solver.measurement import resolve_times
 from yauyau.storage.protocols import SessionStore
 
 from . import metrics
+from .batching import ChunkBatcher
 from .registry import LoadedModel, Registry
 
 ROW_FIELDS = {"continuous": "increments", "discrete": "observations"}
@@ -162,6 +162,16 @@ def chunk_response(seq: int, state: Any, rows: np.ndarray, filt: Any, extras: Ex
         state, out, gated, again, reason = run_chunk_with_summaries(filt, state, rows, extras, times, policy)
     else:
         state, out, gated, again, reason = run_chunk(filt, state, rows, times, policy)
+    return state, _response(seq, state, out, gated, again, reason)
+
+
+def result_response(seq: int, state: Any, result: ChunkResult, filt: Any) -> dict[str, Any]:
+    """The response of a chunk already run (``state`` after it, ``result`` its arrays)."""
+    return _response(seq, state, *result_rows(result, _gate_of(filt)))
+
+
+def _response(seq: int, state: Any, out: list[dict], gated: list[int], again: list[int],
+              reason: str | None) -> dict[str, Any]:
     flagged = reason is not None
     loglik = float(state.loglik)
     if not math.isfinite(loglik):
@@ -169,9 +179,9 @@ def chunk_response(seq: int, state: Any, rows: np.ndarray, filt: Any, extras: Ex
     degenerate = flagged or bool(state.degenerate)
     if degenerate and reason is None:
         reason = getattr(state, "reason", None) or "degenerate density"
-    return state, {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": out,
-                   "loglik": loglik if math.isfinite(loglik) else None, "degenerate": degenerate,
-                   "reason": reason, "gated": gated, "reinitialised": again}
+    return {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": out,
+            "loglik": loglik if math.isfinite(loglik) else None, "degenerate": degenerate,
+            "reason": reason, "gated": gated, "reinitialised": again}
 
 
 def encode_response(response: dict[str, Any]) -> str:
@@ -263,7 +273,8 @@ def _chunk_rows(loaded: LoadedModel, given: dict[str, Any]) -> tuple[str, list]:
 class Sessions:
     """The session operations behind the /v1/sessions routes."""
 
-    def __init__(self, store: SessionStore, registry: Registry, max_chunk_rows: int, max_density_points: int):
+    def __init__(self, store: SessionStore, registry: Registry, max_chunk_rows: int, max_density_points: int,
+                 batch_window: float = 0.0, max_batch: int = 256):
         self.store = store
         self.registry = registry
         self.max_chunk_rows = max_chunk_rows
@@ -274,8 +285,9 @@ class Sessions:
         self._write_lock = threading.Lock()
         # The HTTP route hands chunks to this one thread: first come, first served (threads
         # queueing on the lock are woken in no particular order, which made p99 ≫ p50), and the
-        # event loop stays free to read the next requests while a chunk computes.
-        self.chunk_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="yauyau-chunk")
+        # event loop stays free to read the next requests while a chunk computes.  The chunks that
+        # queued meanwhile are applied together (service/batching.py).
+        self.chunk_executor = ChunkBatcher(self.observe_many, batch_window, max_batch)
         self._deep_checked = 0.0
 
     def _apply(self, session_id: str, seq: int, compute, encoded: bool, digest: str):
@@ -334,36 +346,56 @@ class Sessions:
         exactly one of the two, as the model's kind says; ``times`` their absolute times (default:
         one dt apart).  ``extras``: quantiles and/or the mode with every estimate (a replay returns
         what was stored)."""
-        given = {name: value for name, value in (("increments", rows), ("observations", observations))
-                 if value is not None}
+        request = ChunkRequest(session_id, seq, rows, extras, observations, times)
+        answer = self.observe_many([request])[0]
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer if encoded else orjson.loads(answer)
+
+    def observe_many(self, requests: list["ChunkRequest"]) -> list[Any]:
+        """Chunks of *different* sessions, each applied exactly once as :meth:`observe` applies it:
+        per request its response's JSON text, or the exception that is its answer.  The chunks of
+        one model (same method and gate, no extras) are stepped together (``run_batch``: one matrix
+        product per step for all) and stored in one transaction; one request's error never touches
+        another's result."""
+        out: list[Any] = [None] * len(requests)
+        groups: dict[tuple, list[tuple[int, _ChunkJob]]] = {}
+        for i, request in enumerate(requests):
+            try:
+                job = self._chunk_job(request)
+            except Exception as exc:  # noqa: BLE001 - that request's answer (a 4xx, or a 500 alone)
+                out[i] = exc
+                continue
+            key = (id(job.filt), bool(job.extras))
+            groups.setdefault(key, []).append((i, job))
+        for group in groups.values():
+            jobs = [job for _, job in group]
+            with self._write_lock:
+                answers = self.store.apply_chunks([(j.session_id, j.seq, j.digest) for j in jobs],
+                                                  lambda pairs, jobs=jobs: _compute_many(jobs, pairs),
+                                                  encoded=True)
+            for (i, job), answer in zip(group, answers, strict=True):
+                out[i] = answer if isinstance(answer, BaseException) else answer[0]
+                if not isinstance(answer, BaseException):
+                    metrics.CHUNKS.labels("replayed" if answer[1] else "applied").inc()
+                    if not answer[1]:
+                        _count(job)
+        return out
+
+    def _chunk_job(self, request: "ChunkRequest") -> "_ChunkJob":
+        """A chunk checked against its session and model before anything is applied."""
+        given = {name: value for name, value in (("increments", request.increments),
+                                                 ("observations", request.observations)) if value is not None}
         for name, value in given.items():
             if len(value) > self.max_chunk_rows:
                 raise InputError(name, f"at most {self.max_chunk_rows} rows per chunk, got {len(value)}")
-        rec, loaded, filt = self._session(session_id)
+        rec, loaded, filt = self._session(request.session_id)
         field, data = _chunk_rows(loaded, given)
         array = rows_array(data, loaded.model.m, field)
-        times = checked_times(times, len(data))
-        policy = _options(rec)["on_degenerate"]
-        digest = request_digest(data, extras, field, times)
-        applied: list[dict[str, Any]] = []
-
-        def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
-            state = filt.state_from_dict(state_dict)
-            state, response = chunk_response(seq, state, array, filt, extras, times, policy)
-            applied.append(response)
-            return state.to_dict(), encode_response(response)
-
-        response, replayed = self._apply(session_id, seq, compute, encoded, digest)
-        if not replayed:
-            metrics.OBSERVATIONS.inc(len(data))
-            done = applied[-1]
-            if done["degenerate"]:
-                metrics.DEGENERATE.inc()
-            if done["gated"]:
-                metrics.GATED.inc(len(done["gated"]))
-            if done["reinitialised"]:
-                metrics.REINITIALISED.inc(len(done["reinitialised"]))
-        return response
+        times = checked_times(request.times, len(data))
+        digest = request_digest(data, request.extras, field, times)
+        return _ChunkJob(request.session_id, request.seq, digest, filt, array, times,
+                         _options(rec)["on_degenerate"], request.extras)
 
     def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
               encoded: bool = False) -> Any:
@@ -521,3 +553,85 @@ def _checked_prior(prior: Any, loaded: LoadedModel) -> Any:
             raise _as_prior_error(inner) from None
         raise SpecError("prior", exc.errors()[0].get("msg", "invalid prior")) from None
     return prior
+
+
+class ChunkRequest:
+    """A chunk as the route receives it (checked by :meth:`Sessions.observe_many`)."""
+
+    __slots__ = ("session_id", "seq", "increments", "extras", "observations", "times")
+
+    def __init__(self, session_id: str, seq: int, increments: list | None, extras: Extras | None = None,
+                 observations: list | None = None, times: list[float] | None = None):
+        self.session_id, self.seq, self.increments = session_id, seq, increments
+        self.extras, self.observations, self.times = extras, observations, times
+
+
+class _ChunkJob:
+    """A checked chunk: its session, seq and request digest, the filter, the rows as an array."""
+
+    __slots__ = ("session_id", "seq", "digest", "filt", "array", "times", "policy", "extras", "applied")
+
+    def __init__(self, session_id, seq, digest, filt, array, times, policy, extras):
+        self.session_id, self.seq, self.digest, self.filt = session_id, seq, digest, filt
+        self.array, self.times, self.policy, self.extras = array, times, policy, extras
+        self.applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
+
+
+def _compute_many(jobs: list[_ChunkJob], pairs: list[tuple[int, dict[str, Any]]]) -> list[Any]:
+    """The store's ``compute_many``: the states of ``pairs`` (index into ``jobs``, stored state)
+    advanced over their chunks, together where they can be: [(new state, response text) or error]."""
+    out: list[Any] = [None] * len(pairs)
+    states: list[Any] = [None] * len(pairs)
+    for p, (i, state_dict) in enumerate(pairs):
+        try:
+            states[p] = jobs[i].filt.state_from_dict(state_dict)
+        except Exception as exc:  # noqa: BLE001 - that chunk's answer
+            out[p] = exc
+    together = [p for p in range(len(pairs)) if out[p] is None and not jobs[pairs[p][0]].extras]
+    if together:
+        members = [jobs[pairs[p][0]] for p in together]
+        try:
+            results = members[0].filt.run_batch([states[p] for p in together], [job.array for job in members],
+                                                [job.times for job in members], return_exceptions=True)
+        except Exception as exc:  # noqa: BLE001 - the batch failed as a whole: each alone (below)
+            results = [exc] * len(together)
+        for p, job, result in zip(together, members, results, strict=True):
+            try:
+                if isinstance(result, InputError):
+                    raise result
+                if isinstance(result, BaseException) or (job.policy != "stop" and (
+                        states[p].degenerate or result[1].degenerate.any())):
+                    out[p] = _alone(job, states[p])  # the policy restarts it: alone, from its state
+                else:
+                    response = result_response(job.seq, result[0], result[1], job.filt)
+                    job.applied = response
+                    out[p] = (result[0].to_dict(), encode_response(response))
+            except Exception as exc:  # noqa: BLE001 - that chunk's answer
+                out[p] = exc
+    for p in range(len(pairs)):
+        if out[p] is None:
+            try:
+                out[p] = _alone(jobs[pairs[p][0]], states[p])
+            except Exception as exc:  # noqa: BLE001 - that chunk's answer
+                out[p] = exc
+    return out
+
+
+def _alone(job: _ChunkJob, state: Any) -> tuple[dict[str, Any], str]:
+    state, response = chunk_response(job.seq, state, job.array, job.filt, job.extras, job.times, job.policy)
+    job.applied = response
+    return state.to_dict(), encode_response(response)
+
+
+def _count(job: _ChunkJob) -> None:
+    """The metrics of an applied chunk."""
+    metrics.OBSERVATIONS.inc(len(job.array))
+    done = job.applied
+    if done is None:
+        return
+    if done["degenerate"]:
+        metrics.DEGENERATE.inc()
+    if done["gated"]:
+        metrics.GATED.inc(len(done["gated"]))
+    if done["reinitialised"]:
+        metrics.REINITIALISED.inc(len(done["reinitialised"]))

@@ -248,12 +248,27 @@ class YauYauFilter(ChunkedFilter):
             start = stop
         return state, concat_results(parts)
 
+    def run_batch(self, states: list[YauYauState], chunks: list[Any], times: list[Any] | None = None,
+                  return_exceptions: bool = False) -> list[Any]:
+        """Many states through their chunks together, one matrix–matrix product per step (solver/batch.py):
+        [(new state, ChunkResult)] as ``run_arrays`` gives one by one, up to rounding."""
+        from .batch import run_batch
+
+        return run_batch(self, states, chunks, times, return_exceptions)
+
     def _run(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, gating: bool) -> tuple[YauYauState, ChunkResult]:
         """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
-        model, obs = self.model, self.observation
-        K = len(rows)
-        gaps = np.full(K, model.dt) if taus is None else taus
+        ready = self._prepare(state, rows, taus, gating)
+        loop = self._propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
+                               taus)
+        return self._finish(state, rows, steps, times, taus, ready, *loop)
+
+    def _prepare(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None,
+                 gating: bool) -> "_Prepared":
+        """What the hot loop needs of a chunk: the update factors, the gate, the carried vector."""
+        obs = self.observation
+        gaps = np.full(len(rows), self.model.dt) if taus is None else taus
         keys, terms, log_factor, top, impossible = self._factors(rows, gaps)
         missing = keys == 0
         gate = _Gate(obs, terms, keys, gaps, self) if obs.gating and gating else None
@@ -262,9 +277,20 @@ class YauYauFilter(ChunkedFilter):
             skip |= impossible
             gate.scores.update({int(k): math.inf for k in np.flatnonzero(impossible)})
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
-        top_before = top.copy()  # _rescue may shift top[k]: the growth is relative to the factor's maximum
-        sigma, masses, carried, done, reason = self._propagate(initial, log_factor, top, skip.tolist(), gate,
-                                                               taus)
+        # _rescue may shift top[k]: the growth is relative to the factor's maximum
+        return _Prepared(gaps, keys, terms, log_factor, top, top.copy(), impossible, missing, skip, gate,
+                         initial)
+
+    def _finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+                taus: np.ndarray | None, ready: "_Prepared", sigma, masses, carried, done: int,
+                reason: str | None) -> tuple[YauYauState, ChunkResult]:
+        """The chunk's estimates, checks and new state from what the hot loop left (``sigma``: the
+        nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last)."""
+        obs = self.observation
+        K = len(rows)
+        gaps, terms, top, top_before = ready.gaps, ready.terms, ready.top, ready.top_before
+        impossible, missing, skip, gate, initial = (ready.impossible, ready.missing, ready.skip, ready.gate,
+                                                     ready.initial)
         if gate is None and impossible[:done].any():
             done = int(np.argmax(impossible))
             reason = "the update factor exp(hᵀR⁻¹Δy) overflows: observation incompatible with the model"
@@ -689,6 +715,23 @@ class YauYauFilter(ChunkedFilter):
             cache.pop(next(iter(cache)))
         cache[key] = operator
         return operator
+
+
+@dataclass(frozen=True, eq=False)
+class _Prepared:
+    """A chunk made ready for the hot loop (:meth:`YauYauFilter._prepare`)."""
+
+    gaps: np.ndarray
+    keys: np.ndarray
+    terms: RowTerms
+    log_factor: np.ndarray  # (K, Q) log e_k − top[k]
+    top: np.ndarray  # (K,)
+    top_before: np.ndarray
+    impossible: np.ndarray
+    missing: np.ndarray
+    skip: np.ndarray  # rows that only predict
+    gate: "_Gate | None"
+    initial: np.ndarray  # [coefficients, ∫σ] in the loop's precision
 
 
 class _Gate:

@@ -277,6 +277,14 @@ class ChunkedFilter:
         new_state, result = self.run_arrays(state, increments, times)
         return new_state, result.estimates(self.gate)
 
+    def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
+                  return_exceptions: bool = False) -> list[Any]:
+        """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/batch.py;
+        the Yau–Yau engine steps them together, other filters one after another)."""
+        from .batch import run_batch_alone
+
+        return run_batch_alone(self, states, chunks, times, return_exceptions)
+
     def predict(self, state: Any, t: float) -> tuple[Any, Estimate]:
         try:
             t = float(t)

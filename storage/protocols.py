@@ -32,6 +32,12 @@ class SessionStore(Protocol):
         Conflict when its ``digest`` (of the request) differs from the stored one.  Any numbered
         operation on a session goes through here (a chunk of rows, a reset), one seq each."""
 
+    def apply_chunks(self, requests: list[tuple[str, int, str | None]], compute_many: Any,
+                     encoded: bool = False) -> list[Any]:
+        """Chunks (session id, seq, digest) of different sessions, each exactly as apply_chunk would
+        apply it, computed by one ``compute_many([(index, state)])`` call and stored together:
+        [(response, replayed) or that chunk's exception]."""
+
     def delete(self, session_id: str) -> None:
         """Remove the session; NotFound if absent."""
 

@@ -61,6 +61,8 @@ import orjson
 from .errors import Conflict, NotFound, StoreError, Unavailable
 
 Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]]
+# compute_many([(index, state)]) -> per pair (new state, response) or the exception that is its answer
+ComputeMany = Callable[[list[tuple[int, dict[str, Any]]]], list[Any]]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -451,28 +453,118 @@ class SqliteSessionStore:
                 return (orjson.loads(text) if isinstance(response, str) else response), False
         raise Conflict("session", f"session {session_id} is updated too often concurrently; retry")
 
-    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict | str,
-                digest: str | None = None) -> str | None:
-        """The stored response text, or None when another writer moved the session on."""
+    def apply_chunks(self, requests: list[tuple[str, int, str | None]], compute_many: ComputeMany,
+                     encoded: bool = False) -> list[Any]:
+        """Several chunks of *different* sessions at once, each exactly as :meth:`apply_chunk` would
+        apply it: [(response, replayed) or the StoreError of that chunk].
+
+        ``requests`` are (session id, seq, digest).  Replays and gaps are answered per chunk; the
+        others' (index in ``requests``, state) pairs go to ``compute_many(pairs) -> [(new state,
+        response) or an exception]`` in one call (what lets the service step them together), and
+        their results are written in ONE transaction (one commit for the lot).  An exception that
+        ``compute_many`` returns for a chunk is that chunk's answer (nothing stored for it); a chunk
+        whose session another writer moved on meanwhile is applied again alone.  A failed
+        transaction fails every chunk it held (nothing stored, each raises as apply_chunk would)."""
+        out: list[Any] = [None] * len(requests)
+        pending: list[tuple[int, SessionRecord]] = []
+        seen: set[str] = set()
+        for i, (session_id, seq, digest) in enumerate(requests):
+            if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+                out[i] = StoreError("seq", f"must be a non-negative integer, got {seq!r}")
+                continue
+            if session_id in seen:
+                raise StoreError("requests", f"session {session_id} appears twice: one chunk per session")
+            seen.add(session_id)
+            try:
+                record = self.get(session_id)
+                if seq < record.next_seq:
+                    text = self._stored_text(session_id, seq, digest)
+                    out[i] = (text if encoded else orjson.loads(text)), True
+                elif seq > record.next_seq:
+                    raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
+                                          "nothing was applied")
+                else:
+                    pending.append((i, record))
+            except StoreError as exc:
+                out[i] = exc
+        if not pending:
+            return out
+        computed = compute_many([(i, record.state) for i, record in pending])
+        rows: list[tuple[int, SessionRecord, tuple, Any]] = []
+        for (i, record), result in zip(pending, computed, strict=True):
+            if isinstance(result, BaseException):
+                out[i] = result
+                continue
+            try:
+                rows.append((i, record, self._row(record, result[0], result[1]), result[1]))
+            except StoreError as exc:
+                out[i] = exc
+        clashes: list[int] = []
+        try:
+            with self._transaction() as db:
+                for i, record, row, _ in rows:
+                    seq, digest = requests[i][1], requests[i][2]
+                    if not self._write(db, record, seq, row, digest):
+                        clashes.append(i)
+        except StoreError as exc:
+            for i, _, _, _ in rows:
+                out[i] = exc
+            return out
+        for i, _, row, response in rows:
+            if i not in clashes:
+                text = row[1]
+                out[i] = (text if encoded else orjson.loads(text) if isinstance(response, str) else response,
+                          False)
+        for i in clashes:  # another writer moved the session on: again, alone
+            session_id, seq, digest = requests[i]
+
+            def compute(state: dict[str, Any], i: int = i) -> tuple[dict[str, Any], Any]:
+                result = compute_many([(i, state)])[0]
+                if isinstance(result, BaseException):
+                    raise result
+                return result
+
+            try:
+                out[i] = self.apply_chunk(session_id, seq, compute, encoded=encoded, digest=digest)
+            except Exception as exc:  # noqa: BLE001 - the chunk's own answer, as compute_many gives it
+                out[i] = exc
+        return out
+
+    def _row(self, old: SessionRecord, new_state: dict, response: dict | str) -> tuple:
+        """(state text, response text, step, t, loglik) of a chunk's result (StoreError if not storable)."""
         state_text = _dumps(new_state, "state")
         if isinstance(response, str):
             response_text, response = response, {}  # encoded by the caller, who vouches for it
         else:
             response_text = _dumps(response, "response")
         step, t, loglik = _progress(new_state, response, (old.step, old.t, old.loglik))
+        return state_text, response_text, step, t, loglik
+
+    def _write(self, db: sqlite3.Connection, old: SessionRecord, seq: int, row: tuple,
+               digest: str | None) -> bool:
+        """Store a chunk's row in the open transaction; False when another writer moved the session on."""
+        state_text, response_text, step, t, loglik = row
+        changed = db.execute(
+            "UPDATE sessions SET state = ?, next_seq = ?, step = ?, t = ?, loglik = ?, updated = ?, "
+            "version = version + 1 WHERE id = ? AND version = ?",
+            (state_text, seq + 1, step, t, loglik, _utc_now(), old.id, old.version),
+        ).rowcount
+        if not changed:
+            return False
+        now = time.time()
+        db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?,?,?)",
+                   (old.id, seq, response_text, digest, now))
+        self._trim(db, old.id, seq, now)
+        return True
+
+    def _commit(self, old: SessionRecord, seq: int, new_state: dict, response: dict | str,
+                digest: str | None = None) -> str | None:
+        """The stored response text, or None when another writer moved the session on."""
+        row = self._row(old, new_state, response)
         with self._transaction() as db:
-            changed = db.execute(
-                "UPDATE sessions SET state = ?, next_seq = ?, step = ?, t = ?, loglik = ?, updated = ?, "
-                "version = version + 1 WHERE id = ? AND version = ?",
-                (state_text, seq + 1, step, t, loglik, _utc_now(), old.id, old.version),
-            ).rowcount
-            if not changed:
+            if not self._write(db, old, seq, row, digest):
                 return None  # someone else moved the session on: re-read
-            now = time.time()
-            db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?,?,?)",
-                       (old.id, seq, response_text, digest, now))
-            self._trim(db, old.id, seq, now)
-        return response_text
+        return row[1]
 
     def _trim(self, db: sqlite3.Connection, session_id: str, seq: int, now: float) -> None:
         """Keep the newest chunk and, before it, what fits in retention (count), retention_bytes

@@ -309,3 +309,82 @@ def test_a_file_written_before_options_and_digests_is_migrated_in_place(tmp_path
     assert store.apply_chunk("old", 1, append_seq(1)) == ({"seq": 1, "before": [0]}, False)
     sid = store.create("m", "yau-yau", {"values": []}, None, {"t0": 2.0})
     assert SqliteSessionStore(path).get(sid).options == {"t0": 2.0}  # opening again: no second migration
+
+
+# -- several sessions in one call (the service's micro-batches) ---------------------------------
+def _append_many(calls: list, fail: set[int] = frozenset()):
+    """compute_many for append_seq chunks: the seq of request i is ``seqs[i]``; ``fail``: requests
+    whose chunk raises (its own answer)."""
+    def compute_many(seqs):
+        def run(pairs):
+            calls.append([i for i, _ in pairs])
+            out = []
+            for i, state in pairs:
+                if i in fail:
+                    out.append(ValueError(f"chunk {i} is bad"))
+                else:
+                    out.append(append_seq(seqs[i])(state))
+            return out
+        return run
+    return compute_many
+
+
+def test_apply_chunks_applies_each_exactly_once_in_one_call(store: SqliteSessionStore):
+    sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(4)]
+    store.apply_chunk(sids[2], 0, append_seq(0))  # session 2 is one chunk ahead
+    calls: list = []
+    seqs = [0, 0, 0, 5]
+    out = store.apply_chunks([(sids[0], 0, "d0"), (sids[1], 0, "d1"), (sids[2], 0, None), (sids[3], 5, None)],
+                             _append_many(calls)(seqs))
+    assert calls == [[0, 1]]  # one call, only for the chunks that apply
+    assert out[0] == ({"seq": 0, "before": []}, False) and out[1][1] is False
+    assert out[2] == ({"seq": 0, "before": []}, True)  # a replay: the stored response
+    assert isinstance(out[3], Conflict) and "expected seq 0" in out[3].message
+    assert [store.get(s).state["values"] for s in sids] == [[0], [0], [0], []]
+    # replays of a batch return the stored answers, a different digest is a conflict
+    again = store.apply_chunks([(sids[0], 0, "d0"), (sids[1], 0, "other")], _append_many(calls)(seqs))
+    assert again[0] == ({"seq": 0, "before": []}, True) and isinstance(again[1], Conflict)
+    assert calls == [[0, 1]]
+
+
+def test_apply_chunks_a_failing_chunk_changes_nothing_of_its_own_and_nothing_of_the_others(store):
+    sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(3)]
+    out = store.apply_chunks([(s, 0, None) for s in sids], _append_many([], fail={1})([0, 0, 0]))
+    assert isinstance(out[1], ValueError)
+    assert [store.get(s).next_seq for s in sids] == [1, 0, 1]
+    assert store.apply_chunk(sids[1], 0, append_seq(0))[1] is False  # it can be resent
+    with pytest.raises(StoreError, match="twice"):
+        store.apply_chunks([(sids[0], 1, None), (sids[0], 2, None)], _append_many([])([1, 2]))
+
+
+def test_apply_chunks_recomputes_a_session_another_writer_moved_on(store: SqliteSessionStore):
+    sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(2)]
+    calls: list = []
+    inner = _append_many(calls)([0, 0])
+
+    def racing(pairs):
+        out = inner(pairs)
+        if len(pairs) == 2:  # meanwhile another process applies session 1's chunk 0
+            other = SqliteSessionStore(store.path)
+            other.apply_chunk(sids[1], 0, append_seq(0))
+        return out
+
+    out = store.apply_chunks([(sids[0], 0, None), (sids[1], 0, None)], racing)
+    assert calls == [[0, 1]]
+    assert out[0][1] is False and store.get(sids[0]).state["values"] == [0]
+    assert out[1] == ({"seq": 0, "before": []}, True)  # session 1 re-read: the other writer's answer
+    assert store.get(sids[1]).state["values"] == [0]  # applied once, not twice
+
+
+def test_apply_chunks_a_failed_transaction_stores_nothing(store: SqliteSessionStore, monkeypatch):
+    from yauyau.storage.errors import Unavailable
+
+    sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(2)]
+
+    def full(*_args, **_kwargs):
+        raise Unavailable("sessions", "the disk is full", retry_after=10)
+
+    monkeypatch.setattr(store, "_write", full)
+    out = store.apply_chunks([(s, 0, None) for s in sids], _append_many([])([0, 0]))
+    assert all(isinstance(o, Unavailable) for o in out)
+    assert [store.get(s).next_seq for s in sids] == [0, 0]
