@@ -12,6 +12,7 @@ continues where it stopped.  The online products run with ``blas_threads`` BLAS 
 from __future__ import annotations
 
 import logging
+import threading
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -58,9 +59,34 @@ def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
 
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    store = SqliteSessionStore(path, synchronous=settings.session_synchronous)
+    store = SqliteSessionStore(path, synchronous=settings.session_synchronous,
+                               idle_expiry=settings.session_idle_expiry or None)
     return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points,
                     settings.batch_window, settings.max_batch)
+
+
+class _Sweeper:
+    """A thread that deletes idle sessions every ``interval`` seconds (each worker runs one: the
+    deletes are idempotent)."""
+
+    def __init__(self, sessions: Sessions, interval: float):
+        self.sessions, self.interval = sessions, interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="yauyau-sweeper", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                gone = self.sessions.expire()
+                if gone:
+                    log.info("deleted %d session(s) idle for longer than the expiry", gone)
+            except Exception as exc:  # noqa: BLE001 - a store that is unavailable now may come back
+                log.warning("idle sessions not swept: %s", exc)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
 
 
 def _configure_logging(level: str) -> None:
@@ -90,8 +116,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.registry = registry
         app.state.sessions = sessions
         app.state.ready = True
+        sweeper = _Sweeper(sessions, settings.session_sweep)
         yield
         app.state.ready = False
+        sweeper.stop()
         sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
         if before["sessions"] is not None:
             app.state.registry, app.state.sessions = before["registry"], before["sessions"]

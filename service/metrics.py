@@ -33,6 +33,7 @@ REINITIALISED = Counter("yauyau_reinitialised_total",
                         "(on_degenerate = reinitialise)")
 BATCH_SIZE = Histogram("yauyau_chunk_batch_size", "chunks applied together in one batch (micro-batching)",
                        buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
+EXPIRED = Counter("yauyau_sessions_expired_total", "sessions deleted after their idle expiry")
 RESETS = Counter("yauyau_resets_total", "sessions reset over HTTP (POST /v1/sessions/{id}/reset)")
 
 

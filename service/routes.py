@@ -35,6 +35,7 @@ from .schemas import (
     SessionCreate,
     SessionCreated,
     SessionInfo,
+    SessionPage,
 )
 from .sessions import ChunkRequest, Extras
 
@@ -104,6 +105,17 @@ def create_session(service: SessionsDep, body: SessionCreate) -> Response:
     what it does when the density degenerates (``on_degenerate``), all kept with the session."""
     return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate),
                  201)
+
+
+@sessions.get("", response_model=SessionPage, responses=_errors(422))
+def list_sessions(service: SessionsDep,
+                  limit: Annotated[int, Query(ge=1, le=1000, description="sessions per page")] = 100,
+                  after: Annotated[str | None, Query(max_length=100, description=(
+                      "the `next` of the previous page"))] = None,
+                  model: Annotated[str | None, Query(max_length=100, description="only this model's")] = None
+                  ) -> Response:
+    """The sessions, a page at a time (by id; no states); idle ones are deleted after ``idle_expiry``."""
+    return _json(service.page(limit, after, model))
 
 
 @sessions.post("/{session_id}/observations", response_model=ChunkResult,

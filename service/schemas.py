@@ -188,6 +188,24 @@ class SessionInfo(BaseModel):
     options: SessionOptions
 
 
+class SessionSummary(BaseModel):
+    id: str
+    model: str
+    method: str
+    step: int
+    t: float
+    next_seq: int
+    created: str = Field(description="ISO 8601, UTC")
+    updated: str = Field(description="ISO 8601, UTC: the last chunk or reset (idle expiry counts from it)")
+
+
+class SessionPage(BaseModel):
+    sessions: list[SessionSummary]
+    next: str | None = Field(description="pass as ?after= for the next page (null: this is the last)")
+    idle_expiry: float | None = Field(description="seconds without a chunk after which a session is deleted "
+                                                  "(null: never)")
+
+
 class Forecast(BaseModel):
     id: str
     step: int = Field(description="the session's step (a forecast adds no observation)")

@@ -512,6 +512,24 @@ class Sessions:
     def delete(self, session_id: str) -> None:
         self.store.delete(session_id)
 
+    def page(self, limit: int = 100, after: str | None = None, model: str | None = None) -> dict[str, Any]:
+        """A page of sessions by id (``after``: the previous page's ``next``)."""
+        rows = self.store.list_sessions(limit + 1, after, model)
+        more = len(rows) > limit
+        rows = rows[:limit]
+        return {"sessions": [{"id": r["id"], "model": r["model_id"], "method": r["method"], "step": r["step"],
+                              "t": r["t"], "next_seq": r["next_seq"], "created": r["created"],
+                              "updated": r["updated"]} for r in rows],
+                "next": rows[-1]["id"] if more else None,
+                "idle_expiry": getattr(self.store, "idle_expiry", None)}
+
+    def expire(self) -> int:
+        """Delete the sessions idle for longer than the store's expiry (how many went)."""
+        gone = self.store.expire()
+        if gone:
+            metrics.EXPIRED.inc(gone)
+        return gone
+
 
 def view_axes(filt: Any, state: Any, estimate: Estimate, points: int) -> list[np.ndarray]:
     """Per variable, a grid over where the density is (quantiles 1e-4 .. 1 − 1e-4, padded by a

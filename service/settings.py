@@ -23,6 +23,10 @@ class Settings(BaseSettings):
     session_synchronous: Literal["normal", "full"] = Field(
         "normal", description="SQLite durability of a chunk: 'normal' survives a killed process (WAL, no "
                               "fsync per chunk), 'full' also an OS crash or power loss (one fsync per chunk)")
+    session_idle_expiry: float = Field(
+        7 * 86_400.0, ge=0, description="seconds without a chunk after which a session is deleted with its "
+                                        "stored responses (default one week; 0: never)")
+    session_sweep: float = Field(60.0, gt=0, le=86_400, description="seconds between looks for idle sessions")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1, le=64)

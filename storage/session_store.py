@@ -93,6 +93,7 @@ CREATE TABLE IF NOT EXISTS meta (
     value INTEGER NOT NULL
 );
 INSERT OR IGNORE INTO meta VALUES ('generation', 0);
+CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
 """
 # added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
 _CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL"}
@@ -180,12 +181,15 @@ class SqliteSessionStore:
 
     def __init__(self, path: str | os.PathLike, retention: int = 16, busy_timeout_ms: int = 30_000,
                  synchronous: str = "normal", retention_bytes: int = 256 * 1024,
-                 retention_seconds: float = 86_400.0):
+                 retention_seconds: float = 86_400.0, idle_expiry: float | None = None):
         for name, value in (("retention", retention), ("retention_bytes", retention_bytes)):
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise StoreError(name, "must be a positive integer")
         if not retention_seconds > 0:
             raise StoreError("retention_seconds", "must be positive")
+        if idle_expiry is not None and not idle_expiry > 0:
+            raise StoreError("idle_expiry", "must be positive seconds (or None: sessions never expire)")
+        self.idle_expiry = None if idle_expiry is None else float(idle_expiry)
         if synchronous not in _SYNCHRONOUS:
             raise StoreError("synchronous", f"must be one of {', '.join(_SYNCHRONOUS)}, got {synchronous!r}")
         self.synchronous = synchronous
@@ -408,6 +412,55 @@ class SqliteSessionStore:
     def ids(self) -> list[str]:
         return [r[0] for r in self._connection().execute("SELECT id FROM sessions ORDER BY created")]
 
+    # -- lifecycle ------------------------------------------------------------------
+    def list_sessions(self, limit: int = 100, after: str | None = None,
+                      model_id: str | None = None) -> list[dict[str, Any]]:
+        """A page of sessions (no states), by id: those after ``after`` (the last id of the previous
+        page), of ``model_id`` if given."""
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= 10_000:
+            raise StoreError("limit", f"must be an integer in [1, 10000], got {limit!r}")
+        which = " AND model_id = ?" if model_id is not None else ""
+        query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated FROM sessions "
+                 f"WHERE id > ?{which} ORDER BY id LIMIT ?")
+        args = (after or "", *([str(model_id)] if model_id is not None else []), limit)
+        try:
+            rows = self._connection().execute(query, args).fetchall()
+        except sqlite3.Error as exc:
+            raise self._error(exc, "cannot list sessions") from None
+        return [dict(row) for row in rows]
+
+    def expire(self, idle_seconds: float | None = None, now: float | None = None) -> int:
+        """Delete the sessions not updated for ``idle_seconds`` (default: the store's ``idle_expiry``)
+        with their stored responses, give the pages back; how many went.  A session that a chunk is
+        being applied to is never among them: a chunk that finds its session older than half the
+        expiry touches it before computing (:meth:`_keep_alive`)."""
+        idle = self.idle_expiry if idle_seconds is None else float(idle_seconds)
+        if idle is None:
+            return 0
+        cutoff = _dt.datetime.fromtimestamp((time.time() if now is None else now) - idle, _dt.timezone.utc)
+        stamp = cutoff.isoformat(timespec="milliseconds")
+        with self._transaction() as db:
+            db.execute("DELETE FROM chunks WHERE session_id IN (SELECT id FROM sessions WHERE updated < ?)",
+                       (stamp,))
+            gone = db.execute("DELETE FROM sessions WHERE updated < ?", (stamp,)).rowcount
+        if gone:
+            self.reclaim()
+        return int(gone)
+
+    def _keep_alive(self, record: SessionRecord) -> None:
+        """Touch a session that is older than half the idle expiry before a chunk computes on it, so
+        that :meth:`expire` cannot remove it mid-chunk (NotFound if it expired just before)."""
+        if self.idle_expiry is None:
+            return
+        updated = _dt.datetime.fromisoformat(record.updated).timestamp()
+        if time.time() - updated <= self.idle_expiry / 2:
+            return
+        with self._transaction() as db:
+            touched = db.execute("UPDATE sessions SET updated = ? WHERE id = ?",
+                                 (_utc_now(), record.id)).rowcount
+        if not touched:
+            raise NotFound("session", f"no session {record.id!r} (it expired)")
+
     # -- chunks ---------------------------------------------------------------------
     def stored_response(self, session_id: str, seq: int) -> dict[str, Any]:
         """The response of an applied chunk (Conflict if it is older than the retention window)."""
@@ -445,6 +498,7 @@ class SqliteSessionStore:
             if seq > record.next_seq:
                 raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
                                       "nothing was applied")
+            self._keep_alive(record)
             new_state, response = compute(record.state)  # outside any lock: sessions run in parallel
             text = self._commit(record, seq, new_state, response, digest)
             if text is not None:
@@ -484,6 +538,7 @@ class SqliteSessionStore:
                     raise Conflict("seq", f"expected seq {record.next_seq} (the next chunk), got {seq}; "
                                           "nothing was applied")
                 else:
+                    self._keep_alive(record)
                     pending.append((i, record))
             except StoreError as exc:
                 out[i] = exc

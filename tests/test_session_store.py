@@ -388,3 +388,74 @@ def test_apply_chunks_a_failed_transaction_stores_nothing(store: SqliteSessionSt
     out = store.apply_chunks([(s, 0, None) for s in sids], _append_many([])([0, 0]))
     assert all(isinstance(o, Unavailable) for o in out)
     assert [store.get(s).next_seq for s in sids] == [0, 0]
+
+
+# -- lifecycle: paging, idle expiry --------------------------------------------------------------
+def _age(store: SqliteSessionStore, sid: str, seconds: float) -> None:
+    """Make the session look ``seconds`` idle (its last update that long ago)."""
+    import datetime as dt
+
+    then = dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=seconds)
+    stamp = then.isoformat(timespec="milliseconds")
+    with store._transaction() as db:
+        db.execute("UPDATE sessions SET updated = ? WHERE id = ?", (stamp, sid))
+
+
+def test_sessions_are_listed_a_page_at_a_time(store: SqliteSessionStore):
+    made = {store.create("a" if i % 3 else "b", "yau-yau", {"values": []}) for i in range(25)}
+    pages, after = [], None
+    while True:
+        page = store.list_sessions(10, after)
+        pages.append(page)
+        if len(page) < 10:
+            break
+        after = page[-1]["id"]
+    ids = [row["id"] for page in pages for row in page]
+    assert [len(p) for p in pages] == [10, 10, 5] and ids == sorted(made)
+    assert set(pages[0][0]) == {"id", "model_id", "method", "next_seq", "step", "t", "loglik", "created",
+                                "updated"}
+    assert {r["id"] for r in store.list_sessions(100, model_id="b")} == {
+        s for s in made if store.get(s).model_id == "b"}
+    with pytest.raises(StoreError, match="limit"):
+        store.list_sessions(0)
+
+
+def test_idle_sessions_expire_with_their_responses_and_give_space_back(tmp_path: Path):
+    store = SqliteSessionStore(tmp_path / "s.sqlite", idle_expiry=3600)
+    big = {"values": [], "pad": "x" * 20_000}
+    old = [store.create("m", "yau-yau", big) for _ in range(40)]
+    fresh = store.create("m", "yau-yau", {"values": []})
+    for sid in old:
+        store.apply_chunk(sid, 0, lambda s: (s, {"r": "y" * 5000}))
+        _age(store, sid, 7200)
+    store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    before = store.path.stat().st_size
+    assert store.expire() == 40
+    assert store.ids() == [fresh]
+    assert store._connection().execute("SELECT COUNT(*) FROM chunks").fetchone()[0] == 0
+    store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    assert store.path.stat().st_size < before / 4
+    assert SqliteSessionStore(tmp_path / "t.sqlite").expire() == 0  # no expiry set: nothing goes
+
+
+def test_expiry_never_removes_a_session_mid_chunk(tmp_path: Path):
+    store = SqliteSessionStore(tmp_path / "s.sqlite", idle_expiry=10)
+    sid = store.create("m", "yau-yau", {"values": []})
+    _age(store, sid, 8)  # idle, but not yet expired, when its chunk arrives
+
+    def compute_while_expiring(state):
+        later = time.time() + 5  # the sweep runs 5 s later, while the chunk computes: the session was
+        assert SqliteSessionStore(store.path).expire(10, now=later) == 0  # touched when the chunk began
+        return append_seq(0)(state)
+
+    assert store.apply_chunk(sid, 0, compute_while_expiring)[1] is False
+    assert store.get(sid).state["values"] == [0]
+    # the same through apply_chunks
+    _age(store, sid, 8)
+    out = store.apply_chunks([(sid, 1, None)], lambda pairs: [compute_while_expiring(s) for _, s in pairs])
+    assert out[0][1] is False and store.get(sid).next_seq == 2
+    # a session that expired before its chunk arrived is gone: the chunk is refused, nothing applied
+    _age(store, sid, 20)
+    assert store.expire() == 1
+    with pytest.raises(NotFound):
+        store.apply_chunk(sid, 2, append_seq(2))

@@ -25,6 +25,12 @@ def add_arguments(parser):
     parser.add_argument("--model-cache", type=int,
                         help="models each worker keeps loaded, least recently used dropped first "
                              "(env YAUYAU_MODEL_CACHE; default 8); models load on first use")
+    parser.add_argument("--session-idle-expiry", type=float,
+                        help="seconds without a chunk after which a session is deleted "
+                             "(env YAUYAU_SESSION_IDLE_EXPIRY; default 604800, one week; 0: never)")
+    parser.add_argument("--batch-window", type=float,
+                        help="seconds a worker waits for more chunks before stepping those it has together "
+                             "(env YAUYAU_BATCH_WINDOW; default 0: the chunks already waiting)")
     parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
 
 
@@ -37,6 +43,8 @@ def _settings(args):
                                    "workers": args.workers, "session_db": args.session_db,
                                    "session_synchronous": args.session_synchronous,
                                    "blas_threads": args.blas_threads, "model_cache": args.model_cache,
+                                   "session_idle_expiry": args.session_idle_expiry,
+                                   "batch_window": args.batch_window,
                                    "log_level": args.log_level}.items() if v is not None}
     try:
         return Settings(**overrides)
