@@ -119,52 +119,62 @@ def _groups(members: list[_Member], Q: int) -> list[list[_Member]]:
 def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]:
     """The hot loop of :meth:`YauYauFilter._propagate` for the group's states at once (sorted longest
     first).  Per member: (σ_k (K, Q), ∫σ_k (K,), carried (N+1,), K, None) as the single loop returns
-    them, or None when the member needs a slow step (dropped: its row is zeroed and left to ride)."""
+    them, or None when the member needs a slow step (dropped: its row is zeroed and left to ride).
+    A group of one runs the single loop itself (the same bits as ``run_arrays``)."""
+    if len(group) == 1:
+        ready = group[0].ready
+        loop = engine._propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
+                                 None)
+        return [None if loop[4] is not None else loop]
     arith, N = engine._arith, engine.N
     dtype = arith.dtype
     S, Kmax, Q = len(group), len(group[0].rows), len(engine.nodes)
     lengths = np.array([len(m.rows) for m in group])
-    # active[k]: how many members still have a row k (a prefix: sorted longest first)
-    active = (lengths[None, :] > np.arange(Kmax)[:, None]).sum(axis=1)
     factor = np.ones((Kmax, S, Q), dtype=dtype)  # 1 past a member's end and on rows that only predict
-    floors = np.zeros((Kmax, S))
+    # the fast path holds while tiny < ∫σ_k < huge and ∫σ_k ≥ the gate's floor (else a slow step)
+    lower = np.full((Kmax, S), np.nextafter(arith.tiny, np.inf))
     for s, member in enumerate(group):
         ready, K = member.ready, len(member.rows)
         np.exp(ready.log_factor, out=factor[:K, s], casting="same_kind")
         if ready.gate is not None:
-            floors[:K, s] = ready.gate.floors(ready.top, ready.skip)
+            np.maximum(lower[:K, s], ready.gate.floors(ready.top, ready.skip), out=lower[:K, s])
     factor[factor < arith.negligible] = 0.0
     sigma = np.empty((Kmax, S, Q), dtype=dtype)
     masses = np.zeros((Kmax, S))
     carried = np.stack([m.ready.initial for m in group]).astype(dtype, copy=False)  # (S, N+1)
+    np.divide(carried, carried[:, N:].copy(), out=carried)  # a unit-mass σ: the loop's 1/∫σ
     following = np.empty_like(carried)
-    inverse = 1.0 / carried[:, N].astype(float)
     propagate_t = np.ascontiguousarray(engine._predict.T)  # (N+1, Q), zero last row
     project_t = np.ascontiguousarray(engine._project.T)  # (Q, N+1), the weights as last column
     scratch = np.empty((S, Q), dtype=dtype)
     dropped = np.zeros(S, dtype=bool)
     finals: list[np.ndarray | None] = [None] * S
-    tiny, huge = arith.tiny, arith.huge
-    for k in range(Kmax):
-        a = int(active[k])
-        c, f, row = carried[:a], following[:a], sigma[k, :a]
-        np.multiply(c, inverse[:a, None].astype(dtype), out=c)
-        np.matmul(c, propagate_t, out=scratch[:a])
-        np.multiply(scratch[:a], factor[k, :a], out=row)
-        np.matmul(row, project_t, out=f)
+    ending: dict[int, list[int]] = {}
+    for s, K in enumerate(lengths.tolist()):
+        ending.setdefault(K - 1, []).append(s)
+    huge, matmul, multiply, divide = arith.huge, np.matmul, np.multiply, np.divide
+    actives = (lengths[None, :] > np.arange(Kmax)[:, None]).sum(axis=1).tolist()  # a prefix: longest first
+    a = -1
+    for k, active in enumerate(actives):
+        if active != a:  # the views of the active prefix, made again only when a member ends
+            a = active
+            c, f, s_a, low, mass_k = carried[:a], following[:a], scratch[:a], lower[:, :a], masses[:, :a]
+        row = sigma[k, :a]
+        matmul(c, propagate_t, out=s_a)
+        multiply(s_a, factor[k, :a], out=row)
+        matmul(row, project_t, out=f)
         new = f[:, N].astype(float)
-        bad = ~((new > tiny) & (new < huge) & (new >= floors[k, :a])) & ~dropped[:a]
-        if bad.any():
+        mass_k[k] = new
+        if not ((new >= low[k]) & (new < huge)).all() or dropped.any():
+            bad = ~((new >= low[k]) & (new < huge))
             dropped[:a] |= bad
-        if dropped.any():  # a dropped member rides along as zeros, with a harmless unit mass
-            new[dropped[:a]] = 1.0
             f[dropped[:a]] = 0.0
-        masses[k, :a] = new
-        inverse[:a] = 1.0 / new
+            new[dropped[:a]] = 1.0  # a dropped member rides along as zeros
+        for s in ending.get(k, ()):  # a member's last row: keep its vector as the single loop has it
+            finals[s] = f[s].copy()
+        divide(f, new[:, None], out=f)
         carried, following = following, carried
-        ends = np.flatnonzero(lengths[:a] == k + 1)
-        for s in ends.tolist():  # a member's last row: keep its carried vector
-            finals[s] = carried[s].copy()
+        c, f = f, c
     out: list[tuple | None] = []
     for s, member in enumerate(group):
         if dropped[s]:
