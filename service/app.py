@@ -11,6 +11,7 @@ continues where it stopped.  The online products run with ``blas_threads`` BLAS 
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 from contextlib import asynccontextmanager
@@ -117,6 +118,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.sessions = sessions
         app.state.ready = True
         sweeper = _Sweeper(sessions, settings.session_sweep)
+        # What start-up made lives as long as the process: moved out of the cyclic collector's reach,
+        # its full collections stop scanning it (measured: 1.27 -> 0.91 ms of CPU per chunk with 64
+        # concurrent streams, docs/bench-load.md).  Garbage made later is collected as before.
+        gc.freeze()
         yield
         app.state.ready = False
         sweeper.stop()

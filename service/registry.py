@@ -10,6 +10,7 @@ used one is dropped (a session of a dropped model is served by loading it again)
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 from collections import OrderedDict
@@ -139,4 +140,5 @@ class Registry:
                     log.info("model %s dropped from the cache (capacity %d)", dropped, self.capacity)
                 self._loading.pop(model_id, None)
             log.info("loaded model %s (%s, method %s)", model_id, loaded.model.spec.name, loaded.method)
+            gc.freeze()  # the model's objects live long: out of the collector's scans (app.py)
             return loaded

@@ -373,7 +373,7 @@ class Sessions:
             with self._write_lock:
                 answers = self.store.apply_chunks([(j.session_id, j.seq, j.digest) for j in jobs],
                                                   lambda pairs, jobs=jobs: _compute_many(jobs, pairs),
-                                                  encoded=True)
+                                                  encoded=True, records=[j.record for j in jobs])
             for (i, job), answer in zip(group, answers, strict=True):
                 out[i] = answer if isinstance(answer, BaseException) else answer[0]
                 if not isinstance(answer, BaseException):
@@ -395,7 +395,7 @@ class Sessions:
         times = checked_times(request.times, len(data))
         digest = request_digest(data, request.extras, field, times)
         return _ChunkJob(request.session_id, request.seq, digest, filt, array, times,
-                         _options(rec)["on_degenerate"], request.extras)
+                         _options(rec)["on_degenerate"], request.extras, rec)
 
     def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
               encoded: bool = False) -> Any:
@@ -587,11 +587,13 @@ class ChunkRequest:
 class _ChunkJob:
     """A checked chunk: its session, seq and request digest, the filter, the rows as an array."""
 
-    __slots__ = ("session_id", "seq", "digest", "filt", "array", "times", "policy", "extras", "applied")
+    __slots__ = ("session_id", "seq", "digest", "filt", "array", "times", "policy", "extras", "record",
+                 "applied")
 
-    def __init__(self, session_id, seq, digest, filt, array, times, policy, extras):
+    def __init__(self, session_id, seq, digest, filt, array, times, policy, extras, record=None):
         self.session_id, self.seq, self.digest, self.filt = session_id, seq, digest, filt
         self.array, self.times, self.policy, self.extras = array, times, policy, extras
+        self.record = record  # the session as read to check the chunk (the store may use it)
         self.applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
 
 

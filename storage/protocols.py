@@ -33,7 +33,7 @@ class SessionStore(Protocol):
         operation on a session goes through here (a chunk of rows, a reset), one seq each."""
 
     def apply_chunks(self, requests: list[tuple[str, int, str | None]], compute_many: Any,
-                     encoded: bool = False) -> list[Any]:
+                     encoded: bool = False, records: list[Any] | None = None) -> list[Any]:
         """Chunks (session id, seq, digest) of different sessions, each exactly as apply_chunk would
         apply it, computed by one ``compute_many([(index, state)])`` call and stored together:
         [(response, replayed) or that chunk's exception]."""

@@ -83,9 +83,10 @@ CREATE TABLE IF NOT EXISTS sessions (
 CREATE TABLE IF NOT EXISTS chunks (
     session_id TEXT NOT NULL,
     seq INTEGER NOT NULL,
-    response TEXT NOT NULL,
+    size INTEGER,
     digest TEXT,
     stored REAL,
+    response TEXT NOT NULL,
     PRIMARY KEY (session_id, seq)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS meta (
@@ -95,8 +96,10 @@ CREATE TABLE IF NOT EXISTS meta (
 INSERT OR IGNORE INTO meta VALUES ('generation', 0);
 CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
 """
-# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
-_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL"}
+# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction).  In a
+# new file the response comes last: the retention trims read size, seq and stored of every kept
+# response, and a column after a long response would be read through its overflow pages.
+_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL", "size": "INTEGER"}
 _SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'"}  # older sessions: no options (the defaults)
 _SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next_seq", "step", "t", "loglik",
                    "created", "updated", "version", "options")
@@ -508,7 +511,7 @@ class SqliteSessionStore:
         raise Conflict("session", f"session {session_id} is updated too often concurrently; retry")
 
     def apply_chunks(self, requests: list[tuple[str, int, str | None]], compute_many: ComputeMany,
-                     encoded: bool = False) -> list[Any]:
+                     encoded: bool = False, records: list[Any] | None = None) -> list[Any]:
         """Several chunks of *different* sessions at once, each exactly as :meth:`apply_chunk` would
         apply it: [(response, replayed) or the StoreError of that chunk].
 
@@ -518,7 +521,9 @@ class SqliteSessionStore:
         their results are written in ONE transaction (one commit for the lot).  An exception that
         ``compute_many`` returns for a chunk is that chunk's answer (nothing stored for it); a chunk
         whose session another writer moved on meanwhile is applied again alone.  A failed
-        transaction fails every chunk it held (nothing stored, each raises as apply_chunk would)."""
+        transaction fails every chunk it held (nothing stored, each raises as apply_chunk would).
+        ``records``: the sessions as the caller just read them (:meth:`get`), to save a read each; a
+        stale one is harmless (a gap it shows is read again, a session moved on is a clash)."""
         out: list[Any] = [None] * len(requests)
         pending: list[tuple[int, SessionRecord]] = []
         seen: set[str] = set()
@@ -530,7 +535,10 @@ class SqliteSessionStore:
                 raise StoreError("requests", f"session {session_id} appears twice: one chunk per session")
             seen.add(session_id)
             try:
-                record = self.get(session_id)
+                given = records[i] if records is not None else None
+                record = given if given is not None else self.get(session_id)
+                if seq > record.next_seq and given is not None:  # maybe stale: read it again
+                    record = self.get(session_id)
                 if seq < record.next_seq:
                     text = self._stored_text(session_id, seq, digest)
                     out[i] = (text if encoded else orjson.loads(text)), True
@@ -607,8 +615,8 @@ class SqliteSessionStore:
         if not changed:
             return False
         now = time.time()
-        db.execute("INSERT OR REPLACE INTO chunks VALUES (?,?,?,?,?)",
-                   (old.id, seq, response_text, digest, now))
+        db.execute("INSERT OR REPLACE INTO chunks (session_id, seq, response, digest, stored, size) "
+                   "VALUES (?,?,?,?,?,?)", (old.id, seq, response_text, digest, now, len(response_text)))
         self._trim(db, old.id, seq, now)
         return True
 
@@ -628,7 +636,8 @@ class SqliteSessionStore:
                    (session_id, seq, seq - self.retention, now - self.retention_seconds))
         db.execute(
             "DELETE FROM chunks WHERE session_id = ? AND seq < ? AND seq IN (SELECT seq FROM (SELECT seq, "
-            "SUM(LENGTH(response)) OVER (ORDER BY seq DESC) AS total FROM chunks WHERE session_id = ?) "
+            "SUM(COALESCE(size, LENGTH(response))) OVER (ORDER BY seq DESC) AS total FROM chunks "
+            "WHERE session_id = ?) "
             "WHERE total > ?)", (session_id, seq, session_id, self.retention_bytes))
 
 
