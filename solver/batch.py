@@ -8,9 +8,12 @@ matrix–matrix product (seed 002 (5.35)/(5.38), as in :mod:`solver.engine`):
     Σ_k = S_k ⊙ E_k                              (E_k: each state's update factors exp(log e − max))
     C_k = Σ_k Πᵀ,  ∫σ_k = Σ_k w                  (one product: the weights ride along as a row of Π)
 
-The update factors are elementwise per state and step; chunks of unequal length run together while
-they last (the states sorted longest first, the active ones a prefix); a missing row has the factor 1
-(it only predicts).  Before and after the loop each state is treated exactly as
+Where the nodes are fewer than twice the basis (the 1-D meshes), P Π is the smaller operator and
+one Q×(Q+1) product a step carries the nodal values and ∫σ at once (0.62× the flops of the two
+products on the bundled 1-D mesh; measured in bench/engine_batch.py).  The update factors are
+elementwise per state and step; chunks of unequal length run together while they last (the
+states sorted longest first, the active ones a prefix); a missing row has the factor 1 (it only
+predicts).  Before and after the loop each state is treated exactly as
 :meth:`YauYauFilter.run_arrays` treats it (the same factors, gate, checks, estimates and new state),
 so a result is that of stepping the state alone up to rounding: the products sum in another order
 (BLAS gemm against gemv), which changes the last bits of a step.  Measured over chunks of up to 250
@@ -37,7 +40,7 @@ from .filtering import ChunkResult, chunk_clock
 from .measurement import check_first_gap, check_rows, resolve_times
 
 BATCH_RTOL = {"double": 1e-10, "single": 5e-3}  # relative, against stepping alone (module docstring)
-MAX_BATCH_VALUES = 1 << 23  # nodal values per array (steps × states × nodes) held at once: 64 MiB
+MAX_BATCH_BYTES = 64 << 20  # per array of nodal values (steps × states × nodes) held at once
 
 
 @dataclass
@@ -79,7 +82,7 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
             if not return_exceptions:
                 raise InputError(f"chunks[{i}].{exc.field}", exc.message) from None
             out[i] = exc
-    for group in _groups(members, len(engine.nodes)):
+    for group in _groups(members, len(engine.nodes), np.dtype(engine._arith.dtype).itemsize):
         for member, loop in zip(group, _propagate_together(engine, group), strict=True):
             if loop is None:  # it left the fast path: alone, from the start of its chunk
                 out[member.index] = engine.run_arrays(member.state, member.rows,
@@ -103,13 +106,13 @@ def _fast_member(engine: Any, index: int, state: Any, chunk: Any, chunk_times: A
     return _Member(index, state, rows, steps, clock, engine._prepare(state, rows, None, gating=True))
 
 
-def _groups(members: list[_Member], Q: int) -> list[list[_Member]]:
+def _groups(members: list[_Member], Q: int, itemsize: int) -> list[list[_Member]]:
     """The members, longest chunk first, in groups whose arrays (steps × states × nodes) stay under
-    MAX_BATCH_VALUES (a group holds at least one)."""
+    MAX_BATCH_BYTES (a group holds at least one)."""
     ordered = sorted(members, key=lambda m: -len(m.rows))
     groups: list[list[_Member]] = []
     for member in ordered:
-        if groups and len(groups[-1][0].rows) * (len(groups[-1]) + 1) * Q <= MAX_BATCH_VALUES:
+        if groups and len(groups[-1][0].rows) * (len(groups[-1]) + 1) * Q * itemsize <= MAX_BATCH_BYTES:
             groups[-1].append(member)
         else:
             groups.append([member])
@@ -154,27 +157,61 @@ def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]
         ending.setdefault(K - 1, []).append(s)
     huge, matmul, multiply, divide = arith.huge, np.matmul, np.multiply, np.divide
     actives = (lengths[None, :] > np.arange(Kmax)[:, None]).sum(axis=1).tolist()  # a prefix: longest first
+    # Where the nodes are fewer than twice the basis, P Π is the smaller operator: the next step's
+    # nodal values straight from this step's, σ ↦ (P Π σ) ⊙ e / ∫σ, with the weights as an extra
+    # column giving ∫σ in the same product (one Q×(Q+1) product a step instead of two Q×(N+1)).
+    fused = Q + 1 < 2 * (N + 1)
+    if fused:
+        operator = np.empty((Q, Q + 1), dtype=dtype)
+        operator[:, :Q] = (engine._predict[:, :N].astype(float) @ engine._project[:N].astype(float)).T
+        operator[:, Q] = engine._project[N]
+        extended = np.empty((S, Q + 1), dtype=dtype)
+
+    def check(new: np.ndarray, step: int, rows: np.ndarray, low: np.ndarray) -> None:
+        """Drop the members whose ∫σ at ``step`` leaves the fast path (their ``rows`` zeroed)."""
+        if not ((new >= low[step]) & (new < huge)).all() or dropped.any():
+            bad = ~((new >= low[step]) & (new < huge))
+            n = len(new)
+            dropped[:n] |= bad
+            rows[dropped[:n]] = 0.0
+            new[dropped[:n]] = 1.0  # a dropped member rides along as zeros
+
     a = -1
     for k, active in enumerate(actives):
         if active != a:  # the views of the active prefix, made again only when a member ends
             a = active
             c, f, s_a, low, mass_k = carried[:a], following[:a], scratch[:a], lower[:, :a], masses[:, :a]
         row = sigma[k, :a]
+        if fused and k:
+            e_a = extended[:a]
+            matmul(sigma[k - 1, :a], operator, out=e_a)
+            new = e_a[:, Q].astype(float)  # ∫σ_{k−1}
+            check(new, k - 1, sigma[k - 1, :a], low)
+            mass_k[k - 1] = new
+            multiply(e_a[:, :Q], factor[k, :a], out=row)
+            divide(row, new[:, None].astype(dtype), out=row)
+            continue
         matmul(c, propagate_t, out=s_a)
         multiply(s_a, factor[k, :a], out=row)
+        if fused:
+            continue
         matmul(row, project_t, out=f)
         new = f[:, N].astype(float)
+        check(new, k, f, low)
         mass_k[k] = new
-        if not ((new >= low[k]) & (new < huge)).all() or dropped.any():
-            bad = ~((new >= low[k]) & (new < huge))
-            dropped[:a] |= bad
-            f[dropped[:a]] = 0.0
-            new[dropped[:a]] = 1.0  # a dropped member rides along as zeros
         for s in ending.get(k, ()):  # a member's last row: keep its vector as the single loop has it
             finals[s] = f[s].copy()
         divide(f, new[:, None], out=f)
         carried, following = following, carried
         c, f = f, c
+    if fused:  # each member's last step: its ∫σ and its coefficients, as the single loop carries them
+        for s, K in enumerate(lengths.tolist()):
+            final = sigma[K - 1, s] @ project_t
+            if not lower[K - 1, s] <= float(final[N]) < huge:
+                dropped[s] = True
+            elif not dropped[s]:
+                masses[K - 1, s] = final[N]
+                finals[s] = final
     out: list[tuple | None] = []
     for s, member in enumerate(group):
         if dropped[s]:

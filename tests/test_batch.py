@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from test_engine import cubic, ou  # noqa: F401 - the engine tests' models (OU with R != 1, cubic sensor)
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.batch import BATCH_RTOL, MAX_BATCH_VALUES
+from yauyau.solver.batch import BATCH_RTOL, MAX_BATCH_BYTES
 from yauyau.solver.engine import YauYauFilter
 from yauyau.solver.errors import InputError
 from yauyau.solver.offline import precompute
@@ -81,6 +81,7 @@ def test_a_batch_of_ou_streams_matches_the_exact_kalman_filter(ou):
 def test_the_batch_is_each_state_stepped_alone(cubic, precision):
     model, offline = cubic
     engine = YauYauFilter(model, offline, precision=precision)
+    assert len(engine.nodes) + 1 < 2 * (engine.N + 1)  # the batch's fused operator P Π (solver/batch.py)
     lengths = [100, 100, 64, 100, 3, 99, 100, 250, 17, 100, 0, 100]
     chunks = _chunks(model, lengths, seed=7)
     chunks[2][10:20] = np.nan
@@ -119,6 +120,7 @@ def test_degenerate_states_and_irregular_times_run_alone_with_the_same_answer(cu
 def test_a_2d_batch_is_each_state_stepped_alone(plane):
     model, offline = plane
     engine = YauYauFilter(model, offline)
+    assert len(engine.nodes) + 1 >= 2 * (engine.N + 1)  # the batch's two products (not fused)
     chunks = _chunks(model, [60, 40, 60, 60, 59], seed=21)
     chunks[3][5:9, 1] = np.nan  # partly missing rows
     states = [engine.initial_state() for _ in chunks]
@@ -134,8 +136,8 @@ def test_a_batch_larger_than_memory_allows_runs_in_groups(cubic, monkeypatch):
     chunks = _chunks(model, [40] * 7, seed=50)
     states = [engine.initial_state() for _ in chunks]
     whole = engine.run_batch(states, chunks)
-    monkeypatch.setattr(batch, "MAX_BATCH_VALUES", 2 * 40 * len(engine.nodes))  # two states a group
-    assert batch.MAX_BATCH_VALUES < MAX_BATCH_VALUES
+    monkeypatch.setattr(batch, "MAX_BATCH_BYTES", 2 * 40 * len(engine.nodes) * 8)  # two states a group
+    assert batch.MAX_BATCH_BYTES < MAX_BATCH_BYTES
     _assert_same(whole, engine.run_batch(states, chunks))
 
 
