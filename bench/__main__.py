@@ -26,12 +26,14 @@ TOPICS = [
     ("storage", "bench-storage.md"),
     ("engine_speed", "bench-engine.md"),
     ("blas_threads", "bench-blas.md"),
+    ("engine_batch", "bench-engine-batch.md"),
     ("filters", "bench-filters.md"),
     ("exact_filters", "bench-exact.md"),
     ("measurements", "bench-measurements.md"),
     ("yau_jia", "bench-yau-jia.md"),
     ("engine_revision", "bench-engine-revision.md"),
     ("load", "bench-load.md"),
+    ("load_2d", "bench-load-2d.md"),
 ]
 
 HEADER = """# Benchmarks
