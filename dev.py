@@ -2,7 +2,7 @@
 """Developer entry point; needs only python3.
 
     python3 dev.py serve   # venv + install, precompute the bundled examples if missing, serve on :8000
-    python3 dev.py test    # venv + install (with test tools and the test browser), run the whole test suite
+    python3 dev.py test    # venv + install (with test tools, the test browser and PostgreSQL), run the tests
 
 The virtual environment is ``.venv`` beside this file (``YAUYAU_VENV`` overrides); pip runs again
 only when pyproject.toml changed.  The steps are those of scripts/provision.py, which the
@@ -37,6 +37,7 @@ def serve(args: list[str]) -> int:
 def test(args: list[str]) -> int:
     provision.install(VENV, editable=True, extras=EXTRAS)
     provision.browser()  # Debian's chromium + chromedriver for tests/test_live_page.py
+    provision.postgres()  # Debian's PostgreSQL server for the shared session store's tests
     command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q", *args]
     return subprocess.run(command, cwd=ROOT).returncode
 

@@ -92,16 +92,30 @@ def browser() -> None:
     the README's walk-through (tests/test_readme_streams.py): installed with apt-get when missing and
     this runs as root; otherwise say what to install (the test then fails with the reason; it never
     skips)."""
+    missing = [package for path, package in BROWSER.items() if not Path(path).exists()]
+    _apt_install(missing, "the browser test")
+
+
+def postgres() -> None:
+    """Debian's PostgreSQL server for the tests of the shared session store (tests/pg_server.py starts
+    one in a temporary directory): installed with apt-get when missing, as :func:`browser` does."""
+    import glob
     import shutil
 
-    missing = [package for path, package in BROWSER.items() if not Path(path).exists()]
+    found = shutil.which("initdb") or glob.glob("/usr/lib/postgresql/*/bin/initdb")
+    _apt_install([] if found else ["postgresql"], "the PostgreSQL session-store tests")
+
+
+def _apt_install(missing: list[str], why: str) -> None:
+    import shutil
+
     if not missing:
         return
     apt = shutil.which("apt-get")
     if apt is None or os.geteuid() != 0:
-        _say(f"the browser test needs {' and '.join(missing)}: sudo apt-get install {' '.join(missing)}")
+        _say(f"{why} need(s) {' and '.join(missing)}: sudo apt-get install {' '.join(missing)}")
         return
-    _say(f"installing {' '.join(missing)} (apt-get) for the browser test")
+    _say(f"installing {' '.join(missing)} (apt-get) for {why}")
     env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
     quiet = {"stdout": subprocess.DEVNULL, "env": env}
     if subprocess.run([apt, "install", "-y", "-q", *missing], **quiet).returncode != 0:

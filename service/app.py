@@ -55,13 +55,22 @@ def _problem_openapi(app: FastAPI) -> dict[str, Any]:
     return app.openapi_schema
 
 
-def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
+def open_session_store(settings: Settings) -> Any:
+    """The session store the settings name: PostgreSQL for a postgresql:// URL, else the SQLite file."""
+    idle = settings.session_idle_expiry or None
+    if settings.session_postgres() is not None:
+        from yauyau.storage.postgres_store import PostgresSessionStore
+
+        return PostgresSessionStore(settings.session_postgres(), idle_expiry=idle)
     from yauyau.storage.session_store import SqliteSessionStore
 
     path = settings.session_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    store = SqliteSessionStore(path, synchronous=settings.session_synchronous,
-                               idle_expiry=settings.session_idle_expiry or None)
+    return SqliteSessionStore(path, synchronous=settings.session_synchronous, idle_expiry=idle)
+
+
+def _open_sessions(settings: Settings, registry: Registry) -> Sessions:
+    store = open_session_store(settings)
     return Sessions(store, registry, settings.max_chunk_rows, settings.max_density_points,
                     settings.batch_window, settings.max_batch)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -18,8 +18,9 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="YAUYAU_", extra="ignore")
 
     store: Path = Field(Path("var/store"), description="model store directory (read-only at run time)")
-    session_db: Path | None = Field(
-        None, description="SQLite file of the sessions (default: <store>/sessions.sqlite3)")
+    session_db: str | None = Field(
+        None, description="the sessions' database: a SQLite file (default: <store>/sessions.sqlite3), or "
+                          "postgresql://user@host:port/db for a PostgreSQL database shared by several hosts")
     session_synchronous: Literal["normal", "full"] = Field(
         "normal", description="SQLite durability of a chunk: 'normal' survives a killed process (WAL, no "
                               "fsync per chunk), 'full' also an OS crash or power loss (one fsync per chunk)")
@@ -58,8 +59,19 @@ class Settings(BaseSettings):
     metrics_dir: Path | None = Field(
         None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")
 
+    @field_validator("session_db", mode="before")
+    @classmethod
+    def _path_as_text(cls, value):
+        return str(value) if isinstance(value, Path) else value
+
     def session_path(self) -> Path:
-        return self.session_db if self.session_db is not None else self.store / "sessions.sqlite3"
+        """The SQLite file of the sessions (when session_db is not a PostgreSQL URL)."""
+        return Path(self.session_db) if self.session_db is not None else self.store / "sessions.sqlite3"
+
+    def session_postgres(self) -> str | None:
+        """The PostgreSQL URL of the sessions, or None (SQLite)."""
+        db = self.session_db
+        return db if db is not None and db.startswith(("postgresql://", "postgres://")) else None
 
     def to_env(self) -> dict[str, str]:
         """The environment variables that reproduce these settings in a worker process."""

@@ -51,6 +51,39 @@ SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next
 MAX_ATTEMPTS = 100
 
 
+def schema(integer: str, real: str, chunks_suffix: str = "") -> str:
+    """The two tables every store keeps (statements separated by ``;``), in its SQL types.  The
+    response comes last in a chunk row: the retention trims read size, seq and stored of every kept
+    response, and a column after a long text may be read through its overflow pages."""
+    return f"""
+CREATE TABLE IF NOT EXISTS sessions (
+    id TEXT PRIMARY KEY,
+    model_id TEXT NOT NULL,
+    method TEXT NOT NULL,
+    state TEXT NOT NULL,
+    initial_response TEXT NOT NULL,
+    next_seq {integer} NOT NULL,
+    step {integer} NOT NULL,
+    t {real} NOT NULL,
+    loglik {real},
+    created TEXT NOT NULL,
+    updated TEXT NOT NULL,
+    version {integer} NOT NULL,
+    options TEXT NOT NULL DEFAULT '{{}}'
+);
+CREATE TABLE IF NOT EXISTS chunks (
+    session_id TEXT NOT NULL,
+    seq {integer} NOT NULL,
+    size INTEGER,
+    digest TEXT,
+    stored {real},
+    response TEXT NOT NULL,
+    PRIMARY KEY (session_id, seq)
+){chunks_suffix};
+CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated)
+"""
+
+
 @dataclass(frozen=True)
 class SessionRecord:
     id: str
@@ -129,6 +162,20 @@ class SessionStoreBase:
     idle_expiry: float | None
     _db_errors: tuple[type[BaseException], ...] = ()
     _INSERT_CHUNK = ""
+
+    def _configure(self, retention: int, retention_bytes: int, retention_seconds: float,
+                   idle_expiry: float | None) -> None:
+        """Check and keep the retention of stored responses and the idle expiry of sessions."""
+        for name, value in (("retention", retention), ("retention_bytes", retention_bytes)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise StoreError(name, "must be a positive integer")
+        if not retention_seconds > 0:
+            raise StoreError("retention_seconds", "must be positive")
+        if idle_expiry is not None and not idle_expiry > 0:
+            raise StoreError("idle_expiry", "must be positive seconds (or None: sessions never expire)")
+        self.retention, self.retention_bytes = retention, retention_bytes
+        self.retention_seconds = float(retention_seconds)
+        self.idle_expiry = None if idle_expiry is None else float(idle_expiry)
 
     def _check_available(self) -> None:
         """Raise Unavailable when the store refuses everything (a damaged file); else nothing."""
@@ -410,5 +457,5 @@ class SessionStoreBase:
         db.execute(
             "DELETE FROM chunks WHERE session_id = ? AND seq < ? AND seq IN (SELECT seq FROM (SELECT seq, "
             "SUM(COALESCE(size, LENGTH(response))) OVER (ORDER BY seq DESC) AS total FROM chunks "
-            "WHERE session_id = ?) "
+            "WHERE session_id = ?) AS kept "
             "WHERE total > ?)", (session_id, seq, session_id, self.retention_bytes))

@@ -37,43 +37,23 @@ import time
 from pathlib import Path
 
 from .errors import StoreError, Unavailable
-from .session_base import SESSION_FIELDS, Compute, ComputeMany, SessionRecord, SessionStoreBase  # noqa: F401
+from .session_base import (  # noqa: F401 - re-exported: what callers imported from here before
+    SESSION_FIELDS,
+    Compute,
+    ComputeMany,
+    SessionRecord,
+    SessionStoreBase,
+    schema,
+)
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS sessions (
-    id TEXT PRIMARY KEY,
-    model_id TEXT NOT NULL,
-    method TEXT NOT NULL,
-    state TEXT NOT NULL,
-    initial_response TEXT NOT NULL,
-    next_seq INTEGER NOT NULL,
-    step INTEGER NOT NULL,
-    t REAL NOT NULL,
-    loglik REAL,
-    created TEXT NOT NULL,
-    updated TEXT NOT NULL,
-    version INTEGER NOT NULL,
-    options TEXT NOT NULL DEFAULT '{}'
-);
-CREATE TABLE IF NOT EXISTS chunks (
-    session_id TEXT NOT NULL,
-    seq INTEGER NOT NULL,
-    size INTEGER,
-    digest TEXT,
-    stored REAL,
-    response TEXT NOT NULL,
-    PRIMARY KEY (session_id, seq)
-) WITHOUT ROWID;
+_SCHEMA = schema("INTEGER", "REAL", " WITHOUT ROWID") + """;
 CREATE TABLE IF NOT EXISTS meta (
     key TEXT PRIMARY KEY,
     value INTEGER NOT NULL
 );
 INSERT OR IGNORE INTO meta VALUES ('generation', 0);
-CREATE INDEX IF NOT EXISTS sessions_updated ON sessions (updated);
 """
-# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction).  In a
-# new file the response comes last: the retention trims read size, seq and stored of every kept
-# response, and a column after a long response would be read through its overflow pages.
+# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
 _CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL", "size": "INTEGER"}
 _SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'"}  # older sessions: no options (the defaults)
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -92,21 +72,11 @@ class SqliteSessionStore(SessionStoreBase):
     def __init__(self, path: str | os.PathLike, retention: int = 16, busy_timeout_ms: int = 30_000,
                  synchronous: str = "normal", retention_bytes: int = 256 * 1024,
                  retention_seconds: float = 86_400.0, idle_expiry: float | None = None):
-        for name, value in (("retention", retention), ("retention_bytes", retention_bytes)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise StoreError(name, "must be a positive integer")
-        if not retention_seconds > 0:
-            raise StoreError("retention_seconds", "must be positive")
-        if idle_expiry is not None and not idle_expiry > 0:
-            raise StoreError("idle_expiry", "must be positive seconds (or None: sessions never expire)")
-        self.idle_expiry = None if idle_expiry is None else float(idle_expiry)
+        self._configure(retention, retention_bytes, retention_seconds, idle_expiry)
         if synchronous not in _SYNCHRONOUS:
             raise StoreError("synchronous", f"must be one of {', '.join(_SYNCHRONOUS)}, got {synchronous!r}")
         self.synchronous = synchronous
         self.path = Path(path)
-        self.retention = retention
-        self.retention_bytes = retention_bytes
-        self.retention_seconds = float(retention_seconds)
         self.busy_timeout_ms = int(busy_timeout_ms)
         self._local = threading.local()
         self._failure: str | None = None  # why the store refuses everything (removed, damaged)

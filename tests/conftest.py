@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import sys
 from pathlib import Path
 
 import pytest
@@ -30,3 +31,15 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """A real PostgreSQL server for the session (tests/pg_server.py); ``database(name)`` gives a fresh
+    database's DSN."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from pg_server import PostgresServer
+
+    server = PostgresServer()
+    yield server
+    server.stop()

@@ -22,7 +22,7 @@ import orjson
 import pytest
 from conftest import EXAMPLES
 from fastapi.testclient import TestClient
-from test_service_server import Server
+from test_service_server import Server, session_db
 from yauyau.service.app import create_app
 from yauyau.service.batching import ChunkBatcher
 from yauyau.service.sessions import ChunkRequest
@@ -124,13 +124,19 @@ def test_observe_many_answers_as_each_chunk_alone(api):
     assert orjson.loads(bad[1])["step"] == 85
 
 
-def test_concurrent_streams_on_a_real_server_match_kalman_and_are_batched(example_store, tmp_path):
+@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+def test_concurrent_streams_on_real_servers_match_kalman_and_are_batched(example_store, tmp_path, request,
+                                                                         kind):
+    """SQLite: one server.  PostgreSQL: two servers on different ports (two hosts) sharing the
+    database, each stream alternating between them chunk by chunk."""
     store, ids = example_store
     model = compile_model(load_spec(EXAMPLES / "ou.toml"))
     kalman = DiscreteKalmanFilter(model)
     streams, chunk, chunks = 24, 25, 8
     data = [simulate(model, chunk * chunks, np.random.default_rng(70 + i)).increments for i in range(streams)]
-    server = Server(store, tmp_path / "sessions.sqlite3")
+    db = session_db(kind, request, tmp_path)
+    servers = [Server(store, db) for _ in range(1 if kind == "sqlite" else 2)]
+    server = servers[0]
     try:
         with httpx.Client(timeout=60) as client:
             sids = [client.post(server.url + "/v1/sessions", json={"model": ids["ou"], "method": "yau-yau"}
@@ -141,7 +147,8 @@ def test_concurrent_streams_on_a_real_server_match_kalman_and_are_batched(exampl
                 with httpx.Client(timeout=60) as own:
                     for seq in range(chunks):
                         rows = _rows(data[i][seq * chunk:(seq + 1) * chunk])
-                        url = f"{server.url}/v1/sessions/{sids[i]}/observations"
+                        host = servers[(i + seq) % len(servers)]
+                        url = f"{host.url}/v1/sessions/{sids[i]}/observations"
                         r = own.post(url, json={"seq": seq, "increments": rows})
                         assert r.status_code == 200, r.text
                         means += [e["mean"][0] for e in r.json()["estimates"]]
@@ -151,13 +158,14 @@ def test_concurrent_streams_on_a_real_server_match_kalman_and_are_batched(exampl
 
             with ThreadPoolExecutor(streams) as pool:
                 results = list(pool.map(run, range(streams)))
-            text = client.get(server.url + "/metrics").text
+            texts = [client.get(one.url + "/metrics").text for one in servers]
     finally:
-        server.kill()
+        for one in servers:
+            one.kill()
     for i, means in enumerate(results):
         _, ref = kalman.run(kalman.initial_state(), data[i])
         assert np.max(np.abs(means - np.array([e.mean[0] for e in ref]))) < 1e-3
-    count = float(re.search(r"yauyau_chunk_batch_size_count (\S+)", text).group(1))
-    total = float(re.search(r"yauyau_chunk_batch_size_sum (\S+)", text).group(1))
+    count = sum(float(re.search(r"yauyau_chunk_batch_size_count (\S+)", text).group(1)) for text in texts)
+    total = sum(float(re.search(r"yauyau_chunk_batch_size_sum (\S+)", text).group(1)) for text in texts)
     assert total == streams * chunks + 1  # every chunk (and the refused gap) went through one batch
     assert count < total  # and some batches held several chunks

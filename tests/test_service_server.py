@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 
 import httpx
 import numpy as np
@@ -56,7 +57,9 @@ class Server:
         raise RuntimeError("server did not become ready")
 
     def kill(self) -> str:
-        """SIGKILL the process group; what the server wrote to stderr."""
+        """SIGKILL the process group; what the server wrote to stderr (again: nothing)."""
+        if self.proc.stderr.closed:
+            return ""
         try:
             os.killpg(self.proc.pid, signal.SIGKILL)
         except ProcessLookupError:
@@ -79,9 +82,20 @@ def _post_chunk(client, url, sid, seq, rows):
 
 
 @pytest.mark.slow
-def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store, tmp_path):
+def session_db(kind: str, request, tmp_path) -> str:
+    """Where the servers keep their sessions: a SQLite file, or a fresh database on the test
+    PostgreSQL server (tests/conftest.py)."""
+    if kind == "sqlite":
+        return str(tmp_path / "sessions.sqlite3")
+    return request.getfixturevalue("postgres").database(f"t{uuid.uuid4().hex}")
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store, tmp_path, request, kind):
+    """SQLite: the restarted server has two workers sharing the file.  PostgreSQL: two servers on
+    different ports (two hosts) share the database, and the client alternates between them."""
     store, ids = example_store
-    db = tmp_path / "sessions.sqlite3"
+    db = session_db(kind, request, tmp_path)
     model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
     increments = simulate(model, CHUNK * CHUNKS, np.random.default_rng(3)).increments
     increments[120:130] = np.nan
@@ -89,6 +103,7 @@ def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store
     body = {"model": ids["cubic_sensor"], "prior": {"kind": "gaussian", "mean": [0.3], "cov": [[0.8]]}}
 
     server = Server(store, db)
+    servers = [server]
     try:
         with httpx.Client() as client:
             reference = client.post(server.url + "/v1/sessions", json=body).json()["id"]
@@ -109,19 +124,24 @@ def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store
         server.kill()
         sender.join()
 
-        server = Server(store, db, workers=2)
+        servers[:] = [Server(store, db, workers=2)] if kind == "sqlite" else [Server(store, db) for _ in "ab"]
+
+        def url(k):
+            return servers[k % len(servers)].url
+
         with httpx.Client() as client:
-            got += [_post_chunk(client, server.url, sid, k, chunks[k]) for k in (3, 4)]
-            _post_chunk(client, server.url, sid, 5, chunks[5])  # answered, but say the answer was lost
-            got += [_post_chunk(client, server.url, sid, k, chunks[k]) for k in (5, 6, 7)]
-            assert _post_chunk(client, server.url, sid, 7, chunks[7]) == got[7]  # a replay changes nothing
-            gap = client.post(f"{server.url}/v1/sessions/{sid}/observations",
+            got += [_post_chunk(client, url(k), sid, k, chunks[k]) for k in (3, 4)]
+            _post_chunk(client, url(5), sid, 5, chunks[5])  # answered, but say the answer was lost
+            got += [_post_chunk(client, url(k + 1), sid, k, chunks[k]) for k in (5, 6, 7)]  # the other host
+            assert _post_chunk(client, url(0), sid, 7, chunks[7]) == got[7]  # a replay changes nothing
+            gap = client.post(f"{url(1)}/v1/sessions/{sid}/observations",
                               json={"seq": 9, "increments": chunks[0]})
             assert gap.status_code == 409
             assert gap.headers["content-type"].startswith("application/problem+json")
-            info = client.get(f"{server.url}/v1/sessions/{sid}").json()
+            info = client.get(f"{url(1)}/v1/sessions/{sid}").json()
     finally:
-        server.kill()
+        for one in servers:
+            one.kill()
 
     assert got == expected  # identical floats, not approximately equal
     assert (info["step"], info["next_seq"]) == (CHUNK * CHUNKS, CHUNKS)

@@ -1,4 +1,6 @@
-"""SQLite session store: exactly-once chunks, replays, gaps, retention, and real multi-process use.
+"""Session stores: exactly-once chunks, replays, gaps, retention, batches, expiry, and real
+multi-process use — each test against the embedded SQLite store and a real PostgreSQL server
+(tests/pg_server.py), the file-specific ones against SQLite alone.
 
 The truth a chunk sequence is checked against is the sequential fold of the chunks: the state
 after chunk k holds [0, 1, ..., k] and each response records the state it was computed from.
@@ -12,6 +14,7 @@ import re
 import sqlite3
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -30,9 +33,42 @@ def append_seq(seq: int, delay: float = 0.0):
     return compute
 
 
-@pytest.fixture
-def store(tmp_path: Path) -> SqliteSessionStore:
-    return SqliteSessionStore(tmp_path / "sessions.sqlite")
+@pytest.fixture(params=["sqlite", "postgres"])
+def store(request, tmp_path: Path):
+    """A fresh store of each kind: a SQLite file, or a new database on the test PostgreSQL server."""
+    if request.param == "sqlite":
+        yield SqliteSessionStore(tmp_path / "sessions.sqlite")
+        return
+    from yauyau.storage.postgres_store import PostgresSessionStore
+
+    dsn = request.getfixturevalue("postgres").database(f"t{uuid.uuid4().hex}")
+    opened = PostgresSessionStore(dsn)
+    yield opened
+    opened.close()
+
+
+def _where(store) -> tuple[str, str]:
+    """(kind, location) of a store: what another process needs to open the same one."""
+    return ("sqlite", str(store.path)) if isinstance(store, SqliteSessionStore) else ("postgres", store.dsn)
+
+
+def _open(kind: str, location: str, **options):
+    if kind == "sqlite":
+        return SqliteSessionStore(location, **options)
+    from yauyau.storage.postgres_store import PostgresSessionStore
+
+    return PostgresSessionStore(location, **options)
+
+
+def _reopen(store, **options):
+    """Another handle on the same sessions (another process's view), with its own ``options``."""
+    return _open(*_where(store), **options)
+
+
+def _context(store):
+    """fork for SQLite (as the service's workers); spawn for PostgreSQL (a forked child must not
+    inherit the parent's pooled connections)."""
+    return multiprocessing.get_context("fork" if isinstance(store, SqliteSessionStore) else "spawn")
 
 
 def test_create_get_count_delete(store: SqliteSessionStore):
@@ -52,7 +88,8 @@ def test_create_get_count_delete(store: SqliteSessionStore):
         store.delete(sid)
 
 
-def test_wal_mode_and_busy_timeout(store: SqliteSessionStore):
+def test_wal_mode_and_busy_timeout(tmp_path: Path):
+    store = SqliteSessionStore(tmp_path / "sessions.sqlite")
     db = sqlite3.connect(store.path)
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     assert store._connection().execute("PRAGMA busy_timeout").fetchone()[0] == 30_000
@@ -114,16 +151,16 @@ def test_non_json_state_is_refused_and_nothing_applied(store: SqliteSessionStore
     assert err.value.field == "state"
 
 
-def test_retention_keeps_the_last_responses_and_refuses_older_ones(tmp_path: Path):
-    store = SqliteSessionStore(tmp_path / "s.sqlite", retention=3)
+def test_retention_keeps_the_last_responses_and_refuses_older_ones(store):
+    store = _reopen(store, retention=3)
     sid = store.create("m", "yau-yau", {"values": []})
     for seq in range(6):
         store.apply_chunk(sid, seq, append_seq(seq))
     assert store.apply_chunk(sid, 3, append_seq(3)) == ({"seq": 3, "before": [0, 1, 2]}, True)
     with pytest.raises(Conflict, match="no longer kept.*oldest kept: 3"):
         store.apply_chunk(sid, 2, append_seq(2))
-    rows = sqlite3.connect(store.path).execute("SELECT seq FROM chunks WHERE session_id = ?", (sid,))
-    assert sorted(r[0] for r in rows) == [3, 4, 5]
+    rows = store._query("SELECT seq FROM chunks WHERE session_id = ?", (sid,)).fetchall()
+    assert sorted(r["seq"] for r in rows) == [3, 4, 5]
 
 
 def test_version_clash_returns_the_winners_response(store: SqliteSessionStore):
@@ -150,10 +187,9 @@ def test_version_clash_on_a_moved_session_recomputes(store: SqliteSessionStore):
     def compute(state):
         seen.append(list(state["values"]))
         if len(seen) == 1:  # sneak in a concurrent writer that bumps the version only
-            db = sqlite3.connect(store.path)
-            db.execute("UPDATE sessions SET version = version + 1, state = ? WHERE id = ?",
-                       ('{"values":["other"]}', sid))
-            db.commit()
+            with _reopen(store)._transaction() as db:
+                db.execute("UPDATE sessions SET version = version + 1, state = ? WHERE id = ?",
+                           ('{"values":["other"]}', sid))
         return append_seq(0)(state)
     response, replayed = store.apply_chunk(sid, 0, compute)
     assert not replayed and seen == [[], ["other"]] and response["before"] == ["other"]
@@ -163,16 +199,16 @@ def test_version_clash_on_a_moved_session_recomputes(store: SqliteSessionStore):
 N_CHUNKS = 30
 
 
-def _hammer(path: str, sid: str, worker: int, out) -> None:
+def _hammer(where: tuple[str, str], sid: str, worker: int, out) -> None:
     try:
-        out.put(_hammer_records(path, sid, worker))
+        out.put(_hammer_records(where, sid, worker))
     except BaseException as exc:  # report it, so the test fails at once with the reason, not after 60 s
         out.put(f"worker {worker}: {type(exc).__name__}: {exc}")
         raise
 
 
-def _hammer_records(path: str, sid: str, worker: int) -> list:
-    store = SqliteSessionStore(path)
+def _hammer_records(where: tuple[str, str], sid: str, worker: int) -> list:
+    store = _open(*where)
     rng = random.Random(worker)
     records = []
     guess = 0
@@ -189,11 +225,11 @@ def _hammer_records(path: str, sid: str, worker: int) -> list:
     return records
 
 
-def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(store: SqliteSessionStore):
+def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(store):
     sid = store.create("m", "yau-yau", {"values": []})
-    ctx = multiprocessing.get_context("fork")
+    ctx = _context(store)
     out = ctx.Queue()
-    workers = [ctx.Process(target=_hammer, args=(str(store.path), sid, w, out)) for w in range(4)]
+    workers = [ctx.Process(target=_hammer, args=(_where(store), sid, w, out)) for w in range(4)]
     for p in workers:
         p.start()
     results = [out.get(timeout=60) for _ in workers]
@@ -214,8 +250,8 @@ def test_four_processes_hammering_one_session_apply_every_chunk_exactly_once(sto
     assert sum(len(r) for r in results) > N_CHUNKS  # the workers did collide
 
 
-def _independent(path: str, sids: list[str], out) -> None:
-    store = SqliteSessionStore(path)
+def _independent(where: tuple[str, str], sids: list[str], out) -> None:
+    store = _open(*where)
     for sid in sids:
         for seq in range(10):
             store.apply_chunk(sid, seq, append_seq(seq))
@@ -224,9 +260,9 @@ def _independent(path: str, sids: list[str], out) -> None:
 
 def test_processes_on_different_sessions_do_not_interfere(store: SqliteSessionStore):
     sids = [store.create("m", "yau-yau", {"values": []}) for _ in range(8)]
-    ctx = multiprocessing.get_context("fork")
+    ctx = _context(store)
     out = ctx.Queue()
-    workers = [ctx.Process(target=_independent, args=(str(store.path), sids[i::4], out)) for i in range(4)]
+    workers = [ctx.Process(target=_independent, args=(_where(store), sids[i::4], out)) for i in range(4)]
     for p in workers:
         p.start()
     assert [out.get(timeout=60) for _ in workers] == ["ok"] * 4
@@ -272,7 +308,7 @@ def test_options_are_kept_with_the_session(store: SqliteSessionStore):
     store.apply_chunk(sid, 0, append_seq(0))  # a chunk leaves them alone
     assert store.get(sid).options == options
     assert store.get(store.create("m", "yau-yau", {"values": []})).options == {}
-    again = SqliteSessionStore(store.path)  # another process's view: read from the file
+    again = _reopen(store)  # another process's view: read from the database
     assert again.get(sid).options == options
     for bad in ({"gate": float("nan")}, {"t0": float("inf")}):
         with pytest.raises(StoreError) as err:
@@ -365,7 +401,7 @@ def test_apply_chunks_recomputes_a_session_another_writer_moved_on(store: Sqlite
     def racing(pairs):
         out = inner(pairs)
         if len(pairs) == 2:  # meanwhile another process applies session 1's chunk 0
-            other = SqliteSessionStore(store.path)
+            other = _reopen(store)
             other.apply_chunk(sids[1], 0, append_seq(0))
         return out
 
@@ -420,32 +456,35 @@ def test_sessions_are_listed_a_page_at_a_time(store: SqliteSessionStore):
         store.list_sessions(0)
 
 
-def test_idle_sessions_expire_with_their_responses_and_give_space_back(tmp_path: Path):
-    store = SqliteSessionStore(tmp_path / "s.sqlite", idle_expiry=3600)
+def test_idle_sessions_expire_with_their_responses_and_give_space_back(store, tmp_path: Path):
+    store = _reopen(store, idle_expiry=3600)
     big = {"values": [], "pad": "x" * 20_000}
     old = [store.create("m", "yau-yau", big) for _ in range(40)]
     fresh = store.create("m", "yau-yau", {"values": []})
     for sid in old:
         store.apply_chunk(sid, 0, lambda s: (s, {"r": "y" * 5000}))
         _age(store, sid, 7200)
-    store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
-    before = store.path.stat().st_size
+    sqlite = isinstance(store, SqliteSessionStore)
+    if sqlite:
+        store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        before = store.path.stat().st_size
     assert store.expire() == 40
     assert store.ids() == [fresh]
-    assert store._connection().execute("SELECT COUNT(*) FROM chunks").fetchone()[0] == 0
-    store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
-    assert store.path.stat().st_size < before / 4
-    assert SqliteSessionStore(tmp_path / "t.sqlite").expire() == 0  # no expiry set: nothing goes
+    assert store._query("SELECT COUNT(*) AS n FROM chunks").fetchone()["n"] == 0
+    if sqlite:  # the file gives its pages back (PostgreSQL's autovacuum reuses them)
+        store._connection().execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        assert store.path.stat().st_size < before / 4
+    assert _reopen(store, idle_expiry=None).expire() == 0  # no expiry set: nothing goes
 
 
-def test_expiry_never_removes_a_session_mid_chunk(tmp_path: Path):
-    store = SqliteSessionStore(tmp_path / "s.sqlite", idle_expiry=10)
+def test_expiry_never_removes_a_session_mid_chunk(store):
+    store = _reopen(store, idle_expiry=10)
     sid = store.create("m", "yau-yau", {"values": []})
     _age(store, sid, 8)  # idle, but not yet expired, when its chunk arrives
 
     def compute_while_expiring(state):
         later = time.time() + 5  # the sweep runs 5 s later, while the chunk computes: the session was
-        assert SqliteSessionStore(store.path).expire(10, now=later) == 0  # touched when the chunk began
+        assert _reopen(store).expire(10, now=later) == 0  # touched when the chunk began
         return append_seq(0)(state)
 
     assert store.apply_chunk(sid, 0, compute_while_expiring)[1] is False

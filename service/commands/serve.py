@@ -15,7 +15,10 @@ def add_arguments(parser):
     parser.add_argument("--host", help="interface to bind (env YAUYAU_HOST; default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="TCP port (env YAUYAU_PORT; default 8000)")
     parser.add_argument("--workers", type=int, help="worker processes (env YAUYAU_WORKERS; default 1)")
-    parser.add_argument("--session-db", help="SQLite file of the sessions (default <store>/sessions.sqlite3)")
+    parser.add_argument("--session-db",
+                        help="the sessions' database: a SQLite file (default <store>/sessions.sqlite3) or a "
+                             "postgresql://user@host:port/db URL shared by several hosts "
+                             "(env YAUYAU_SESSION_DB)")
     parser.add_argument("--session-synchronous", choices=["normal", "full"],
                         help="durability of each chunk: normal (default) survives a killed server, full also "
                              "an OS crash or power loss (an fsync per chunk; env YAUYAU_SESSION_SYNCHRONOUS)")
@@ -59,6 +62,11 @@ def _check_session_db(settings) -> None:
     from yauyau.storage.errors import StoreError
     from yauyau.storage.session_store import SqliteSessionStore
 
+    if settings.session_postgres() is not None:  # connect once: a wrong URL is one clear message
+        from yauyau.service.app import open_session_store
+
+        open_session_store(settings).close()
+        return
     path = settings.session_path()
     hint = ("pass --session-db PATH (env YAUYAU_SESSION_DB) on a writable disk"
             if settings.session_db is None else "choose a writable --session-db")
