@@ -34,6 +34,7 @@ TOPICS = [
     ("engine_revision", "bench-engine-revision.md"),
     ("load", "bench-load.md"),
     ("load_2d", "bench-load-2d.md"),
+    ("load_stores", "bench-load-stores.md"),
 ]
 
 HEADER = """# Benchmarks

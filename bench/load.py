@@ -20,7 +20,10 @@ noisy shared machine it varies far less than wall-clock rates.  The engine alone
 chunks is timed in the same run.  ``--unbatched`` also serves the working tree with micro-batching
 off (``YAUYAU_MAX_BATCH=1``: every chunk stepped and committed alone), side by side.  ``--example 2d``
 drives the 2-D rotation example (examples/range_2d.toml) instead of the 1-D cubic sensor.
-Writes docs/bench-load.md (docs/bench-load-2d.md for the 2-D example).
+``--stores`` compares the session stores instead: SQLite and PostgreSQL (a server of its own,
+scripts/pg_server.py), each with one and two server processes (``--workers``).
+Writes docs/bench-load.md (docs/bench-load-2d.md for the 2-D example, docs/bench-load-stores.md for
+``--stores``).
 Targets (issue "Many streams at once"): 1-D, 64 streams >= 100 000 observations/s with p99 <= 50 ms,
 one stream >= 2x the previous revision's throughput; 2-D, 64 streams batched >= 2.5x unbatched.
 """
@@ -46,7 +49,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = {"1d": ROOT / "examples" / "cubic_sensor.toml", "2d": ROOT / "examples" / "range_2d.toml"}
-DOCS = {"1d": ROOT / "docs" / "bench-load.md", "2d": ROOT / "docs" / "bench-load-2d.md"}
+DOCS = {"1d": ROOT / "docs" / "bench-load.md", "2d": ROOT / "docs" / "bench-load-2d.md",
+        "stores": ROOT / "docs" / "bench-load-stores.md"}
 CHUNK = 100
 MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the server is
 STREAMS = (1, 8, 64)
@@ -76,6 +80,14 @@ def _prepare_store(store: Path, spec_path: Path):
     return model, offline, model_id, increments
 
 
+def _postgres():
+    """A PostgreSQL server of its own (scripts/pg_server.py), for --stores."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from pg_server import PostgresServer
+
+    return PostgresServer()
+
+
 def _baseline_tree(rev: str, into: Path) -> Path:
     """yauyau/, solver/, service/ and storage/ of git revision ``rev``: the whole previous revision
     (revisions from 0.2 on: before, the packages were top-level and used another import name)."""
@@ -90,7 +102,7 @@ def _baseline_tree(rev: str, into: Path) -> Path:
 class Server:
     """`python -m yauyau.service.cli serve` run from ``tree`` (its service/ and storage/ come first)."""
 
-    def __init__(self, tree: Path, store: Path, db: Path, workers: int, env: dict | None = None):
+    def __init__(self, tree: Path, store: Path, db: Path | str, workers: int, env: dict | None = None):
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
@@ -299,10 +311,11 @@ def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple
 
 
 def _write_doc(rows, engine_ms, commits, args, load, command, model) -> Path:
-    doc = DOCS[args.example]
+    doc = DOCS["stores"] if args.stores else DOCS[args.example]
     what = ("1-D cubic sensor" if args.example == "1d" else "2-D rotation with a cubic sensor") + \
         f" (N = {model.spec.discretization.basis})"
-    lines = ["## HTTP load (`yauyau serve`)" + ("" if args.example == "1d" else ", 2-D"), "",
+    title = ", session stores" if args.stores else "" if args.example == "1d" else ", 2-D"
+    lines = ["## HTTP load (`yauyau serve`)" + title, "",
              f"`{command}`", "",
              f"{what}, chunks of {CHUNK} observations, {args.workers} uvicorn worker(s), "
              f"{args.seconds:g} s per row × {args.rounds} round(s), configurations interleaved; client "
@@ -364,6 +377,9 @@ def _parse(argv):
     parser.add_argument("--clients", default="lean,httpx", help="comma-separated: lean, httpx")
     parser.add_argument("--example", choices=sorted(SPECS), default="1d",
                         help="the model served (default 1d)")
+    parser.add_argument("--stores", action="store_true",
+                        help="compare the session stores instead: SQLite and PostgreSQL (a server started "
+                             "for the run), with one and two server processes")
     parser.add_argument("--unbatched", action="store_true",
                         help="also serve the working tree with micro-batching off (YAUYAU_MAX_BATCH=1)")
     parser.add_argument("--streams-list", default=",".join(map(str, STREAMS)),
@@ -398,16 +414,24 @@ def main(argv: list[str] | None = None) -> int:
         chunks_file.write_text(json.dumps(chunks))
         engine_ms = _engine_ms(model, offline, increments)
         commits = _store_round(model, offline, increments, tmp)
-        trees = {"working tree": (ROOT, {})}
+        # name -> (tree, env, session db or None for a SQLite file of its own, workers)
+        trees = {"working tree": (ROOT, {}, None, args.workers)}
         if args.unbatched:
-            trees["unbatched"] = (ROOT, {"YAUYAU_MAX_BATCH": "1"})
+            trees["unbatched"] = (ROOT, {"YAUYAU_MAX_BATCH": "1"}, None, args.workers)
         if args.baseline:
             baseline = _baseline_tree(args.baseline, tmp / "baseline")
-            trees = {f"baseline {args.baseline}": (baseline, {}), **trees}
+            trees = {f"baseline {args.baseline}": (baseline, {}, None, args.workers), **trees}
+        postgres = None
         servers = {}
         try:
-            for k, (name, (tree, env)) in enumerate(trees.items()):
-                servers[name] = Server(tree, tmp / "store", tmp / f"sessions{k}.sqlite3", args.workers, env)
+            if args.stores:
+                postgres = _postgres()
+                trees = {f"{kind}, {w} process{'es' if w > 1 else ''}":
+                         (ROOT, {}, postgres.database(f"load{w}") if kind == "postgres" else None, w)
+                         for kind in ("sqlite", "postgres") for w in (1, 2)}
+            for k, (name, (tree, env, db, workers)) in enumerate(trees.items()):
+                db = db or tmp / f"sessions{k}.sqlite3"
+                servers[name] = Server(tree, tmp / "store", db, workers, env)
             runs: dict[tuple, list[dict]] = {}
             for _ in range(args.rounds):
                 for streams in [int(v) for v in args.streams_list.split(",")]:
@@ -418,6 +442,8 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             for server in servers.values():
                 server.stop()
+            if postgres is not None:
+                postgres.stop()
     rows = [{"server": name, "client": kind, "streams": streams, **_summary(r)}
             for (name, kind, streams), r in runs.items()]
     order = {name: k for k, name in enumerate(servers)}
@@ -432,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
                                     ("--quick", args.quick), (f"--rounds {args.rounds}", args.rounds != 1),
                                     (f"--baseline {args.baseline}", bool(args.baseline)),
                                     (f"--example {args.example}", args.example != "1d"),
-                                    ("--unbatched", args.unbatched),
+                                    ("--unbatched", args.unbatched), ("--stores", args.stores),
                                     (f"--streams-list {args.streams_list}",
                                      args.streams_list != ",".join(map(str, STREAMS))),
                                     (f"--clients {args.clients}", args.clients != "lean,httpx")) if on)

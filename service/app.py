@@ -23,6 +23,7 @@ from fastapi.openapi.utils import get_openapi
 from yauyau import __version__
 
 from . import metrics
+from .jobs import Jobs
 from .middleware import BodyLimit, JsonBodies
 from .problems import install_handlers
 from .registry import Registry
@@ -125,6 +126,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         sessions = _open_sessions(settings, registry)
         app.state.registry = registry
         app.state.sessions = sessions
+        app.state.jobs = Jobs(settings.store, settings.max_precompute_basis, settings.max_precompute_nodes)
         app.state.ready = True
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,

@@ -13,6 +13,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from .jobs import Jobs
 from .problems import Problem
 from .registry import Registry
 from .sessions import Sessions
@@ -34,6 +35,11 @@ async def get_registry(sessions: Annotated[Sessions, Depends(get_sessions)]) -> 
     return sessions.registry
 
 
+async def get_jobs(request: Request) -> Jobs:
+    return request.app.state.jobs
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+JobsDep = Annotated[Jobs, Depends(get_jobs)]
 SessionsDep = Annotated[Sessions, Depends(get_sessions)]
 RegistryDep = Annotated[Registry, Depends(get_registry)]

@@ -14,11 +14,13 @@ import numpy as np
 from fastapi import APIRouter, Body, Depends, Path, Query, Request
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from starlette.responses import HTMLResponse, JSONResponse, Response
+from yauyau.solver.errors import SpecError
 from yauyau.storage.errors import NotFound
 
 from . import metrics
 from .density import parse_points
-from .deps import RegistryDep, SessionsDep, SettingsDep
+from .deps import JobsDep, RegistryDep, SessionsDep, SettingsDep
+from .jobs import PrecomputeLimit
 from .live import live_page
 from .problems import Problem
 from .schemas import (
@@ -27,6 +29,8 @@ from .schemas import (
     DensityOut,
     Forecast,
     Health,
+    Job,
+    ModelCreate,
     ModelDetail,
     ModelSummary,
     Observations,
@@ -61,6 +65,7 @@ health = APIRouter(tags=["health"])
 models = APIRouter(prefix="/v1/models", tags=["models"])
 sessions = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 analysis = APIRouter(prefix="/v1/analyze", tags=["analysis"])
+jobs_router = APIRouter(prefix="/v1/jobs", tags=["models"])
 
 
 @health.get("/livez", response_model=Health)
@@ -91,6 +96,36 @@ def prometheus() -> Response:
 @models.get("", response_model=list[ModelSummary])
 def list_models(registry: RegistryDep) -> Response:
     return _json(registry.summaries())
+
+
+@models.post("", status_code=202, response_model=Job,
+             responses={200: {"description": "the model is already stored"}, **_errors(413, 422)})
+def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
+    """Precompute a spec in the background: 202 with the job to poll (``GET /v1/jobs/{id}``); the
+    model appears in ``GET /v1/models`` when it is done.  The id is the spec's content hash: the same
+    spec again is the same job (computed once), or 200 when the model is already stored.  Oversize
+    specs (basis, mesh nodes) are refused with 413 before any work."""
+    try:
+        job, _ = jobs.submit(body.spec)
+    except SpecError as exc:
+        raise SpecError(f"spec.{exc.field}", exc.message) from None
+    except PrecomputeLimit as exc:
+        raise Problem(413, exc.message, exc.field) from None
+    out = {**job, "job": f"/v1/jobs/{job['id']}", "model": f"/v1/models/{job['id']}"}
+    response = _json(out, 200 if job["status"] == "done" else 202)
+    response.headers["Location"] = out["job"]
+    return response
+
+
+@jobs_router.get("/{job_id}", response_model=Job, responses=_errors(404))
+def get_job(jobs: JobsDep, job_id: Annotated[str, Path(min_length=1, max_length=100)]) -> Response:
+    """A precompute job: running (with its progress), done (the model is in /v1/models) or failed (why)."""
+    try:
+        job = jobs.status(job_id)
+    except KeyError:
+        raise Problem(404, f"no precompute job or model {job_id!r} (POST /v1/models starts one)",
+                      "job") from None
+    return _json({**job, "job": f"/v1/jobs/{job_id}", "model": f"/v1/models/{job_id}"})
 
 
 @models.get("/{model_id}", response_model=ModelDetail, responses=_errors(404))
@@ -246,4 +281,4 @@ def analyze(settings: SettingsDep, request: Request,
     return _json(report)
 
 
-routers = [health, models, sessions, analysis]
+routers = [health, models, jobs_router, sessions, analysis]

@@ -188,6 +188,26 @@ class SessionInfo(BaseModel):
     options: SessionOptions
 
 
+class ModelCreate(_Body):
+    spec: dict[str, Any] = Field(description="the model spec, as a spec file holds it (the fields of "
+                                             "README's spec format: name, state, drift, observation, ...)")
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"spec": {"name": "ou", "state": ["x"], "drift": ["-x"], "observation": ["x"],
+                  "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+                  "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 64}}}]})
+
+
+class Job(BaseModel):
+    id: str = Field(description="the model id (the content hash of the spec): the same spec, the same job")
+    status: str = Field(description="running, done or failed")
+    progress: float | None = Field(None, description="share of the propagators solved (0 to 1)")
+    error: str | None = Field(None, description="why the job failed")
+    name: str | None = None
+    job: str = Field(description="this job's URL (poll it)")
+    model: str = Field(description="the model's URL, once done")
+
+
 class SessionSummary(BaseModel):
     id: str
     model: str

@@ -134,6 +134,15 @@ def default_resolution(n: int, order: int, size: int) -> int:
     return resolution
 
 
+def planned_nodes(spec) -> int:
+    """How many interior nodes the spec's discretisation will have (no mesh is built): what a service
+    checks against its limit before it accepts a precompute."""
+    n = len(spec.state)
+    order = effective_order(n, spec.discretization.order)
+    resolution = spec.discretization.mesh or default_resolution(n, order, spec.discretization.basis)
+    return interior_count(n, order, resolution)
+
+
 def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int) -> FESpace:
     """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements)."""
     order = effective_order(n, order)

@@ -1,0 +1,180 @@
+"""Models added at run time: ``POST /v1/models`` precomputes a spec as a background job.
+
+The job's id is the model id (the content hash of the canonical spec), so the same spec sent twice,
+to any worker of any server sharing the model store, is one job and is computed once: the job is a
+file ``<store>/jobs/<id>.json`` created exclusively (``O_EXCL``) by the request that starts it.  The
+precompute runs in a process of its own (``python -m yauyau.service.jobs STORE ID``: the serving
+worker stays free), which writes its progress (propagators solved / basis size) into that file,
+then ``done`` once the model file is saved — it then appears in ``GET /v1/models`` — or ``failed``
+with the reason.  A job whose process died (its host restarted) without a word for
+``STALE_S`` seconds may be started again by the next request.  Before any work, a spec is checked
+(the spec's own rules, field by field) and refused with a 413 problem when it is larger than the
+service allows (basis size, mesh nodes: ``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+STALE_S = 120.0  # a running job silent this long (no progress written) is taken as dead
+_FIELDS = ("id", "status", "progress", "done", "total", "error", "name", "started", "updated", "pid")
+
+
+class PrecomputeLimit(Exception):
+    """A spec larger than the service precomputes (413): ``field`` says which size, ``message`` why."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field, self.message = field, message
+
+
+class Jobs:
+    """The precompute jobs of one model store directory."""
+
+    def __init__(self, store: Path, max_basis: int, max_nodes: int):
+        self.store = Path(store)
+        self.directory = self.store / "jobs"
+        self.max_basis, self.max_nodes = max_basis, max_nodes
+
+    def submit(self, spec_doc: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+        """Check ``spec_doc`` and start its precompute unless it is stored or running: (the job, whether
+        this call started it).  SpecError names a bad field; PrecomputeLimit an oversize one."""
+        from yauyau.solver.fem import planned_nodes
+        from yauyau.solver.model import compile_model
+        from yauyau.solver.spec import spec_from_dict
+        from yauyau.storage.model_store import ModelStore, model_id
+
+        spec = spec_from_dict(spec_doc)
+        basis = spec.discretization.basis
+        if basis > self.max_basis:
+            raise PrecomputeLimit("spec.discretization.basis", f"{basis} basis functions: this service "
+                                  f"precomputes at most {self.max_basis} (YAUYAU_MAX_PRECOMPUTE_BASIS)")
+        nodes = planned_nodes(spec)
+        if nodes > self.max_nodes:
+            raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
+                                  f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES)")
+        compile_model(spec)  # the expressions parse and are finite on the ball: a 4xx now, not a failed job
+        spec_json = spec.canonical_json()
+        mid = model_id(spec_json)
+        store = ModelStore(self.store)
+        if store.exists(mid):
+            return self.status(mid), False
+        store.ensure_writable()
+        self.directory.mkdir(parents=True, exist_ok=True)
+        (self.directory / f"{mid}.spec.json").write_text(spec_json)
+        job = {"id": mid, "status": "running", "progress": 0.0, "done": 0, "total": basis, "error": None,
+               "name": spec.name, "started": time.time(), "updated": time.time(), "pid": None}
+        if not self._claim(mid, job):
+            return self.status(mid), False
+        process = subprocess.Popen([sys.executable, "-m", "yauyau.service.jobs", str(self.store), mid],
+                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL, start_new_session=True)
+        _write(self._path(mid), {**job, "pid": process.pid})
+        return self.status(mid), True
+
+    def status(self, mid: str) -> dict[str, Any]:
+        """The job of model ``mid`` (``done`` when the model is stored, whoever stored it); KeyError when
+        there is no such job nor model."""
+        from yauyau.storage.model_store import ModelStore
+
+        job = _read(self._path(mid))
+        stored = ModelStore(self.store).exists(mid)
+        if job is None:
+            if not stored:
+                raise KeyError(mid)
+            return {"id": mid, "status": "done", "progress": 1.0, "error": None}
+        if stored:
+            job.update(status="done", progress=1.0)
+        elif job["status"] == "running" and time.time() - job.get("updated", 0) > STALE_S:
+            job.update(status="failed", error=f"the precompute stopped reporting for {STALE_S:g} s (its "
+                                              "process died); send the spec again to restart it")
+        return {k: job.get(k) for k in ("id", "status", "progress", "error", "name")}
+
+    def _path(self, mid: str) -> Path:
+        return self.directory / f"{mid}.json"
+
+    def _claim(self, mid: str, job: dict[str, Any]) -> bool:
+        """Create the job file exclusively (False: another request owns a live job).  A failed or dead
+        job's file is replaced."""
+        path = self._path(mid)
+        for _ in range(2):
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                old = _read(path)
+                dead = old is None or old["status"] == "failed" or (
+                    old["status"] == "running" and time.time() - old.get("updated", 0) > STALE_S)
+                if not dead:
+                    return False
+                path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as out:
+                json.dump(job, out)
+            return True
+        return False
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _write(path: Path, job: dict[str, Any]) -> None:
+    """Replace the job file atomically (a reader sees the old or the new, never half)."""
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({k: job.get(k) for k in _FIELDS}))
+    os.replace(tmp, path)
+
+
+def run(store: Path, mid: str) -> int:
+    """The job's process: precompute the spec saved for ``mid`` into ``store``, reporting progress."""
+    import threading
+
+    from yauyau.solver.spec import spec_from_dict
+
+    from yauyau import precompute
+
+    path = Path(store) / "jobs" / f"{mid}.json"
+    job = _read(path) or {"id": mid}
+    job.update(status="running", pid=os.getpid(), updated=time.time())
+    _write(path, job)
+    lock, finished = threading.Lock(), threading.Event()
+
+    def report(**fields: Any) -> None:
+        with lock:
+            job.update(fields, updated=time.time())
+            _write(path, job)
+
+    def heartbeat() -> None:  # alive while the basis is solved (no progress to report yet)
+        while not finished.wait(STALE_S / 10):
+            report()
+
+    def progress(done: int, total: int) -> None:
+        report(done=done, total=total, progress=done / total if total else 0.0)
+
+    threading.Thread(target=heartbeat, daemon=True).start()
+
+    try:
+        spec = spec_from_dict(json.loads((Path(store) / "jobs" / f"{mid}.spec.json").read_text()))
+        saved = precompute(spec, store, progress=progress)
+        if saved != mid:
+            raise RuntimeError(f"the stored id {saved} is not the job's {mid}")
+    except Exception as exc:  # noqa: BLE001 - the job's answer, read by GET /v1/jobs/{id}
+        finished.set()
+        report(status="failed", error=f"{type(exc).__name__}: {exc}")
+        return 1
+    finished.set()
+    report(status="done", progress=1.0)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run(Path(sys.argv[1]), sys.argv[2]))

@@ -1,0 +1,109 @@
+"""Models added at run time (service/jobs.py): POST /v1/models precomputes in the background.
+
+The served model is the one ``yauyau.precompute`` makes of the same spec (the same content hash),
+and a session on it matches the exact Kalman filter (the spec is linear).  The same spec twice is
+one job; oversize and invalid specs are refused before any work; a job whose process died is
+reported and can be started again.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from yauyau.service.app import create_app
+from yauyau.service.jobs import Jobs
+from yauyau.service.settings import Settings
+from yauyau.solver import compile_model, spec_from_dict
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.storage.model_store import model_id
+
+SPEC = {"name": "ou-runtime", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x"],
+        "initial": {"kind": "gaussian", "mean": [0.5], "cov": [[0.5]]}, "domain": {"radius": 6.0},
+        "discretization": {"dt": 0.01, "basis": 48}, "method": "yau-yau"}
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture
+def api(tmp_path):
+    settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", max_precompute_basis=500,
+                        max_precompute_nodes=2000)
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        yield client
+
+
+def _wait(api, url, timeout=120.0):
+    deadline, seen = time.monotonic() + timeout, []
+    while time.monotonic() < deadline:
+        job = api.get(url).json()
+        seen.append(job["progress"])
+        if job["status"] != "running":
+            return job, seen
+        time.sleep(0.2)
+    raise AssertionError(f"job {url} still running after {timeout} s")
+
+
+def test_a_spec_posted_is_precomputed_in_the_background_and_served(api):
+    expected = model_id(spec_from_dict(SPEC).canonical_json())
+    first = api.post("/v1/models", json={"spec": SPEC})
+    assert first.status_code == 202, first.text
+    body = first.json()
+    assert body["id"] == expected and body["status"] == "running" and first.headers["location"] == body["job"]
+    again = api.post("/v1/models", json={"spec": SPEC})  # the same spec: the same job, not a second one
+    assert again.status_code in (200, 202) and again.json()["id"] == expected
+    assert expected not in [m["id"] for m in api.get("/v1/models").json()] or again.status_code == 200
+    job, seen = _wait(api, body["job"])
+    assert job["status"] == "done" and job["error"] is None and job["progress"] == 1.0
+    assert all(0.0 <= p <= 1.0 for p in seen) and seen == sorted(seen)
+    assert expected in [m["id"] for m in api.get("/v1/models").json()]
+    assert api.post("/v1/models", json={"spec": SPEC}).status_code == 200  # stored: nothing to do
+    # a session on the new model: the exact Kalman filter's answer (the model is linear)
+    model = compile_model(spec_from_dict(SPEC))
+    increments = simulate(model, 200, np.random.default_rng(5)).increments
+    sid = api.post("/v1/sessions", json={"model": expected}).json()["id"]
+    r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": increments.tolist()})
+    assert r.status_code == 200, r.text
+    kalman = DiscreteKalmanFilter(model)
+    _, ref = kalman.run(kalman.initial_state(), increments)
+    means = np.array([e["mean"][0] for e in r.json()["estimates"]])
+    assert np.max(np.abs(means - np.array([e.mean[0] for e in ref]))) < 2e-3
+
+
+@pytest.mark.parametrize("change, status, field", [
+    ({"discretization": {"dt": 0.01, "basis": 800}}, 413, "spec.discretization.basis"),
+    ({"discretization": {"dt": 0.01, "basis": 48, "mesh": 3000}}, 413, "spec.discretization.mesh"),
+    ({"drift": ["__import__('os')"]}, 422, "spec.drift[0]"),
+    ({"domain": {"radius": -1.0}}, 422, "spec.domain.radius"),
+])
+def test_oversize_or_invalid_specs_are_refused_before_any_work(api, change, status, field, tmp_path):
+    r = api.post("/v1/models", json={"spec": {**SPEC, **change}})
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM)
+    assert r.json()["field"].startswith(field), r.json()
+    assert not (tmp_path / "store" / "jobs").exists() or not list((tmp_path / "store" / "jobs").iterdir())
+    assert api.get("/v1/jobs/0123456789abcdef0123").status_code == 404
+
+
+def test_a_job_whose_process_died_is_reported_and_started_again(tmp_path, monkeypatch):
+    import yauyau.service.jobs as jobs_module
+
+    jobs = Jobs(tmp_path / "store", 500, 2000)
+    mid = model_id(spec_from_dict(SPEC).canonical_json())
+    (tmp_path / "store" / "jobs").mkdir(parents=True)
+    dead = {"id": mid, "status": "running", "progress": 0.3, "updated": time.time() - 3600, "pid": 1}
+    (tmp_path / "store" / "jobs" / f"{mid}.json").write_text(json.dumps(dead))
+    assert jobs.status(mid)["status"] == "failed" and "died" in jobs.status(mid)["error"]
+    started = []
+    monkeypatch.setattr(jobs_module.subprocess, "Popen", lambda *a, **k: started.append(a) or _Fake())
+    job, fresh = jobs.submit(SPEC)
+    assert fresh and job["status"] == "running" and len(started) == 1
+    job, fresh = jobs.submit(SPEC)  # running now: the same job
+    assert not fresh and len(started) == 1
+
+
+class _Fake:
+    pid = 12345
