@@ -32,6 +32,7 @@ TOPICS = [
     ("measurements", "bench-measurements.md"),
     ("yau_jia", "bench-yau-jia.md"),
     ("engine_revision", "bench-engine-revision.md"),
+    ("cli_speed", "bench-cli.md"),
     ("load", "bench-load.md"),
     ("load_2d", "bench-load-2d.md"),
     ("load_stores", "bench-load-stores.md"),

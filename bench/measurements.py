@@ -351,8 +351,10 @@ class ParticlesPeer:
         self.process, self.tmp, self.out, self.log = process, tmp, out, log
 
     @classmethod
-    def start(cls, model: Model, sets) -> tuple[ParticlesPeer | None, str | None]:
-        """The running peer, or None and why it cannot run."""
+    def start(cls, model: Model, sets,
+              increments_dt: float | None = None) -> tuple[ParticlesPeer | None, str | None]:
+        """The running peer, or None and why it cannot run.  ``increments_dt``: the rows are increments
+        dy = h dt + dw over regular steps dt, read by the peer as z = dy/dt with noise variance R/dt."""
         if not PEER_PYTHON.exists():
             return None, (f"not run: no peer venv at {PEER_VENV.relative_to(ROOT)} "
                           "(create it with `python -m bench.measurements --setup-peers`)")
@@ -364,10 +366,11 @@ class ParticlesPeer:
         OUT.mkdir(parents=True, exist_ok=True)
         tmp = tempfile.TemporaryDirectory(dir=OUT)
         src, dst = Path(tmp.name) / "in.npz", Path(tmp.name) / "out.npz"
-        np.savez(src, observations=np.array([rows[:, 0] for _, rows, _ in sets]),
+        scale = 1.0 if increments_dt is None else 1.0 / increments_dt
+        np.savez(src, observations=np.array([rows[:, 0] * scale for _, rows, _ in sets]),
                  times=np.array([t for _, _, t in sets]), seeds=np.array([1000 + s for s, _, _ in sets]),
                  drift_poly=drift, obs_poly=sensor, diffusion=float(model.a[0, 0]),
-                 noise_var=float(model.R[0, 0]), prior_mean=float(prior.mean[0]),
+                 noise_var=float(model.R[0, 0]) * scale, prior_mean=float(prior.mean[0]),
                  prior_var=float(prior.cov[0][0]), particles=PF_PARTICLES, substeps=4)
         env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
         log = open(Path(tmp.name) / "stderr.txt", "w+")  # closed by close()
