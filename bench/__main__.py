@@ -33,6 +33,7 @@ TOPICS = [
     ("yau_jia", "bench-yau-jia.md"),
     ("engine_revision", "bench-engine-revision.md"),
     ("cli_speed", "bench-cli.md"),
+    ("default_mesh", "bench-default-mesh.md"),
     ("load", "bench-load.md"),
     ("load_2d", "bench-load-2d.md"),
     ("load_stores", "bench-load-stores.md"),

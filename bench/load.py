@@ -50,7 +50,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = {"1d": ROOT / "examples" / "cubic_sensor.toml", "2d": ROOT / "examples" / "range_2d.toml"}
 DOCS = {"1d": ROOT / "docs" / "bench-load.md", "2d": ROOT / "docs" / "bench-load-2d.md",
-        "stores": ROOT / "docs" / "bench-load-stores.md"}
+        "stores": ROOT / "docs" / "bench-load-stores.md", "windows": ROOT / "docs" / "bench-load-windows.md"}
 CHUNK = 100
 MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the server is
 STREAMS = (1, 8, 64)
@@ -311,10 +311,11 @@ def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple
 
 
 def _write_doc(rows, engine_ms, commits, args, load, command, model) -> Path:
-    doc = DOCS["stores"] if args.stores else DOCS[args.example]
+    doc = DOCS["stores"] if args.stores else DOCS["windows"] if args.windows else DOCS[args.example]
     what = ("1-D cubic sensor" if args.example == "1d" else "2-D rotation with a cubic sensor") + \
         f" (N = {model.spec.discretization.basis})"
-    title = ", session stores" if args.stores else "" if args.example == "1d" else ", 2-D"
+    title = (", session stores" if args.stores else ", batch windows" if args.windows
+             else "" if args.example == "1d" else ", 2-D")
     lines = ["## HTTP load (`yauyau serve`)" + title, "",
              f"`{command}`", "",
              f"{what}, chunks of {CHUNK} observations, {args.workers} uvicorn worker(s), "
@@ -380,6 +381,9 @@ def _parse(argv):
     parser.add_argument("--stores", action="store_true",
                         help="compare the session stores instead: SQLite and PostgreSQL (a server started "
                              "for the run), with one and two server processes")
+    parser.add_argument("--windows", default="",
+                        help="comma-separated batch windows in ms to compare instead (e.g. 0,1,2,5): the "
+                             "working tree served once per window (YAUYAU_BATCH_WINDOW)")
     parser.add_argument("--unbatched", action="store_true",
                         help="also serve the working tree with micro-batching off (YAUYAU_MAX_BATCH=1)")
     parser.add_argument("--streams-list", default=",".join(map(str, STREAMS)),
@@ -424,6 +428,9 @@ def main(argv: list[str] | None = None) -> int:
         postgres = None
         servers = {}
         try:
+            if args.windows:
+                trees = {f"window {w} ms": (ROOT, {"YAUYAU_BATCH_WINDOW": str(float(w) / 1000)}, None,
+                                            args.workers) for w in args.windows.split(",")}
             if args.stores:
                 postgres = _postgres()
                 trees = {f"{kind}, {w} process{'es' if w > 1 else ''}":
@@ -459,6 +466,7 @@ def main(argv: list[str] | None = None) -> int:
                                     (f"--baseline {args.baseline}", bool(args.baseline)),
                                     (f"--example {args.example}", args.example != "1d"),
                                     ("--unbatched", args.unbatched), ("--stores", args.stores),
+                                    (f"--windows {args.windows}", bool(args.windows)),
                                     (f"--streams-list {args.streams_list}",
                                      args.streams_list != ",".join(map(str, STREAMS))),
                                     (f"--clients {args.clients}", args.clients != "lean,httpx")) if on)

@@ -41,10 +41,10 @@ from skfem.helpers import dot, grad
 from .errors import SpecError
 
 # Interior degrees of freedom per basis function when the mesh is not given (Q ≈ 2N).  The online
-# step costs ~2·Q·N flops per observation.  Measured on the cubic sensor (N = 128, 2000 steps,
-# 9 seeds, max |mean − point-mass mean|, target 0.01): Q = 259 (default) → ≤ 3.4e-4, Q = 159
-# (mesh = 40) → ≤ 4.2e-3, Q = 131 (mesh = 33) → ≤ 5.3e-3: a spec may set ``mesh`` to trade
-# accuracy for speed; the default keeps a wide margin (densities, covariances to ~1e-5).
+# step costs ~2·Q·N flops per observation.  Chosen by measurement (bench/default_mesh.py,
+# docs/bench-default-mesh.md): of Q/N ≈ 1.25, 1.5 and 2, only 2 keeps the largest mean gap ≤ 1e-3 on
+# every bundled 1-D model (the two-peaked √(1+x²) sensor: 4.4e-2, 3.0e-3, 4.3e-6; the cubic sensor
+# 3.2e-4, 1.7e-4, 6.2e-5).  A spec may set ``mesh`` to trade the margin for speed (the cubic example).
 NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
 # The basis comes from a dense eigensolve, O(Q²) memory and O(Q³) time: 12000 nodes is ~1.1 GiB.
 MAX_NODES = 12000
