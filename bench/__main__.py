@@ -37,6 +37,7 @@ TOPICS = [
     ("load", "bench-load.md"),
     ("load_2d", "bench-load-2d.md"),
     ("load_stores", "bench-load-stores.md"),
+    ("load_windows", "bench-load-windows.md"),
 ]
 
 HEADER = """# Benchmarks

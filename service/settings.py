@@ -33,7 +33,8 @@ class Settings(BaseSettings):
     workers: int = Field(1, ge=1, le=64)
     batch_window: float = Field(
         0.0, ge=0, le=1.0, description="seconds a worker waits for more chunks before stepping the ones it "
-                                       "has together (0: take those already waiting; docs/bench-load.md)")
+                                       "has together (0, the chunks already waiting, measured best: "
+                                       "docs/bench-load-windows.md)")
     max_batch: int = Field(256, ge=1, le=100_000, description="most chunks stepped together in one batch")
     max_precompute_basis: int = Field(
         1000, ge=1, le=100_000, description="largest basis a POST /v1/models may precompute (413 beyond)")
