@@ -137,6 +137,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.ready = False
         sweeper.stop()
         sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
+        close = getattr(sessions.store, "close", None)
+        if close is not None and getattr(sessions.store, "pool", None) is not None:
+            close()  # a PostgreSQL store's pool (SQLite's per-thread connections close with their threads)
         if before["sessions"] is not None:
             app.state.registry, app.state.sessions = before["registry"], before["sessions"]
             app.state.ready = bool(before["ready"])

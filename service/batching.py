@@ -35,6 +35,7 @@ class ChunkBatcher(Executor):
         self.max_batch = int(max_batch)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._closed = False
+        self._closing = threading.Lock()  # a submit never lands behind the stop
         self._held: list[tuple] = []  # taken from the queue but left for the next batch (same session)
         self._thread = threading.Thread(target=self._loop, name="yauyau-chunk", daemon=True)
         self._thread.start()
@@ -47,17 +48,19 @@ class ChunkBatcher(Executor):
         return self._put(("chunk", request))
 
     def _put(self, item: tuple) -> Future:
-        if self._closed:
-            raise RuntimeError("the chunk executor is shut down")
         future: Future = Future()
-        self._queue.put((*item, future))
+        with self._closing:
+            if self._closed:
+                raise RuntimeError("the chunk executor is shut down")
+            self._queue.put((*item, future))
         return future
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         """Stop after what was submitted (the chunk in flight and those queued are applied)."""
-        if not self._closed:
-            self._closed = True
-            self._queue.put(_STOP)
+        with self._closing:
+            if not self._closed:
+                self._closed = True
+                self._queue.put(_STOP)
         if wait:
             self._thread.join()
 
@@ -103,9 +106,11 @@ class ChunkBatcher(Executor):
         return batch
 
     def _apply(self, batch: list[tuple]) -> None:
-        metrics.BATCH_SIZE.observe(len(batch))
         try:
+            metrics.BATCH_SIZE.observe(len(batch))
             answers = self.apply_many([item[1] for item in batch])
+            if len(answers) != len(batch):
+                raise RuntimeError(f"{len(answers)} answers for {len(batch)} chunks")
         except BaseException as exc:  # noqa: BLE001 - nothing was answered: every chunk gets the error
             answers = [exc] * len(batch)
         for item, answer in zip(batch, answers, strict=True):

@@ -6,10 +6,13 @@ file ``<store>/jobs/<id>.json`` created exclusively (``O_EXCL``) by the request 
 precompute runs in a process of its own (``python -m yauyau.service.jobs STORE ID``: the serving
 worker stays free), which writes its progress (propagators solved / basis size) into that file,
 then ``done`` once the model file is saved — it then appears in ``GET /v1/models`` — or ``failed``
-with the reason.  A job whose process died (its host restarted) without a word for
-``STALE_S`` seconds may be started again by the next request.  Before any work, a spec is checked
-(the spec's own rules, field by field) and refused with a 413 problem when it is larger than the
-service allows (basis size, mesh nodes: ``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``).
+with the reason.  The job's process holds an exclusive lock on ``<id>.lock`` for its lifetime (the
+heartbeat alone is not enough: the eigensolve holds the GIL for minutes); a job whose lock is free
+and whose file has been silent for ``STALE_S`` seconds died (its host restarted) and may be started
+again by the next request.  A job is claimed under an exclusive lock on ``<id>.claim``, so of the
+requests that find it missing or dead at once, one starts it.  Before any
+work, a spec is checked (the spec's own rules, field by field) and refused with a 413 problem when
+it is larger than the service allows (basis size, mesh nodes: ``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-STALE_S = 120.0  # a running job silent this long (no progress written) is taken as dead
+STALE_S = 120.0  # a running job silent this long, whose lock is not held on this host, is taken as dead
 _FIELDS = ("id", "status", "progress", "done", "total", "error", "name", "started", "updated", "pid")
 
 
@@ -67,15 +70,14 @@ class Jobs:
             return self.status(mid), False
         store.ensure_writable()
         self.directory.mkdir(parents=True, exist_ok=True)
-        (self.directory / f"{mid}.spec.json").write_text(spec_json)
         job = {"id": mid, "status": "running", "progress": 0.0, "done": 0, "total": basis, "error": None,
                "name": spec.name, "started": time.time(), "updated": time.time(), "pid": None}
         if not self._claim(mid, job):
             return self.status(mid), False
-        process = subprocess.Popen([sys.executable, "-m", "yauyau.service.jobs", str(self.store), mid],
-                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                   stderr=subprocess.DEVNULL, start_new_session=True)
-        _write(self._path(mid), {**job, "pid": process.pid})
+        _write_text(self.directory / f"{mid}.spec.json", spec_json)  # only the claimer writes it
+        subprocess.Popen([sys.executable, "-m", "yauyau.service.jobs", str(self.store), mid],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True)  # it writes its pid and its progress itself
         return self.status(mid), True
 
     def status(self, mid: str) -> dict[str, Any]:
@@ -91,33 +93,38 @@ class Jobs:
             return {"id": mid, "status": "done", "progress": 1.0, "error": None}
         if stored:
             job.update(status="done", progress=1.0)
-        elif job["status"] == "running" and time.time() - job.get("updated", 0) > STALE_S:
-            job.update(status="failed", error=f"the precompute stopped reporting for {STALE_S:g} s (its "
-                                              "process died); send the spec again to restart it")
+        elif self._dead(mid, job):
+            why = ("the precompute stopped (its process died, or the model file was removed); send the spec "
+                   "again to restart it")
+            job.update(status="failed", error=job.get("error") or why)
         return {k: job.get(k) for k in ("id", "status", "progress", "error", "name")}
 
     def _path(self, mid: str) -> Path:
         return self.directory / f"{mid}.json"
 
-    def _claim(self, mid: str, job: dict[str, Any]) -> bool:
-        """Create the job file exclusively (False: another request owns a live job).  A failed or dead
-        job's file is replaced."""
-        path = self._path(mid)
-        for _ in range(2):
-            try:
-                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                old = _read(path)
-                dead = old is None or old["status"] == "failed" or (
-                    old["status"] == "running" and time.time() - old.get("updated", 0) > STALE_S)
-                if not dead:
-                    return False
-                path.unlink(missing_ok=True)
-                continue
-            with os.fdopen(fd, "w") as out:
-                json.dump(job, out)
+    def _dead(self, mid: str, job: dict[str, Any] | None) -> bool:
+        """Whether a job can be started again: none, failed, done without its model file, or running
+        with its lock free (its process is gone) and its file silent for STALE_S seconds."""
+        from yauyau.storage.model_store import ModelStore
+
+        if job is None or job.get("status") == "failed":
             return True
-        return False
+        if job.get("status") == "done":
+            return not ModelStore(self.store).exists(mid)
+        return not _locked(self.directory / f"{mid}.lock") and time.time() - job.get("updated", 0) > STALE_S
+
+    def _claim(self, mid: str, job: dict[str, Any]) -> bool:
+        """Write the job file unless a live job owns it (False then).  Under an exclusive lock on
+        ``<id>.claim``: of the requests (threads, workers) that find a job dead at once, one claims it."""
+        import fcntl
+
+        path = self._path(mid)
+        with open(self.directory / f"{mid}.claim", "a") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX)  # released when the file closes
+            if path.exists() and not self._dead(mid, _read(path)):
+                return False
+            _write(path, job)
+            return True
 
 
 def _read(path: Path) -> dict[str, Any] | None:
@@ -129,9 +136,29 @@ def _read(path: Path) -> dict[str, Any] | None:
 
 def _write(path: Path, job: dict[str, Any]) -> None:
     """Replace the job file atomically (a reader sees the old or the new, never half)."""
+    _write_text(path, json.dumps({k: job.get(k) for k in _FIELDS}))
+
+
+def _write_text(path: Path, text: str) -> None:
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({k: job.get(k) for k in _FIELDS}))
+    tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def _locked(path: Path) -> bool:
+    """Whether a job process holds ``path``'s lock (on this host)."""
+    import fcntl
+
+    try:
+        with open(path, "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(handle, fcntl.LOCK_UN)
+            return False
+    except OSError:
+        return False
 
 
 def run(store: Path, mid: str) -> int:

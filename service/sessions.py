@@ -370,10 +370,13 @@ class Sessions:
             groups.setdefault(key, []).append((i, job))
         for group in groups.values():
             jobs = [job for _, job in group]
-            with self._write_lock:
-                answers = self.store.apply_chunks([(j.session_id, j.seq, j.digest) for j in jobs],
-                                                  lambda pairs, jobs=jobs: _compute_many(jobs, pairs),
-                                                  encoded=True, records=[j.record for j in jobs])
+            try:
+                with self._write_lock:
+                    answers = self.store.apply_chunks([(j.session_id, j.seq, j.digest) for j in jobs],
+                                                      lambda pairs, jobs=jobs: _compute_many(jobs, pairs),
+                                                      encoded=True, records=[j.record for j in jobs])
+            except Exception as exc:  # noqa: BLE001 - this group's answer only; the others committed
+                answers = [exc] * len(jobs)
             for (i, job), answer in zip(group, answers, strict=True):
                 out[i] = answer if isinstance(answer, BaseException) else answer[0]
                 if not isinstance(answer, BaseException):

@@ -52,7 +52,7 @@ class _Member:
     rows: np.ndarray
     steps: np.ndarray
     times: np.ndarray
-    ready: Any  # engine._Prepared
+    ready: Any  # engine._Prepared, while its group runs
 
 
 def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
@@ -83,6 +83,8 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
                 raise InputError(f"chunks[{i}].{exc.field}", exc.message) from None
             out[i] = exc
     for group in _groups(members, len(engine.nodes), np.dtype(engine._arith.dtype).itemsize):
+        for member in group:  # the update factors of this group only: memory bounded by the group
+            member.ready = engine._prepare(member.state, member.rows, None, gating=True)
         for member, loop in zip(group, _propagate_together(engine, group), strict=True):
             if loop is None:  # it left the fast path: alone, from the start of its chunk
                 out[member.index] = engine.run_arrays(member.state, member.rows,
@@ -90,6 +92,7 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
             else:
                 out[member.index] = engine._finish(member.state, member.rows, member.steps, member.times,
                                                    None, member.ready, *loop)
+            member.ready = None
     return out
 
 
@@ -103,7 +106,7 @@ def _fast_member(engine: Any, index: int, state: Any, chunk: Any, chunk_times: A
     if K == 0 or taus is not None or engine.form != "stable" or state.degenerate:
         return None
     steps, clock = chunk_clock(state, K, model.dt, None, None)
-    return _Member(index, state, rows, steps, clock, engine._prepare(state, rows, None, gating=True))
+    return _Member(index, state, rows, steps, clock, None)  # prepared with its group (bounded memory)
 
 
 def _groups(members: list[_Member], Q: int, itemsize: int) -> list[list[_Member]]:

@@ -84,10 +84,14 @@ class PostgresSessionStore(SessionStoreBase):
             self.pool.close()
             raise StoreError("session_db", f"cannot connect to the PostgreSQL session database "
                                            f"{_shown(dsn)}: {exc}") from None
-        with self._transaction() as db:
-            db.execute(f"SELECT pg_advisory_xact_lock({_SCHEMA_LOCK})")
-            for statement in filter(str.strip, _SCHEMA.split(";")):
-                db.execute(statement)
+        try:
+            with self._transaction() as db:
+                db.execute(f"SELECT pg_advisory_xact_lock({_SCHEMA_LOCK})")
+                for statement in filter(str.strip, _SCHEMA.split(";")):
+                    db.execute(statement)
+        except StoreError:
+            self.pool.close()
+            raise
 
     def close(self) -> None:
         self.pool.close()
@@ -106,6 +110,8 @@ class PostgresSessionStore(SessionStoreBase):
             raise self._error(exc, "database error") from None
 
     def _query(self, sql: str, args: tuple = ()) -> _Rows:
+        if any(isinstance(a, str) and "\x00" in a for a in args):
+            return _Rows([])  # PostgreSQL text cannot hold NUL: no row has it (SQLite finds none either)
         with self._transaction() as db:
             return _Rows(db.execute(sql, args).fetchall())
 

@@ -263,10 +263,14 @@ class SessionStoreBase:
             return 0
         cutoff = _dt.datetime.fromtimestamp((time.time() if now is None else now) - idle, _dt.timezone.utc)
         stamp = cutoff.isoformat(timespec="milliseconds")
-        with self._transaction() as db:
-            db.execute("DELETE FROM chunks WHERE session_id IN (SELECT id FROM sessions WHERE updated < ?)",
-                       (stamp,))
-            gone = db.execute("DELETE FROM sessions WHERE updated < ?", (stamp,)).rowcount
+        with self._transaction() as db:  # the sessions first: a session touched meanwhile keeps its chunks
+            ids = [row["id"] for row in db.execute("DELETE FROM sessions WHERE updated < ? RETURNING id",
+                                                   (stamp,)).fetchall()]
+            for start in range(0, len(ids), 500):
+                part = ids[start:start + 500]
+                marks = ", ".join("?" * len(part))
+                db.execute(f"DELETE FROM chunks WHERE session_id IN ({marks})", tuple(part))
+            gone = len(ids)
         if gone:
             self.reclaim()
         return int(gone)
@@ -292,14 +296,20 @@ class SessionStoreBase:
 
     def _stored_text(self, session_id: str, seq: int, digest: str | None = None) -> str:
         query = "SELECT response, digest FROM chunks WHERE session_id = ? AND seq = ?"
-        row = self._query(query, (str(session_id), seq)).fetchone()
+        try:
+            row = self._query(query, (str(session_id), seq)).fetchone()
+        except self._db_errors as exc:
+            raise self._error(exc, "cannot read a stored response") from None
         if row is not None and digest is not None and row["digest"] is not None and row["digest"] != digest:
             raise Conflict("seq", f"chunk {seq} was already applied with different data; nothing was applied "
                                   "(send new data with the next seq, or re-send chunk {seq} unchanged)"
                            .replace("{seq}", str(seq)))
         if row is None:
-            oldest = self._query("SELECT MIN(seq) AS oldest FROM chunks WHERE session_id = ?",
-                                 (str(session_id),)).fetchone()["oldest"]
+            try:
+                oldest = self._query("SELECT MIN(seq) AS oldest FROM chunks WHERE session_id = ?",
+                                     (str(session_id),)).fetchone()["oldest"]
+            except self._db_errors as exc:
+                raise self._error(exc, "cannot read a stored response") from None
             raise Conflict("seq", f"chunk {seq} was applied but its response is no longer kept "
                                   f"(replays are kept for the last {self.retention} chunks, at most "
                                   f"{self.retention_bytes} bytes and {self.retention_seconds:g} s; "
@@ -385,8 +395,8 @@ class SessionStoreBase:
                 out[i] = exc
         clashes: list[int] = []
         try:
-            with self._transaction() as db:
-                for i, record, row, _ in rows:
+            with self._transaction() as db:  # in id order: two hosts' batches never lock in a cycle
+                for i, record, row, _ in sorted(rows, key=lambda r: r[1].id):
                     seq, digest = requests[i][1], requests[i][2]
                     if not self._write(db, record, seq, row, digest):
                         clashes.append(i)

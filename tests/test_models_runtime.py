@@ -107,3 +107,48 @@ def test_a_job_whose_process_died_is_reported_and_started_again(tmp_path, monkey
 
 class _Fake:
     pid = 12345
+
+
+def test_a_silent_job_whose_process_holds_its_lock_is_alive(tmp_path, monkeypatch):
+    """The eigensolve holds the GIL for minutes: no heartbeat, but the job's lock says it runs."""
+    import subprocess
+    import sys
+
+    import yauyau.service.jobs as jobs_module
+
+    jobs = Jobs(tmp_path / "store", 500, 2000)
+    mid = model_id(spec_from_dict(SPEC).canonical_json())
+    directory = tmp_path / "store" / "jobs"
+    directory.mkdir(parents=True)
+    silent = {"id": mid, "status": "running", "progress": 0.1, "updated": time.time() - 3600}
+    (directory / f"{mid}.json").write_text(json.dumps(silent))
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a'); "
+                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+                               str(directory / f"{mid}.lock")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert jobs.status(mid)["status"] == "running"
+        monkeypatch.setattr(jobs_module.subprocess, "Popen", lambda *a, **k: pytest.fail("started twice"))
+        job, fresh = jobs.submit(SPEC)
+        assert not fresh and job["status"] == "running"
+    finally:
+        holder.kill()
+        holder.wait()
+    assert jobs.status(mid)["status"] == "failed"  # the process is gone and the file silent: dead
+
+
+def test_of_many_requests_taking_over_a_dead_job_one_wins(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    jobs = Jobs(tmp_path / "store", 500, 2000)
+    directory = tmp_path / "store" / "jobs"
+    directory.mkdir(parents=True)
+    for attempt in range(5):
+        mid = f"{attempt:020d}"
+        (directory / f"{mid}.json").write_text(json.dumps({"id": mid, "status": "failed", "error": "x"}))
+        job = {"id": mid, "status": "running", "updated": time.time()}
+        with ThreadPoolExecutor(8) as pool:
+            won = list(pool.map(lambda _, mid=mid, job=job: jobs._claim(mid, job), range(8)))
+        assert sum(won) == 1, won
+        assert json.loads((directory / f"{mid}.json").read_text())["status"] == "running"
+    assert not list(directory.glob("*.tmp"))

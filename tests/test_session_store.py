@@ -498,3 +498,12 @@ def test_expiry_never_removes_a_session_mid_chunk(store):
     assert store.expire() == 1
     with pytest.raises(NotFound):
         store.apply_chunk(sid, 2, append_seq(2))
+
+
+def test_an_id_with_a_nul_byte_is_no_session_in_either_store(store):
+    store.create("m", "yau-yau", {"values": []})
+    with pytest.raises(NotFound):
+        store.get("abc\x00def")
+    with pytest.raises(NotFound):
+        store.apply_chunk("abc\x00def", 0, append_seq(0))
+    assert store.list_sessions(10, model_id="m\x00") == []
