@@ -20,6 +20,7 @@ COMMANDS = {
     "plot": "plot a filtered run: mean and 95 percent band, truth, density heat map (PNG or SVG)",
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",
+    "check": "whether the spec's discretisation resolves its posterior, before any data",
 }
 
 

@@ -1,0 +1,79 @@
+"""`yauyau check` (solver/check.py): a resolution check before any data arrives.
+
+Truth: a 2-D linear model observed in both coordinates (the posterior is narrow), where basis 400 on
+radius 6 is biased and degenerates while 900 is fine — measured here against the exact Kalman filter
+on paths the check never saw.  The check must predict both, and the basis it suggests must pass on
+those fresh paths too.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from yauyau.service.cli import main
+from yauyau.solver.check import resolution_check
+from yauyau.solver.errors import InputError
+from yauyau.solver.reference.kalman import DiscreteKalmanFilter
+from yauyau.solver.simulate import simulate
+from yauyau.solver.spec import spec_from_dict
+
+DOC = {"name": "linear-2d", "state": ["x1", "x2"], "drift": ["-0.5*x1 + x2", "-x1 - 0.5*x2"],
+       "observation": ["x1", "x2"], "observation_noise": [[0.05, 0.0], [0.0, 0.05]],
+       "initial": {"kind": "gaussian", "mean": [0.5, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]},
+       "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 400}}
+
+
+def _spec(basis):
+    return spec_from_dict({**DOC, "discretization": {"dt": 0.01, "basis": basis}})
+
+
+def _against_kalman(basis, seeds=(101, 102, 103)):
+    """(mean gap to the exact Kalman filter, degenerate steps) of the engine on fresh paths."""
+    from yauyau.solver.check import _filter
+
+    engine = _filter(_spec(basis), basis)
+    kalman = DiscreteKalmanFilter(engine.model)
+    gaps, bad = [], 0
+    for seed in seeds:
+        sim = simulate(engine.model, 300, np.random.default_rng(seed))
+        _, result = engine.run_arrays(engine.initial_state(), sim.increments)
+        _, ref = kalman.run(kalman.initial_state(), sim.increments)
+        gaps.append(np.max(np.abs(result.mean - np.array([e.mean for e in ref])), axis=1))
+        bad += int(result.degenerate.sum())
+    return float(np.mean(np.concatenate(gaps))), bad
+
+
+def test_the_check_predicts_the_bias_at_400_and_suggests_a_basis_that_passes():
+    report = resolution_check(_spec(400))
+    low = report.requested
+    assert not low.ok and low.degenerate > 0.1 and low.mean_gap > 0.1
+    assert low.rmse > 1.5 * report.truth_rmse  # biased: far from what the optimal filter achieves
+    assert "NOT RESOLVED" in report.render() and "Kalman" in report.truth
+    suggested = report.suggested
+    assert suggested is not None and 400 < suggested <= 1200
+    # the truth, on paths the check never saw: 400 is off, the suggestion is not
+    gap_400, bad_400 = _against_kalman(400)
+    gap_suggested, bad_suggested = _against_kalman(suggested)
+    assert gap_400 > 0.1 and bad_400 > 0
+    assert gap_suggested <= report.target and bad_suggested == 0
+
+
+def test_the_check_passes_at_900_as_the_kalman_filter_says():
+    report = resolution_check(_spec(900), suggest=True)
+    assert report.requested.ok and len(report.trials) == 1 and report.suggested == 900
+    gap, bad = _against_kalman(900)
+    assert gap <= report.target and bad == 0
+
+
+def test_the_cli_exit_status_says_resolved_or_not(tmp_path, capsys):
+    import tomllib
+    from pathlib import Path
+
+    spec = Path(__file__).resolve().parent.parent / "examples" / "cubic_sensor.toml"
+    assert tomllib.loads(spec.read_text())["discretization"]["basis"] == 128
+    assert main(["check", str(spec), "--paths", "2", "--steps", "200"]) == 0  # nonlinear: against 2x basis
+    out = capsys.readouterr().out
+    assert "OK" in out and "basis 256" in out
+    with pytest.raises(InputError, match="paths"):
+        resolution_check(_spec(400), paths=0)
+    assert main(["check", str(spec), "--paths", "0"]) == 2
