@@ -78,8 +78,11 @@ class CheckReport:
 
 
 def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
-                     target: float = DEFAULT_TARGET, suggest: bool = True) -> CheckReport:
-    """The check of the module docstring for a :class:`ModelSpec` (the general engine's discretisation)."""
+                     target: float = DEFAULT_TARGET, suggest: bool = True, offline: Any = None,
+                     exact_only: bool = False) -> CheckReport | None:
+    """The check of the module docstring for a :class:`ModelSpec` (the general engine's discretisation).
+    ``offline``: the spec's own offline arrays when they exist (not computed again).  ``exact_only``:
+    None unless the truth is exact (a linear model: the check then costs a few filtered paths)."""
     from .model import compile_model
     from .simulate import simulate
 
@@ -89,12 +92,14 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
     if not 0 < target < float("inf"):
         raise InputError("target", "must be a positive number")
     model = compile_model(_engine_spec(spec, spec.discretization.basis))
+    if exact_only and _kalman(model) is None:
+        return None
     rng = np.random.default_rng(seed)
     data = [simulate(model, steps, rng) for _ in range(paths)]
     truth, name = _truth(spec, model, data)
     report = CheckReport(truth=name, target=target, paths=paths, steps=steps,
                          truth_rmse=_rmse([t[0] for t in truth], data))
-    report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target))
+    report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline))
     if suggest and not report.requested.ok:
         for scale in SCALES:
             basis = int(round(spec.discretization.basis * scale))
@@ -119,30 +124,36 @@ def _engine_spec(spec: Any, basis: int) -> Any:
     return spec_from_dict(doc)
 
 
-def _filter(spec: Any, basis: int):
+def _filter(spec: Any, basis: int, offline: Any = None):
     from .engine import YauYauFilter
     from .model import compile_model
     from .offline import precompute
 
     model = compile_model(_engine_spec(spec, basis))
-    return YauYauFilter(model, precompute(model))
+    return YauYauFilter(model, offline if offline is not None else precompute(model))
+
+
+def _kalman(model: Any):
+    """The exact discrete Kalman filter of a linear model with a Gaussian prior and increments, else None."""
+    from .reference.kalman import DiscreteKalmanFilter
+
+    if model.spec.measurement.kind != "continuous" or getattr(model.spec.initial, "kind", "") != "gaussian":
+        return None
+    try:
+        return DiscreteKalmanFilter(model)
+    except (SpecError, InputError, ValueError):
+        return None
 
 
 def _truth(spec: Any, model: Any, data: list) -> tuple[list[tuple[np.ndarray, np.ndarray]], str]:
     """Per path (means (K, n), degenerate (K,)) of the truth, and its name."""
-    from .reference.kalman import DiscreteKalmanFilter
-
-    if model.spec.measurement.kind == "continuous" and getattr(model.spec.initial, "kind", "") == "gaussian":
-        try:
-            kalman = DiscreteKalmanFilter(model)
-        except (SpecError, InputError, ValueError):
-            kalman = None
-        if kalman is not None:
-            out = []
-            for sim in data:
-                _, estimates = kalman.run(kalman.initial_state(), sim.rows)
-                out.append((np.array([e.mean for e in estimates]), np.zeros(len(estimates), dtype=bool)))
-            return out, "the exact Kalman filter (the model is linear)"
+    kalman = _kalman(model)
+    if kalman is not None:
+        out = []
+        for sim in data:
+            _, estimates = kalman.run(kalman.initial_state(), sim.rows)
+            out.append((np.array([e.mean for e in estimates]), np.zeros(len(estimates), dtype=bool)))
+        return out, "the exact Kalman filter (the model is linear)"
     fine = 2 * spec.discretization.basis
     engine = _filter(spec, fine)
     out = []
@@ -152,8 +163,8 @@ def _truth(spec: Any, model: Any, data: list) -> tuple[list[tuple[np.ndarray, np
     return out, f"the engine at basis {fine} ({len(engine.nodes)} nodes)"
 
 
-def _trial(spec: Any, basis: int, data: list, truth: list, target: float) -> Trial:
-    engine = _filter(spec, basis)
+def _trial(spec: Any, basis: int, data: list, truth: list, target: float, offline: Any = None) -> Trial:
+    engine = _filter(spec, basis, offline)
     gaps, worst, degenerate, total, means = [], 0.0, 0, 0, []
     for sim, (ref, ref_bad) in zip(data, truth, strict=True):
         _, result = engine.run_arrays(engine.initial_state(), sim.rows)

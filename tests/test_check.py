@@ -77,3 +77,17 @@ def test_the_cli_exit_status_says_resolved_or_not(tmp_path, capsys):
     with pytest.raises(InputError, match="paths"):
         resolution_check(_spec(400), paths=0)
     assert main(["check", str(spec), "--paths", "0"]) == 2
+
+
+def test_precompute_warns_when_the_exact_filter_shows_the_basis_is_too_small(tmp_path, capsys):
+    import json
+
+    for basis, warned in ((400, True), (900, False)):
+        path = tmp_path / f"linear-{basis}.json"
+        doc = {**DOC, "method": "yau-yau", "discretization": {"dt": 0.01, "basis": basis}}
+        path.write_text(json.dumps(doc))
+        assert main(["precompute", str(path), "--store", str(tmp_path / "store")]) == 0
+        err = capsys.readouterr().err
+        assert ("warning: basis 400 does not resolve" in err) is warned, err
+        if warned:
+            assert f"yauyau check {path}" in err

@@ -98,5 +98,23 @@ def run(args: argparse.Namespace) -> int:
     what = f"{total} basis functions" if solved.offline is not None else "mesh-free, no offline arrays"
     _say(args, f"stored '{spec.name}' ({what}, {solved.seconds:.1f} s, "
                f"{size / 1e6:.2f} MB) as {store.path(saved)}")
+    _warn_if_unresolved(args, spec, solved)
     print(saved)
     return 0
+
+
+def _warn_if_unresolved(args: argparse.Namespace, spec, solved) -> None:
+    """Where the truth is free (a linear model: the exact Kalman filter), filter a few simulated paths
+    with the arrays just solved and warn when they do not resolve the posterior (yauyau check does the
+    full check, for any model)."""
+    from yauyau.solver.check import resolution_check
+
+    if solved.offline is None or solved.method != "yau-yau" or args.quiet:
+        return
+    report = resolution_check(spec, suggest=False, offline=solved.offline,
+                              exact_only=True)
+    if report is not None and not report.requested.ok:
+        r = report.requested
+        _say(args, f"warning: basis {r.basis} does not resolve this model's posterior: on simulated paths "
+                   f"the mean is {r.mean_gap:.3g} from the exact filter on average ({r.degenerate:.0%} "
+                   f"degenerate steps); run `yauyau check {args.spec}` for a basis that does")
