@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .fragments import write_fragment
+
 ROOT = Path(__file__).resolve().parent.parent
-ANALYSIS = "<!-- analysis: kept when the figures above are rewritten -->"
 FRAGMENT = ROOT / "docs" / "bench-cli.md"
 SPEC = ROOT / "examples" / "cubic_sensor.toml"
 TARGET_CLI, TARGET_PF = 1.3, 100.0
@@ -113,9 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                      + (f"{pf * 1e6:.0f} | {pf / cli:.0f}× |" if pf else "— | — |"))
     lines += ["", f"Targets: CLI ≤ {TARGET_CLI:g}× `run_arrays` per row; ≥ {TARGET_PF:g}× faster than the "
               "10k-particle filter (default discretisation)."]
-    kept = FRAGMENT.read_text().split(ANALYSIS, 1) if FRAGMENT.exists() else []
-    tail = "\n" + ANALYSIS + kept[1] if len(kept) == 2 else ""  # the hand-written analysis stays
-    FRAGMENT.write_text("\n".join(lines) + "\n" + tail)
+    write_fragment(FRAGMENT, lines)
     print(f"wrote {FRAGMENT}")
     return 0
 

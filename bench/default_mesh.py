@@ -28,9 +28,10 @@ from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 
+from .fragments import write_fragment
+
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-default-mesh.md"
-ANALYSIS = "<!-- analysis: kept when the figures above are rewritten -->"
 TARGET = 1e-3
 RATIOS = (1.25, 1.5, 2.0)
 MODELS = [("cubic sensor", "cubic_sensor.toml", lambda m: PointMassFilter(m, cells=4000), 2000),
@@ -89,9 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         ok = gap <= TARGET and not degenerate
         lines.append(f"| {label} | {N} | {Q} | {Q / N:.2f} | {gap:.1e} | {degenerate} | {cost * 1e6:.1f} "
                      f"| {'yes' if ok else '**no**'} |")
-    kept = FRAGMENT.read_text().split(ANALYSIS, 1) if FRAGMENT.exists() else []
-    tail = "\n" + ANALYSIS + kept[1] if len(kept) == 2 else ""
-    FRAGMENT.write_text("\n".join(lines) + "\n" + tail)
+    write_fragment(FRAGMENT, lines)
     print(f"wrote {FRAGMENT}")
     return 0
 

@@ -23,8 +23,9 @@ from yauyau.solver.engine import YauYauFilter
 from yauyau.solver.offline import precompute
 from yauyau.solver.simulate import simulate
 
+from .fragments import write_fragment
+
 ROOT = Path(__file__).resolve().parent.parent
-ANALYSIS = "<!-- analysis: kept when the figures above are rewritten -->"
 FRAGMENT = ROOT / "docs" / "bench-engine-batch.md"
 CHUNK = 100
 MODELS = [("1-D cubic sensor", "cubic_sensor.toml", None), ("2-D rotation", "range_2d.toml", None),
@@ -76,9 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     for label, precision, Q, N, S, alone, together, gap in rows:
         lines.append(f"| {label} | {precision} | {Q} | {N} | {S} | {alone:.1f} | {together:.1f} "
                      f"| {alone / together:.2f}× | {together / S / CHUNK * 1e3:.1f} | {gap:.1e} |")
-    kept = FRAGMENT.read_text().split(ANALYSIS, 1) if FRAGMENT.exists() else []
-    tail = "\n" + ANALYSIS + kept[1] if len(kept) == 2 else ""  # the hand-written analysis stays
-    FRAGMENT.write_text("\n".join(lines) + "\n" + tail)
+    write_fragment(FRAGMENT, lines)
     print(f"wrote {FRAGMENT}")
     return 0
 

@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .fragments import write_fragment
+
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = {"1d": ROOT / "examples" / "cubic_sensor.toml", "2d": ROOT / "examples" / "range_2d.toml"}
 DOCS = {"1d": ROOT / "docs" / "bench-load.md", "2d": ROOT / "docs" / "bench-load-2d.md",
@@ -56,7 +58,6 @@ MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the serv
 STREAMS = (1, 8, 64)
 TARGET_RATE, TARGET_P99_MS = 100_000, 50.0  # 64 streams, one worker
 TARGET_SINGLE, TARGET_2D = 2.0, 2.5  # one stream against --baseline; 2-D batched against unbatched
-ANALYSIS = "<!-- analysis: kept when the figures above are rewritten -->"
 
 
 def _free_port() -> int:
@@ -337,9 +338,7 @@ def _write_doc(rows, engine_ms, commits, args, load, command, model) -> Path:
                      f"| {r['p50']:.2f} | {r['p99']:.2f} | {r['server_ms']:.2f} | {r['client_cores']:.2f} "
                      f"| {r['resent']} |")
     lines += ["", *_verdicts(rows, args)]
-    kept = doc.read_text().split(ANALYSIS, 1) if doc.exists() else []
-    tail = "\n" + ANALYSIS + kept[1] if len(kept) == 2 else ""  # the hand-written analysis stays
-    doc.write_text("\n".join(lines) + "\n" + tail)
+    write_fragment(doc, lines)
     return doc
 
 
