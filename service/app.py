@@ -138,8 +138,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         sweeper.stop()
         sessions.chunk_executor.shutdown(wait=True)  # the chunk in flight is committed
         close = getattr(sessions.store, "close", None)
-        if close is not None and getattr(sessions.store, "pool", None) is not None:
-            close()  # a PostgreSQL store's pool (SQLite's per-thread connections close with their threads)
+        if close is not None:
+            close()  # a PostgreSQL store's pool; this thread's SQLite connection
         if before["sessions"] is not None:
             app.state.registry, app.state.sessions = before["registry"], before["sessions"]
             app.state.ready = bool(before["ready"])

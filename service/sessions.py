@@ -19,6 +19,7 @@ import hashlib
 import math
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -576,28 +577,32 @@ def _checked_prior(prior: Any, loaded: LoadedModel) -> Any:
     return prior
 
 
+@dataclass(slots=True)
 class ChunkRequest:
     """A chunk as the route receives it (checked by :meth:`Sessions.observe_many`)."""
 
-    __slots__ = ("session_id", "seq", "increments", "extras", "observations", "times")
+    session_id: str
+    seq: int
+    increments: list | None
+    extras: Extras | None = None
+    observations: list | None = None
+    times: list[float] | None = None
 
-    def __init__(self, session_id: str, seq: int, increments: list | None, extras: Extras | None = None,
-                 observations: list | None = None, times: list[float] | None = None):
-        self.session_id, self.seq, self.increments = session_id, seq, increments
-        self.extras, self.observations, self.times = extras, observations, times
 
-
+@dataclass(slots=True)
 class _ChunkJob:
     """A checked chunk: its session, seq and request digest, the filter, the rows as an array."""
 
-    __slots__ = ("session_id", "seq", "digest", "filt", "array", "times", "policy", "extras", "record",
-                 "applied")
-
-    def __init__(self, session_id, seq, digest, filt, array, times, policy, extras, record=None):
-        self.session_id, self.seq, self.digest, self.filt = session_id, seq, digest, filt
-        self.array, self.times, self.policy, self.extras = array, times, policy, extras
-        self.record = record  # the session as read to check the chunk (the store may use it)
-        self.applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
+    session_id: str
+    seq: int
+    digest: str
+    filt: Any
+    array: np.ndarray
+    times: list[float] | None
+    policy: str
+    extras: Extras | None
+    record: Any = None  # the session as read to check the chunk (the store may use it)
+    applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
 
 
 def _compute_many(jobs: list[_ChunkJob], pairs: list[tuple[int, dict[str, Any]]]) -> list[Any]:
