@@ -112,6 +112,10 @@ class RowEstimate(EstimateOut):
                                                    "row and started again (on_degenerate = reinitialise)")
     degenerate: bool = Field(False, description="present, true, only when the density is degenerate here "
                                                 "(the estimate repeats the last good one)")
+    center: list[float] | None = Field(None, description="([domain] follow = true only) the centre of the "
+                                                         "domain ball after this row")
+    recentred: bool = Field(False, description="present, true, only when the ball that follows the state "
+                                               "moved after this row ([domain] follow = true)")
     reason: str | None = Field(None, description="why the row is gated, re-initialised or degenerate (only "
                                                  "then)")
 

@@ -82,6 +82,11 @@ def result_rows(result: ChunkResult,
         row["reason"] = result.row_reason(k, gate) or "degenerate density"
         if degenerate[k] and first_reason is None:
             first_reason = row["reason"]
+    if result.center is not None:  # a ball that follows the state: its centre after each row
+        for row, center, moved in zip(rows, result.center.tolist(), result.recentred.tolist(), strict=True):
+            row["center"] = center
+            if moved:
+                row["recentred"] = True
     for row in rows:
         if row["mean"] is None and not row.get("degenerate"):  # estimate_rows nulled a non-finite row
             row["degenerate"], row["reason"] = True, row.get("reason") or "non-finite estimate"

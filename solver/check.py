@@ -125,12 +125,13 @@ def _engine_spec(spec: Any, basis: int) -> Any:
 
 
 def _filter(spec: Any, basis: int, offline: Any = None):
-    from .engine import YauYauFilter
+    """The general engine at ``basis`` (on a following ball with ``[domain] follow``)."""
+    from .engine import build
     from .model import compile_model
     from .offline import precompute
 
     model = compile_model(_engine_spec(spec, basis))
-    return YauYauFilter(model, offline if offline is not None else precompute(model))
+    return build(model, offline if offline is not None else precompute(model))
 
 
 def _kalman(model: Any):

@@ -53,6 +53,14 @@ class Diagnostics:
         self._h_nodes = np.asarray(h_nodes, dtype=float)  # (Q, m), the engine's own evaluation
         self._r_diag = np.diag(model.R).astype(float)
 
+    def translated(self, h_nodes: np.ndarray) -> "Diagnostics":
+        """The same checks on the ball moved rigidly (the rim is the same nodes): h at the new nodes."""
+        import copy
+
+        new = copy.copy(self)
+        new._h_nodes = np.asarray(h_nodes, dtype=float)
+        return new
+
     def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:
         """The first step whose density cannot be right, and why (None, None if every step is fine).
 

@@ -35,6 +35,7 @@ through the wall).  The state and its exact JSON form are in solver/engine_state
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -132,11 +133,29 @@ class YauYauFilter(ChunkedFilter):
         h_nodes = model.h(self.nodes)
         self._h_nodes = h_nodes  # (Q, m): the update factors of every kind (solver/measurement.py)
         self._pairs = [(i, j) for i in range(model.n) for j in range(i, model.n)]
-        # rows: w·x_i (i < n), then w·x_i·x_j for the pairs i ≤ j
-        w, x = self.weights, self.nodes
-        self._features = np.vstack([w * x[:, i] for i in range(model.n)]
-                                   + [w * x[:, i] * x[:, j] for i, j in self._pairs])
+        self._features = _moment_features(self.weights, self.nodes, self._pairs)
         self._diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline, h_nodes)
+
+    def centred_at(self, center: Any) -> "YauYauFilter":
+        """This engine on the ball translated to ``center`` (solver/follow.py): the same basis,
+        projector and propagators (shared, not copied), the observation and the moments at the
+        translated nodes.  Right where the Fokker–Planck operator is invariant under the move (f does
+        not depend on the coordinates that move); the caller checks that."""
+        from .follow import TranslatedOffline
+
+        center = np.asarray(center, dtype=float)
+        home = getattr(self.offline, "home", self.offline)
+        shift = center - np.asarray(getattr(self.offline, "home_center", self.model.center), dtype=float)
+        new = copy.copy(self)
+        new.__dict__.pop("_marginal_operators", None)
+        new.__dict__.setdefault("_flow_owner", self)
+        new.model = self.model.translated(center)
+        new.offline = TranslatedOffline(home, shift, center - shift)
+        new.nodes = np.ascontiguousarray(home.nodes + shift, dtype=float)
+        new._h_nodes = new.model.h(new.nodes)
+        new._features = _moment_features(self.weights, new.nodes, self._pairs)
+        new._diagnostics = self._diagnostics.translated(new._h_nodes)
+        return new
 
     # -- states ------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauYauState:
@@ -195,6 +214,10 @@ class YauYauFilter(ChunkedFilter):
                     f"{len(self.nodes)} nodes); widen it to a variance of at least {h * h / 4:.3g}, or "
                     "resolve it: shrink domain.radius or raise discretization.mesh and discretization.basis"))
 
+    def ball_center(self, state: YauYauState) -> np.ndarray:
+        """The centre of the ball the state's density lives on."""
+        return self.model.center
+
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
         return state_from_dict(data, self.N, self.model.n, self.form, self.precision)
@@ -209,7 +232,11 @@ class YauYauFilter(ChunkedFilter):
     # -- stepping (step, run and predict: ChunkedFilter) -------------------------------------
     @cached_property
     def flow(self) -> SpectralFlow:
-        """e^{τA} on the basis for any gap τ (irregular times; solver/semigroup.py), built on first use."""
+        """e^{τA} on the basis for any gap τ (irregular times; solver/semigroup.py), built on first use
+        (a centred engine's is its home engine's: the generator does not move with the ball)."""
+        owner = self.__dict__.get("_flow_owner")
+        if owner is not None:
+            return owner.flow
         generator = getattr(self.offline, "fokker_planck_generator", None)
         if generator is None:
             raise InputError("times", "these offline arrays have no Fokker-Planck generator: irregular times "
@@ -775,6 +802,13 @@ class _Gate:
 
 
 # -- helpers ---------------------------------------------------------------------------------
+def _moment_features(weights: np.ndarray, nodes: np.ndarray, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """Rows w·x_i (i < n), then w·x_i·x_j for the pairs i ≤ j: the moments as one product."""
+    n = nodes.shape[1]
+    return np.vstack([weights * nodes[:, i] for i in range(n)]
+                     + [weights * nodes[:, i] * nodes[:, j] for i, j in pairs])
+
+
 def _blocks(pieces: np.ndarray, limit: int) -> list[int]:
     """Ends of consecutive blocks of rows whose pieces add up to at most ``limit`` (at least one row)."""
     ends, total = [], 0
@@ -834,5 +868,11 @@ def _check_offline_shapes(nodes, weights, projector, offline, n: int) -> None:
 
 def build(model: Model, offline: Any, form: str = "stable", precision: str = "double",
           gate: float | None = None, **_: Any) -> YauYauFilter:
-    """The registry's constructor (solver/registry.py)."""
-    return YauYauFilter(model, offline, form=form, precision=precision, gate=gate)
+    """The registry's constructor (solver/registry.py); ``[domain] follow``: on a ball that follows the
+    state (solver/follow.py)."""
+    engine = YauYauFilter(model, offline, form=form, precision=precision, gate=gate)
+    if model.spec.domain.follow:
+        from .follow import FollowingFilter
+
+        return FollowingFilter(engine)
+    return engine

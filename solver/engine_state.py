@@ -40,13 +40,17 @@ class YauYauState:
     reason: str | None = None
     form: str = "stable"
     precision: str = "double"
+    center: np.ndarray | None = None  # the ball's centre when it follows the state (solver/follow.py)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe; floats as Python floats (repr round-trips exactly)."""
-        return {"method": "yau-yau", "form": self.form, "precision": self.precision, "step": self.step,
-                "t": self.t,
-                "loglik": self.loglik, "degenerate": self.degenerate, "reason": self.reason,
-                "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
+        out = {"method": "yau-yau", "form": self.form, "precision": self.precision, "step": self.step,
+               "t": self.t,
+               "loglik": self.loglik, "degenerate": self.degenerate, "reason": self.reason,
+               "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
+        if self.center is not None:
+            out["center"] = np.asarray(self.center, dtype=float).tolist()
+        return out
 
     @property
     def density_coefficients(self) -> np.ndarray:

@@ -87,13 +87,15 @@ class ChunkResult:
     reinitialised: np.ndarray | None = None  # (K,) bool: degenerate here, started again from a prior
     notes: dict[int, str] | None = None  # row -> why it was re-initialised
     gate: float | None = None  # the gate the rows were checked against (predictive sd; 0: off)
+    center: np.ndarray | None = None  # (K, n) the ball's centre after each row ([domain] follow; else None)
+    recentred: np.ndarray | None = None  # (K,) bool: the ball moved onto ``center`` after this row
 
     def __post_init__(self):
         K = len(self.step)
         for name, fill in (("predictive_loglik", np.nan), ("gate_score", np.nan)):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(K, fill))
-        for name in ("gated", "reinitialised"):
+        for name in ("gated", "reinitialised", "recentred"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.zeros(K, dtype=bool))
 
@@ -129,7 +131,7 @@ class ChunkResult:
 
 
 _ROW_FIELDS = ("step", "t", "mean", "cov", "mode", "loglik", "loglik_increment", "degenerate",
-               "predictive_loglik", "gated", "gate_score", "reinitialised")
+               "predictive_loglik", "gated", "gate_score", "reinitialised", "center", "recentred")
 
 
 def slice_result(result: ChunkResult, rows: slice) -> ChunkResult:
@@ -152,7 +154,7 @@ def concat_results(parts: list[ChunkResult]) -> ChunkResult:
         arrays = [getattr(p, name) for p in parts]
         if name == "mode" and any(a is None for a in arrays):
             arrays = [p.mean if a is None else a for p, a in zip(parts, arrays, strict=True)]
-        values[name] = np.concatenate(arrays)
+        values[name] = None if name == "center" and any(a is None for a in arrays) else np.concatenate(arrays)
     notes, offset = {}, 0
     for p in parts:
         notes.update({offset + k: v for k, v in (p.notes or {}).items()})

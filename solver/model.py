@@ -91,6 +91,12 @@ class Model:
     def center(self) -> np.ndarray:
         return self.spec.center()
 
+    def translated(self, center: Any) -> "Model":
+        """The same model on the ball moved to ``center`` (the numpy functions shared)."""
+        domain = self.spec.domain.model_copy(update={"center": [float(c) for c in center]})
+        spec = self.spec.model_copy(update={"domain": domain})
+        return Model(spec=spec, f=self.f, h=self.h, _prior_fn=self._prior_fn)
+
     # -- symbolic forms (SymPy, on first use) ----------------------------------------------
     @cached_property
     def symbols(self) -> tuple["sp.Symbol", ...]:
@@ -126,6 +132,17 @@ class Model:
         import sympy as sp
 
         return sp.simplify(sum(sp.diff(fi, xi) for fi, xi in zip(self.drift, self.symbols, strict=True)))
+
+    @cached_property
+    def shift_directions(self) -> tuple[int, ...]:
+        """The coordinates no drift component depends on (∂f_j/∂x_i ≡ 0 for every j, SymPy): along
+        them the Fokker–Planck operator is translation-invariant (a random walk with trend, the
+        position of constant-velocity tracking)."""
+        import sympy as sp
+
+        jacobian = self.jacobian_drift
+        return tuple(i for i in range(self.n)
+                     if all(sp.simplify(jacobian[j, i]) == 0 for j in range(self.n)))
 
     @cached_property
     def jacobian_drift(self) -> "sp.Matrix":

@@ -27,7 +27,7 @@ heavy (scikit-fem, SuperLU) is imported until a builder runs or a density is eva
 from __future__ import annotations
 
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+import uuid
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -102,10 +102,14 @@ def dirichlet_eigenbasis(disc: Discretisation, size: int):
 
 
 def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int, workers: int = 1,
-                      progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The default propagators: Alexander's L-stable SDIRK2 over dt (solver/propagator.py)."""
-    job = _Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values)
-    return propagate_all(job, workers, progress)
+                      progress: Progress | None = None,
+                      scheduler: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The default propagators: Alexander's L-stable SDIRK2 over dt (solver/propagator.py), the
+    column blocks as Dask tasks (``scheduler``: a running cluster's address; else ``workers``
+    local processes)."""
+    job = _Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values,
+               token=uuid.uuid4().hex)
+    return propagate_all(job, workers, progress, scheduler)
 
 
 # -- the column blocks, in this process or in workers ----------------------------------------------
@@ -117,12 +121,10 @@ class _Job:
     dt: float
     substeps: int
     initial: np.ndarray  # (Q, N) basis values
+    token: str = ""  # names the job on Dask workers (their factorisations are kept per token)
 
 
 _WORKER: dict = {}
-# fork: no __main__ guard needed by callers and no re-import; workers only run SuperLU solves
-# and sparse products (no thread pools that a fork could leave locked).
-_START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
 
 
 def _setup(job: _Job) -> None:
@@ -148,8 +150,11 @@ def column_blocks(size: int, width: int = 32) -> list[tuple[int, int]]:
     return [(s, min(s + width, size)) for s in range(0, size, width)]
 
 
-def propagate_all(job: _Job, workers: int = 1,
-                  progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
+def propagate_all(job: _Job, workers: int = 1, progress: Progress | None = None,
+                  scheduler: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every column block of ``job``: in this process (one worker and no scheduler, or a single
+    block), else as Dask tasks (solver/distributed.py).  The blocks are fixed, so the arrays are
+    bit-identical whoever solves them."""
     size = job.initial.shape[1]
     fp = np.empty_like(job.initial)
     kol = np.empty_like(job.initial)
@@ -164,7 +169,7 @@ def propagate_all(job: _Job, workers: int = 1,
         if progress is not None:
             progress(done, size)
 
-    if workers <= 1 or len(blocks) == 1:
+    if scheduler is None and (workers <= 1 or len(blocks) == 1):
         _setup(job)
         try:
             for block in blocks:
@@ -172,12 +177,20 @@ def propagate_all(job: _Job, workers: int = 1,
         finally:
             _WORKER.clear()
     else:
-        ctx = multiprocessing.get_context(_START_METHOD)
-        with ProcessPoolExecutor(max_workers=min(workers, len(blocks)), mp_context=ctx,
-                                 initializer=_setup, initargs=(job,)) as pool:
-            for result in pool.map(_propagate, blocks):
-                store(result)
+        from .distributed import run_blocks
+
+        run_blocks(job, blocks, store, workers=workers, scheduler=scheduler)
     return fp, kol
+
+
+def dask_block(job: _Job, columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """One column block on a Dask worker: both matrices factored once per worker and job (kept
+    under the job's token), then the block's solves."""
+    if _WORKER.get("token") != job.token:
+        _WORKER.clear()
+        _setup(job)
+        _WORKER["token"] = job.token
+    return _propagate(columns)
 
 
 # -- the offline model --------------------------------------------------------------------------
@@ -251,7 +264,9 @@ class OfflineModel:
         full = np.zeros((self.space.basis.N,) + nodal.shape[1:])
         full[self.node_index] = nodal
         out = np.zeros((X.shape[0],) + nodal.shape[1:])
-        inside = np.linalg.norm(X - self.model.center, axis=1) <= self.model.radius * (1 + 1e-12)
+        # on ∂B_R every basis function is 0 (Dirichlet): the sphere itself counts as outside (and the
+        # interval mesh's element finder has no element for its right end point)
+        inside = np.linalg.norm(X - self.model.center, axis=1) < self.model.radius * (1 - 1e-12)
         if not inside.any():
             return out
         if self.model.n == 1:
@@ -323,14 +338,18 @@ def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
 def precompute(model: Model, workers: int = 1, progress: Progress | None = None, *,
                space: Callable[[Model], Discretisation] = finite_element_space,
                basis: Callable[[Discretisation, int], Any] = dirichlet_eigenbasis,
-               propagators: Callable[..., tuple[np.ndarray, np.ndarray]] = sdirk_propagators) -> OfflineModel:
-    """Nodes, basis and propagators of ``model`` (seed 002 §5 offline stage), from the three builders."""
+               propagators: Callable[..., tuple[np.ndarray, np.ndarray]] = sdirk_propagators,
+               scheduler: str | None = None) -> OfflineModel:
+    """Nodes, basis and propagators of ``model`` (seed 002 §5 offline stage), from the three builders;
+    the propagators' solves on ``workers`` local processes or the Dask cluster at ``scheduler``
+    (solver/distributed.py)."""
     if not isinstance(workers, int) or workers < 1:
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
     disc = space(model)
     phi = basis(disc, spec.basis)
-    prop_fp, prop_k = propagators(disc, phi, model.dt, spec.substeps, workers, progress)
+    where = {} if scheduler is None else {"scheduler": scheduler}
+    prop_fp, prop_k = propagators(disc, phi, model.dt, spec.substeps, workers, progress, **where)
     for name, arr in (("propagator_fp", prop_fp), ("propagator_k", prop_k)):
         if not np.all(np.isfinite(arr)):
             raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")

@@ -136,9 +136,35 @@ class Measurement(_Strict):
         return self
 
 
+FOLLOW_DISTANCE = 0.15  # of the radius: the mean this far from the centre re-centres the ball
+FOLLOW_MASS = 1e-4  # of ∫σ in the outer tenth of the ball: this much mass there re-centres it
+
+
 class Domain(_Strict):
+    """The ball B_R(c) the density lives on.  ``follow = true``: c moves with the posterior
+    (solver/follow.py) — re-centred when the mean is more than ``follow_distance``·R from c, or when
+    more than ``follow_mass`` of the mass lies in the ball's outer tenth."""
+
     radius: float = Field(gt=0, le=1e6)
     center: list[float] | None = None
+    follow: bool = False
+    follow_distance: float = Field(default=FOLLOW_DISTANCE, gt=0, le=0.75)
+    follow_mass: float = Field(default=FOLLOW_MASS, gt=0, lt=1)
+
+    @model_validator(mode="after")
+    def _follow_options(self) -> "Domain":
+        if not self.follow and (self.follow_distance != FOLLOW_DISTANCE or self.follow_mass != FOLLOW_MASS):
+            raise SpecError("domain.follow", "follow_distance and follow_mass only apply with follow = true")
+        return self
+
+    def stored(self) -> dict[str, Any]:
+        """The table as it enters the model's content hash: the follow keys only when set, so a spec
+        written before they existed keeps its id."""
+        data = self.model_dump(mode="json")
+        for key in ("follow", "follow_distance", "follow_mass"):
+            if not self.follow:
+                data.pop(key)
+        return data
 
 
 class Discretization(_Strict):
@@ -323,6 +349,7 @@ class ModelSpec(_Strict):
         data = self.model_dump(mode="json")
         if self.measurement == Measurement():
             del data["measurement"]
+        data["domain"] = self.domain.stored()
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 

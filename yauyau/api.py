@@ -62,9 +62,12 @@ class Solved:
 
 
 def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
-          time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None) -> Solved:
+          time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None,
+          scheduler: str | None = None) -> Solved:
     """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis,
-    bounded by ``time_limit``), without storing anything."""
+    bounded by ``time_limit``), without storing anything.  The propagators' independent solves run
+    as Dask tasks on ``workers`` local processes, or on the cluster at ``scheduler``
+    ("tcp://HOST:PORT"); the arrays are bit-identical either way."""
     import time
 
     from .solver.model import compile_model
@@ -76,7 +79,11 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
     if mesh_free_only(model):
         method, reason = _mesh_free_method(model, time_limit)
         return Solved(spec, model, None, method, reason, time.perf_counter() - started, workers)
-    offline = solve_offline(model, workers=workers, progress=progress)
+    if spec.domain.follow:  # one stored propagator must serve every centre: say so before solving
+        from .solver.follow import check_follow
+
+        check_follow(model)
+    offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler)
     seconds = time.perf_counter() - started
     method, reason = choose_method(model, offline=offline, time_limit=time_limit)
     return Solved(spec, model, offline, method, reason, seconds, workers)
@@ -110,7 +117,7 @@ def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
 
 def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
                workers: int = 1, time_limit: float | None = DEFAULT_TIME_LIMIT, force: bool = False,
-               progress: Any | None = None) -> str:
+               progress: Any | None = None, scheduler: str | None = None) -> str:
     """Solve the offline stage of ``spec`` (a :class:`ModelSpec` or a spec file) and save it in
     ``store`` (a directory or a :class:`ModelStore`); returns the model id (a content hash).
 
@@ -132,7 +139,7 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
         except StoreError:
             pass  # unusable file: compute it again
     store.ensure_writable()  # fail before the (long) computation, not after
-    solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress)
+    solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress, scheduler=scheduler)
     return store.save(spec_json, solved.arrays(), solved.attrs())
 
 

@@ -78,6 +78,8 @@ output (--out OUT.csv), one row per input row:
   predictive_loglik       log p(this row | the rows before) (-inf: impossible under the model);
                           empty when the row has no observation (or the method does not compute it)
   reinitialised           1 when the filter started again at this row (--on-degenerate), else 0
+  center_<var>            ([domain] follow = true) the centre of the ball after this row
+  recentred               ([domain] follow = true) 1 when the ball moved after this row, else 0
 
 density (--density OUT.h5): the density every --density-every steps on a grid over the ball
   (--density-points per axis): joint density for 1-D and 2-D, each marginal always; CF-style
@@ -220,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         with threadpool_limits(limits=threads, user_api="blas"), bar:
             lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
                                         times=source.times, state=state, policy=args.on_degenerate)
-        write_lines(args.out, header(model, outputs), lines)
+        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions")), lines)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -343,6 +345,10 @@ class Outputs:
 
         if self.density is not None and Path(self.density).suffix.lower() not in (".h5", ".hdf5"):
             raise InputError("density", f"{self.density}: the density file is HDF5, name it *.h5")
+        if self.density is not None and model.spec.domain.follow:
+            raise InputError("density", "the ball follows the state ([domain] follow = true), so no fixed "
+                                        "grid holds the density; leave --density out (the mean, covariance "
+                                        "and --quantiles columns follow it)")
         if self.points is not None and model.n == 3 and self.points > 201:
             raise InputError("density_points", "at most 201 per axis in 3-D")
 
@@ -588,8 +594,11 @@ def csv_lines(result, extras: list[list] | None = None) -> list[str]:
     head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
                *result.cov[:, i, j].T.tolist(), strict=True)
     pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
+    follow = ([] if result.center is None
+              else [*result.center.T.tolist(), result.recentred.astype(int).tolist()])
     tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
-               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), strict=True)
+               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *follow,
+               strict=True)
     if extras is None:
         return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
     return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
@@ -607,8 +616,11 @@ def _fast_lines(result, i, j) -> list[str]:
     columns = [result.step.astype(float), result.t, *result.mean.T, *result.cov[:, i, j].T, result.loglik,
                result.degenerate.astype(float), result.gated.astype(float), result.predictive_loglik,
                result.reinitialised.astype(float)]
-    table = np.column_stack(columns)
     flags = [0, len(columns) - 4, len(columns) - 3, len(columns) - 1]  # integers: step and the flags
+    if result.center is not None:  # a following ball: its centre after the row, and whether it moved
+        columns += [*result.center.T, result.recentred.astype(float)]
+        flags.append(len(columns) - 1)
+    table = np.column_stack(columns)
     rows = table.tolist()
     for row in rows:
         for c in flags:
@@ -652,7 +664,8 @@ def snapshot(flt, state, estimate, outputs: Outputs, writer) -> None:
     writer.append(int(estimate.step), float(estimate.t), marginals, joint)
 
 
-def header(model, outputs: Outputs | None = None) -> list[str]:
+def header(model, outputs: Outputs | None = None, follow: bool = False) -> list[str]:
+    """The CSV columns; ``follow`` (a ball that follows the state): center_<var> and recentred last."""
     outputs = outputs or Outputs()
     names = model.spec.state
     n = len(names)
@@ -660,8 +673,9 @@ def header(model, outputs: Outputs | None = None) -> list[str]:
     extra = [f"mode_{v}" for v in names] if outputs.mode else []
     if outputs.probs is not None:
         extra += [f"q{p}_{v}" for v in names for p in outputs.probs_text]
+    tail = [*[f"center_{v}" for v in names], "recentred"] if follow else []
     return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate", "gated",
-            "predictive_loglik", "reinitialised"]
+            "predictive_loglik", "reinitialised", *tail]
 
 
 def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:

@@ -28,7 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("spec", help="model spec file (.toml or .json)")
     store_argument(parser)
     parser.add_argument("--workers", type=int, default=None,
-                        help="processes solving the propagators (default: min(4, CPU count))")
+                        help="local Dask worker processes solving the propagators (default: min(4, CPU "
+                             "count); 1: in this process, no cluster)")
+    parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                        help="run the solves as tasks on this running Dask cluster (its workers need "
+                             "yauyau installed; start them with --nthreads 1); --workers is then unused")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and no messages on stderr")
     parser.add_argument("--force", action="store_true", help="recompute even if the model is stored")
     parser.add_argument("--time-limit", type=float, default=60.0, metavar="T",
@@ -77,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
     workers = default_workers() if args.workers is None else args.workers
     if workers < 1:
         raise InputError("workers", "must be a positive integer")
+    if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://")):
+        raise InputError("--scheduler", f"must be a Dask scheduler address such as tcp://HOST:8786, got "
+                                        f"{args.scheduler!r}")
     if not 0.1 <= args.time_limit <= 3600:  # also refuses nan and inf
         raise InputError("--time-limit", "must be between 0.1 and 3600 seconds")
     spec_json = spec.canonical_json()
@@ -91,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         def progress(done: int, of: int) -> None:
             bar.total = of
             bar.update(done - bar.n)
-        solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress)
+        solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress,
+                       scheduler=args.scheduler)
     _say(args, f"method {solved.method}: {solved.method_reason}")
     saved = store.save(spec_json, solved.arrays(), solved.attrs())
     size = store.path(saved).stat().st_size

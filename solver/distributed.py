@@ -1,0 +1,74 @@
+"""The offline stage's independent solves as Dask tasks (``yauyau precompute --workers K`` or
+``--scheduler tcp://HOST:PORT``).
+
+The propagators e^{dt L}φ_k, e^{dt L_K}φ_k of seed 002 §5 are N independent solves; they run in
+fixed blocks of basis columns (solver/offline.py ``column_blocks``), one Dask task per block.  The
+job (the two sparse operators, the weights, the basis values) is scattered to every worker once;
+each worker factors the two matrices once per job and solves the blocks it is given.  A block's
+result depends only on the job and the block, so the arrays are bit-identical whatever the cluster
+(one process, a local cluster of any size, machines on a network) and whichever worker solved which
+block.  A worker that dies takes its running tasks with it: the scheduler runs them again elsewhere
+(up to its ``allowed-failures``), and the answer is the same.
+
+Without ``scheduler`` a local cluster of ``workers`` processes (one thread each: SuperLU's solves do
+not gain from threads, docs/bench-precompute.md) is started for the run and shut down after it.
+Workers of a cluster of your own should run one thread each too (``dask worker --nthreads 1``); a
+worker with more threads solves its blocks one at a time (a lock: the factorisations are shared).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+from typing import Any, Callable
+
+from .errors import InputError
+
+_LOCK = threading.Lock()
+START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+CONNECT_TIMEOUT = "30s"
+
+
+def solve_block(job: Any, columns: tuple[int, int]):
+    """The task: one block of columns on this worker (serialised per process, see the docstring)."""
+    from .offline import dask_block
+
+    with _LOCK:
+        return dask_block(job, columns)
+
+
+def run_blocks(job: Any, blocks: list[tuple[int, int]], store: Callable[[Any], None], *, workers: int = 1,
+               scheduler: str | None = None) -> None:
+    """Solve ``blocks`` of ``job`` on Dask, calling ``store(result)`` as each block arrives."""
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:  # pragma: no cover - distributed is a dependency
+        raise InputError("scheduler", "Dask distributed is not installed (pip install distributed)") from None
+    cluster = None
+    try:
+        if scheduler is None:
+            import dask
+
+            # fork, as the process pool before it: a caller's script needs no __main__ guard (spawn
+            # would run it again in every worker)
+            with dask.config.set({"distributed.worker.multiprocessing-method": START_METHOD}):
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=40)
+            client = Client(cluster)
+        else:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+    except (OSError, TimeoutError, ValueError) as exc:
+        if cluster is not None:
+            cluster.close()
+        raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+    try:
+        shared = client.scatter(job, broadcast=True, hash=False)
+        futures = [client.submit(solve_block, shared, block, key=f"yauyau-propagators-{job.token}-{block[0]}",
+                                 retries=2, pure=False) for block in blocks]
+        for future in as_completed(futures):
+            store(future.result())
+            future.release()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,358 @@
+"""A domain that follows the state: the ball B_R(c) re-centred on the posterior (``[domain] follow``).
+
+The offline stage solves the Fokker–Planck equation on one ball B_R(c₀).  A state that travels (a
+random walk with a trend, the position of a tracked target) leaves any fixed ball; Luo and Yau
+(IEEE TAC 58(10), 2013, "Hermite spectral method to 1-D forward Kolmogorov equation and its
+application to nonlinear filtering problems") move the window with the density.  Here the
+offline/online split survives the move because the operator does:
+
+    L u = ½ a:∇²u − div(f u)   is invariant under x ↦ x + s   when ∂f/∂x_i ≡ 0 for every i with s_i ≠ 0
+
+(:attr:`Model.shift_directions`, checked symbolically with SymPy).  Then e^{dt L} on B_R(c₀ + s) is
+e^{dt L} on B_R(c₀) translated: one stored propagator serves every centre, and a centred engine
+(:meth:`YauYauFilter.centred_at`) only evaluates h and the moments at the translated nodes.  The
+literal form's Kolmogorov operator L − ½hᵀR⁻¹h is not invariant (h moves with x): follow runs the
+stable form.
+
+Online, a chunk runs in blocks (:class:`FollowingFilter`).  After a block the ball is re-centred when
+
+* the mean is more than ``follow_distance``·R from c along a shift direction, or
+* more than ``follow_mass`` of ∫σ lies in the ball's outer tenth (|x − c| > 0.9 R),
+
+onto c' = c with the shift coordinates replaced by the mean's (in 1-D rounded to whole elements,
+so the new nodes are old nodes and the carry is exact where the balls overlap).  The carry is the
+issue's: evaluate the old expansion at the new nodes, zero outside the old ball, project onto the
+basis.  ∫σ of the carried density becomes the state's mass, so the next step renormalises by it;
+the log-likelihood is not touched by a move (it is the sum of the steps' log ∫σ_k/∫σ_(k−1), none of
+which the move changes).  The mass the move leaves outside the new ball is measured and reported.
+A block in which the mean strays beyond ``follow_distance`` + ¼ of R (or that degenerates) is run
+again from its start in a shorter block, so a fast state is caught before it reaches the wall.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError, SpecError
+from .filtering import ChunkedFilter, ChunkResult, concat_results
+from .measurement import check_rows
+
+SHELL = 0.9  # |x − c| > SHELL·R is the outer shell whose mass the trigger reads
+STRAY = 0.1  # of R beyond follow_distance: a block whose mean strays further runs again, shorter
+FIRST_BLOCK = 32  # rows of the first block of a chunk; later blocks adapt to the mean's speed
+MIN_BLOCK, MAX_BLOCK = 4, 512
+CACHE = 16  # centred engines kept (each shares the stored arrays; owns h and moments at its nodes)
+
+
+class TranslatedOffline:
+    """The offline arrays of B_R(c₀) seen on B_R(c₀ + shift): nodes moved, everything else shared."""
+
+    def __init__(self, home: Any, shift: np.ndarray, home_center: np.ndarray):
+        self.home, self.shift = home, np.asarray(shift, dtype=float)
+        self.home_center = np.asarray(home_center, dtype=float)
+        self.nodes = np.asarray(home.nodes) + self.shift
+        for name in ("weights", "basis", "projector", "propagator_fp", "propagator_k"):
+            setattr(self, name, getattr(home, name))
+
+    @property
+    def size(self) -> int:
+        return self.basis.shape[1]
+
+    def _points(self, points: Any) -> np.ndarray:
+        from .offline import _check_points
+
+        return _check_points(points, self.nodes.shape[1]) - self.shift
+
+    def evaluate_basis(self, points: Any) -> np.ndarray:
+        return self.home.evaluate_basis(self._points(points))
+
+    def interpolate(self, nodal: np.ndarray, points: Any) -> np.ndarray:
+        return self.home.interpolate(nodal, self._points(points))
+
+    def fokker_planck_generator(self) -> np.ndarray:
+        return self.home.fokker_planck_generator()
+
+
+def check_follow(model: Any, form: str = "stable") -> tuple[int, ...]:
+    """The directions the ball may move along; SpecError when follow cannot apply."""
+    directions = model.shift_directions
+    if not directions:
+        raise SpecError("domain.follow", "the drift depends on every state variable, so the Fokker-Planck "
+                                         "operator changes when the ball moves and one stored propagator "
+                                         "cannot serve a moved ball; leave follow out (and size "
+                                         "domain.radius for the whole path)")
+    if form != "stable":
+        raise SpecError("form", "a following ball needs the stable form (the literal form's Kolmogorov "
+                                "operator contains h, which does not move with the ball)")
+    return directions
+
+
+class FollowingFilter(ChunkedFilter):
+    """The Yau–Yau engine on a ball that follows the posterior (module docstring).  Its state is the
+    engine's with ``center`` set; results carry the centre after every row (``ChunkResult.center``)."""
+
+    method = "yau-yau"
+
+    def __init__(self, engine: Any):
+        self.home = engine
+        self.model = engine.model
+        self.directions = check_follow(engine.model, engine.form)
+        domain = engine.model.spec.domain
+        self.radius = float(domain.radius)
+        self.distance = float(domain.follow_distance) * self.radius
+        self.stray = (float(domain.follow_distance) + STRAY) * self.radius
+        self.mass_limit = float(domain.follow_mass)
+        self.home_center = np.asarray(engine.model.center, dtype=float)
+        self._lattice = _lattice(engine.offline, engine.model.n)
+        self._engines: OrderedDict[tuple, Any] = OrderedDict()
+        self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius
+
+    def __getattr__(self, name: str) -> Any:  # offline, nodes, weights, N, form, precision, flow...
+        if name.startswith("__") or name == "home":
+            raise AttributeError(name)
+        return getattr(self.home, name)
+
+    # -- the engine at a centre ------------------------------------------------------------------
+    def engine(self, center: np.ndarray) -> Any:
+        """The centred engine (kept, a few at a time) with this filter's gate."""
+        key = (tuple(float(c) for c in center), self.gate_override)
+        found = self._engines.get(key)
+        if found is None:
+            found = self.home.centred_at(center)
+            found.gate_override = self.gate_override
+            self._engines[key] = found
+            if len(self._engines) > CACHE:
+                self._engines.popitem(last=False)
+        else:
+            self._engines.move_to_end(key)
+        return found
+
+    def ball_center(self, state: Any) -> np.ndarray:
+        return np.asarray(state.center, dtype=float)
+
+    def snapped(self, center: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """``center`` with the shift coordinates moved to ``target``'s (1-D: on the element lattice)."""
+        new = np.array(center, dtype=float)
+        for i in self.directions:
+            offset = float(target[i]) - self.home_center[i]
+            if self._lattice:
+                offset = round(offset / self._lattice) * self._lattice
+            new[i] = self.home_center[i] + offset
+        return new
+
+    # -- states ---------------------------------------------------------------------------------------
+    def initial_state(self, prior: Any | None = None) -> Any:
+        """The prior on the ball centred at its mean along the shift directions."""
+        start = self.home_center
+        mean = _prior_mean(self.model, prior)
+        if mean is not None:
+            start = self.snapped(self.home_center, mean)
+        state = self.engine(start).initial_state(prior)
+        return dataclasses.replace(state, center=start)
+
+    def state_from_dict(self, data: dict[str, Any]) -> Any:
+        state = self.home.state_from_dict(data)
+        center = data.get("center")
+        try:
+            center = np.array(center, dtype=float)
+        except (TypeError, ValueError):
+            center = None
+        if center is None or center.shape != (self.model.n,) or not np.all(np.isfinite(center)):
+            raise InputError("state.center", f"must be {self.model.n} finite numbers (the ball's centre)")
+        return dataclasses.replace(state, center=center)
+
+    def estimate(self, state: Any) -> Any:
+        return self.home.estimate(state)
+
+    def density(self, state: Any, points: np.ndarray) -> np.ndarray:
+        return self.engine(state.center).density(state, points)
+
+    def nodal_density(self, state: Any) -> np.ndarray:
+        return self.engine(state.center).nodal_density(state)
+
+    def marginal(self, state: Any, var_index: int, grid: np.ndarray, resolution: int = 64) -> np.ndarray:
+        return self.engine(state.center).marginal(state, var_index, grid, resolution)
+
+    # -- stepping -------------------------------------------------------------------------------------
+    def run_arrays(self, state: Any, increments: np.ndarray,
+                   times: Any | None = None) -> tuple[Any, ChunkResult]:
+        """The chunk in blocks, re-centring between them (module docstring)."""
+        rows = check_rows(increments, self.model.m,
+                          "observations" if self.observation.discrete else "increments")
+        K = len(rows)
+        if times is not None:
+            from .measurement import check_first_gap, resolve_times
+
+            check_first_gap(resolve_times(state.t, state.step > 0, K, self.model.dt, times),
+                            self.observation.discrete)
+            times = np.asarray(times, dtype=float)
+        if K == 0 or state.degenerate:
+            new, result = self.engine(state.center).run_arrays(state, rows, times)
+            return self._carry(new, state.center), _with_centers(result, state.center)
+        parts, start, block, velocity, jitter = [], 0, FIRST_BLOCK, None, 0.0
+        along = list(self.directions)
+        while start < K:
+            stop = min(K, start + block)
+            center = np.asarray(state.center, dtype=float)
+            new, part = self.engine(center).run_arrays(state, rows[start:stop],
+                                                       None if times is None else times[start:stop])
+            stray = self._strayed(part.mean, center)
+            if (stray is not None or new.degenerate) and stop - start > 1:
+                # again from the block's start: up to the row before the stray one (or half the block)
+                block = max(1, stray if stray else (stop - start) // 2)
+                continue
+            length = stop - start
+            drift = (part.mean[-1, along] - state.last.mean[along]) / length  # per row
+            velocity = drift if velocity is None else 0.5 * (velocity + drift)
+            if length > 1:  # the mean's random part: its mean square move per row, drift removed
+                steps = np.diff(part.mean[:, along], axis=0)
+                jitter = float(np.max(np.mean((steps - steps.mean(axis=0)) ** 2, axis=0)))
+            state = self._carry(new, center)
+            block = self._block_for(velocity, jitter)
+            if not state.degenerate:
+                state = self._maybe_recentre(state, velocity * block)
+            parts.append(_with_centers(part, center, state.center))
+            start = stop
+            if state.degenerate and start < K:  # the rest stays degenerate
+                new, part = self.engine(state.center).run_arrays(state, rows[start:],
+                                                                 None if times is None else times[start:])
+                parts.append(_with_centers(part, state.center))
+                state = self._carry(new, state.center)
+                break
+        return state, concat_results(parts)
+
+    def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
+                  return_exceptions: bool = False) -> list[Any]:
+        from .batch import run_batch_alone
+
+        return run_batch_alone(self, states, chunks, times, return_exceptions)
+
+    def _block_for(self, velocity: np.ndarray, jitter: float) -> int:
+        """Rows L in which the mean's expected excursion stays within the stray limit: half its drift
+        (the ball leads the mean by the other half, :meth:`_maybe_recentre`) plus two standard
+        deviations of its random part, |v|L/2 + 2√(jitter·L) ≤ stray."""
+        speed, noise = float(np.abs(velocity).max()), 2.0 * float(np.sqrt(max(jitter, 0.0)))
+        if speed > 0:
+            root = (-noise + np.sqrt(noise * noise + 2.0 * speed * self.stray)) / speed
+        elif noise > 0:
+            root = self.stray / noise
+        else:
+            return MAX_BLOCK
+        return int(np.clip(root * root, MIN_BLOCK, MAX_BLOCK))
+
+    def _carry(self, state: Any, center: np.ndarray) -> Any:
+        return dataclasses.replace(state, center=np.asarray(center, dtype=float))
+
+    def _strayed(self, means: np.ndarray, center: np.ndarray) -> int | None:
+        """The first row whose mean is further than the stray limit from the centre (None: none)."""
+        if not len(means):
+            return None
+        gap = np.abs(means[:, list(self.directions)] - center[list(self.directions)]).max(axis=1)
+        far = np.flatnonzero(~(gap <= self.stray))
+        return int(far[0]) if len(far) else None
+
+    def _maybe_recentre(self, state: Any, travel: np.ndarray) -> Any:
+        """Re-centre when the mean is beyond the trigger distance, or will be by the end of the next
+        block (``travel``: its expected move over that block), or when the outer shell holds too much
+        mass; the new centre leads the mean by half the expected travel."""
+        center = np.asarray(state.center, dtype=float)
+        mean = state.last.mean
+        along = list(self.directions)
+        offset = mean[along] - center[along]
+        far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
+        if not far:
+            eng = self.engine(center)
+            sigma = np.clip(eng.nodal_density(state), 0.0, None) * eng.weights
+            total = float(sigma.sum())
+            far = total > 0 and float(sigma[self._shell].sum()) > self.mass_limit * total
+        if not far:
+            return state
+        ahead = np.array(mean, dtype=float)
+        ahead[along] += 0.5 * travel
+        target = self.snapped(center, ahead)
+        if np.array_equal(target, center):
+            return state
+        return self.recentre(state, target)
+
+    def recentre(self, state: Any, center: np.ndarray) -> Any:
+        """The state carried onto the ball around ``center``: the old expansion at the new nodes (0
+        outside the old ball), projected; ∫σ of the carried density is the new mass."""
+        old = self.engine(np.asarray(state.center, dtype=float))
+        new = self.engine(center)
+        if not np.all(np.isfinite(new._h_nodes)):
+            return dataclasses.replace(state, degenerate=True, reason=(
+                f"the ball cannot move to {_point(center)}: the observation function is not finite there"))
+        nodal = np.asarray(old.offline.basis) @ state.density_coefficients
+        carried = _carried(old, nodal, new.nodes)
+        mass = float(new.weights @ carried)
+        before = float(old.weights @ nodal)
+        if not (mass > 0.0 and before > 0.0):
+            return dataclasses.replace(state, degenerate=True, reason=(
+                f"re-centring onto {_point(center)} left no probability mass on the new ball"))
+        coefficients = np.asarray(new.offline.projector) @ carried
+        return dataclasses.replace(state, coefficients=coefficients, mass=mass, center=np.array(center))
+
+    def moved_mass(self, state: Any, center: np.ndarray) -> float:
+        """The fraction of ∫σ a move onto ``center`` would leave outside the new ball."""
+        old = self.engine(np.asarray(state.center, dtype=float))
+        new = self.engine(center)
+        nodal = np.asarray(old.offline.basis) @ state.density_coefficients
+        return 1.0 - float(new.weights @ _carried(old, nodal, new.nodes)) / float(old.weights @ nodal)
+
+
+def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball.  Where
+    every point is an old node or outside the old ball (a 1-D move by whole elements) the values are
+    read off, otherwise interpolated in the old mesh."""
+    if points.shape[1] == 1:
+        x, target = old.nodes[:, 0], points[:, 0]
+        order = np.argsort(x)
+        right = np.clip(np.searchsorted(x[order], target), 0, len(x) - 1)
+        left = np.clip(right - 1, 0, len(x) - 1)
+        pick = np.where(np.abs(x[order[left]] - target) < np.abs(x[order[right]] - target), left, right)
+        nearest = order[pick]
+        gap = np.abs(x[nearest] - target)
+        tol = 1e-9 * max(1.0, float(np.abs(x).max()))
+        inside = np.abs(target - old.model.center[0]) < old.model.radius * (1 - 1e-12)
+        if np.all((gap <= tol) | ~inside):
+            return np.where(inside & (gap <= tol), nodal[nearest], 0.0)
+    return old.offline.interpolate(nodal, points)
+
+
+def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | None = None) -> ChunkResult:
+    """The result with the ball's centre after each row (the last row's is ``after``: a re-centre)."""
+    K = len(result)
+    centers = np.repeat(np.asarray(before, dtype=float)[None, :], K, axis=0)
+    moved = np.zeros(K, dtype=bool)
+    if after is not None and K and not np.array_equal(after, before):
+        centers[-1], moved[-1] = after, True
+    return dataclasses.replace(result, center=centers, recentred=moved)
+
+
+def _lattice(offline: Any, n: int) -> float | None:
+    """1-D: the element length of the uniform interval mesh (moves by whole elements); else None."""
+    if n != 1:
+        return None
+    points = np.sort(np.asarray(getattr(offline, "mesh_points", np.empty((1, 0))), dtype=float).ravel())
+    if len(points) < 2:
+        return None
+    steps = np.diff(points)
+    return float(steps.mean()) if np.allclose(steps, steps.mean(), rtol=1e-9) else None
+
+
+def _prior_mean(model: Any, prior: Any | None) -> np.ndarray | None:
+    if prior is None:
+        moments = model.prior_moments()
+        return None if moments is None else moments[0]
+    from .engine import _override_model
+
+    moments = _override_model(model, prior).prior_moments()
+    return None if moments is None else moments[0]
+
+
+def _point(center: np.ndarray) -> str:
+    return "(" + ", ".join(f"{c:.4g}" for c in center) + ")"

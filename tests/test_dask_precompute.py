@@ -1,0 +1,123 @@
+"""`yauyau precompute` on Dask (solver/distributed.py): a real `dask scheduler` and two `dask worker`
+processes on localhost, against a run in one process.
+
+Truth: the arrays of the one-process run; the file made on the cluster must hold the same arrays bit
+for bit (the column blocks are fixed, so it does not matter which worker solved which), also when a
+worker is killed (SIGKILL) while it solves: the scheduler runs its tasks again on the other one.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from yauyau.service.cli import main
+from yauyau.solver import spec_from_dict
+from yauyau.storage.model_store import ModelStore
+
+import yauyau
+
+DASK = str(Path(sys.executable).parent / "dask")
+SPEC = {"name": "ou-2d-dask", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], "observation": ["p", "q"],
+        "method": "yau-yau",
+        "initial": {"kind": "gaussian", "mean": [0.2, -0.2], "cov": [[0.5, 0.0], [0.0, 0.5]]},
+        "domain": {"radius": 5.0}, "discretization": {"dt": 0.02, "basis": 300}}
+
+
+class Cluster:
+    """A scheduler and workers as separate processes (the `dask` command of this environment)."""
+
+    def __init__(self, directory: Path, workers: int):
+        self.file = directory / "scheduler.json"
+        self.procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                        "--no-dashboard", "--scheduler-file", str(self.file)],
+                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+        deadline = time.monotonic() + 60
+        while not self.file.exists():
+            assert time.monotonic() < deadline, "the scheduler did not start"
+            time.sleep(0.1)
+        self.workers = [subprocess.Popen([DASK, "worker", "--scheduler-file", str(self.file), "--nthreads",
+                                          "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1"],
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                        for _ in range(workers)]
+        self.procs += self.workers
+        from distributed import Client
+
+        with Client(scheduler_file=str(self.file), timeout="60s") as client:
+            client.wait_for_workers(workers, timeout=120)
+            self.address = client.scheduler.address
+
+    def close(self):
+        for proc in reversed(self.procs):
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    running = Cluster(tmp_path, 2)
+    yield running
+    running.close()
+
+
+@pytest.fixture(scope="module")
+def local(tmp_path_factory):
+    """The arrays solved in this process (no cluster)."""
+    store = ModelStore(tmp_path_factory.mktemp("local"))
+    return store.load(yauyau.precompute(spec_from_dict(SPEC), store, workers=1)).arrays
+
+
+def _same_arrays(path: Path, model_id: str, expected: dict) -> None:
+    arrays = ModelStore(path).load(model_id).arrays
+    assert set(arrays) == set(expected)
+    for name, value in expected.items():
+        assert arrays[name].dtype == value.dtype and np.array_equal(arrays[name], value), name
+
+
+def test_the_cli_on_a_running_cluster_writes_the_same_arrays(cluster, local, tmp_path, capsys):
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(spec_from_dict(SPEC).canonical_json())
+    code = main(["precompute", str(spec_file), "--store", str(tmp_path / "store"),
+                 "--scheduler", cluster.address])
+    assert code == 0
+    model_id = capsys.readouterr().out.strip().splitlines()[-1]
+    _same_arrays(tmp_path / "store", model_id, local)
+
+
+def test_a_worker_killed_during_the_solves_changes_nothing(cluster, local, tmp_path):
+    killed = []
+
+    def progress(done: int, size: int) -> None:
+        if not killed:  # the first block is in: the other worker is busy with its own
+            os.kill(cluster.workers[0].pid, signal.SIGKILL)
+            killed.append(done)
+
+    model_id = yauyau.precompute(spec_from_dict(SPEC), tmp_path / "store", scheduler=cluster.address,
+                                 progress=progress)
+    assert killed and killed[0] < SPEC["discretization"]["basis"]
+    assert cluster.workers[0].wait(timeout=10) == -signal.SIGKILL
+    _same_arrays(tmp_path / "store", model_id, local)
+
+
+def test_a_local_cluster_of_two_workers_writes_the_same_arrays(local, tmp_path):
+    model_id = yauyau.precompute(spec_from_dict(SPEC), tmp_path / "store", workers=2)
+    _same_arrays(tmp_path / "store", model_id, local)
+
+
+def test_an_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(spec_from_dict(SPEC).canonical_json())
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "s"),
+                 "--scheduler", "localhost:1"]) == 2
+    assert "--scheduler" in capsys.readouterr().err

@@ -1,0 +1,34 @@
+"""The README's "A state that travels" section runs as printed, and its numbers are the exact Kalman
+filter's (the example is linear: KalmanBucyFilter(kind="discrete") on the same increments)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+from test_readme import readme_block
+from test_readme_streams import ROOT, _env
+
+SECTION = "A state that travels: a ball that follows it"
+
+
+def test_python_block_follows_the_state_and_matches_kalman(tmp_path):
+    from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+
+    import yauyau
+
+    (tmp_path / "examples").symlink_to(ROOT / "examples")
+    out = subprocess.run([sys.executable, "-c", readme_block(SECTION)], cwd=tmp_path, env=_env(),
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    found = re.search(r"x = (-?[\d.]+): mean (-?[\d.]+), ball centre (-?[\d.]+), (\d+) moves, degenerate: "
+                      r"(\w+)", out.stdout)
+    x, mean, centre, moves = (float(v) for v in found.groups()[:4])
+    spec = yauyau.load_spec(ROOT / "examples" / "random_walk_trend.toml")
+    sim = yauyau.simulate(spec, steps=5000, seed=1)
+    kalman = KalmanBucyFilter(yauyau.compile_model(spec), kind="discrete")
+    _, exact = kalman.run_arrays(kalman.initial_state(), sim.increments)
+    assert x == round(float(sim.states[-1, 0]), 2) and x > 20  # far beyond the radius 6
+    assert abs(mean - exact.mean[-1, 0]) <= 0.006  # printed to 2 decimals; the gap itself is < 1e-3
+    assert abs(centre - mean) < 1.5 and moves > 20 and found.group(5) == "False"
