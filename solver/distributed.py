@@ -11,21 +11,20 @@ block.  A worker that dies takes its running tasks with it: the scheduler runs t
 (up to its ``allowed-failures``), and the answer is the same.
 
 Without ``scheduler`` a local cluster of ``workers`` processes (one thread each: SuperLU's solves do
-not gain from threads, docs/bench-precompute.md) is started for the run and shut down after it.
+not gain from threads, docs/bench-precompute.md) is started for the run and shut down after it; they
+are spawned, so a script asking for several needs the usual ``if __name__ == "__main__":`` guard.
 Workers of a cluster of your own should run one thread each too (``dask worker --nthreads 1``); a
 worker with more threads solves its blocks one at a time (a lock: the factorisations are shared).
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import threading
 from typing import Any, Callable
 
 from .errors import InputError
 
 _LOCK = threading.Lock()
-START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
 CONNECT_TIMEOUT = "30s"
 
 
@@ -47,13 +46,17 @@ def run_blocks(job: Any, blocks: list[tuple[int, int]], store: Callable[[Any], N
     cluster = None
     try:
         if scheduler is None:
-            import dask
-
-            # fork, as the process pool before it: a caller's script needs no __main__ guard (spawn
-            # would run it again in every worker)
-            with dask.config.set({"distributed.worker.multiprocessing-method": START_METHOD}):
+            # Dask's own start method (spawn): a fork of this process, which may run threads of its
+            # own (a server, a thread pool), can deadlock in the child.  Spawned workers import the
+            # caller's main module again, so a script needs its `if __name__ == "__main__":` guard.
+            try:
                 cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=40)
+            except RuntimeError as exc:
+                raise InputError("workers", f"cannot start {workers} local Dask workers ({exc}); a script "
+                                            "that asks for workers > 1 must call it under "
+                                            'if __name__ == "__main__": (the workers import the script '
+                                            "again), or use workers = 1") from None
             client = Client(cluster)
         else:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)
