@@ -192,7 +192,7 @@ class FollowingFilter(ChunkedFilter):
             times = np.asarray(times, dtype=float)
         if K == 0 or state.degenerate:
             new, result = self.engine(state.center).run_arrays(state, rows, times)
-            return self._carry(new, state.center), _with_centers(result, state.center)
+            return self._placed(new, state.center), _with_centers(result, state.center)
         parts, start, block, velocity, jitter = [], 0, FIRST_BLOCK, None, 0.0
         along = list(self.directions)
         while start < K:
@@ -211,7 +211,7 @@ class FollowingFilter(ChunkedFilter):
             if length > 1:  # the mean's random part: its mean square move per row, drift removed
                 steps = np.diff(part.mean[:, along], axis=0)
                 jitter = float(np.max(np.mean((steps - steps.mean(axis=0)) ** 2, axis=0)))
-            state = self._carry(new, center)
+            state = self._placed(new, center)
             block = self._block_for(velocity, jitter)
             if not state.degenerate:
                 state = self._maybe_recentre(state, velocity * block)
@@ -221,7 +221,7 @@ class FollowingFilter(ChunkedFilter):
                 new, part = self.engine(state.center).run_arrays(state, rows[start:],
                                                                  None if times is None else times[start:])
                 parts.append(_with_centers(part, state.center))
-                state = self._carry(new, state.center)
+                state = self._placed(new, state.center)
                 break
         return state, concat_results(parts)
 
@@ -244,7 +244,8 @@ class FollowingFilter(ChunkedFilter):
             return MAX_BLOCK
         return int(np.clip(root * root, MIN_BLOCK, MAX_BLOCK))
 
-    def _carry(self, state: Any, center: np.ndarray) -> Any:
+    def _placed(self, state: Any, center: np.ndarray) -> Any:
+        """The engine's new state with the centre it was computed on (engine states do not carry it)."""
         return dataclasses.replace(state, center=np.asarray(center, dtype=float))
 
     def _strayed(self, means: np.ndarray, center: np.ndarray) -> int | None:
@@ -281,15 +282,12 @@ class FollowingFilter(ChunkedFilter):
     def recentre(self, state: Any, center: np.ndarray) -> Any:
         """The state carried onto the ball around ``center``: the old expansion at the new nodes (0
         outside the old ball), projected; ∫σ of the carried density is the new mass."""
-        old = self.engine(np.asarray(state.center, dtype=float))
         new = self.engine(center)
         if not np.all(np.isfinite(new._h_nodes)):
             return dataclasses.replace(state, degenerate=True, reason=(
                 f"the ball cannot move to {_point(center)}: the observation function is not finite there"))
-        nodal = np.asarray(old.offline.basis) @ state.density_coefficients
-        carried = _carried(old, nodal, new.nodes)
+        carried, before = self._carried_to(state, new)
         mass = float(new.weights @ carried)
-        before = float(old.weights @ nodal)
         if not (mass > 0.0 and before > 0.0):
             return dataclasses.replace(state, degenerate=True, reason=(
                 f"re-centring onto {_point(center)} left no probability mass on the new ball"))
@@ -298,10 +296,15 @@ class FollowingFilter(ChunkedFilter):
 
     def moved_mass(self, state: Any, center: np.ndarray) -> float:
         """The fraction of ∫σ a move onto ``center`` would leave outside the new ball."""
-        old = self.engine(np.asarray(state.center, dtype=float))
         new = self.engine(center)
+        carried, before = self._carried_to(state, new)
+        return 1.0 - float(new.weights @ carried) / before
+
+    def _carried_to(self, state: Any, new: Any) -> tuple[np.ndarray, float]:
+        """The state's density at ``new``'s nodes, and its ∫σ on the old ball."""
+        old = self.engine(np.asarray(state.center, dtype=float))
         nodal = np.asarray(old.offline.basis) @ state.density_coefficients
-        return 1.0 - float(new.weights @ _carried(old, nodal, new.nodes)) / float(old.weights @ nodal)
+        return _carried(old, nodal, new.nodes), float(old.weights @ nodal)
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -12,12 +12,10 @@ import json
 import re
 import shutil
 import subprocess
-import sys
 import time
 
 import httpx
-from test_readme import readme_block
-from test_readme_streams import ROOT, _env, _json_objects
+from test_readme_streams import ROOT, _env, _json_objects, run_python_block
 from test_service_server import Server
 
 SECTION = "Many streams, several hosts, models at run time"
@@ -28,11 +26,8 @@ def test_python_block_matches_the_kalman_filter(tmp_path):
 
     import yauyau
 
-    (tmp_path / "examples").symlink_to(ROOT / "examples")
-    out = subprocess.run([sys.executable, "-c", readme_block(SECTION)], cwd=tmp_path, env=_env(),
-                         capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    found = re.search(r"t = ([\d.]+): mean (-?[\d.]+), variance ([\d.]+)", out.stdout)
+    stdout = run_python_block(SECTION, tmp_path)
+    found = re.search(r"t = ([\d.]+): mean (-?[\d.]+), variance ([\d.]+)", stdout)
     t, mean, var = map(float, found.groups())
     spec = yauyau.load_spec(ROOT / "examples" / "ou.toml")
     kalman = DiscreteKalmanFilter(yauyau.compile_model(spec))

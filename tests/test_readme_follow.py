@@ -4,11 +4,8 @@ filter's (the example is linear: KalmanBucyFilter(kind="discrete") on the same i
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 
-from test_readme import readme_block
-from test_readme_streams import ROOT, _env
+from test_readme_streams import ROOT, run_python_block
 
 SECTION = "A state that travels: a ball that follows it"
 
@@ -18,12 +15,9 @@ def test_python_block_follows_the_state_and_matches_kalman(tmp_path):
 
     import yauyau
 
-    (tmp_path / "examples").symlink_to(ROOT / "examples")
-    out = subprocess.run([sys.executable, "-c", readme_block(SECTION)], cwd=tmp_path, env=_env(),
-                         capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
+    stdout = run_python_block(SECTION, tmp_path)
     found = re.search(r"x = (-?[\d.]+): mean (-?[\d.]+), ball centre (-?[\d.]+), (\d+) moves, degenerate: "
-                      r"(\w+)", out.stdout)
+                      r"(\w+)", stdout)
     x, mean, centre, moves = (float(v) for v in found.groups()[:4])
     spec = yauyau.load_spec(ROOT / "examples" / "random_walk_trend.toml")
     sim = yauyau.simulate(spec, steps=5000, seed=1)

@@ -31,12 +31,18 @@ def _env():
     return dict(os.environ, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1")
 
 
-def test_python_block_prints_what_the_readme_shows(tmp_path):
+def run_python_block(section: str, tmp_path) -> str:
+    """The README section's Python block run in ``tmp_path`` (with examples/ linked there): its stdout."""
     (tmp_path / "examples").symlink_to(ROOT / "examples")
-    out = subprocess.run([sys.executable, "-c", readme_block(SECTION)], cwd=tmp_path, env=_env(),
+    out = subprocess.run([sys.executable, "-c", readme_block(section)], cwd=tmp_path, env=_env(),
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.strip() == readme_block(SECTION, "text").strip()
+    return out.stdout
+
+
+def test_python_block_prints_what_the_readme_shows(tmp_path):
+    stdout = run_python_block(SECTION, tmp_path)
+    assert stdout.strip() == readme_block(SECTION, "text").strip()
     # the numbers against truth: the fine grid on the same readings, the glitch left out (it was gated)
     import yauyau
 
@@ -47,9 +53,9 @@ def test_python_block_prints_what_the_readme_shows(tmp_path):
     z[200:210] = np.nan
     model = yauyau.compile_model(spec)
     truth = GridReference(model, cells=2048).run(z, times, "discrete")
-    loglik = float(re.search(r"log p\(z\) = (-?[\d.]+)", out.stdout).group(1))
+    loglik = float(re.search(r"log p\(z\) = (-?[\d.]+)", stdout).group(1))
     assert abs(loglik - truth.loglik[-1]) < 0.1
-    low, high = map(float, re.search(r"density ([\d.]+) at -[\d.]+, ([\d.]+) at", out.stdout).groups())
+    low, high = map(float, re.search(r"density ([\d.]+) at -[\d.]+, ([\d.]+) at", stdout).groups())
     assert low == high and abs(truth.mean[-1, 0]) < 0.005  # two equal peaks, a mean of 0
 
 
