@@ -8,6 +8,10 @@
 * A re-centre's cost (``FollowingFilter.recentre``) in steps of the fixed ball.
 * Accuracy of the following ball against the exact Kalman filter of the sampled model.
 * The offline solves on Dask: one process, a local cluster of 1 and of 2 workers (2-D, N = 600).
+* An atlas (``[domain] region``, solver/atlas.py) for f = 0.8 + 0.3 sin x (1-D) and
+  f = (0.8 + 0.3 sin x, 0.5) (2-D: a lattice along x, translation along y): precompute in one process
+  and on a running local cluster of 1 and 2 workers, file size per centre, cost per observation
+  against the fixed ball and the shift-invariant following ball, centres read.
 """
 
 from __future__ import annotations
@@ -108,9 +112,9 @@ def dask_rows(basis: int) -> list[str]:
             fp = np.empty_like(job.initial)
             from yauyau.solver.distributed import run_blocks
 
-            def store(result, fp=fp):
+            def store(_, result, fp=fp):
                 fp[:, result[0]:result[1]] = result[2]
-            run_blocks(job, off.column_blocks(job.initial.shape[1]), store, workers=1)
+            run_blocks([job], [(0, b) for b in off.column_blocks(job.initial.shape[1])], store, workers=1)
             arrays = fp
         else:
             arrays = precompute(model, **kwargs).propagator_fp
@@ -128,6 +132,89 @@ def _job_parts(model):
     phi = dirichlet_eigenbasis(disc, model.spec.discretization.basis)
     return (disc.fokker_planck, disc.kolmogorov, disc.weights, model.dt, model.spec.discretization.substeps,
             phi.values)
+
+
+ATLAS_CASES = [("1-D", ["x"], ["0.8 + 0.3*sin(x)"], [[-5.0, 60.0]], 48, 0.02),
+               ("2-D", ["x", "y"], ["0.8 + 0.3*sin(x)", "0.5"], [[-5.0, 25.0], [-5.0, 25.0]], 300, 0.01)]
+
+
+HOWS = (("one process", 0), ("local cluster, 1 worker", 1), ("local cluster, 2 workers", 2))
+
+
+def _atlas_doc(names, drift, region, basis, dt) -> dict:
+    n = len(names)
+    return {"name": "atlas-bench", "state": names, "drift": drift, "observation": names, "method": "yau-yau",
+            "initial": {"kind": "gaussian", "mean": [0.0] * n, "cov": np.eye(n).tolist()},
+            "domain": {"radius": 6.0, "follow": True, "region": region},
+            "discretization": {"dt": dt, "basis": basis}}
+
+
+def atlas_rows(steps: int, repeats: int, workers_2d: bool = True) -> tuple[list[str], list[str]]:
+    """(precompute rows, online rows) of the atlas cases."""
+    import tempfile
+
+    from distributed import LocalCluster
+
+    import yauyau
+
+    pre, online = [], []
+    for label, names, drift, region, basis, dt in ATLAS_CASES:
+        doc = _atlas_doc(names, drift, region, basis, dt)
+        model = compile_model(spec_from_dict(doc))
+        timings, reference = [], None
+        for how, workers in HOWS:
+            cluster = None
+            if workers:
+                started = time.perf_counter()
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=40)
+                boot = time.perf_counter() - started
+            start = time.perf_counter()
+            offline = precompute(model, scheduler=None if cluster is None else cluster.scheduler_address)
+            seconds = time.perf_counter() - start
+            if cluster is not None:
+                cluster.close()
+            solved = offline.atlas.solved
+            arrays = (solved.propagator_fp, solved.generator)
+            reference = arrays if reference is None else reference
+            same = all(np.array_equal(a, b) for a, b in zip(arrays, reference, strict=True))
+            timings.append((how, seconds, None if cluster is None else boot, same))
+        with tempfile.TemporaryDirectory() as directory:
+            mid = yauyau.precompute(spec_from_dict(doc), directory)
+            size = (Path(directory) / f"{mid}.h5").stat().st_size
+        K = offline.atlas.size
+        per_centre = (solved.propagator_fp[0].nbytes + solved.generator[0].nbytes) / 1e6
+        for how, seconds, boot, same in timings:
+            cells = [label, K, f"{len(offline.nodes)} × {basis}", how, f"{seconds:.1f}",
+                     "—" if boot is None else f"{boot:.1f}", f"{seconds / K:.2f}", same,
+                     f"{size / 1e6:.1f}", f"{per_centre:.3f}"]
+            pre.append("| " + " | ".join(map(str, cells)) + " |")
+            print(pre[-1])
+        follow = build(model, offline)
+        fixed_doc = _doc(len(names), [f"-0.5*{v}" for v in names], False, basis)
+        fixed_doc["discretization"]["dt"] = dt
+        fixed_model, fixed = _engine(fixed_doc)
+        trend_doc = _doc(len(names), ["1.0"] * len(names), True, basis)
+        trend_doc["discretization"]["dt"] = dt
+        trend_model, trend = _engine(trend_doc)
+        k = steps if label == "1-D" else steps // 2
+        moving = simulate(model, k, np.random.default_rng(2)).increments
+        staying = simulate(fixed_model, k, np.random.default_rng(2)).increments
+        travelling = simulate(trend_model, k, np.random.default_rng(2)).increments
+        with threadpool_limits(1, user_api="blas"):
+            t = {"atlas": [], "fixed": [], "trend": []}
+            for _ in range(3):  # interleaved
+                t["atlas"].append(_time_run(build(model, offline), moving, repeats))  # engines built anew
+                t["fixed"].append(_time_run(fixed, staying, repeats))
+                t["trend"].append(_time_run(trend, travelling, repeats))
+        per = {key: statistics.median(v) for key, v in t.items()}
+        state, result = follow.run_arrays(follow.initial_state(), moving)
+        cells = [label, f"{k} (t = {k * dt:g})", f"{per['fixed'] * 1e6:.1f}", f"{per['trend'] * 1e6:.1f}",
+                 f"{per['atlas'] * 1e6:.1f}", f"{per['atlas'] / per['fixed']:.2f}×",
+                 int(result.recentred.sum()), f"{offline.atlas.loads} of {K}", bool(result.degenerate.any())]
+        online.append("| " + " | ".join(map(str, cells)) + " |")
+        print(online[-1])
+    return pre, online
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,6 +237,24 @@ def main(argv: list[str] | None = None) -> int:
               "Seconds for the whole propagator solve; *identical*: the arrays equal the one-process run's "
               "bit for bit.", "", "| how | seconds | identical |", "|---|---:|---|"]
     lines += dask_rows(basis)
+    pre, online = atlas_rows(steps // 2 if args.quick else 3000, repeats)
+    lines += ["", "### An atlas for a drift that is not shift-invariant (`[domain] region`)", "",
+              "f = 0.8 + 0.3 sin x (1-D, region [-5, 60]) and f = (0.8 + 0.3 sin x, 0.5) (2-D, region "
+              "[-5, 25]²: the lattice runs along x only, y moves by translation); radius 6, "
+              "follow_distance 0.15. Precompute: seconds for the home ball and every centre "
+              "(*cluster start*: the local cluster's start-up, not included), per centre, *identical*: "
+              "the atlas equals the one-process run's bit for bit; the file and one centre's "
+              "propagator + generator in MB.", "",
+              "| model | centres | Q × N | how | seconds | cluster start | s/centre | identical | file MB "
+              "| MB/centre |", "|---|---:|---|---|---:|---:|---:|---|---:|---:|"]
+    lines += pre
+    lines += ["", "Online: µs per observation, chunks of 1000, one BLAS thread, medians of interleaved "
+              "runs: the fixed ball (OU path inside it), the shift-invariant following ball (trend f = 1), "
+              "and the atlas (a new filter each run: its centres' engines are built as the state reaches "
+              "them).", "",
+              "| model | steps | fixed | follow (trend) | atlas | atlas / fixed | moves | centres read "
+              "| degenerate |", "|---|---|---:|---:|---:|---:|---:|---|---|"]
+    lines += online
     write_fragment(FRAGMENT, lines)
     return 0
 

@@ -12,7 +12,8 @@ and whose file has been silent for ``STALE_S`` seconds died (its host restarted)
 again by the next request.  A job is claimed under an exclusive lock on ``<id>.claim``, so of the
 requests that find it missing or dead at once, one starts it.  Before any
 work, a spec is checked (the spec's own rules, field by field) and refused with a 413 problem when
-it is larger than the service allows (basis size, mesh nodes: ``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``).
+it is larger than the service allows (basis size, mesh nodes, atlas centres:
+``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``/``_CENTRES``).
 """
 
 from __future__ import annotations
@@ -37,13 +38,24 @@ class PrecomputeLimit(Exception):
         self.field, self.message = field, message
 
 
+def _atlas_centres(model: Any) -> int:
+    """About how many balls an atlas ([domain] region) asks for (the lattice before its spacing is
+    rounded to whole elements); 0 without one."""
+    domain = model.spec.domain
+    if not (domain.follow and domain.region is not None) or len(model.shift_directions) == model.n:
+        return 0
+    from yauyau.solver.atlas import lattice
+
+    return lattice(model).size
+
+
 class Jobs:
     """The precompute jobs of one model store directory."""
 
-    def __init__(self, store: Path, max_basis: int, max_nodes: int):
+    def __init__(self, store: Path, max_basis: int, max_nodes: int, max_centres: int = 256):
         self.store = Path(store)
         self.directory = self.store / "jobs"
-        self.max_basis, self.max_nodes = max_basis, max_nodes
+        self.max_basis, self.max_nodes, self.max_centres = max_basis, max_nodes, max_centres
 
     def submit(self, spec_doc: dict[str, Any]) -> tuple[dict[str, Any], bool]:
         """Check ``spec_doc`` and start its precompute unless it is stored or running: (the job, whether
@@ -62,7 +74,11 @@ class Jobs:
         if nodes > self.max_nodes:
             raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
                                   f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES)")
-        compile_model(spec)  # the expressions parse and are finite on the ball: a 4xx now, not a failed job
+        model = compile_model(spec)  # the expressions parse and are finite: a 4xx now, not a failed job
+        centres = _atlas_centres(model)
+        if centres > self.max_centres:
+            raise PrecomputeLimit("spec.domain.region", f"an atlas of about {centres} centres: this service "
+                                  f"precomputes at most {self.max_centres} (YAUYAU_MAX_PRECOMPUTE_CENTRES)")
         spec_json = spec.canonical_json()
         mid = model_id(spec_json)
         store = ModelStore(self.store)

@@ -40,6 +40,9 @@ class Settings(BaseSettings):
         1000, ge=1, le=100_000, description="largest basis a POST /v1/models may precompute (413 beyond)")
     max_precompute_nodes: int = Field(
         6000, ge=1, le=12_000, description="most mesh nodes a POST /v1/models may precompute (413 beyond)")
+    max_precompute_centres: int = Field(
+        256, ge=1, le=4096, description="most atlas centres ([domain] region) a POST /v1/models may "
+                                        "precompute (413 beyond)")
     max_chunk_rows: int = Field(10_000, ge=1, le=10_000_000, description="most rows per chunk")
     max_body_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="largest request body accepted")
     max_density_points: int = Field(100_000, ge=1, description="most points per density request")

@@ -19,6 +19,7 @@ worker with more threads solves its blocks one at a time (a lock: the factorisat
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from typing import Any, Callable
 
@@ -28,17 +29,21 @@ _LOCK = threading.Lock()
 CONNECT_TIMEOUT = "30s"
 
 
-def solve_block(job: Any, columns: tuple[int, int]):
-    """The task: one block of columns on this worker (serialised per process, see the docstring)."""
+def solve_block(job: Any, columns: tuple[int, int], basis: Any = None):
+    """The task: one block of columns on this worker (serialised per process, see the docstring);
+    ``basis``: the initial values when the job was sent without them."""
     from .offline import dask_block
 
+    if basis is not None:
+        job = dataclasses.replace(job, initial=basis)
     with _LOCK:
         return dask_block(job, columns)
 
 
-def run_blocks(job: Any, blocks: list[tuple[int, int]], store: Callable[[Any], None], *, workers: int = 1,
-               scheduler: str | None = None) -> None:
-    """Solve ``blocks`` of ``job`` on Dask, calling ``store(result)`` as each block arrives."""
+def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
+               store: Callable[[int, Any], None], *, workers: int = 1, scheduler: str | None = None) -> None:
+    """Solve ``tasks`` ((job index, column block) pairs) on Dask, calling ``store(j, result)`` as each
+    block arrives.  Every job is scattered to every worker once."""
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:  # pragma: no cover - distributed is a dependency
@@ -65,11 +70,16 @@ def run_blocks(job: Any, blocks: list[tuple[int, int]], store: Callable[[Any], N
             cluster.close()
         raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
     try:
-        shared = client.scatter(job, broadcast=True, hash=False)
-        futures = [client.submit(solve_block, shared, block, key=f"yauyau-propagators-{job.token}-{block[0]}",
-                                 retries=2, pure=False) for block in blocks]
-        for future in as_completed(futures):
-            store(future.result())
+        basis = None  # an atlas's jobs share the basis values: sent once, not once per centre
+        if len(jobs) > 1 and all(job.initial is jobs[0].initial for job in jobs):
+            basis = client.scatter(jobs[0].initial, broadcast=True, hash=False)
+            jobs = [dataclasses.replace(job, initial=None) for job in jobs]
+        shared = [client.scatter(job, broadcast=True, hash=False) for job in jobs]
+        futures = {client.submit(solve_block, shared[j], block, basis, retries=2, pure=False,
+                                 key=f"yauyau-propagators-{jobs[j].token}-{block[0]}"): j
+                   for j, block in tasks}
+        for future in as_completed(list(futures)):
+            store(futures[future], future.result())
             future.release()
     finally:
         client.close()

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from .atlas import element_length
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, concat_results
 from .measurement import check_rows
@@ -78,12 +79,17 @@ class TranslatedOffline:
 
 
 def check_follow(model: Any, form: str = "stable") -> tuple[int, ...]:
-    """The directions the ball may move along; SpecError when follow cannot apply."""
+    """The directions the ball may move along (every one with ``[domain] region``: an atlas,
+    solver/atlas.py); SpecError when follow cannot apply."""
     directions = model.shift_directions
+    if model.spec.domain.region is not None:
+        directions = tuple(range(model.n))
     if not directions:
         raise SpecError("domain.follow", "the drift depends on every state variable, so the Fokker-Planck "
                                          "operator changes when the ball moves and one stored propagator "
-                                         "cannot serve a moved ball; leave follow out (and size "
+                                         "cannot serve a moved ball; declare where the state may go, "
+                                         "domain.region = [[lo, hi], ...] (one pair per state variable), for "
+                                         "an atlas of propagators, or leave follow out (and size "
                                          "domain.radius for the whole path)")
     if form != "stable":
         raise SpecError("form", "a following ball needs the stable form (the literal form's Kolmogorov "
@@ -107,8 +113,15 @@ class FollowingFilter(ChunkedFilter):
         self.stray = (float(domain.follow_distance) + STRAY) * self.radius
         self.mass_limit = float(domain.follow_mass)
         self.home_center = np.asarray(engine.model.center, dtype=float)
-        self._lattice = _lattice(engine.offline, engine.model.n)
+        self._lattice = element_length(getattr(engine.offline, "mesh_points", None), engine.model.n)
         self._engines: OrderedDict[tuple, Any] = OrderedDict()
+        self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
+        self.atlas = getattr(engine.offline, "atlas", None)  # solver/atlas.py: a propagator per centre
+        self._bases: OrderedDict[int, Any] = OrderedDict()
+        fixed = len(engine.model.shift_directions) < engine.model.n  # the drift depends on some coordinate
+        if self.atlas is None and self.region is not None and fixed:
+            raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
+                                             "they were solved): precompute the spec again")
         self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius
 
     def __getattr__(self, name: str) -> Any:  # offline, nodes, weights, N, form, precision, flow...
@@ -122,7 +135,8 @@ class FollowingFilter(ChunkedFilter):
         key = (tuple(float(c) for c in center), self.gate_override)
         found = self._engines.get(key)
         if found is None:
-            found = self.home.centred_at(center)
+            base = self.home if self.atlas is None else self._atlas_engine(self.atlas.lattice.index(center))
+            found = base.centred_at(center)
             found.gate_override = self.gate_override
             self._engines[key] = found
             if len(self._engines) > CACHE:
@@ -131,18 +145,42 @@ class FollowingFilter(ChunkedFilter):
             self._engines.move_to_end(key)
         return found
 
+    def _atlas_engine(self, k: int) -> Any:
+        """The engine on the ball of atlas centre k (its own propagator; kept a few at a time)."""
+        found = self._bases.get(k)
+        if found is None:
+            from .engine import YauYauFilter
+
+            offline = self.atlas.offline(k)
+            found = YauYauFilter(offline.model, offline, form=self.home.form, precision=self.home.precision)
+            self._bases[k] = found
+            if len(self._bases) > CACHE:
+                self._bases.popitem(last=False)
+        else:
+            self._bases.move_to_end(k)
+        return found
+
     def ball_center(self, state: Any) -> np.ndarray:
         return np.asarray(state.center, dtype=float)
 
     def snapped(self, center: np.ndarray, target: np.ndarray) -> np.ndarray:
         """``center`` with the shift coordinates moved to ``target``'s (1-D: on the element lattice)."""
         new = np.array(center, dtype=float)
+        axes = () if self.atlas is None else self.atlas.lattice.axes
         for i in self.directions:
             offset = float(target[i]) - self.home_center[i]
-            if self._lattice:
+            if self._lattice and i not in axes:
                 offset = round(offset / self._lattice) * self._lattice
             new[i] = self.home_center[i] + offset
-        return new
+        return new if self.atlas is None else self.atlas.lattice.nearest(new)
+
+    def left_region(self, point: np.ndarray) -> str | None:
+        """Why ``point`` is beyond ``[domain] region`` (None: inside, or no region)."""
+        if self.region is None or not np.any((point < self.region[:, 0]) | (point > self.region[:, 1])):
+            return None
+        bounds = ", ".join(f"[{lo:g}, {hi:g}]" for lo, hi in self.region)
+        return (f"the posterior mean {_point(point)} left domain.region ({bounds}): no propagator was "
+                "precomputed beyond it; widen the region and precompute again")
 
     # -- states ---------------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> Any:
@@ -150,6 +188,10 @@ class FollowingFilter(ChunkedFilter):
         start = self.home_center
         mean = _prior_mean(self.model, prior)
         if mean is not None:
+            outside = self.left_region(mean)
+            if outside:
+                raise SpecError("initial" if prior is None else "prior", outside.replace(
+                    "the posterior mean", "the prior mean").replace("left", "lies outside"))
             start = self.snapped(self.home_center, mean)
         state = self.engine(start).initial_state(prior)
         return dataclasses.replace(state, center=start)
@@ -163,6 +205,9 @@ class FollowingFilter(ChunkedFilter):
             center = None
         if center is None or center.shape != (self.model.n,) or not np.all(np.isfinite(center)):
             raise InputError("state.center", f"must be {self.model.n} finite numbers (the ball's centre)")
+        if self.atlas is not None and not np.allclose(self.atlas.lattice.nearest(center), center,
+                                                      rtol=0, atol=1e-9 * (1 + float(np.abs(center).max()))):
+            raise InputError("state.center", f"{_point(center)} is not a centre of this model's atlas")
         return dataclasses.replace(state, center=center)
 
     def estimate(self, state: Any) -> Any:
@@ -215,6 +260,10 @@ class FollowingFilter(ChunkedFilter):
             block = self._block_for(velocity, jitter)
             if not state.degenerate:
                 state = self._maybe_recentre(state, velocity * block)
+                if state.degenerate:  # the move failed, or the mean left the region: flag its row
+                    flags = part.degenerate.copy()
+                    flags[-1] = True
+                    part = dataclasses.replace(part, degenerate=flags, reason=part.reason or state.reason)
             parts.append(_with_centers(part, center, state.center))
             start = stop
             if state.degenerate and start < K:  # the rest stays degenerate
@@ -262,6 +311,9 @@ class FollowingFilter(ChunkedFilter):
         mass; the new centre leads the mean by half the expected travel."""
         center = np.asarray(state.center, dtype=float)
         mean = state.last.mean
+        outside = self.left_region(mean)
+        if outside:
+            return dataclasses.replace(state, degenerate=True, reason=outside)
         along = list(self.directions)
         offset = mean[along] - center[along]
         far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
@@ -334,17 +386,6 @@ def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | N
     if after is not None and K and not np.array_equal(after, before):
         centers[-1], moved[-1] = after, True
     return dataclasses.replace(result, center=centers, recentred=moved)
-
-
-def _lattice(offline: Any, n: int) -> float | None:
-    """1-D: the element length of the uniform interval mesh (moves by whole elements); else None."""
-    if n != 1:
-        return None
-    points = np.sort(np.asarray(getattr(offline, "mesh_points", np.empty((1, 0))), dtype=float).ravel())
-    if len(points) < 2:
-        return None
-    steps = np.diff(points)
-    return float(steps.mean()) if np.allclose(steps, steps.mean(), rtol=1e-9) else None
 
 
 def _prior_mean(model: Any, prior: Any | None) -> np.ndarray | None:

@@ -116,7 +116,7 @@ def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int
 @dataclass(frozen=True)
 class _Job:
     fokker_planck: object
-    kolmogorov: object
+    kolmogorov: object | None  # None: only e^{dt L} (an atlas centre: the stable form never needs L_K)
     weights: np.ndarray
     dt: float
     substeps: int
@@ -133,7 +133,8 @@ def _setup(job: _Job) -> None:
 
     _WORKER["initial"] = job.initial
     _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps)
-    _WORKER["k"] = SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps)
+    _WORKER["k"] = (None if job.kolmogorov is None else
+                    SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps))
 
 
 def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
@@ -141,8 +142,9 @@ def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarr
 
     start, stop = columns
     u0 = _WORKER["initial"][:, start:stop]
+    kolmogorov = _WORKER["k"]
     with blas_threads(1):  # SuperLU's small dense kernels: threads only add contention (measured)
-        return start, stop, _WORKER["fp"].apply(u0), _WORKER["k"].apply(u0)
+        return start, stop, _WORKER["fp"].apply(u0), None if kolmogorov is None else kolmogorov.apply(u0)
 
 
 def column_blocks(size: int, width: int = 32) -> list[tuple[int, int]]:
@@ -152,35 +154,44 @@ def column_blocks(size: int, width: int = 32) -> list[tuple[int, int]]:
 
 def propagate_all(job: _Job, workers: int = 1, progress: Progress | None = None,
                   scheduler: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Every column block of ``job``: in this process (one worker and no scheduler, or a single
+    """Every column block of ``job`` (:func:`propagate_jobs` of one job)."""
+    return propagate_jobs([job], workers, progress, scheduler)[0]
+
+
+def propagate_jobs(jobs: list[_Job], workers: int = 1, progress: Progress | None = None,
+                   scheduler: str | None = None) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Every column block of every job: in this process (one worker and no scheduler, or a single
     block), else as Dask tasks (solver/distributed.py).  The blocks are fixed, so the arrays are
-    bit-identical whoever solves them."""
-    size = job.initial.shape[1]
-    fp = np.empty_like(job.initial)
-    kol = np.empty_like(job.initial)
-    blocks = column_blocks(size)
+    bit-identical whoever solves them.  ``progress(done, total)`` counts basis columns over all jobs."""
+    out = [(np.empty_like(job.initial), None if job.kolmogorov is None else np.empty_like(job.initial))
+           for job in jobs]
+    tasks = [(j, block) for j, job in enumerate(jobs) for block in column_blocks(job.initial.shape[1])]
+    total = sum(job.initial.shape[1] for job in jobs)
     done = 0
 
-    def store(result):
+    def store(j, result):
         nonlocal done
         start, stop, a, b = result
-        fp[:, start:stop], kol[:, start:stop] = a, b
+        out[j][0][:, start:stop] = a
+        if b is not None:
+            out[j][1][:, start:stop] = b
         done += stop - start
         if progress is not None:
-            progress(done, size)
+            progress(done, total)
 
-    if scheduler is None and (workers <= 1 or len(blocks) == 1):
-        _setup(job)
-        try:
-            for block in blocks:
-                store(_propagate(block))
-        finally:
-            _WORKER.clear()
+    if scheduler is None and (workers <= 1 or len(tasks) == 1):
+        for j, job in enumerate(jobs):
+            _setup(job)
+            try:
+                for block in column_blocks(job.initial.shape[1]):
+                    store(j, _propagate(block))
+            finally:
+                _WORKER.clear()
     else:
         from .distributed import run_blocks
 
-        run_blocks(job, blocks, store, workers=workers, scheduler=scheduler)
-    return fp, kol
+        run_blocks(jobs, tasks, store, workers=workers, scheduler=scheduler)
+    return out
 
 
 def dask_block(job: _Job, columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
@@ -212,6 +223,7 @@ class OfflineModel:
     node_index: np.ndarray
     element_order: np.ndarray
     generator: np.ndarray | None = None  # (N, N) Galerkin Fokker–Planck generator Φᵀ K Φ (semigroup.py)
+    atlas: Any | None = field(default=None, repr=False)  # solver/atlas.Atlas: [domain] region
     _space: Any | None = field(default=None, repr=False)  # fem.FESpace, built on first use
     _tree: Any | None = field(default=None, repr=False)  # scipy.spatial.cKDTree of the cells
 
@@ -223,10 +235,22 @@ class OfflineModel:
     def to_arrays(self) -> dict[str, np.ndarray]:
         arrays = {name: getattr(self, name) for name in ARRAY_NAMES}
         arrays["generator"] = self.fokker_planck_generator()
+        if self.atlas is not None:
+            arrays["atlas_centers"] = self.atlas.centers()
         return arrays
 
+    def lazy_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays a store should read one row (one atlas centre) at a time: (K, ...) each."""
+        if self.atlas is None:
+            return {}
+        solved = self.atlas.solved
+        return {"atlas_propagator_fp": solved.propagator_fp, "atlas_generator": solved.generator}
+
     @classmethod
-    def from_arrays(cls, model: Model, arrays: dict[str, np.ndarray]) -> "OfflineModel":
+    def from_arrays(cls, model: Model, arrays: dict[str, np.ndarray],
+                    lazy: Any | None = None) -> "OfflineModel":
+        """The stored arrays; ``lazy`` (``read(name, k)`` of one row of a (K, ...) array: the store's
+        lazy reader) holds an atlas's per-centre arrays."""
         values = {}
         for name in ARRAY_NAMES:
             if name not in arrays:
@@ -239,7 +263,13 @@ class OfflineModel:
             size = values["basis"].shape[1]
             if generator.shape != (size, size) or not np.all(np.isfinite(generator)):
                 raise InputError("arrays.generator", f"must be a finite ({size}, {size}) matrix")
-        return cls(model=model, generator=generator, **values)
+        found = cls(model=model, generator=generator, **values)
+        if model.spec.domain.follow and model.spec.domain.region is not None and \
+                len(model.shift_directions) < model.n:
+            from .atlas import attach_stored
+
+            attach_stored(found, arrays.get("atlas_centers"), lazy)
+        return found
 
     def fokker_planck_generator(self) -> np.ndarray:
         """A = Φᵀ K Φ, the Fokker–Planck generator on the basis (solver/semigroup.py): stored, or
@@ -347,19 +377,40 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
     disc = space(model)
+    # an atlas where the drift depends on a coordinate the ball must move along (solver/atlas.py)
+    atlas = (model.spec.domain.follow and model.spec.domain.region is not None
+             and len(model.shift_directions) < model.n)
+    home_progress = atlas_progress = progress
+    if atlas:  # the lattice first (a region too large is refused before any solve)
+        from .atlas import element_length, lattice
+
+        K = lattice(model, element_length(disc.arrays.get("mesh_points"), model.n)).size
+    if atlas and progress is not None:  # one count over the home ball's columns and every centre's
+        total = spec.basis * (1 + K)
+
+        def home_progress(done, _):
+            progress(done, total)
+
+        def atlas_progress(done, _):
+            progress(spec.basis + done, total)
     phi = basis(disc, spec.basis)
     where = {} if scheduler is None else {"scheduler": scheduler}
-    prop_fp, prop_k = propagators(disc, phi, model.dt, spec.substeps, workers, progress, **where)
+    prop_fp, prop_k = propagators(disc, phi, model.dt, spec.substeps, workers, home_progress, **where)
     for name, arr in (("propagator_fp", prop_fp), ("propagator_k", prop_k)):
         if not np.all(np.isfinite(arr)):
             raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")
     check_stable(model, disc.nodes, disc.weights, phi.values, phi.projector, prop_fp)
     from .semigroup import galerkin_generator
 
-    return OfflineModel(
+    found = OfflineModel(
         model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
         propagator_fp=prop_fp, propagator_k=prop_k, eigenvalues=phi.eigenvalues, **disc.arrays,
         generator=galerkin_generator(phi.values, disc.fokker_planck), _space=disc.space)
+    if atlas:
+        from .atlas import attach_solved, solve_atlas
+
+        attach_solved(found, solve_atlas(model, disc, phi, space, workers, atlas_progress, scheduler))
+    return found
 
 
 def check_stable(model: Model, nodes: np.ndarray, weights: np.ndarray, basis_values: np.ndarray,

@@ -150,11 +150,19 @@ class Domain(_Strict):
     follow: bool = False
     follow_distance: float = Field(default=FOLLOW_DISTANCE, gt=0, le=0.75)
     follow_mass: float = Field(default=FOLLOW_MASS, gt=0, lt=1)
+    region: list[list[float]] | None = None
 
     @model_validator(mode="after")
     def _follow_options(self) -> "Domain":
         if not self.follow and (self.follow_distance != FOLLOW_DISTANCE or self.follow_mass != FOLLOW_MASS):
             raise SpecError("domain.follow", "follow_distance and follow_mass only apply with follow = true")
+        if self.region is not None:
+            if not self.follow:
+                raise SpecError("domain.region", "the region of an atlas only applies with follow = true")
+            for i, pair in enumerate(self.region):
+                if len(pair) != 2 or not all(math.isfinite(v) for v in pair) or not pair[0] < pair[1]:
+                    raise SpecError(f"domain.region[{i}]",
+                                    f"must be [lo, hi] with finite lo < hi, got {pair}")
         return self
 
     def stored(self) -> dict[str, Any]:
@@ -164,6 +172,8 @@ class Domain(_Strict):
         for key in ("follow", "follow_distance", "follow_mass"):
             if not self.follow:
                 data.pop(key)
+        if self.region is None:
+            data.pop("region")
         return data
 
 
@@ -292,6 +302,9 @@ class ModelSpec(_Strict):
             raise SpecError("domain.center", f"needs {n} coordinates, got {len(self.domain.center)}")
         if self.domain.center is not None:
             _finite_or_raise(self.domain.center, "domain.center")
+        if self.domain.region is not None and len(self.domain.region) != n:
+            raise SpecError("domain.region", f"needs one [lo, hi] pair per state variable ({n}), "
+                                             f"got {len(self.domain.region)}")
         _check_prior(self.initial, n)
         return self
 

@@ -6,7 +6,10 @@ Layout of ``<id>.h5``: root attributes ``format_version``, ``model_id``, ``spec`
 ``created`` (UTC ISO 8601), ``versions`` (JSON: numpy, scipy, h5py, scikit-fem), ``attrs``
 (JSON, the caller's), ``meta_sha256`` (hash of all of the above plus the name, shape, dtype and
 sha256 of every array); group ``arrays`` holds one dataset per array, each with a fletcher32
-checksum (per chunk, checked by HDF5 on read).
+checksum (per chunk, checked by HDF5 on read).  Group ``lazy`` (only when the caller has such
+arrays: an atlas of propagators, one row per centre) holds (K, ...) datasets chunked one row per
+chunk, with the sha256 of every row in the attribute ``row_sha256``; they are not read by ``load``
+but row by row (:class:`LazyArrays`), each row checked against its hash.
 
 Writes go to a hidden temporary file in the same directory which is flushed, fsynced and
 ``os.replace``d, so a killed writer never leaves a half-written file under the final name.
@@ -52,6 +55,41 @@ class StoredModel:
     spec_json: str
     arrays: dict[str, np.ndarray]
     attrs: dict[str, Any]
+    lazy: "LazyArrays | None" = None  # the rows of the ``lazy`` group, read on demand
+
+
+class LazyArrays:
+    """The ``lazy`` group of a verified model file, read one row at a time (the file is opened per
+    read; a row whose bytes do not hash to the verified ``row_sha256`` raises StoreError)."""
+
+    def __init__(self, path: Path, rows: dict[str, tuple[tuple[int, ...], str, list[str]]]):
+        self.path, self._rows = path, rows
+
+    @property
+    def names(self) -> list[str]:
+        return sorted(self._rows)
+
+    def shape(self, name: str) -> tuple[int, ...]:
+        return self._rows[name][0]
+
+    def read(self, name: str, k: int) -> np.ndarray:
+        """Row k of the lazy array ``name``."""
+        if name not in self._rows:
+            raise StoreError(f"lazy.{name}", f"no such lazy array in {self.path.name}")
+        shape, dtype, hashes = self._rows[name]
+        if not 0 <= int(k) < shape[0]:
+            raise StoreError(f"lazy.{name}", f"row {k} is out of range (0..{shape[0] - 1})")
+        try:
+            with h5py.File(self.path, "r") as h5:
+                row = np.ascontiguousarray(h5["lazy"][name][int(k)])
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+            raise StoreError("model", f"model file {self.path.name}: cannot read row {k} of {name}: "
+                                      f"{_short(exc)}") from None
+        if row.dtype.str != dtype or row.shape != shape[1:] or \
+                hashlib.sha256(row.tobytes()).hexdigest() != hashes[int(k)]:
+            raise StoreError("model", f"model file {self.path.name}: row {k} of {name} does not match its "
+                                      "checksum (file altered or replaced since it was opened)")
+        return row
 
 
 @dataclass(frozen=True)
@@ -115,6 +153,15 @@ def _layout(arrays: dict[str, np.ndarray]) -> list:
     # makes HDF5 return the fill value (zeros) for a chunk without any checksum being read.
     return [[name, list(arr.shape), arr.dtype.str, hashlib.sha256(arr.tobytes()).hexdigest()]
             for name, arr in sorted(arrays.items())]
+
+
+def _lazy_layout(rows: dict[str, tuple[tuple[int, ...], str, list[str]]]) -> list:
+    return [[f"lazy/{name}", list(shape), dtype, hashes]
+            for name, (shape, dtype, hashes) in sorted(rows.items())]
+
+
+def _row_hashes(arr: np.ndarray) -> list[str]:
+    return [hashlib.sha256(np.ascontiguousarray(row).tobytes()).hexdigest() for row in arr]
 
 
 def _checked_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -219,17 +266,24 @@ class ModelStore:
         return sorted(n[: -len(SUFFIX)] for n in names if n.endswith(SUFFIX) and _ID.match(n[: -len(SUFFIX)]))
 
     # -- writing --------------------------------------------------------------------
-    def save(self, spec_json: str, arrays: dict[str, Any], attrs: dict[str, Any] | None = None) -> str:
-        """Write the model atomically and return its id (an existing file is replaced)."""
+    def save(self, spec_json: str, arrays: dict[str, Any], attrs: dict[str, Any] | None = None,
+             lazy: dict[str, Any] | None = None) -> str:
+        """Write the model atomically and return its id (an existing file is replaced); ``lazy``:
+        (K, ...) arrays stored to be read one row at a time (module docstring)."""
         spec = canonical_spec(spec_json)
         mid = model_id(spec)
         checked = _checked_arrays(arrays)
+        lazy = _checked_arrays(lazy or {})
+        for name, arr in lazy.items():
+            if arr.ndim < 1 or arr.shape[0] < 1 or name in checked:
+                raise StoreError(f"lazy.{name}",
+                                 "must be a (K, ...) array with K >= 1, named apart from the arrays")
         attrs_text = _attrs_json(attrs)
         self.ensure_writable()
         self.clean_stale_temporaries()
         tmp = self.directory / f"{TMP_PREFIX}{mid}-{os.getpid()}-{secrets.token_hex(4)}{SUFFIX}"
         try:
-            self._write_file(tmp, mid, spec, checked, attrs_text)
+            self._write_file(tmp, mid, spec, checked, attrs_text, lazy)
             os.replace(tmp, self.path(mid))
         except OSError as exc:
             tmp.unlink(missing_ok=True)
@@ -249,8 +303,10 @@ class ModelStore:
         if not os.access(self.directory, os.W_OK | os.X_OK):
             raise StoreError("store", f"directory {self.directory} is not writable")
 
-    def _write_file(self, tmp: Path, mid: str, spec: str, arrays: dict[str, np.ndarray], attrs: str) -> None:
+    def _write_file(self, tmp: Path, mid: str, spec: str, arrays: dict[str, np.ndarray], attrs: str,
+                    lazy: dict[str, np.ndarray]) -> None:
         created, versions = _utc_now(), json.dumps(library_versions(), sort_keys=True)
+        rows = {name: (arr.shape, arr.dtype.str, _row_hashes(arr)) for name, arr in lazy.items()}
         with h5py.File(tmp, "w-") as h5:
             h5.attrs["format_version"] = FORMAT_VERSION
             h5.attrs["model_id"] = mid
@@ -258,10 +314,16 @@ class ModelStore:
             h5.attrs["created"] = created
             h5.attrs["versions"] = versions
             h5.attrs["attrs"] = attrs
-            h5.attrs["meta_sha256"] = _meta_digest(spec, attrs, created, versions, _layout(arrays))
+            h5.attrs["meta_sha256"] = _meta_digest(spec, attrs, created, versions,
+                                                   _layout(arrays) + _lazy_layout(rows))
             group = h5.create_group("arrays")
             for name, arr in arrays.items():
                 _write_dataset(group, name, arr, self.compress_floats)
+            if lazy:
+                group = h5.create_group("lazy")
+                for name, arr in lazy.items():
+                    dset = group.create_dataset(name, data=arr, chunks=(1,) + arr.shape[1:], fletcher32=True)
+                    dset.attrs["row_sha256"] = np.array(rows[name][2], dtype="S64")
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)  # the bytes are on disk before the rename makes them visible
@@ -300,7 +362,7 @@ class ModelStore:
             raise NotFound("model_id", f"no model {model_id_} in {self.directory}")
         try:
             with h5py.File(path, "r") as h5:
-                return _verified(h5, model_id_)
+                return _verified(h5, model_id_, path)
         except StoreError:
             raise
         except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
@@ -387,7 +449,7 @@ def _check_version(h5: h5py.File, mid: str) -> None:
                          f"{FORMAT_VERSION}{hint}")
 
 
-def _verified(h5: h5py.File, mid: str) -> StoredModel:
+def _verified(h5: h5py.File, mid: str, path: Path | None = None) -> StoredModel:
     _check_version(h5, mid)
     spec = _text_attr(h5, "spec")
     try:
@@ -399,9 +461,13 @@ def _verified(h5: h5py.File, mid: str) -> StoredModel:
     attrs_text, created, versions = (_text_attr(h5, k) for k in ("attrs", "created", "versions"))
     group = h5["arrays"]
     arrays = {name: _read_dataset(group[name]) for name in group}  # reading verifies fletcher32
-    digest = _meta_digest(spec, attrs_text, created, versions, _layout(arrays))
+    rows = {name: (tuple(int(s) for s in dset.shape), dset.dtype.str,
+                   [bytes(h).decode("ascii") for h in dset.attrs["row_sha256"]])
+            for name, dset in h5.get("lazy", {}).items()}
+    digest = _meta_digest(spec, attrs_text, created, versions, _layout(arrays) + _lazy_layout(rows))
     if digest != _text_attr(h5, "meta_sha256"):
         raise StoreError("model", f"model {mid}: checksum mismatch of the metadata or arrays (file altered)")
     attrs = dict(json.loads(attrs_text))
     attrs.update(format_version=FORMAT_VERSION, created=created, versions=json.loads(versions))
-    return StoredModel(id=mid, spec_json=spec, arrays=arrays, attrs=attrs)
+    lazy = LazyArrays(Path(path if path is not None else h5.filename), rows) if rows else None
+    return StoredModel(id=mid, spec_json=spec, arrays=arrays, attrs=attrs, lazy=lazy)

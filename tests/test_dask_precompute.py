@@ -121,3 +121,39 @@ def test_an_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):
     assert main(["precompute", str(spec_file), "--store", str(tmp_path / "s"),
                  "--scheduler", "localhost:1"]) == 2
     assert "--scheduler" in capsys.readouterr().err
+
+
+ATLAS = {"name": "sin drift atlas", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "observation": ["x"],
+         "method": "yau-yau", "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+         "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 60.0]]},
+         "discretization": {"dt": 0.02, "basis": 48}}
+
+
+def _every_row(path: Path, model_id: str) -> tuple[dict, dict]:
+    stored = ModelStore(path).load(model_id)
+    rows = {name: np.stack([stored.lazy.read(name, k) for k in range(stored.lazy.shape(name)[0])])
+            for name in stored.lazy.names}
+    return stored.arrays, rows
+
+
+def test_an_atlas_on_a_running_cluster_is_the_same_file_also_with_a_worker_killed(cluster, tmp_path):
+    """The atlas's solves (69 centres x 2 column blocks) as tasks on the cluster; one worker dies."""
+    local_id = yauyau.precompute(spec_from_dict(ATLAS), tmp_path / "local", workers=1)
+    killed = []
+
+    def progress(done: int, size: int) -> None:
+        if done > ATLAS["discretization"]["basis"] and not killed:  # the atlas's first block is in
+            os.kill(cluster.workers[0].pid, signal.SIGKILL)
+            killed.append(done)
+
+    model_id = yauyau.precompute(spec_from_dict(ATLAS), tmp_path / "cluster", scheduler=cluster.address,
+                                 progress=progress)
+    assert model_id == local_id and killed and killed[0] < 69 * 48
+    assert cluster.workers[0].wait(timeout=10) == -signal.SIGKILL
+    arrays, rows = _every_row(tmp_path / "cluster", model_id)
+    want_arrays, want_rows = _every_row(tmp_path / "local", local_id)
+    assert set(rows) == {"atlas_propagator_fp", "atlas_generator"} and rows["atlas_generator"].shape[0] == 69
+    for got, want in ((arrays, want_arrays), (rows, want_rows)):
+        assert set(got) == set(want)
+        for name, value in want.items():
+            assert np.array_equal(got[name], value), name

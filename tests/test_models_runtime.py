@@ -76,6 +76,8 @@ def test_a_spec_posted_is_precomputed_in_the_background_and_served(api):
 @pytest.mark.parametrize("change, status, field", [
     ({"discretization": {"dt": 0.01, "basis": 800}}, 413, "spec.discretization.basis"),
     ({"discretization": {"dt": 0.01, "basis": 48, "mesh": 3000}}, 413, "spec.discretization.mesh"),
+    ({"drift": ["sin(x)"], "domain": {"radius": 6.0, "follow": True, "region": [[0.0, 300.0]]}}, 413,
+     "spec.domain.region"),
     ({"drift": ["__import__('os')"]}, 422, "spec.drift[0]"),
     ({"domain": {"radius": -1.0}}, 422, "spec.domain.radius"),
 ])

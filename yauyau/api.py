@@ -60,6 +60,10 @@ class Solved:
         """The arrays to store: the offline stage's, none for a mesh-free model."""
         return {} if self.offline is None else self.offline.to_arrays()
 
+    def lazy_arrays(self) -> dict[str, Any]:
+        """The arrays to store row by row: an atlas's per-centre propagators ([domain] region)."""
+        return {} if self.offline is None else self.offline.lazy_arrays()
+
 
 def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
           time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None,
@@ -140,7 +144,7 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             pass  # unusable file: compute it again
     store.ensure_writable()  # fail before the (long) computation, not after
     solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress, scheduler=scheduler)
-    return store.save(spec_json, solved.arrays(), solved.attrs())
+    return store.save(spec_json, solved.arrays(), solved.attrs(), lazy=solved.lazy_arrays())
 
 
 @dataclass(frozen=True)
@@ -166,7 +170,8 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
 
     stored = _as_store(store).load(model_id)
     model = compile_model(parse_spec_text(stored.spec_json, "json"))
-    offline = None if stored.attrs.get("offline") is False else OfflineModel.from_arrays(model, stored.arrays)
+    offline = (None if stored.attrs.get("offline") is False else
+               OfflineModel.from_arrays(model, stored.arrays, lazy=stored.lazy))
     method, reason = stored.attrs.get("method"), stored.attrs.get("method_reason", "")
     if not method:
         import warnings

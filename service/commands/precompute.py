@@ -101,9 +101,12 @@ def run(args: argparse.Namespace) -> int:
         solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress,
                        scheduler=args.scheduler)
     _say(args, f"method {solved.method}: {solved.method_reason}")
-    saved = store.save(spec_json, solved.arrays(), solved.attrs())
+    saved = store.save(spec_json, solved.arrays(), solved.attrs(), lazy=solved.lazy_arrays())
     size = store.path(saved).stat().st_size
     what = f"{total} basis functions" if solved.offline is not None else "mesh-free, no offline arrays"
+    atlas = getattr(solved.offline, "atlas", None)
+    if atlas is not None:
+        what += f", an atlas of {atlas.size} centres over the region"
     _say(args, f"stored '{spec.name}' ({what}, {solved.seconds:.1f} s, "
                f"{size / 1e6:.2f} MB) as {store.path(saved)}")
     _warn_if_unresolved(args, spec, solved)

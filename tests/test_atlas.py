@@ -1,0 +1,227 @@
+"""An atlas of propagators (``[domain] region``, solver/atlas.py): a following ball for a drift that is
+not shift-invariant, against a fine-grid reference.
+
+Truth: the point-mass filter of tests/irregular_refs.py (finite volumes, zero flux) on a box that holds
+the whole path, [-17.5, 72.5] with 2400 cells, exact in time (the dense exp(dt L), computed once) and
+with the same continuous-increment likelihood exp(h dy - h^2 dt / 2).  Its own error, from halving its
+cells, is ~1e-3 on these paths.  The model is f = 0.8 + 0.3 sin x, h = x, unit noises: the issue's
+"drift that is not shift-invariant"; the ball has radius 6, the path travels 30-55 units.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import h5py
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from irregular_refs import GridReference
+from yauyau.service.cli import main
+from yauyau.solver import compile_model, spec_from_dict
+from yauyau.solver.atlas import MAX_CENTERS, lattice
+from yauyau.solver.engine import build
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.follow import FollowingFilter
+from yauyau.solver.offline import precompute
+from yauyau.solver.simulate import simulate
+from yauyau.storage.errors import StoreError
+
+import yauyau
+from yauyau.api import solve
+
+SIN = {"name": "sin drift", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "observation": ["x"],
+       "method": "yau-yau", "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+       "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 60.0]]},
+       "discretization": {"dt": 0.02, "basis": 48}}
+STEPS = 3000  # t in [0, 60]
+
+
+def _spec(**domain):
+    doc = json.loads(json.dumps(SIN))
+    doc["domain"].update(domain)
+    return spec_from_dict(doc)
+
+
+@pytest.fixture(scope="module")
+def sin():
+    model = compile_model(_spec())
+    return model, precompute(model)
+
+
+def reference_means(model, increments, cells=2400):
+    """The fine-grid filter's posterior means (module docstring) on [-17.5, 72.5]."""
+    doc = json.loads(json.dumps(SIN))
+    doc["domain"] = {"radius": 45.0, "center": [27.5]}
+    grid = GridReference(compile_model(spec_from_dict(doc)), cells=cells, method="expm_multiply")
+    step = sla.expm(model.dt * grid.L.toarray())
+    x, hx = grid.points[:, 0], grid.hx[:, 0]
+    w, means = grid.w0.copy(), np.empty(len(increments))
+    for k, dy in enumerate(increments[:, 0]):
+        w = step @ w
+        ell = hx * dy - 0.5 * hx * hx * model.dt
+        w = w * np.exp(ell - ell.max())
+        w /= w.sum()
+        means[k] = w @ x
+    return means
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_drift_that_is_not_shift_invariant_matches_the_fine_grid_over_the_whole_path(sin, seed):
+    model, offline = sin
+    flt = build(model, offline)
+    assert isinstance(flt, FollowingFilter) and flt.atlas is not None
+    sim = simulate(model, STEPS, np.random.default_rng(seed))
+    assert sim.states[-1, 0] > 25  # four radii and more beyond the start
+    state, result = flt.run_arrays(flt.initial_state(), sim.increments)
+    gap = np.abs(result.mean[:, 0] - reference_means(model, sim.increments)).max()
+    print(f"seed {seed}: x(60) = {sim.states[-1, 0]:.1f}, {int(result.recentred.sum())} moves, "
+          f"{offline.atlas.loads} of {offline.atlas.size} centres read, gap {gap:.2e}")
+    assert not result.degenerate.any(), result.reason
+    assert gap <= 0.01
+    assert result.recentred.sum() > 30
+    # every centre is a lattice centre, and the ball stays near the mean
+    spacing = offline.atlas.lattice.spacing
+    assert np.allclose(np.round(result.center[:, 0] / spacing) * spacing, result.center[:, 0])
+    assert np.abs(result.mean[:, 0] - result.center[:, 0]).max() < 0.3 * 6.0
+
+
+def test_the_fixed_ball_of_the_same_radius_cannot_follow(sin):
+    model, _ = sin
+    fixed = compile_model(spec_from_dict({**SIN, "domain": {"radius": 6.0}}))
+    flt = build(fixed, precompute(fixed))
+    sim = simulate(model, STEPS, np.random.default_rng(1))
+    _, result = flt.run_arrays(flt.initial_state(), sim.increments)
+    assert result.degenerate.any() and "boundary" in result.reason
+
+
+def test_the_lattice_covers_the_region_in_whole_elements(sin):
+    model, offline = sin
+    grid = offline.atlas.lattice
+    element = float(np.diff(np.sort(offline.mesh_points.ravel()))[0])
+    centers = grid.centers()[:, 0]
+    assert grid.axes == (0,) and len(centers) == offline.atlas.size
+    assert abs(grid.spacing / element - round(grid.spacing / element)) < 1e-9  # nodes meet nodes
+    assert abs(grid.spacing - 0.15 * 6.0) <= element / 2  # follow_distance x radius, rounded
+    assert np.any(np.isclose(centers, 0.0))  # anchored at the spec's centre
+    probe = np.linspace(-5.0, 60.0, 2001)  # every point of the region is within s/2 of a centre
+    assert np.abs(probe[:, None] - centers[None, :]).min(axis=1).max() <= grid.spacing / 2 + 1e-12
+    # each centre's ball is its own: the drift at its nodes differs, the basis is shared
+    a, b = offline.atlas.offline(0), offline.atlas.offline(offline.atlas.size - 1)
+    assert not np.allclose(a.propagator_fp, b.propagator_fp)
+    assert a.basis is b.basis and np.allclose(b.nodes - a.nodes, centers[-1] - centers[0])
+
+
+def test_leaving_the_region_is_a_degenerate_step_with_its_reason(sin):
+    model = compile_model(_spec(region=[[-5.0, 20.0]]))
+    flt = build(model, precompute(model))
+    sim = simulate(model, STEPS, np.random.default_rng(2))  # x reaches ~54
+    state, result = flt.run_arrays(flt.initial_state(), sim.increments)
+    first = int(np.argmax(result.degenerate))
+    assert result.degenerate.any() and state.degenerate
+    assert "left domain.region ([-5, 20])" in result.reason and "widen the region" in result.reason
+    assert result.mean[first - 1, 0] > 19 and not result.degenerate[:first].any()
+    assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
+
+
+def test_a_stored_atlas_is_read_one_centre_at_a_time_and_checked(tmp_path):
+    spec = _spec()
+    model_id = yauyau.precompute(spec, tmp_path)
+    flt = yauyau.open_filter(tmp_path, model_id)
+    atlas = flt.filter.atlas
+    sim = simulate(compile_model(spec), 500, np.random.default_rng(1))  # x travels ~8: a few centres
+    result = flt.run(sim.increments)
+    assert 1 <= atlas.loads <= 12 < atlas.size and result.recentred.any()
+    memory = build(compile_model(spec), precompute(compile_model(spec)))
+    _, same = memory.run_arrays(memory.initial_state(), sim.increments)
+    assert np.abs(result.mean - same.mean).max() < 1e-10  # the file holds the arrays solved in memory
+    # a row altered on disk is caught when (and only when) it is read
+    with h5py.File(tmp_path / f"{model_id}.h5", "r+") as h5:
+        row = h5["lazy"]["atlas_propagator_fp"]
+        row[atlas.size - 1, 0, 0] += 1e-3
+    flt = yauyau.open_filter(tmp_path, model_id)
+    flt.run(sim.increments[:10])
+    with pytest.raises(StoreError, match="checksum"):
+        flt.filter.atlas.offline(flt.filter.atlas.size - 1)
+
+
+def test_a_restored_state_must_sit_on_the_lattice(sin):
+    model, offline = sin
+    flt = yauyau.OnlineFilter(build(model, offline))
+    flt.run(simulate(model, 300, np.random.default_rng(1)).increments)
+    data = flt.state_dict()
+    yauyau.OnlineFilter(build(model, offline)).restore(data)  # as saved: fine
+    data["center"] = [data["center"][0] + 0.1]
+    with pytest.raises(InputError, match="not a centre of this model's atlas"):
+        yauyau.OnlineFilter(build(model, offline)).restore(data)
+
+
+@pytest.mark.parametrize(("domain", "field", "words"), [
+    ({"follow": False, "region": [[0, 1]]}, "domain.region", "only applies with follow"),
+    ({"region": [[0, 1], [2, 3]]}, "domain.region", "one [lo, hi] pair per state variable"),
+    ({"region": [[3, 1]]}, "domain.region[0]", "finite lo < hi"),
+    ({"region": [[0, 1e6]]}, "domain.region", f"more than {MAX_CENTERS}"),
+])
+def test_a_bad_region_names_the_field_and_the_fix(domain, field, words):
+    with pytest.raises(SpecError) as caught:
+        lattice(compile_model(_spec(**domain)))
+    assert caught.value.field == field and words in caught.value.message
+
+
+def test_follow_without_a_region_says_to_declare_one_and_a_prior_outside_is_refused():
+    doc = json.loads(json.dumps(SIN))
+    del doc["domain"]["region"]
+    with pytest.raises(SpecError, match="domain.region") as caught:
+        solve(spec_from_dict(doc))
+    assert caught.value.field == "domain.follow"
+    model = compile_model(_spec(region=[[5.0, 60.0]]))
+    with pytest.raises(SpecError, match="prior mean \\(0\\) lies outside domain.region"):
+        build(model, precompute(model)).initial_state()
+    # without a region the spec's id is what it was before regions existed
+    assert "region" not in spec_from_dict({**SIN, "domain": {"radius": 6.0}}).canonical_json()
+
+
+def test_the_cli_precomputes_and_filters_an_atlas(tmp_path, capsys):
+    spec_file = tmp_path / "sin.json"
+    spec_file.write_text(_spec().canonical_json())
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "store"), "--quiet"]) == 0
+    model_id = capsys.readouterr().out.strip()
+    sim = simulate(compile_model(_spec()), 1000, np.random.default_rng(1))
+    inc = tmp_path / "inc.csv"
+    inc.write_text("dy\n" + "\n".join(repr(float(v)) for v in sim.increments[:, 0]) + "\n")
+    out = tmp_path / "out.csv"
+    assert main(["filter", model_id, "--store", str(tmp_path / "store"), "--increments", str(inc),
+                 "--out", str(out)]) == 0
+    with out.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[-2:] == ["center_x", "recentred"] and len(rows) == 1000
+    assert any(r["recentred"] == "1" for r in rows)
+    assert abs(float(rows[-1]["mean_x"]) - float(rows[-1]["center_x"])) < 1.8
+    assert float(rows[-1]["center_x"]) > 5
+
+
+def test_in_2d_the_lattice_runs_along_the_coordinates_the_drift_depends_on_only():
+    """f = (0.8 + 0.3 sin x, 0.5): a lattice along x; along y the centre's ball moves by translation and
+    shares that centre's stored propagator (SymPy finds y shift-invariant)."""
+    doc = {**SIN, "state": ["x", "y"], "drift": ["0.8 + 0.3*sin(x)", "0.5"], "observation": ["x", "y"],
+           "initial": {"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]},
+           "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 20.0], [-5.0, 20.0]]},
+           "discretization": {"dt": 0.02, "basis": 60}}
+    model = compile_model(spec_from_dict(doc))
+    offline = precompute(model)
+    grid = offline.atlas.lattice
+    assert model.shift_directions == (1,) and grid.axes == (0,) and offline.atlas.size == 29
+    flt = build(model, offline)
+    sim = simulate(model, 1000, np.random.default_rng(1))  # x travels ~14, y ~5
+    _, result = flt.run_arrays(flt.initial_state(), sim.increments)
+    assert not result.degenerate.any() and result.recentred.sum() > 10
+    assert np.abs(result.mean - result.center).max() < 0.3 * 6.0
+    xs = result.center[:, 0]
+    assert np.allclose(np.round(xs / grid.spacing) * grid.spacing, xs)  # x on the lattice ...
+    assert len(np.unique(result.center[:, 1])) > 3  # ... y anywhere
+    center = result.center[-1]
+    engine = flt.engine(center)
+    k = grid.index(center)
+    assert engine.offline.home is offline.atlas.offline(k)  # the centre's arrays, translated along y
+    assert np.allclose(engine.nodes, offline.atlas.offline(k).nodes + [0.0, center[1]])
