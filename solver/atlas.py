@@ -140,6 +140,10 @@ class Atlas:
     def centers(self) -> np.ndarray:
         return self.lattice.centers()
 
+    def clear(self) -> None:
+        """Forget the kept centres (the next use of each reads it again)."""
+        self._kept.clear()
+
     def offline(self, k: int) -> Any:
         """The offline arrays of the ball around centre k (an OfflineModel: evaluate, interpolate)."""
         found = self._kept.get(k)
