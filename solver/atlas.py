@@ -6,11 +6,11 @@ for each centre of a lattice covering the declared region
 
     c_j = c₀ + Σ_i j_i s e_i     (i over the coordinates f depends on; c₀ the spec's centre),
 
-s = ``follow_distance``·R (in 1-D a whole number of elements, so the balls' nodes coincide and a move
-carries the density exactly where the balls overlap).  A re-centre goes to the lattice centre nearest
-the point the ball should be at, which is within s/2 of it along every coordinate: the ball holds the
-density by the same margin as the shift-invariant case.  Along the coordinates f does not depend on
-the ball still moves freely (the centre's propagator, translated).
+s = ``follow_distance``·R (a whole number of elements in 1-D, of lattice steps in 2-D, so the
+balls' nodes coincide and a move carries the density exactly where the balls overlap).  A re-centre
+goes to the lattice centre nearest the point the ball should be at, which is within s/2 of it along
+every coordinate: the ball holds the density by the same margin as the shift-invariant case.  Along
+the coordinates f does not depend on the ball still moves freely (the centre's propagator, translated).
 
 The basis (the Dirichlet eigenfunctions of −½div(a∇), a constant) is the same on every translated ball:
 only the propagators differ.  The stable form never needs e^{dt L_K}, so the atlas stores e^{dt L}φ_k
@@ -111,15 +111,36 @@ def lattice(model: Any, element: float | None = None) -> Lattice:
     return found
 
 
-def element_length(mesh_points: Any, n: int) -> float | None:
-    """1-D: the element length of the uniform interval mesh (points (1, Np)); else None."""
-    if n != 1 or mesh_points is None:
+def move_step(mesh_points: Any, n: int, center: Any = None,
+              radius: float | None = None) -> float | None:
+    """The step by which a ball may move so that its nodes meet the old ones: 1-D the element length
+    of the uniform interval mesh (points (1, Np)); 2-D the step of a lattice mesh (fem.lattice_disk_mesh,
+    ``center`` and ``radius`` given); None for any other mesh."""
+    if mesh_points is None:
+        return None
+    if n == 2 and center is not None and radius is not None:
+        return lattice_step(mesh_points, center, radius)
+    if n != 1:
         return None
     points = np.sort(np.asarray(mesh_points, dtype=float).ravel())
     if len(points) < 2:
         return None
     steps = np.diff(points)
     return float(steps.mean()) if np.allclose(steps, steps.mean(), rtol=1e-9) else None
+
+
+def lattice_step(mesh_points: Any, center: Any, radius: float) -> float | None:
+    """The step s of a lattice mesh: every vertex within R/2 of the centre is c + s·(integers), s
+    fitted by least squares; None when the vertices are not such a lattice (the 2-D rings)."""
+    points = np.asarray(mesh_points, dtype=float).T - np.asarray(center, dtype=float)
+    near = points[np.linalg.norm(points, axis=1) < 0.5 * radius].ravel()
+    steps = np.diff(np.unique(np.round(near, 9)))
+    steps = steps[steps > 1e-9 * radius]
+    if len(near) < 6 or not len(steps):
+        return None
+    k = np.round(near / steps.min())
+    step = float(near @ k / (k @ k))
+    return step if np.allclose(near, k * step, rtol=0, atol=1e-9 * radius) else None
 
 
 class Atlas:
@@ -194,7 +215,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], wo
     from .offline import _Job, check_stable, propagate_jobs
     from .semigroup import galerkin_generator
 
-    grid = lattice(model, element_length(disc.arrays.get("mesh_points"), model.n))
+    grid = lattice(model, _step(model, disc.arrays.get("mesh_points")))
     centers = grid.centers()
     home = np.asarray(model.center, dtype=float)
     jobs, discs = [], []
@@ -223,7 +244,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], wo
 
 def attach_solved(offline: Any, solved: AtlasArrays) -> None:
     """``offline.atlas`` from a just-solved atlas (every centre in memory)."""
-    grid = lattice(offline.model, element_length(offline.mesh_points, offline.model.n))
+    grid = lattice(offline.model, _step(offline.model, offline.mesh_points))
     offline.atlas = Atlas(offline, grid, solved.load)
     offline.atlas.solved = solved
 
@@ -233,7 +254,7 @@ def attach_stored(offline: Any, centers: Any, lazy: Any) -> None:
     (K, ...) array; the stored centres must be the spec's lattice."""
     from .errors import InputError
 
-    grid = lattice(offline.model, element_length(offline.mesh_points, offline.model.n))
+    grid = lattice(offline.model, _step(offline.model, offline.mesh_points))
     if centers is None or lazy is None:
         raise InputError("arrays.atlas_centers", "is missing: this file was saved without its atlas; run "
                                                  "yauyau precompute again")
@@ -249,6 +270,10 @@ def attach_stored(offline: Any, centers: Any, lazy: Any) -> None:
                 "generator": lazy.read("atlas_generator", k)}
 
     offline.atlas = Atlas(offline, grid, load)
+
+
+def _step(model: Any, mesh_points: Any) -> float | None:
+    return move_step(mesh_points, model.n, model.center, model.radius)
 
 
 def _point(center: np.ndarray) -> str:

@@ -12,7 +12,8 @@ gives positive quadrature weights, so pointwise products at the nodes are exact 
 discrete L² inner product.
 
 Meshes: n = 1 a uniform interval mesh; n = 2 concentric rings of 6i points triangulated by
-Delaunay (near-equilateral triangles, boundary vertices on the circle); n = 3 the
+Delaunay (near-equilateral triangles, boundary vertices on the circle), or with ``[domain] follow`` a
+square lattice of about as many points (moves by whole steps meet the old vertices); n = 3 the
 scikit-fem ball (refined, vertices pushed to the sphere).
 """
 
@@ -100,6 +101,30 @@ def disk_mesh(center: np.ndarray, radius: float, rings: int) -> MeshTri:
     return MeshTri(np.ascontiguousarray((radius * unit + center).T), np.ascontiguousarray(tri.T))
 
 
+def lattice_disk_points(rings: int) -> tuple[np.ndarray, float]:
+    """Unit-disk points of a square lattice of step h (about as many as the ring mesh's: h = √(π/3)/rings)
+    inside |p| < 1 − h/2, and ~2π/h points on the circle; (points, h)."""
+    h = float(np.sqrt(np.pi / 3.0) / rings)
+    k = int(np.floor(1.0 / h))
+    i, j = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    grid = h * np.column_stack([i.ravel(), j.ravel()])
+    grid = grid[np.linalg.norm(grid, axis=1) < 1.0 - 0.5 * h]
+    count = max(12, int(np.ceil(2 * np.pi / h)))
+    angle = 2 * np.pi * np.arange(count) / count
+    return np.vstack([grid, np.column_stack([np.cos(angle), np.sin(angle)])]), h
+
+
+def lattice_disk_mesh(center: np.ndarray, radius: float, rings: int) -> MeshTri:
+    """The disk triangulated on a square lattice (interior vertices c + R·h·(i, j)), so that a ball moved
+    by whole lattice steps has the same interior vertices where the two overlap ([domain] follow:
+    the carry reads them off instead of interpolating).  Delaunay on slightly sheared points gives
+    every lattice square the same diagonal."""
+    unit, h = lattice_disk_points(rings)
+    sheared = unit + np.column_stack([1e-6 * h * unit[:, 1], np.zeros(len(unit))])
+    tri = Delaunay(sheared).simplices
+    return MeshTri(np.ascontiguousarray((radius * unit + center).T), np.ascontiguousarray(tri.T))
+
+
 def ball_mesh(center: np.ndarray, radius: float, refinements: int) -> MeshTet:
     """scikit-fem's ball, refined with boundary vertices projected onto the sphere."""
     mesh = MeshTet.init_ball(0)
@@ -143,13 +168,15 @@ def planned_nodes(spec) -> int:
     return interior_count(n, order, resolution)
 
 
-def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int) -> FESpace:
-    """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements)."""
+def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int,
+          lattice: bool = False) -> FESpace:
+    """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements); ``lattice``: the
+    2-D disk on a square lattice (a ball that follows the state)."""
     order = effective_order(n, order)
     if n == 1:
         mesh = interval_mesh(center, radius, resolution)
     elif n == 2:
-        mesh = disk_mesh(center, radius, resolution)
+        mesh = (lattice_disk_mesh if lattice else disk_mesh)(center, radius, resolution)
     elif n == 3:
         mesh = ball_mesh(center, radius, resolution)
     else:
@@ -173,7 +200,8 @@ def discretise(model, size: int | None = None) -> FESpace:
         field = "discretization.mesh" if spec.mesh else "discretization.basis"
         raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} the dense "
                                "eigensolver allows; use a smaller basis or mesh")
-    disc = build(model.n, model.center, model.radius, resolution, spec.order)
+    disc = build(model.n, model.center, model.radius, resolution, spec.order,
+                 lattice=bool(model.spec.domain.follow))
     if len(disc.interior) < size:
         raise SpecError("discretization.basis",
                         f"{size} basis functions need at least as many interior mesh nodes; "

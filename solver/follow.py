@@ -19,8 +19,9 @@ Online, a chunk runs in blocks (:class:`FollowingFilter`).  After a block the ba
 * the mean is more than ``follow_distance``·R from c along a shift direction, or
 * more than ``follow_mass`` of ∫σ lies in the ball's outer tenth (|x − c| > 0.9 R),
 
-onto c' = c with the shift coordinates replaced by the mean's (in 1-D rounded to whole elements,
-so the new nodes are old nodes and the carry is exact where the balls overlap).  The carry is the
+onto c' = c with the shift coordinates replaced by the mean's (rounded to whole elements in 1-D, to
+whole steps of the 2-D lattice mesh, so the new nodes are old nodes and the carry is exact where the
+balls overlap).  The carry is the
 issue's: evaluate the old expansion at the new nodes, zero outside the old ball, project onto the
 basis.  ∫σ of the carried density becomes the state's mass, so the next step renormalises by it;
 the log-likelihood is not touched by a move (it is the sum of the steps' log ∫σ_k/∫σ_(k−1), none of
@@ -37,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .atlas import element_length
+from .atlas import move_step
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, concat_results
 from .measurement import check_rows
@@ -113,7 +114,8 @@ class FollowingFilter(ChunkedFilter):
         self.stray = (float(domain.follow_distance) + STRAY) * self.radius
         self.mass_limit = float(domain.follow_mass)
         self.home_center = np.asarray(engine.model.center, dtype=float)
-        self._lattice = element_length(getattr(engine.offline, "mesh_points", None), engine.model.n)
+        self._lattice = move_step(getattr(engine.offline, "mesh_points", None), engine.model.n,
+                                  engine.model.center, engine.model.radius)
         self._engines: OrderedDict[tuple, Any] = OrderedDict()
         self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
         self.atlas = getattr(engine.offline, "atlas", None)  # solver/atlas.py: a propagator per centre
@@ -164,7 +166,7 @@ class FollowingFilter(ChunkedFilter):
         return np.asarray(state.center, dtype=float)
 
     def snapped(self, center: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """``center`` with the shift coordinates moved to ``target``'s (1-D: on the element lattice)."""
+        """``center`` with the shift coordinates moved to ``target``'s, on the mesh's step (move_step)."""
         new = np.array(center, dtype=float)
         axes = () if self.atlas is None else self.atlas.lattice.axes
         for i in self.directions:
@@ -324,8 +326,8 @@ class FollowingFilter(ChunkedFilter):
             far = total > 0 and float(sigma[self._shell].sum()) > self.mass_limit * total
         if not far:
             return state
-        ahead = np.array(mean, dtype=float)
-        ahead[along] += 0.5 * travel
+        ahead = np.array(mean, dtype=float)  # led by half the travel, at most half the trigger distance
+        ahead[along] += np.clip(0.5 * travel, -0.5 * self.distance, 0.5 * self.distance)
         target = self.snapped(center, ahead)
         if np.array_equal(target, center):
             return state
@@ -360,22 +362,20 @@ class FollowingFilter(ChunkedFilter):
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball.  Where
-    every point is an old node or outside the old ball (a 1-D move by whole elements) the values are
-    read off, otherwise interpolated in the old mesh."""
-    if points.shape[1] == 1:
-        x, target = old.nodes[:, 0], points[:, 0]
-        order = np.argsort(x)
-        right = np.clip(np.searchsorted(x[order], target), 0, len(x) - 1)
-        left = np.clip(right - 1, 0, len(x) - 1)
-        pick = np.where(np.abs(x[order[left]] - target) < np.abs(x[order[right]] - target), left, right)
-        nearest = order[pick]
-        gap = np.abs(x[nearest] - target)
-        tol = 1e-9 * max(1.0, float(np.abs(x).max()))
-        inside = np.abs(target - old.model.center[0]) < old.model.radius * (1 - 1e-12)
-        if np.all((gap <= tol) | ~inside):
-            return np.where(inside & (gap <= tol), nodal[nearest], 0.0)
-    return old.offline.interpolate(nodal, points)
+    """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball: read off
+    where a point is an old node (a move by whole steps: 1-D elements, the 2-D lattice), interpolated
+    in the old mesh elsewhere (the nodes near the boundary, or a mesh without a lattice)."""
+    from scipy.spatial import cKDTree
+
+    scale = max(1.0, float(np.abs(old.nodes).max()))
+    gap, nearest = cKDTree(old.nodes).query(points)
+    matched = gap <= 1e-9 * scale
+    inside = np.linalg.norm(points - old.model.center, axis=1) < old.model.radius * (1 - 1e-12)
+    out = np.where(matched & inside, nodal[nearest], 0.0)
+    rest = inside & ~matched
+    if rest.any():
+        out[rest] = old.offline.interpolate(nodal, points[rest])
+    return out
 
 
 def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | None = None) -> ChunkResult:

@@ -382,9 +382,10 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
              and len(model.shift_directions) < model.n)
     home_progress = atlas_progress = progress
     if atlas:  # the lattice first (a region too large is refused before any solve)
-        from .atlas import element_length, lattice
+        from .atlas import lattice, move_step
 
-        K = lattice(model, element_length(disc.arrays.get("mesh_points"), model.n)).size
+        step = move_step(disc.arrays.get("mesh_points"), model.n, model.center, model.radius)
+        K = lattice(model, step).size
     if atlas and progress is not None:  # one count over the home ball's columns and every centre's
         total = spec.basis * (1 + K)
 

@@ -20,7 +20,7 @@ import scipy.linalg as sla
 from irregular_refs import GridReference
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.atlas import MAX_CENTERS, lattice
+from yauyau.solver.atlas import MAX_CENTERS, lattice, lattice_step
 from yauyau.solver.engine import build
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.follow import FollowingFilter
@@ -207,11 +207,13 @@ def test_in_2d_the_lattice_runs_along_the_coordinates_the_drift_depends_on_only(
     doc = {**SIN, "state": ["x", "y"], "drift": ["0.8 + 0.3*sin(x)", "0.5"], "observation": ["x", "y"],
            "initial": {"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]},
            "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 20.0], [-5.0, 20.0]]},
-           "discretization": {"dt": 0.02, "basis": 60}}
+           "discretization": {"dt": 0.02, "basis": 150}}
     model = compile_model(spec_from_dict(doc))
     offline = precompute(model)
     grid = offline.atlas.lattice
-    assert model.shift_directions == (1,) and grid.axes == (0,) and offline.atlas.size == 29
+    step = lattice_step(offline.mesh_points, model.center, model.radius)  # the lattice mesh of a follow ball
+    assert model.shift_directions == (1,) and grid.axes == (0,) and step is not None
+    assert abs(grid.spacing / step - round(grid.spacing / step)) < 1e-9 and offline.atlas.size == 23
     flt = build(model, offline)
     sim = simulate(model, 1000, np.random.default_rng(1))  # x travels ~14, y ~5
     _, result = flt.run_arrays(flt.initial_state(), sim.increments)

@@ -196,3 +196,40 @@ def test_the_cli_writes_the_centre_and_the_moves(tmp_path):
     assert moves and float(rows[-1]["center_x"]) > 1.0
     assert main(["filter", model_id, "--store", str(store), "--increments", str(inc), "--out",
                  str(tmp_path / "o2.csv"), "--density", str(tmp_path / "d.h5")]) == 2
+
+
+def _moments(flt, state):
+    """Mean and covariance of the state's nodal density on its ball (lumped quadrature)."""
+    engine = flt.engine(state.center)
+    w = engine.weights * engine.nodal_density(state)
+    mean = w @ engine.nodes / w.sum()
+    d = engine.nodes - mean
+    return mean, (w[:, None] * d).T @ d / w.sum()
+
+
+def test_in_2d_a_following_ball_has_a_lattice_mesh_and_its_moves_do_not_blur():
+    """Truth: the prior N(0, I).  Moves by whole lattice steps read the density off (6 moves: the
+    moments stay to 1e-5); a move off the lattice interpolates and projects, and the variance grows
+    (why follow snaps to the lattice)."""
+    from yauyau.solver.atlas import lattice_step
+
+    doc = json.loads(json.dumps(TREND))
+    doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
+               initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
+    doc["discretization"]["basis"] = 300
+    model = compile_model(spec_from_dict(doc))
+    offline = precompute(model)
+    flt = build(model, offline)
+    step = lattice_step(offline.mesh_points, model.center, model.radius)
+    assert step is not None and flt._lattice == step  # the interior vertices are c + step·(i, j)
+    start = flt.initial_state()
+    state, move = start, np.array([2 * step, step])
+    for _ in range(3):
+        state = flt.recentre(flt.recentre(state, state.center + move), state.center)
+    mean, cov = _moments(flt, state)
+    assert np.abs(mean).max() < 1e-5 and np.abs(cov - np.eye(2)).max() < 1e-5
+    off = start
+    for _ in range(3):
+        off = flt.recentre(flt.recentre(off, off.center + [0.3, 0.2]), off.center)
+    assert _moments(flt, off)[1][0, 0] > 1.05  # interpolated: blurred
+    assert np.allclose(flt.snapped(start.center, [0.3, 0.2]), [step, 0.0])  # follow snaps to the lattice
