@@ -368,7 +368,10 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     scale = max(1.0, float(np.abs(old.nodes).max()))
-    gap, nearest = cKDTree(old.nodes).query(points)
+    tree = old.__dict__.get("_node_tree")
+    if tree is None:  # kept on the (cached) centred engine: its nodes never change
+        tree = old.__dict__["_node_tree"] = cKDTree(old.nodes)
+    gap, nearest = tree.query(points)
     matched = gap <= 1e-9 * scale
     inside = np.linalg.norm(points - old.model.center, axis=1) < old.model.radius * (1 - 1e-12)
     out = np.where(matched & inside, nodal[nearest], 0.0)
