@@ -4,7 +4,8 @@
 
 * Cost per observation with ``[domain] follow`` (a random walk with trend f = 1, which travels far
   beyond the ball) against the fixed ball of the same Q and N (an OU drift −x/2 that stays in it),
-  chunks of 1000 rows, one BLAS thread, medians; 1-D (N = 48) and 2-D (f = (1, 0.5), N = 300).
+  chunks of 1000 rows, one BLAS thread, medians; 1-D (N = 48) and 2-D (f = (1, 0.5), P1 at N = 300,
+  P2 + bubble at N = 300 and 600).
 * A re-centre's cost (``FollowingFilter.recentre``) in steps of the fixed ball.
 * Accuracy of the following ball against the exact Kalman filter of the sampled model.
 * The offline solves on Dask: one process, a local cluster of 1 and of 2 workers (2-D, N = 600).
@@ -36,14 +37,18 @@ FRAGMENT = ROOT / "docs" / "bench-follow.md"
 CHUNK = 1000
 
 
-def _doc(n: int, drift: list[str], follow: bool, basis: int) -> dict:
+def _doc(n: int, drift: list[str], follow: bool, basis: int, element: str = "lagrange") -> dict:
     names = ["x", "y"][:n]
     return {"name": "follow-bench", "state": names, "drift": drift, "observation": names, "method": "yau-yau",
             "initial": {"kind": "gaussian", "mean": [0.0] * n, "cov": np.eye(n).tolist()},
-            "domain": {"radius": 6.0, "follow": follow}, "discretization": {"dt": 0.01, "basis": basis}}
+            "domain": {"radius": 6.0, "follow": follow},
+            "discretization": {"dt": 0.01, "basis": basis, "element": element}}
 
 
-CASES = [("1-D", 1, ["1.0"], ["-0.5*x"], 48), ("2-D", 2, ["1.0", "0.5"], ["-0.5*x", "-0.5*y"], 300)]
+CASES = [("1-D", 1, ["1.0"], ["-0.5*x"], 48, "lagrange"),
+         ("2-D P1", 2, ["1.0", "0.5"], ["-0.5*x", "-0.5*y"], 300, "lagrange"),
+         ("2-D bubble", 2, ["1.0", "0.5"], ["-0.5*x", "-0.5*y"], 300, "bubble"),
+         ("2-D bubble", 2, ["1.0", "0.5"], ["-0.5*x", "-0.5*y"], 600, "bubble")]
 
 
 def _time_run(flt, rows, repeats: int) -> float:
@@ -65,9 +70,9 @@ def _engine(doc: dict):
 
 def follow_rows(steps: int, repeats: int) -> list[str]:
     out = []
-    for label, n, trend, ou, basis in CASES:
-        model, follow = _engine(_doc(n, trend, True, basis))
-        fixed_model, fixed = _engine(_doc(n, ou, False, basis))
+    for label, n, trend, ou, basis, element in CASES:
+        model, follow = _engine(_doc(n, trend, True, basis, element))
+        fixed_model, fixed = _engine(_doc(n, ou, False, basis, element))
         moving = simulate(model, steps, np.random.default_rng(3)).increments
         staying = simulate(fixed_model, steps, np.random.default_rng(3)).increments
         with threadpool_limits(1, user_api="blas"):

@@ -7,9 +7,13 @@ Weak forms (u = v = 0 on ∂B_R, seed 002 (5.31), seed 001 §3), with a = GQGᵀ
 
 because −f·∇u − (div f) u = −div(f u): the two operators differ only by the potential q.
 Densities live at the interior degrees of freedom ("nodes"); the mass matrix is lumped
-(row sums), which for P1 (any n) and for P2 on intervals (Simpson weights h/6, 4h/6, h/6)
-gives positive quadrature weights, so pointwise products at the nodes are exact in the
-discrete L² inner product.
+(row sums), which for P1 (any n), for P2 on intervals (Simpson weights h/6, 4h/6, h/6) and for
+P2 plus the cubic bubble on triangles (``[discretization] element = "bubble"`` in 2-D, the
+mass-lumped element of Cohen, Joly and Tordjman: nodes at the vertices, edge midpoints and
+centroid, weights |T|/20, 2|T|/15, 9|T|/20) gives positive quadrature weights, so pointwise
+products at the nodes are exact in the discrete L² inner product.  scikit-fem's P2+bubble
+basis is hierarchical (the bubble is added to the P2 functions), so every matrix is taken to the
+nodal (Lagrange) basis ψ = φ P⁻¹, P_ij = φ_j(x_i): A ↦ P⁻ᵀ A P⁻¹.
 
 Meshes: n = 1 a uniform interval mesh; n = 2 concentric rings of 6i points triangulated by
 Delaunay (near-equilateral triangles, boundary vertices on the circle), or with ``[domain] follow`` a
@@ -30,6 +34,7 @@ from skfem import (
     ElementLineP1,
     ElementLineP2,
     ElementTetP1,
+    ElementTriCCR,
     ElementTriP1,
     Mesh,
     MeshLine,
@@ -61,22 +66,65 @@ class FESpace:
     basis: Basis
     interior: np.ndarray  # (Q,) indices of interior DOFs
     order: int
+    to_nodal: sps.csr_matrix | None = None  # P⁻¹ (2-D P2+bubble): nodal values -> element coefficients
 
     @property
     def nodes(self) -> np.ndarray:
         """Coordinates of the interior DOFs, shape (Q, n)."""
         return self.basis.doflocs[:, self.interior].T
 
+    def nodal(self, matrix: sps.spmatrix) -> sps.csr_matrix:
+        """A form's matrix in the nodal basis (P⁻ᵀ A P⁻¹; A itself for a Lagrange element)."""
+        if self.to_nodal is None:
+            return sps.csr_matrix(matrix)
+        return (self.to_nodal.T @ matrix @ self.to_nodal).tocsr()
+
 
 def element_for(n: int, order: int):
-    """P2 only on intervals (its lumped mass is Simpson's rule, positive); P1 otherwise."""
+    """Effective order 2: P2 on intervals (its lumped mass is Simpson's rule), P2 plus the cubic bubble
+    on triangles (positive lumped weights, module docstring); P1 otherwise (and on tetrahedra)."""
     if n == 1:
         return ElementLineP2() if order == 2 else ElementLineP1()
-    return ElementTriP1() if n == 2 else ElementTetP1()
+    if n == 2:
+        return ElementTriCCR() if order == 2 else ElementTriP1()
+    return ElementTetP1()
 
 
-def effective_order(n: int, order: int) -> int:
-    return order if n == 1 else 1
+def effective_order(n: int, order: int, element: str = "lagrange") -> int:
+    """The degree the element family gives ``order`` (``[discretization] element``): 1-D Lagrange P1
+    or P2; 2-D P1, or P2 + bubble with element = "bubble"; 3-D P1."""
+    if n == 1:
+        return order
+    return 2 if n == 2 and order == 2 and element == "bubble" else 1
+
+
+def _space(mesh: Mesh, n: int, order: int) -> FESpace:
+    """The basis on ``mesh``, its interior DOFs and (2-D order 2) the map to the nodal basis; the
+    bubbles' DOF locations are their triangles' centroids."""
+    basis = Basis(mesh, element_for(n, order))
+    interior = np.asarray(basis.complement_dofs(basis.get_dofs()))
+    to_nodal = None
+    if n == 2 and order == 2:
+        bubbles = basis.element_dofs[-1]  # the last local DOF of each triangle
+        centroids = mesh.p[:, mesh.t].mean(axis=1)
+        basis.doflocs[:, bubbles] = centroids
+        # P = I but for the bubble rows: every function at its triangle's centroid (the P2 functions
+        # are nodal at the vertices and midpoints, where the bubble vanishes)
+        at = basis.probes(centroids).tocsr()  # (triangles, DOFs)
+        at.data[np.abs(at.data) < 1e-14] = 0.0
+        at.eliminate_zeros()
+        rows, cols = at.nonzero()
+        values = np.asarray(at[rows, cols]).ravel()
+        diag = np.asarray(at[np.arange(len(bubbles)), bubbles]).ravel()
+        off = cols != bubbles[rows]
+        # P⁻¹: identity rows, and for a bubble row b: e_b/P_bb − Σ_j P_bj e_j/P_bb (j not a bubble)
+        plain = np.setdiff1d(np.arange(basis.N), bubbles)
+        inv_rows = np.concatenate([plain, bubbles, bubbles[rows[off]]])
+        inv_cols = np.concatenate([plain, bubbles, cols[off]])
+        inv_vals = np.concatenate([np.ones(basis.N - len(bubbles)), 1.0 / diag,
+                                   -values[off] / diag[rows[off]]])
+        to_nodal = sps.csr_matrix((inv_vals, (inv_rows, inv_cols)), shape=(basis.N, basis.N))
+    return FESpace(mesh=mesh, basis=basis, interior=interior, order=order, to_nodal=to_nodal)
 
 
 # -- meshes of the ball ------------------------------------------------------------------------
@@ -141,8 +189,10 @@ def interior_count(n: int, order: int, resolution: int) -> int:
     """Number of interior DOFs of the mesh of the given resolution (no mesh is built for n < 3)."""
     if n == 1:
         return (2 * resolution) * order - 1
-    if n == 2:
-        return 3 * resolution * (resolution - 1) + 1
+    if n == 2:  # rings: V = 3r(r+1)+1 vertices, 6r² triangles, 9r²+3r edges (6r of them on the circle)
+        vertices = 3 * resolution * (resolution - 1) + 1
+        edges, triangles = 9 * resolution ** 2 - 3 * resolution, 6 * resolution ** 2
+        return vertices if order == 1 else vertices + edges + triangles
     return BALL_INTERIOR.get(resolution, MAX_NODES + 1)
 
 
@@ -163,16 +213,16 @@ def planned_nodes(spec) -> int:
     """How many interior nodes the spec's discretisation will have (no mesh is built): what a service
     checks against its limit before it accepts a precompute."""
     n = len(spec.state)
-    order = effective_order(n, spec.discretization.order)
+    order = effective_order(n, spec.discretization.order, spec.discretization.element)
     resolution = spec.discretization.mesh or default_resolution(n, order, spec.discretization.basis)
     return interior_count(n, order, resolution)
 
 
 def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int,
           lattice: bool = False) -> FESpace:
-    """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements); ``lattice``: the
-    2-D disk on a square lattice (a ball that follows the state)."""
-    order = effective_order(n, order)
+    """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements) for elements of
+    ``order`` (the effective one, :func:`effective_order`); ``lattice``: the 2-D disk on a square
+    lattice (a ball that follows the state)."""
     if n == 1:
         mesh = interval_mesh(center, radius, resolution)
     elif n == 2:
@@ -181,16 +231,14 @@ def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int
         mesh = ball_mesh(center, radius, resolution)
     else:
         raise SpecError("state", f"dimension {n} is not supported (1, 2 or 3)")
-    basis = Basis(mesh, element_for(n, order))
-    interior = basis.complement_dofs(basis.get_dofs())
-    return FESpace(mesh=mesh, basis=basis, interior=np.asarray(interior), order=order)
+    return _space(mesh, n, order)
 
 
 def discretise(model, size: int | None = None) -> FESpace:
     """The discretisation of ``model``'s ball; checks there are at least N interior DOFs."""
     spec = model.spec.discretization
     size = spec.basis if size is None else size
-    order = effective_order(model.n, spec.order)
+    order = effective_order(model.n, spec.order, spec.element)
     if model.n == 3 and spec.mesh is not None and spec.mesh > max(BALL_INTERIOR):
         raise SpecError("discretization.mesh",
                         f"in 3-D mesh counts refinements of the ball, at most {max(BALL_INTERIOR)}")
@@ -200,7 +248,7 @@ def discretise(model, size: int | None = None) -> FESpace:
         field = "discretization.mesh" if spec.mesh else "discretization.basis"
         raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} the dense "
                                "eigensolver allows; use a smaller basis or mesh")
-    disc = build(model.n, model.center, model.radius, resolution, spec.order,
+    disc = build(model.n, model.center, model.radius, resolution, order,
                  lattice=bool(model.spec.domain.follow))
     if len(disc.interior) < size:
         raise SpecError("discretization.basis",
@@ -246,13 +294,14 @@ def reaction(basis: Basis, q) -> sps.csr_matrix:
     return asm(form, basis).tocsr()
 
 
-def lumped_mass(basis: Basis) -> np.ndarray:
-    """Row sums of the mass matrix: ∫φ_i (positive for P1 and interval P2)."""
+def lumped_mass(basis: Basis, disc: FESpace | None = None) -> np.ndarray:
+    """Row sums of the (nodal) mass matrix: ∫ψ_i (positive for P1, interval P2, triangle P2+bubble)."""
     @BilinearForm
     def form(u, v, w):
         return u * v
 
-    weights = np.asarray(asm(form, basis).sum(axis=1)).ravel()
+    mass = asm(form, basis)
+    weights = np.asarray((mass if disc is None else disc.nodal(mass)).sum(axis=1)).ravel()
     if np.any(weights <= 0):
         raise SpecError("discretization.order", "the lumped mass of this element is not positive")
     return weights
@@ -272,11 +321,11 @@ class Operators:
 def assemble(model, disc: FESpace) -> Operators:
     idx = disc.interior
     basis = disc.basis
-    half_k = 0.5 * stiffness(basis, model.a)
-    fp = -half_k + advection(basis, model.f)
-    kol = fp - reaction(basis, model.half_hRh)
+    half_k = disc.nodal(0.5 * stiffness(basis, model.a))
+    fp = -half_k + disc.nodal(advection(basis, model.f))
+    kol = fp - disc.nodal(reaction(basis, model.half_hRh))
     sub = lambda mat: mat[idx][:, idx].tocsr()  # noqa: E731 - Dirichlet: keep interior rows/cols
-    return Operators(weights=lumped_mass(basis)[idx], half_stiffness=sub(half_k),
+    return Operators(weights=lumped_mass(basis, disc)[idx], half_stiffness=sub(half_k),
                      fokker_planck=sub(fp), kolmogorov=sub(kol))
 
 
@@ -285,9 +334,42 @@ def space_from_arrays(n: int, points: np.ndarray, cells: np.ndarray, order: int)
     """The FESpace of stored mesh arrays (the interior DOFs are recomputed the same way)."""
     mesh_type = {1: MeshLine, 2: MeshTri, 3: MeshTet}[n]
     mesh = mesh_type(np.asarray(points, float), np.asarray(cells, dtype=np.int64))
-    basis = Basis(mesh, element_for(n, order))
-    interior = basis.complement_dofs(basis.get_dofs())
-    return FESpace(mesh=mesh, basis=basis, interior=np.asarray(interior), order=order)
+    return _space(mesh, n, order)
+
+
+def bubble_values(space: FESpace, elem: np.ndarray, lam: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """The 2-D P2+bubble function with nodal values ``full`` (all DOFs, (D,) or (D, k)) at points in
+    triangles ``elem`` with barycentrics ``lam`` (P, 3): the nodal basis in barycentric coordinates,
+    B = 27λ₀λ₁λ₂,  ψ_i = λ_i(2λ_i − 1) + B/9,  ψ_ij = 4λ_iλ_j − 4B/9,  ψ_c = B."""
+    dofs = space.basis.element_dofs[:, elem]  # (7, P): 3 vertices, 3 edges, the bubble
+    pairs = _edge_pairs(space)[:, :, elem]  # (3, 2, P): the vertices of each local edge
+    B = 27.0 * lam[:, 0] * lam[:, 1] * lam[:, 2]
+    rows = np.arange(len(elem))
+    weights = [lam[:, i] * (2.0 * lam[:, i] - 1.0) + B / 9.0 for i in range(3)]
+    weights += [4.0 * lam[rows, pairs[k, 0]] * lam[rows, pairs[k, 1]] - 4.0 * B / 9.0 for k in range(3)]
+    weights.append(B)
+    out = 0.0
+    for j, w in enumerate(weights):
+        out = out + (w if full.ndim == 1 else w[:, None]) * full[dofs[j]]
+    return out
+
+
+def _edge_pairs(space: FESpace) -> np.ndarray:
+    """(3, 2, T): for each edge DOF of each triangle, the two local vertices whose midpoint it is."""
+    cached = space.basis.__dict__.get("_yauyau_edge_pairs")
+    if cached is not None:
+        return cached
+    mesh, dofs = space.mesh, space.basis.element_dofs
+    corners = mesh.p[:, mesh.t]  # (2, 3, T)
+    candidates = [(0, 1), (1, 2), (0, 2)]
+    mids = np.stack([0.5 * (corners[:, a] + corners[:, b]) for a, b in candidates])  # (3 pairs, 2, T)
+    out = np.empty((3, 2, mesh.t.shape[1]), dtype=int)
+    for k in range(3):
+        loc = space.basis.doflocs[:, dofs[3 + k]]  # (2, T)
+        which = np.argmin(np.linalg.norm(mids - loc[None], axis=1), axis=0)
+        out[k] = np.asarray(candidates).T[:, which]
+    space.basis.__dict__["_yauyau_edge_pairs"] = out
+    return out
 
 
 def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.ndarray) -> np.ndarray:

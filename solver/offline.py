@@ -315,7 +315,8 @@ class OfflineModel:
         return self._space
 
     def _simplex_values(self, X: np.ndarray, full: np.ndarray) -> np.ndarray:
-        """P1 interpolation: barycentric coordinates in the element containing each point."""
+        """The finite-element function at X: barycentric coordinates in the element containing each
+        point (P1: linear in them; 2-D order 2: P2 + bubble)."""
         from scipy.spatial import cKDTree
 
         from . import fem
@@ -326,6 +327,9 @@ class OfflineModel:
         elem, bary = fem.locate(self.mesh_points, cells, self._tree, X)
         found = elem >= 0
         out = np.zeros((X.shape[0],) + full.shape[1:])
+        if self.model.n == 2 and int(self.element_order) == 2:  # P2 + bubble (solver/fem.py)
+            out[found] = fem.bubble_values(self.space, elem[found], bary[found], full)
+            return out
         vertices = cells[:, elem[found]]  # (n+1, P)
         out[found] = np.einsum("pv,vp...->p...", bary[found], full[vertices])
         return out
