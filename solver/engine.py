@@ -148,6 +148,7 @@ class YauYauFilter(ChunkedFilter):
         shift = center - np.asarray(getattr(self.offline, "home_center", self.model.center), dtype=float)
         new = copy.copy(self)
         new.__dict__.pop("_marginal_operators", None)
+        new.__dict__.pop("_node_tree", None)  # solver/follow.py's KD-tree of the old nodes
         new.__dict__.setdefault("_flow_owner", self)
         new.model = self.model.translated(center)
         new.offline = TranslatedOffline(home, shift, center - shift)

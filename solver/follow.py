@@ -181,8 +181,9 @@ class FollowingFilter(ChunkedFilter):
         if self.region is None or not np.any((point < self.region[:, 0]) | (point > self.region[:, 1])):
             return None
         bounds = ", ".join(f"[{lo:g}, {hi:g}]" for lo, hi in self.region)
-        return (f"the posterior mean {_point(point)} left domain.region ({bounds}): no propagator was "
-                "precomputed beyond it; widen the region and precompute again")
+        return (f"the posterior mean {_point(point)} left domain.region ({bounds}), where the state was "
+                "declared to stay (and where an atlas of propagators ends): widen the region and precompute "
+                "again")
 
     # -- states ---------------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> Any:
