@@ -262,7 +262,9 @@ class FollowingFilter(ChunkedFilter):
             state = self._placed(new, center)
             block = self._block_for(velocity, jitter)
             if not state.degenerate:
-                state = self._maybe_recentre(state, velocity * block)
+                # the travel looked ahead to is this chunk's next block only (none after its last row:
+                # the next chunk starts afresh), so a stream of short chunks does not move on noise
+                state = self._maybe_recentre(state, velocity * min(block, K - stop))
                 if state.degenerate:  # the move failed, or the mean left the region: flag its row
                     flags = part.degenerate.copy()
                     flags[-1] = True

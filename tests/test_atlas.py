@@ -23,6 +23,7 @@ from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.atlas import MAX_CENTERS, lattice, lattice_step
 from yauyau.solver.engine import build
 from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.filtering import concat_results
 from yauyau.solver.follow import FollowingFilter
 from yauyau.solver.offline import precompute
 from yauyau.solver.simulate import simulate
@@ -227,3 +228,38 @@ def test_in_2d_the_lattice_runs_along_the_coordinates_the_drift_depends_on_only(
     k = grid.index(center)
     assert engine.offline.home is offline.atlas.offline(k)  # the centre's arrays, translated along y
     assert np.allclose(engine.nodes, offline.atlas.offline(k).nodes + [0.0, center[1]])
+
+
+def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_reason(tmp_path):
+    """The service: rows carry "center" (and "recentred": true where the ball moved), the stored state
+    keeps the centre between chunks (the same means as one run in this process), and a path that
+    leaves the region gives degenerate rows with the reason, not an error."""
+    from fastapi.testclient import TestClient
+    from yauyau.service.app import create_app
+    from yauyau.service.settings import Settings
+
+    spec = _spec(region=[[-5.0, 20.0]])
+    model_id = yauyau.precompute(spec, tmp_path / "store")
+    model = compile_model(spec)
+    increments = simulate(model, STEPS, np.random.default_rng(2)).increments  # x reaches ~54
+    flt = build(model, precompute(model))
+    state, parts = flt.initial_state(), []
+    for start in range(0, STEPS, 500):  # the same chunks (a move happens between blocks of a chunk)
+        state, part = flt.run_arrays(state, increments[start:start + 500])
+        parts.append(part)
+    local = concat_results(parts)
+    settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3")
+    with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+        sid = api.post("/v1/sessions", json={"model": model_id}).json()["id"]
+        rows = []
+        for seq, start in enumerate(range(0, STEPS, 500)):
+            r = api.post(f"/v1/sessions/{sid}/observations",
+                         json={"seq": seq, "increments": increments[start:start + 500].tolist()})
+            assert r.status_code == 200, r.text
+            rows += r.json()["estimates"]
+    means = np.array([row["mean"][0] for row in rows])
+    assert np.abs(means - local.mean[:, 0]).max() < 1e-9  # the state (and its centre) kept between chunks
+    assert all(len(row["center"]) == 1 for row in rows)
+    assert sum(bool(row.get("recentred")) for row in rows) == int(local.recentred.sum()) > 10
+    first = next(i for i, row in enumerate(rows) if row.get("degenerate"))
+    assert first == int(np.argmax(local.degenerate)) and "left domain.region" in rows[first]["reason"]

@@ -255,3 +255,19 @@ def test_in_2d_with_the_bubble_element_the_following_ball_stays_near_kalman():
     print(f"2-D bubble: {int(result.recentred.sum())} moves, gap {gap:.2e}, variance error {var:.2e}")
     assert not result.degenerate.any() and result.recentred.sum() > 50
     assert gap <= 5e-3 and var <= 0.01
+
+
+def test_a_stream_of_single_rows_moves_as_often_as_one_chunk(trend):
+    """Rows posted one at a time (a live stream) must not move the ball on the noise of a one-row
+    velocity: about as many moves as one chunk of the same rows, and the same estimates to within the
+    filter's accuracy (moves happen between blocks, so chunking shifts when they happen)."""
+    model, offline = trend
+    flt = build(model, offline)
+    rows = simulate(model, 3000, np.random.default_rng(5)).increments
+    _, whole = flt.run_arrays(flt.initial_state(), rows)
+    _, single = _run(flt, rows, 1)
+    kalman = KalmanBucyFilter(model, kind="discrete")
+    _, exact = kalman.run_arrays(kalman.initial_state(), rows)
+    print(f"moves: one chunk {int(whole.recentred.sum())}, single rows {int(single.recentred.sum())}")
+    assert single.recentred.sum() <= 1.5 * whole.recentred.sum() + 2
+    assert np.abs(single.mean - exact.mean).max() <= 1e-3 and not single.degenerate.any()
