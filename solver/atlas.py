@@ -143,6 +143,18 @@ def lattice_step(mesh_points: Any, center: Any, radius: float) -> float | None:
     return step if np.allclose(near, k * step, rtol=0, atol=1e-9 * radius) else None
 
 
+def kept(cache: OrderedDict, key: Any, make: Callable[[], Any], limit: int) -> Any:
+    """``cache[key]``, made by ``make()`` when missing; the least recently used beyond ``limit`` go."""
+    found = cache.get(key)
+    if found is None:
+        found = cache[key] = make()
+        if len(cache) > limit:
+            cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
+    return found
+
+
 class Atlas:
     """The per-centre offline arrays of a lattice, loaded on demand (``load(k)`` -> the arrays of
     :data:`LAZY_NAMES` for centre k, without the prefix) and kept ``cache`` at a time."""
@@ -167,23 +179,18 @@ class Atlas:
 
     def offline(self, k: int) -> Any:
         """The offline arrays of the ball around centre k (an OfflineModel: evaluate, interpolate)."""
-        found = self._kept.get(k)
-        if found is not None:
-            self._kept.move_to_end(k)
-            return found
+        return kept(self._kept, k, lambda: self._read(k), self._cache)
+
+    def _read(self, k: int) -> Any:
         arrays = self._load(k)
         self.loads += 1
         center = self.center(k)
         shift = center - np.asarray(self.home.model.center, dtype=float)
         fp = np.asarray(arrays["propagator_fp"], dtype=float)
-        found = dataclasses.replace(
+        return dataclasses.replace(
             self.home, model=self.home.model.translated(center), nodes=self.home.nodes + shift,
             mesh_points=self.home.mesh_points + shift[:, None], propagator_fp=fp, propagator_k=fp,
             generator=np.asarray(arrays["generator"], dtype=float), _space=None, _tree=None, atlas=None)
-        self._kept[k] = found
-        if len(self._kept) > self._cache:
-            self._kept.popitem(last=False)
-        return found
 
     def center(self, k: int) -> np.ndarray:
         """The centre of row k of ``centers()``."""

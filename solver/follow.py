@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .atlas import move_step
+from .atlas import kept, move_step
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, concat_results
 from .measurement import check_rows
@@ -134,33 +134,23 @@ class FollowingFilter(ChunkedFilter):
     # -- the engine at a centre ------------------------------------------------------------------
     def engine(self, center: np.ndarray) -> Any:
         """The centred engine (kept, a few at a time) with this filter's gate."""
-        key = (tuple(float(c) for c in center), self.gate_override)
-        found = self._engines.get(key)
-        if found is None:
+        def make():
             base = self.home if self.atlas is None else self._atlas_engine(self.atlas.lattice.index(center))
             found = base.centred_at(center)
             found.gate_override = self.gate_override
-            self._engines[key] = found
-            if len(self._engines) > CACHE:
-                self._engines.popitem(last=False)
-        else:
-            self._engines.move_to_end(key)
-        return found
+            return found
+
+        return kept(self._engines, (tuple(float(c) for c in center), self.gate_override), make, CACHE)
 
     def _atlas_engine(self, k: int) -> Any:
         """The engine on the ball of atlas centre k (its own propagator; kept a few at a time)."""
-        found = self._bases.get(k)
-        if found is None:
+        def make():
             from .engine import YauYauFilter
 
             offline = self.atlas.offline(k)
-            found = YauYauFilter(offline.model, offline, form=self.home.form, precision=self.home.precision)
-            self._bases[k] = found
-            if len(self._bases) > CACHE:
-                self._bases.popitem(last=False)
-        else:
-            self._bases.move_to_end(k)
-        return found
+            return YauYauFilter(offline.model, offline, form=self.home.form, precision=self.home.precision)
+
+        return kept(self._bases, k, make, CACHE)
 
     def ball_center(self, state: Any) -> np.ndarray:
         return np.asarray(state.center, dtype=float)
