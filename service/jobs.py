@@ -41,11 +41,10 @@ class PrecomputeLimit(Exception):
 def _atlas_centres(model: Any) -> int:
     """About how many balls an atlas ([domain] region) asks for (the lattice before its spacing is
     rounded to whole elements); 0 without one."""
-    domain = model.spec.domain
-    if not (domain.follow and domain.region is not None) or len(model.shift_directions) == model.n:
-        return 0
-    from yauyau.solver.atlas import lattice
+    from yauyau.solver.atlas import lattice, needs_atlas
 
+    if not needs_atlas(model):
+        return 0
     return lattice(model).size
 
 

@@ -91,6 +91,13 @@ class Lattice:
         return bool(np.any(x < self.region[:, 0]) or np.any(x > self.region[:, 1]))
 
 
+def needs_atlas(model: Any) -> bool:
+    """``[domain] follow`` with a region, and a drift that depends on some coordinate the ball moves
+    along: the propagator differs from ball to ball."""
+    domain = model.spec.domain
+    return bool(domain.follow and domain.region is not None and len(model.shift_directions) < model.n)
+
+
 def lattice(model: Any, element: float | None = None) -> Lattice:
     """The atlas lattice of ``model`` (module docstring); ``element``: the 1-D element length."""
     domain = model.spec.domain
@@ -209,12 +216,13 @@ class AtlasArrays:
     centers: np.ndarray
     propagator_fp: np.ndarray
     generator: np.ndarray
+    lattice: Lattice
 
     def load(self, k: int) -> dict[str, np.ndarray]:
         return {"propagator_fp": self.propagator_fp[k], "generator": self.generator[k]}
 
 
-def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], workers: int = 1,
+def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], grid: Lattice, workers: int = 1,
                 progress: Callable[[int, int], None] | None = None,
                 scheduler: str | None = None) -> AtlasArrays:
     """The propagator e^{dt L_c}φ_k and generator of every lattice centre c (module docstring), the
@@ -222,7 +230,6 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], wo
     from .offline import _Job, check_stable, propagate_jobs
     from .semigroup import galerkin_generator
 
-    grid = lattice(model, _step(model, disc.arrays.get("mesh_points")))
     centers = grid.centers()
     home = np.asarray(model.center, dtype=float)
     jobs, discs = [], []
@@ -246,13 +253,12 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], wo
         check_stable(model.translated(center), d.nodes, disc.weights, phi.values, phi.projector, fp)
         fps[k] = fp
         generators[k] = galerkin_generator(phi.values, d.fokker_planck)
-    return AtlasArrays(centers=centers, propagator_fp=fps, generator=generators)
+    return AtlasArrays(centers=centers, propagator_fp=fps, generator=generators, lattice=grid)
 
 
 def attach_solved(offline: Any, solved: AtlasArrays) -> None:
     """``offline.atlas`` from a just-solved atlas (every centre in memory)."""
-    grid = lattice(offline.model, _step(offline.model, offline.mesh_points))
-    offline.atlas = Atlas(offline, grid, solved.load)
+    offline.atlas = Atlas(offline, solved.lattice, solved.load)
     offline.atlas.solved = solved
 
 
@@ -261,7 +267,7 @@ def attach_stored(offline: Any, centers: Any, lazy: Any) -> None:
     (K, ...) array; the stored centres must be the spec's lattice."""
     from .errors import InputError
 
-    grid = lattice(offline.model, _step(offline.model, offline.mesh_points))
+    grid = model_lattice(offline.model, offline.mesh_points)
     if centers is None or lazy is None:
         raise InputError("arrays.atlas_centers", "is missing: this file was saved without its atlas; run "
                                                  "yauyau precompute again")
@@ -277,6 +283,11 @@ def attach_stored(offline: Any, centers: Any, lazy: Any) -> None:
                 "generator": lazy.read("atlas_generator", k)}
 
     offline.atlas = Atlas(offline, grid, load)
+
+
+def model_lattice(model: Any, mesh_points: Any) -> Lattice:
+    """The atlas lattice of ``model`` on a mesh with these points (its move step)."""
+    return lattice(model, _step(model, mesh_points))
 
 
 def _step(model: Any, mesh_points: Any) -> float | None:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .atlas import kept, move_step
+from .atlas import kept, move_step, needs_atlas
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, concat_results
 from .measurement import check_rows
@@ -120,8 +120,7 @@ class FollowingFilter(ChunkedFilter):
         self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
         self.atlas = getattr(engine.offline, "atlas", None)  # solver/atlas.py: a propagator per centre
         self._bases: OrderedDict[int, Any] = OrderedDict()
-        fixed = len(engine.model.shift_directions) < engine.model.n  # the drift depends on some coordinate
-        if self.atlas is None and self.region is not None and fixed:
+        if self.atlas is None and needs_atlas(engine.model):
             raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
                                              "they were solved): precompute the spec again")
         self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius

@@ -264,10 +264,9 @@ class OfflineModel:
             if generator.shape != (size, size) or not np.all(np.isfinite(generator)):
                 raise InputError("arrays.generator", f"must be a finite ({size}, {size}) matrix")
         found = cls(model=model, generator=generator, **values)
-        if model.spec.domain.follow and model.spec.domain.region is not None and \
-                len(model.shift_directions) < model.n:
-            from .atlas import attach_stored
+        from .atlas import attach_stored, needs_atlas
 
+        if needs_atlas(model):
             attach_stored(found, arrays.get("atlas_centers"), lazy)
         return found
 
@@ -381,17 +380,14 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
     disc = space(model)
-    # an atlas where the drift depends on a coordinate the ball must move along (solver/atlas.py)
-    atlas = (model.spec.domain.follow and model.spec.domain.region is not None
-             and len(model.shift_directions) < model.n)
-    home_progress = atlas_progress = progress
-    if atlas:  # the lattice first (a region too large is refused before any solve)
-        from .atlas import lattice, move_step
+    from .atlas import model_lattice, needs_atlas
 
-        step = move_step(disc.arrays.get("mesh_points"), model.n, model.center, model.radius)
-        K = lattice(model, step).size
-    if atlas and progress is not None:  # one count over the home ball's columns and every centre's
-        total = spec.basis * (1 + K)
+    # an atlas where the drift depends on a coordinate the ball must move along (solver/atlas.py);
+    # its lattice first: a region too large is refused before any solve
+    grid = model_lattice(model, disc.arrays.get("mesh_points")) if needs_atlas(model) else None
+    home_progress = atlas_progress = progress
+    if grid is not None and progress is not None:  # one count over the home ball's and every centre's
+        total = spec.basis * (1 + grid.size)
 
         def home_progress(done, _):
             progress(done, total)
@@ -411,10 +407,10 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
         propagator_fp=prop_fp, propagator_k=prop_k, eigenvalues=phi.eigenvalues, **disc.arrays,
         generator=galerkin_generator(phi.values, disc.fokker_planck), _space=disc.space)
-    if atlas:
+    if grid is not None:
         from .atlas import attach_solved, solve_atlas
 
-        attach_solved(found, solve_atlas(model, disc, phi, space, workers, atlas_progress, scheduler))
+        attach_solved(found, solve_atlas(model, disc, phi, space, grid, workers, atlas_progress, scheduler))
     return found
 
 
