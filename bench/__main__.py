@@ -39,6 +39,7 @@ TOPICS = [
     ("load_stores", "bench-load-stores.md"),
     ("load_windows", "bench-load-windows.md"),
     ("follow", "bench-follow.md"),
+    ("psd", "bench-psd.md"),
 ]
 
 HEADER = """# Benchmarks

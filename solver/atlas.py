@@ -242,7 +242,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
             raise SpecError("domain.region", "the translated mesh does not match the home mesh node for node")
         discs.append(d)
         jobs.append(_Job(d.fokker_planck, None, disc.weights, model.dt, model.spec.discretization.substeps,
-                         phi.values, token=uuid.uuid4().hex))
+                         phi.values, token=uuid.uuid4().hex, mass=d.mass))
     solved = propagate_jobs(jobs, workers, progress, scheduler)
     fps = np.empty((len(centers),) + phi.values.shape)
     generators = np.empty((len(centers), phi.values.shape[1], phi.values.shape[1]))
@@ -252,7 +252,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
                                               "finite: refine the mesh or the substeps")
         check_stable(model.translated(center), d.nodes, disc.weights, phi.values, phi.projector, fp)
         fps[k] = fp
-        generators[k] = galerkin_generator(phi.values, d.fokker_planck)
+        generators[k] = galerkin_generator(phi.values, d.fokker_planck, d.mass, disc.weights)
     return AtlasArrays(centers=centers, propagator_fp=fps, generator=generators, lattice=grid)
 
 

@@ -307,26 +307,117 @@ def lumped_mass(basis: Basis, disc: FESpace | None = None) -> np.ndarray:
     return weights
 
 
+def consistent_mass(basis: Basis) -> sps.csr_matrix:
+    """∫ u v."""
+    @BilinearForm
+    def form(u, v, w):
+        return u * v
+
+    return asm(form, basis).tocsr()
+
+
+def streamline_tau(b: np.ndarray, h: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """The SUPG parameter τ = h ξ(Pe) / (2|b|) at points (b: (n, ...) drift, h: element size),
+    ξ(Pe) = coth Pe − 1/Pe, Pe = |b| h / (2ε), ε = ½ bᵀab/|b|² the diffusion along the streamline
+    (Brooks & Hughes 1982; ξ → 1 without diffusion along b, ξ ≈ Pe/3 where diffusion dominates)."""
+    speed = np.sqrt(np.sum(b * b, axis=0))
+    moving = speed > 1e-300
+    along = 0.5 * np.einsum("i...,ij,j...->...", b, a, b) / np.where(moving, speed ** 2, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pe = np.where(along > 0, speed * h / (2.0 * np.where(along > 0, along, 1.0)), np.inf)
+        xi = np.where(pe < 1e-3, pe / 3.0, 1.0 / np.tanh(np.minimum(pe, 50.0)) - 1.0 / pe)
+        return np.where(moving, h * xi / (2.0 * np.where(moving, speed, 1.0)), 0.0)
+
+
+def supg(basis: Basis, model, potential=None) -> tuple[sps.csr_matrix, sps.csr_matrix]:
+    """The streamline-upwind Petrov–Galerkin terms of ∂u/∂t = L u − q u (L u = ½a:∇²u − div(f u))
+    on P1 elements: the test function v + τ f·∇v applied to the strong residual
+
+        r(u) = u_t − ½ a:∇²u + f·∇u + (div f + q) u,
+
+    whose second derivatives a P1 function lacks inside an element; they are those of its recovered
+    gradient g_k = W⁻¹ ∫ ψ ∂_k u (lumped L² projection, so a:∇²u ≈ Σ a_kl ∂_l g_k): without them the
+    scheme is consistent only to O(h) (measured: a mean bias of 2e-2 that halves with h,
+    docs/bench-psd.md).  With τ from :func:`streamline_tau`,
+
+        S_M(u, v) = ∫ τ u f·∇v,   S_A(u, v) = ∫ τ (f·∇u + (div f + q) u − ½ Σ a_kl ∂_l g_k(u)) f·∇v,
+
+    and (M + S_M) du/dt = (A − S_A) u, A the Galerkin matrix.  Returns (S_M, S_A)."""
+    a = np.asarray(model.a, dtype=float)
+    n = a.shape[0]
+
+    def streamline(w):
+        b = _at(model.f, w.x)
+        tau = streamline_tau(b, np.broadcast_to(np.asarray(w.h), b.shape[1:]), a)
+        reaction_ = _at(model.div_f, w.x) + (0.0 if potential is None else _at(potential, w.x))
+        return b, tau, reaction_
+
+    @BilinearForm
+    def mass_form(u, v, w):
+        b, tau, _ = streamline(w)
+        return tau * u * dot(b, grad(v))
+
+    @BilinearForm
+    def stiffness_form(u, v, w):
+        b, tau, reaction_ = streamline(w)
+        return tau * (dot(b, grad(u)) + reaction_ * u) * dot(b, grad(v))
+
+    def derivative(k):  # ∫ ψ_i ∂_k u
+        @BilinearForm
+        def form(u, v, w):
+            return grad(u)[k] * v
+        return asm(form, basis).tocsr()
+
+    def streamline_derivative(l):  # ∫ τ ∂_l u f·∇v
+        @BilinearForm
+        def form(u, v, w):
+            b, tau, _ = streamline(w)
+            return tau * grad(u)[l] * dot(b, grad(v))
+        return asm(form, basis).tocsr()
+
+    recover = sps.diags(1.0 / np.asarray(consistent_mass(basis).sum(axis=1)).ravel())
+    gradients = [recover @ derivative(k) for k in range(n)]
+    along = [streamline_derivative(l) for l in range(n)]
+    second = sum(a[k, l] * (along[l] @ gradients[k]) for k in range(n) for l in range(n) if a[k, l] != 0.0)
+    return asm(mass_form, basis).tocsr(), (asm(stiffness_form, basis) - 0.5 * second).tocsr()
+
+
 @dataclass(frozen=True)
 class Operators:
-    """Interior blocks: lumped mass w, ½ a-stiffness K, Fokker–Planck A_fp and Kolmogorov A_k,
-    so that w ⊙ du/dt = A u is the semi-discrete equation (seed 002 (5.31))."""
+    """Interior blocks: lumped mass w, ½ ā-stiffness K of the basis's operator (ā = a where a is
+    positive definite, Model.basis_diffusion), Fokker–Planck A_fp and Kolmogorov A_k, so that
+    w ⊙ du/dt = A u is the semi-discrete equation (seed 002 (5.31)); with ``scheme = "supg"``,
+    ``mass`` is the stabilised consistent mass M + S_M and M du/dt = A u."""
 
     weights: np.ndarray
     half_stiffness: sps.csr_matrix
     fokker_planck: sps.csr_matrix
     kolmogorov: sps.csr_matrix
+    mass: sps.csr_matrix | None = None
 
 
 def assemble(model, disc: FESpace) -> Operators:
     idx = disc.interior
     basis = disc.basis
     half_k = disc.nodal(0.5 * stiffness(basis, model.a))
+    ab = model.basis_diffusion
+    half_basis = half_k if np.array_equal(ab, model.a) else disc.nodal(0.5 * stiffness(basis, ab))
     fp = -half_k + disc.nodal(advection(basis, model.f))
     kol = fp - disc.nodal(reaction(basis, model.half_hRh))
+    mass, scheme = None, model.spec.scheme()
+    if scheme != "galerkin":
+        if model.n == 1 or disc.order != 1:
+            raise SpecError("discretization.scheme",
+                            f"{scheme} is built for the P1 elements of 2-D and 3-D balls")
+        mass = consistent_mass(basis)
+    if scheme == "supg":
+        s_mass, s_fp = supg(basis, model)
+        _, s_kol = supg(basis, model, model.half_hRh)
+        mass = mass + s_mass
+        fp, kol = fp - s_fp, kol - s_kol
     sub = lambda mat: mat[idx][:, idx].tocsr()  # noqa: E731 - Dirichlet: keep interior rows/cols
-    return Operators(weights=lumped_mass(basis, disc)[idx], half_stiffness=sub(half_k),
-                     fokker_planck=sub(fp), kolmogorov=sub(kol))
+    return Operators(weights=lumped_mass(basis, disc)[idx], half_stiffness=sub(half_basis),
+                     fokker_planck=sub(fp), kolmogorov=sub(kol), mass=None if mass is None else sub(mass))
 
 
 # -- rebuilding and point location ---------------------------------------------------------------

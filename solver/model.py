@@ -72,6 +72,17 @@ class Model:
         return self.spec.diffusion_matrix()
 
     @cached_property
+    def basis_diffusion(self) -> np.ndarray:
+        """The matrix ā of the basis's operator −½div(ā∇) (solver/basis.py): a itself where it is
+        positive definite; where it is only semi-definite, a plus its largest eigenvalue on its null
+        space (diag(0, 1) ↦ I), so the Dirichlet eigenbasis resolves every direction and stays
+        L²(B_R)-orthonormal."""
+        lam, vectors = np.linalg.eigh(self.a)
+        scale = max(1.0, float(np.abs(self.a).max()))
+        null = vectors[:, lam <= 1e-12 * scale]
+        return self.a + float(lam.max()) * null @ null.T
+
+    @cached_property
     def R(self) -> np.ndarray:
         return self.spec.noise_matrix()
 

@@ -67,8 +67,9 @@ class OfflineArrays(Protocol):
 @dataclass(frozen=True)
 class Discretisation:
     """What a space builder returns: the nodes and weights, and the Fokker–Planck and Kolmogorov
-    operators as sparse (Q, Q) matrices acting on nodal values (``mass`` the lumped mass, W = diag
-    of ``weights``); ``half_stiffness`` is ½K of −½div(a∇) (for an eigenbasis); ``space`` whatever
+    operators as sparse (Q, Q) matrices acting on nodal values (W = diag of ``weights`` the lumped
+    mass, or ``mass`` where the scheme has its own: W du/dt = A u or M du/dt = A u);
+    ``half_stiffness`` is ½K of −½div(ā∇) (for an eigenbasis, Model.basis_diffusion); ``space`` whatever
     the builder needs to evaluate functions at points later, and ``arrays`` what it must store for
     that (e.g. the mesh)."""
 
@@ -79,6 +80,7 @@ class Discretisation:
     half_stiffness: Any
     space: Any
     arrays: dict[str, np.ndarray]
+    mass: Any = None  # a sparse mass matrix M (M du/dt = A u, scheme = "supg"); None: W = diag(weights)
 
 
 def finite_element_space(model: Model) -> Discretisation:
@@ -91,7 +93,7 @@ def finite_element_space(model: Model) -> Discretisation:
               "element_order": np.array(space.order)}
     return Discretisation(nodes=space.nodes, weights=ops.weights, fokker_planck=ops.fokker_planck,
                           kolmogorov=ops.kolmogorov, half_stiffness=ops.half_stiffness, space=space,
-                          arrays=arrays)
+                          arrays=arrays, mass=ops.mass)
 
 
 def dirichlet_eigenbasis(disc: Discretisation, size: int):
@@ -108,7 +110,7 @@ def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int
     column blocks as Dask tasks (``scheduler``: a running cluster's address; else ``workers``
     local processes)."""
     job = _Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values,
-               token=uuid.uuid4().hex)
+               token=uuid.uuid4().hex, mass=disc.mass)
     return propagate_all(job, workers, progress, scheduler)
 
 
@@ -122,6 +124,7 @@ class _Job:
     substeps: int
     initial: np.ndarray  # (Q, N) basis values
     token: str = ""  # names the job on Dask workers (their factorisations are kept per token)
+    mass: object | None = None  # sparse M of M du/dt = A u (scheme = "supg"); None: diag(weights)
 
 
 _WORKER: dict = {}
@@ -132,9 +135,9 @@ def _setup(job: _Job) -> None:
     from .propagator import SdirkPropagator
 
     _WORKER["initial"] = job.initial
-    _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps)
+    _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps, job.mass)
     _WORKER["k"] = (None if job.kolmogorov is None else
-                    SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps))
+                    SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps, job.mass))
 
 
 def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
@@ -278,7 +281,8 @@ class OfflineModel:
             from .semigroup import galerkin_generator
 
             operators = fem.assemble(self.model, self.space)
-            self.generator = galerkin_generator(self.basis, operators.fokker_planck)
+            self.generator = galerkin_generator(self.basis, operators.fokker_planck, operators.mass,
+                                                operators.weights)
         return self.generator
 
     # -- evaluation at arbitrary points ----------------------------------------------------
@@ -406,7 +410,8 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
     found = OfflineModel(
         model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
         propagator_fp=prop_fp, propagator_k=prop_k, eigenvalues=phi.eigenvalues, **disc.arrays,
-        generator=galerkin_generator(phi.values, disc.fokker_planck), _space=disc.space)
+        generator=galerkin_generator(phi.values, disc.fokker_planck, disc.mass, disc.weights),
+        _space=disc.space)
     if grid is not None:
         from .atlas import attach_solved, solve_atlas
 

@@ -1,7 +1,8 @@
 """Propagators over one observation interval: nodal values of e^{dt L} φ_k and e^{dt L_K} φ_k.
 
-Solves the semi-discrete equation  W du/dt = A u  (W lumped mass, A the Fokker–Planck or the
-Kolmogorov matrix of solver.fem, seed 002 (5.31)) over [0, dt] in ``substeps`` steps of the
+Solves the semi-discrete equation  W du/dt = A u  (W lumped mass, or the stabilised consistent mass M
+of ``scheme = "supg"``; A the Fokker–Planck or the Kolmogorov matrix of solver.fem, seed 002 (5.31))
+over [0, dt] in ``substeps`` steps of the
 2-stage SDIRK method of Alexander (1977), γ = 1 − 1/√2:
 
     (W − γτA) k₁ = A u,   (W − γτA) k₂ = A (u + (1 − γ) τ k₁),   u ← u + τ((1 − γ) k₁ + γ k₂).
@@ -21,13 +22,16 @@ GAMMA = 1.0 - 1.0 / np.sqrt(2.0)
 
 
 class SdirkPropagator:
-    """e^{t W⁻¹A} applied to blocks of initial values, with (W − γτA) factored once."""
+    """e^{t W⁻¹A} applied to blocks of initial values, with (W − γτA) factored once (``mass``: a
+    sparse mass matrix M in place of W = diag(weights))."""
 
-    def __init__(self, operator: sps.spmatrix, weights: np.ndarray, duration: float, substeps: int):
+    def __init__(self, operator: sps.spmatrix, weights: np.ndarray, duration: float, substeps: int,
+                 mass: sps.spmatrix | None = None):
         self.operator = sps.csr_matrix(operator)
         self.substeps = int(substeps)
         self.tau = duration / self.substeps
-        shifted = sps.diags(weights) - GAMMA * self.tau * self.operator
+        mass = sps.diags(weights) if mass is None else sps.csr_matrix(mass)
+        shifted = mass - GAMMA * self.tau * self.operator
         self._lu = splu(sps.csc_matrix(shifted))
 
     def _solve(self, rhs: np.ndarray) -> np.ndarray:

@@ -121,7 +121,14 @@ def _augmented_columns(matrix: np.ndarray, dtype) -> np.ndarray:
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
 
 
-def galerkin_generator(basis: np.ndarray, fokker_planck) -> np.ndarray:
-    """A = Φᵀ K Φ from the basis values Φ (Q, N) and the finite-element matrix K (Q, Q)."""
+def galerkin_generator(basis: np.ndarray, fokker_planck, mass=None, weights=None) -> np.ndarray:
+    """A = Φᵀ K Φ from the basis values Φ (Q, N) and the finite-element matrix K (Q, Q) of
+    W du/dt = K u; for M du/dt = K u (a sparse ``mass`` M, ``scheme = "supg"``) A = Φᵀ W M⁻¹ K Φ."""
     basis = np.asarray(basis, dtype=float)
-    return basis.T @ np.asarray(fokker_planck @ basis)
+    if mass is None:
+        return basis.T @ np.asarray(fokker_planck @ basis)
+    import scipy.sparse as sps
+    from scipy.sparse.linalg import splu
+
+    rates = splu(sps.csc_matrix(mass)).solve(np.asfortranarray(fokker_planck @ basis))
+    return (basis * np.asarray(weights, dtype=float)[:, None]).T @ rates

@@ -74,6 +74,14 @@ def check_spd(matrix: list[list[float]], size: int, what: str, semi: bool = Fals
                          + (" and not zero" if semi else ""))
 
 
+def singular(matrix: np.ndarray) -> bool:
+    """True for a (checked, positive semi-definite) matrix with a null direction: noise on some
+    coordinates only."""
+    matrix = np.asarray(matrix, dtype=float)
+    scale = max(1.0, float(np.abs(matrix).max()))
+    return bool(np.linalg.eigvalsh(matrix).min() <= 1e-12 * scale)
+
+
 class GaussianPrior(_Strict):
     kind: Literal["gaussian"]
     mean: list[float]
@@ -188,7 +196,12 @@ class Discretization(_Strict):
     docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.  ``element = "bubble"`` (2-D, order 2): P2 plus the cubic bubble with
     its positive lumped mass instead of P1 (solver/fem.py; ~5x closer to the exact filter at the same
-    cost, tests/test_fem_bubble.py).
+    cost, tests/test_fem_bubble.py).  ``scheme`` is how the Fokker–Planck operator is discretised:
+    "galerkin" (plain Galerkin with the lumped mass) or "supg" (streamline-upwind Petrov–Galerkin:
+    the test functions tilted along the drift, consistent mass; P1 elements in 2-D and 3-D).  Left
+    out, it is "supg" where the diffusion is only positive semi-definite (noise on some coordinates:
+    the operator is hypoelliptic and plain Galerkin rings along the drift, docs/bench-psd.md) and
+    "galerkin" otherwise.
     """
 
     dt: float = Field(gt=0, le=10.0)
@@ -198,6 +211,7 @@ class Discretization(_Strict):
     substeps: int = Field(default=8, ge=1, le=1000)
     precision: Literal["double", "single"] = "double"
     element: Literal["lagrange", "bubble"] = "lagrange"
+    scheme: Literal["galerkin", "consistent", "supg"] | None = None
 
 
 PROBLEM_FIELDS = ("state", "drift", "observation", "diffusion", "observation_noise", "parameters", "initial",
@@ -308,11 +322,32 @@ class ModelSpec(_Strict):
         if self.discretization.element == "bubble" and (n != 2 or self.discretization.order != 2):
             raise SpecError("discretization.element", "bubble (P2 plus the cubic bubble) is the 2-D element "
                                                       "of order 2: it needs 2 state variables and order = 2")
+        self._check_scheme(n)
         if self.domain.region is not None and len(self.domain.region) != n:
             raise SpecError("domain.region", f"needs one [lo, hi] pair per state variable ({n}), "
                                              f"got {len(self.domain.region)}")
         _check_prior(self.initial, n)
         return self
+
+    def _check_scheme(self, n: int) -> None:
+        if self.scheme() != "supg":
+            return
+        chosen = "" if self.discretization.scheme else (
+            "a diffusion that is only positive semi-definite is discretised with scheme = \"supg\"; ")
+        if n == 1:
+            raise SpecError("discretization.scheme", "supg is built for 2-D and 3-D balls; in 1-D use "
+                                                     "scheme = \"galerkin\"")
+        if self.discretization.element == "bubble":
+            raise SpecError("discretization.element", f"{chosen}supg is built on the P1 element: use "
+                                                      "element = \"lagrange\" (or scheme = \"galerkin\", "
+                                                      "measured to ring on such models: docs/bench-psd.md)")
+
+    def scheme(self) -> str:
+        """``[discretization] scheme``, or where left out "supg" for a diffusion that is only positive
+        semi-definite (hypoelliptic) and "galerkin" otherwise."""
+        if self.discretization.scheme is not None:
+            return self.discretization.scheme
+        return "supg" if singular(self.diffusion_matrix()) else "galerkin"
 
     # -- the two parts -------------------------------------------------------------------
     @property
@@ -371,6 +406,8 @@ class ModelSpec(_Strict):
         data["domain"] = self.domain.stored()
         if self.discretization.element == "lagrange":  # the default: ids of specs from before it stay
             del data["discretization"]["element"]
+        if self.discretization.scheme is None:  # chosen from the diffusion: ids from before it stay
+            del data["discretization"]["scheme"]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 

@@ -50,3 +50,25 @@ def test_atlas_block_follows_a_drift_that_is_not_shift_invariant(tmp_path):
     assert x == round(float(sim.states[-1, 0]), 2) and x > 25  # four radii beyond the start
     assert abs(mean - truth[-1]) <= 0.015  # printed to 2 decimals; the gap itself is < 0.01
     assert abs(centre - mean) < 1.5 and moves > 30 and degenerate == "False"
+
+
+PSD_SECTION = "Noise on some coordinates only: constant-velocity tracking"
+
+
+def test_constant_velocity_block_follows_the_target_and_matches_kalman(tmp_path):
+    """The printed mean and velocity against the exact Kalman filter of the sampled model."""
+    from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+
+    import yauyau
+
+    stdout = run_python_block(PSD_SECTION, tmp_path)
+    found = re.search(r"p = (-?[\d.]+): mean (-?[\d.]+), velocity (-?[\d.]+), (\d+) moves, degenerate: (\w+)",
+                      stdout)
+    p, mean, velocity, moves = (float(v) for v in found.groups()[:4])
+    spec = yauyau.load_spec(ROOT / "examples" / "constant_velocity.toml")
+    sim = yauyau.simulate(spec, steps=2000, seed=1)
+    kalman = KalmanBucyFilter(yauyau.compile_model(spec), kind="discrete")
+    _, exact = kalman.run_arrays(kalman.initial_state(), sim.increments)
+    assert p == round(float(sim.states[-1, 0]), 2) and abs(p) > 8  # beyond the radius
+    assert abs(mean - exact.mean[-1, 0]) <= 0.03 and abs(velocity - exact.mean[-1, 1]) <= 0.03
+    assert moves > 5 and found.group(5) == "False"

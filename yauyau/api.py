@@ -94,11 +94,14 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
 
 
 def mesh_free_only(model: Any) -> bool:
-    """True when the general engine's finite elements cannot represent the model: more than three
-    state variables, or a diffusion that is only positive semi-definite (noise on some coordinates
-    only).  Such a model has no offline stage; a mesh-free method (kalman-bucy, yau-jia) filters it."""
-    scale = max(1.0, float(np.abs(model.a).max()))
-    return model.n > 3 or float(np.linalg.eigvalsh(model.a).min()) <= 1e-12 * scale
+    """True when the model gets no offline stage: more than three state variables (the general
+    engine's finite elements go up to 3), or a method named in the spec that needs none (kalman-bucy,
+    yau-jia: nothing to precompute).  A mesh-free method filters it.  (A diffusion that is only
+    positive semi-definite is the engine's too, with the stabilised scheme: Discretization.scheme.)"""
+    from .solver.registry import REGISTRY
+
+    method = REGISTRY.get(model.spec.method)
+    return model.n > 3 or (method is not None and not method.needs_offline)
 
 
 def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
@@ -107,11 +110,8 @@ def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
 
     method, reason = choose_method(model, offline=None, time_limit=time_limit)
     if REGISTRY[method].needs_offline:
-        field, why = (("state", f"{model.n} state variables (the engine's finite elements go up to 3)")
-                      if model.n > 3 else
-                      ("diffusion", "a diffusion that is only positive semi-definite (the engine's finite "
-                                    "elements need noise on every coordinate)"))
-        raise SpecError(field, f"{why}: the general engine cannot filter this model and no mesh-free exact "
+        why = f"{model.n} state variables (the engine's finite elements go up to 3)"
+        raise SpecError("state", f"{why}: the general engine cannot filter this model and no mesh-free exact "
                                f"method applies ({reason}); mesh-free methods: kalman-bucy (linear models), "
                                "yau-jia (Yau & Jia (2005) class: f = Lx + l + a grad(phi), h^T R^-1 h + ... "
                                "quadratic)")
