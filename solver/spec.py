@@ -3,8 +3,8 @@
     dx = f(x) dt + G dv,   dy = h(x) dt + dw,   E[dv dvᵀ] = Q dt,  E[dw dwᵀ] = R dt,
 
 with x ∈ ℝⁿ (n = 1 … 6; the general engine's finite elements up to 3) and y ∈ ℝᵐ.  ``diffusion`` is
-a = G Q Gᵀ (n×n, symmetric positive semi-definite: zero rows for noise-free coordinates, which only
-the mesh-free methods take) and
+a = G Q Gᵀ (n×n, symmetric positive semi-definite: zero rows for noise-free coordinates, which the
+general engine discretises with ``scheme = "supg"`` and the mesh-free methods take as they are) and
 ``observation_noise`` is R (m×m, SPD).
 
 Two parts, one document.  The *problem* (:class:`ProblemSpec`: state, drift, observation, noises,
