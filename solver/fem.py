@@ -329,7 +329,7 @@ def streamline_tau(b: np.ndarray, h: np.ndarray, a: np.ndarray) -> np.ndarray:
         return np.where(moving, h * xi / (2.0 * np.where(moving, speed, 1.0)), 0.0)
 
 
-def supg(basis: Basis, model, potential=None) -> tuple[sps.csr_matrix, sps.csr_matrix]:
+def supg(basis: Basis, model) -> tuple[sps.csr_matrix, sps.csr_matrix, sps.csr_matrix]:
     """The streamline-upwind Petrov–Galerkin terms of ∂u/∂t = L u − q u (L u = ½a:∇²u − div(f u))
     on P1 elements: the test function v + τ f·∇v applied to the strong residual
 
@@ -337,30 +337,33 @@ def supg(basis: Basis, model, potential=None) -> tuple[sps.csr_matrix, sps.csr_m
 
     whose second derivatives a P1 function lacks inside an element; they are those of its recovered
     gradient g_k = W⁻¹ ∫ ψ ∂_k u (lumped L² projection, so a:∇²u ≈ Σ a_kl ∂_l g_k): without them the
-    scheme is consistent only to O(h) (measured: a mean bias of 2e-2 that halves with h,
-    docs/bench-psd.md).  With τ from :func:`streamline_tau`,
+    scheme is consistent only to O(h) (measured while building it: the predicted mean of
+    docs/bench-psd.md was 5e-2, 3.4e-2, 2.2e-2 off at N = 300, 600, 1200; with them 3.5e-3, 2.0e-3,
+    1.1e-3).  With τ from :func:`streamline_tau`,
 
-        S_M(u, v) = ∫ τ u f·∇v,   S_A(u, v) = ∫ τ (f·∇u + (div f + q) u − ½ Σ a_kl ∂_l g_k(u)) f·∇v,
+        S_M(u, v) = ∫ τ u f·∇v,   S_A(u, v) = ∫ τ (f·∇u + (div f) u − ½ Σ a_kl ∂_l g_k(u)) f·∇v,
+        S_q(u, v) = ∫ τ q u f·∇v,
 
-    and (M + S_M) du/dt = (A − S_A) u, A the Galerkin matrix.  Returns (S_M, S_A)."""
+    and (M + S_M) du/dt = (A − S_A) u for Fokker–Planck, (A_K − S_A − S_q) u for Kolmogorov, A and A_K
+    the Galerkin matrices.  Returns (S_M, S_A, S_q)."""
     a = np.asarray(model.a, dtype=float)
     n = a.shape[0]
 
     def streamline(w):
         b = _at(model.f, w.x)
-        tau = streamline_tau(b, np.broadcast_to(np.asarray(w.h), b.shape[1:]), a)
-        reaction_ = _at(model.div_f, w.x) + (0.0 if potential is None else _at(potential, w.x))
-        return b, tau, reaction_
+        return b, streamline_tau(b, np.broadcast_to(np.asarray(w.h), b.shape[1:]), a)
+
+    def weighted(coefficient):  # ∫ τ c u f·∇v
+        @BilinearForm
+        def form(u, v, w):
+            b, tau = streamline(w)
+            return tau * (1.0 if coefficient is None else _at(coefficient, w.x)) * u * dot(b, grad(v))
+        return asm(form, basis).tocsr()
 
     @BilinearForm
-    def mass_form(u, v, w):
-        b, tau, _ = streamline(w)
-        return tau * u * dot(b, grad(v))
-
-    @BilinearForm
-    def stiffness_form(u, v, w):
-        b, tau, reaction_ = streamline(w)
-        return tau * (dot(b, grad(u)) + reaction_ * u) * dot(b, grad(v))
+    def transport_form(u, v, w):
+        b, tau = streamline(w)
+        return tau * dot(b, grad(u)) * dot(b, grad(v))
 
     def derivative(k):  # ∫ ψ_i ∂_k u
         @BilinearForm
@@ -371,7 +374,7 @@ def supg(basis: Basis, model, potential=None) -> tuple[sps.csr_matrix, sps.csr_m
     def streamline_derivative(l):  # ∫ τ ∂_l u f·∇v
         @BilinearForm
         def form(u, v, w):
-            b, tau, _ = streamline(w)
+            b, tau = streamline(w)
             return tau * grad(u)[l] * dot(b, grad(v))
         return asm(form, basis).tocsr()
 
@@ -379,15 +382,16 @@ def supg(basis: Basis, model, potential=None) -> tuple[sps.csr_matrix, sps.csr_m
     gradients = [recover @ derivative(k) for k in range(n)]
     along = [streamline_derivative(l) for l in range(n)]
     second = sum(a[k, l] * (along[l] @ gradients[k]) for k in range(n) for l in range(n) if a[k, l] != 0.0)
-    return asm(mass_form, basis).tocsr(), (asm(stiffness_form, basis) - 0.5 * second).tocsr()
+    s_a = asm(transport_form, basis) + weighted(model.div_f) - 0.5 * second
+    return weighted(None), s_a.tocsr(), weighted(model.half_hRh)
 
 
 @dataclass(frozen=True)
 class Operators:
     """Interior blocks: lumped mass w, ½ ā-stiffness K of the basis's operator (ā = a where a is
     positive definite, Model.basis_diffusion), Fokker–Planck A_fp and Kolmogorov A_k, so that
-    w ⊙ du/dt = A u is the semi-discrete equation (seed 002 (5.31)); with ``scheme = "supg"``,
-    ``mass`` is the stabilised consistent mass M + S_M and M du/dt = A u."""
+    w ⊙ du/dt = A u is the semi-discrete equation (seed 002 (5.31)); with ``scheme = "consistent"``
+    ``mass`` is the consistent mass M, with ``"supg"`` the stabilised M + S_M, and M du/dt = A u."""
 
     weights: np.ndarray
     half_stiffness: sps.csr_matrix
@@ -411,10 +415,9 @@ def assemble(model, disc: FESpace) -> Operators:
                             f"{scheme} is built for the P1 elements of 2-D and 3-D balls")
         mass = consistent_mass(basis)
     if scheme == "supg":
-        s_mass, s_fp = supg(basis, model)
-        _, s_kol = supg(basis, model, model.half_hRh)
+        s_mass, s_fp, s_q = supg(basis, model)
         mass = mass + s_mass
-        fp, kol = fp - s_fp, kol - s_kol
+        fp, kol = fp - s_fp, kol - s_fp - s_q
     sub = lambda mat: mat[idx][:, idx].tocsr()  # noqa: E731 - Dirichlet: keep interior rows/cols
     return Operators(weights=lumped_mass(basis, disc)[idx], half_stiffness=sub(half_basis),
                      fokker_planck=sub(fp), kolmogorov=sub(kol), mass=None if mass is None else sub(mass))
