@@ -93,9 +93,10 @@ class Lattice:
 
 def needs_atlas(model: Any) -> bool:
     """``[domain] follow`` with a region, and a drift that depends on some coordinate the ball moves
-    along: the propagator differs from ball to ball."""
+    along and is not affine: the propagator differs from ball to ball."""
     domain = model.spec.domain
-    return bool(domain.follow and domain.region is not None and len(model.shift_directions) < model.n)
+    return bool(domain.follow and domain.region is not None and len(model.shift_directions) < model.n
+                and model.affine_drift is None)  # an affine drift rides a moving frame (solver/frame.py)
 
 
 def lattice(model: Any, element: float | None = None) -> Lattice:

@@ -135,6 +135,30 @@ class YauYauFilter(ChunkedFilter):
         self._pairs = [(i, j) for i in range(model.n) for j in range(i, model.n)]
         self._features = _moment_features(self.weights, self.nodes, self._pairs)
         self._diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline, h_nodes)
+        self.frame = None  # solver/frame.py: the ball rides ċ = Ac + b (set by framed())
+
+    def framed(self, frame: Any) -> "YauYauFilter":
+        """This engine in a frame moving with the mean's ODE (solver/frame.py): each step's nodes are
+        these nodes moved by c_k − c₀, c_k the frame's centre after the step (from the state's
+        ``center``); the stored propagator must be the frame's (f(x) − f(c₀))."""
+        new = copy.copy(self)
+        new.__dict__.setdefault("_flow_owner", self)
+        new.frame = frame
+        return new
+
+    def _shifts(self, state: YauYauState, gaps: np.ndarray) -> np.ndarray | None:
+        """In a moving frame, each row's node shift c_k − c₀ (K, n); else None."""
+        if self.frame is None:
+            return None
+        if state.center is None:
+            raise InputError("state.center", "a filter in a moving frame needs the ball's centre in its state")
+        return self.frame.path(state.center, gaps) - self.frame.origin
+
+    def _h_shifted(self, shifts: np.ndarray) -> np.ndarray:
+        """h at each row's moved nodes, (K, Q, m)."""
+        K, (Q, n) = len(shifts), self.nodes.shape
+        points = (self.nodes[None, :, :] + shifts[:, None, :]).reshape(K * Q, n)
+        return np.asarray(self.model.h(points), dtype=float).reshape(K, Q, -1)
 
     def centred_at(self, center: Any) -> "YauYauFilter":
         """This engine on the ball translated to ``center`` (solver/follow.py): the same basis,
@@ -297,9 +321,10 @@ class YauYauFilter(ChunkedFilter):
         """What the hot loop needs of a chunk: the update factors, the gate, the carried vector."""
         obs = self.observation
         gaps = np.full(len(rows), self.model.dt) if taus is None else taus
-        keys, terms, log_factor, top, impossible = self._factors(rows, gaps)
+        shifts = self._shifts(state, gaps)
+        keys, terms, log_factor, top, impossible = self._factors(rows, gaps, shifts)
         missing = keys == 0
-        gate = _Gate(obs, terms, keys, gaps, self) if obs.gating and gating else None
+        gate = _Gate(obs, terms, keys, gaps, self, shifts) if obs.gating and gating else None
         skip = missing.copy()
         if gate is not None:  # rejected before the loop: no finite factor to weigh
             skip |= impossible
@@ -307,7 +332,7 @@ class YauYauFilter(ChunkedFilter):
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         # _rescue may shift top[k]: the growth is relative to the factor's maximum
         return _Prepared(gaps, keys, terms, log_factor, top, top.copy(), impossible, missing, skip, gate,
-                         initial)
+                         initial, shifts)
 
     def _finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
                 taus: np.ndarray | None, ready: "_Prepared", sigma, masses, carried, done: int,
@@ -335,7 +360,8 @@ class YauYauFilter(ChunkedFilter):
                 top[k] = top_before[k] = 0.0
                 if k < len(pll):
                     pll[k] = gate.attempted.get(k, -math.inf)
-        mean, cov, mode = self._moments(sigma[:done], masses[:done])
+        shifts = ready.shifts
+        mean, cov, mode = self._moments(sigma[:done], masses[:done], None if shifts is None else shifts[:done])
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
@@ -369,9 +395,15 @@ class YauYauFilter(ChunkedFilter):
                                 loglik=last.loglik, last=last, degenerate=not good,
                                 reason=reason, form=self.form)
         gated[done:], scores[done:] = False, np.nan
+        frame = {}
+        if shifts is not None:  # the frame's centre after each row (after the last good one when stopped)
+            centers = shifts + self.frame.origin
+            end = centers[-1] if good else (centers[done - 1] if done else np.asarray(state.center, float))
+            new_state = dataclasses.replace(new_state, center=np.array(end))
+            frame = {"center": centers}
         return new_state, _stack_results(steps, times, mean, cov, mode, loglik, increments_ll, last, reason,
                                          predictive_loglik=predictive, gated=gated, gate_score=scores,
-                                         gate=obs.gate)
+                                         gate=obs.gate, **frame)
 
     def _pieces(self, rows: np.ndarray, taus: np.ndarray | None) -> np.ndarray | None:
         """How many pieces each row's gap is filtered in: an increment over a gap longer than
@@ -421,7 +453,8 @@ class YauYauFilter(ChunkedFilter):
                                       mode=sub.mode[last], loglik=sub.loglik[last],
                                       loglik_increment=np.where(degenerate, 0.0, ll), degenerate=degenerate,
                                       reason=sub.reason, predictive_loglik=predictive, gated=gated,
-                                      gate_score=scores, gate=obs.gate)
+                                      gate_score=scores, gate=obs.gate,
+                                      center=None if sub.center is None else sub.center[last])
 
     def _first_rejected(self, state, data, times, taus, ll, terms, keys, degenerate, rejected):
         """The first row over the gate (recorded in ``rejected``: its d² and log E_pred[e]), or None.
@@ -439,24 +472,31 @@ class YauYauFilter(ChunkedFilter):
             predicted, _ = self.predict(at, times[k])
             s = np.asarray(self.offline.basis) @ predicted.density_coefficients
             attempted = float(ll[k])
+            shift = None if self.frame is None else np.asarray(predicted.center) - self.frame.origin
             if degenerate[k]:  # its pieces never finished: the whole row's factor on the prediction
-                _, _, log_factor, top, _ = self._factors(data[k:k + 1], taus[k:k + 1])
+                _, _, log_factor, top, _ = self._factors(data[k:k + 1], taus[k:k + 1],
+                                                         None if shift is None else shift[None])
                 attempted = self._log_mean_factor(s, log_factor[0]) + float(top[0])
-            score = bias[k] - 2.0 * attempted - gate.correction(k, s)
+            score = bias[k] - 2.0 * attempted - gate.correction(k, s, shift)
             if score > terms.threshold[k]:
                 rejected[k] = (score, attempted)
                 return k
         return None
 
-    def _factors(self, rows: np.ndarray, gaps: np.ndarray):
+    def _factors(self, rows: np.ndarray, gaps: np.ndarray, shifts: np.ndarray | None = None):
         """Per row: the pattern key of its observed components, the row terms, log e_k at the nodes
         minus its maximum (returned apart, 0 on rows without a finite factor) and which observed rows
-        have no finite factor at all (an overflow: impossible under the model)."""
+        have no finite factor at all (an overflow: impossible under the model).  ``shifts``: each
+        row's nodes moved (a moving frame), h evaluated there."""
         obs = self.observation
         keys = obs.pattern_keys(~np.isnan(rows))
         missing = keys == 0
         terms = obs.row_terms(rows, gaps, keys)
-        log_factor = obs.log_factors(self._h_nodes, rows, gaps, keys, terms, self._factor_cache,
+        if shifts is None:
+            h_points, cache = self._h_nodes, self._factor_cache
+        else:
+            h_points, cache = self._h_shifted(shifts), None
+        log_factor = obs.log_factors(h_points, rows, gaps, keys, terms, cache,
                                      penalty=self.form != "literal")
         with np.errstate(invalid="ignore"):
             top = log_factor.max(axis=1)
@@ -663,8 +703,9 @@ class YauYauFilter(ChunkedFilter):
         n = self.model.n
         return np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n))
 
-    def _moments(self, sigma: np.ndarray, mass: np.ndarray):
-        """Mean, covariance and mode of each row of nodal σ (K, Q) with ∫σ = mass.
+    def _moments(self, sigma: np.ndarray, mass: np.ndarray, shifts: np.ndarray | None = None):
+        """Mean, covariance and mode of each row of nodal σ (K, Q) with ∫σ = mass (``shifts``: each
+        row's nodes moved, a moving frame: the mean and mode move with them, the covariance does not).
 
         One einsum (numpy's own loops, no BLAS): each row's value does not depend on K.
         """
@@ -676,6 +717,8 @@ class YauYauFilter(ChunkedFilter):
         for p, (i, j) in enumerate(self._pairs):
             cov[:, i, j] = cov[:, j, i] = moments[:, n + p] - first[:, i] * first[:, j]
         mode = self.nodes[np.argmax(sigma, axis=1)] if K else np.empty((0, n))
+        if shifts is not None:
+            first, mode = first + shifts, mode + shifts
         return first, cov, mode
 
     # -- densities -----------------------------------------------------------------------
@@ -760,6 +803,7 @@ class _Prepared:
     skip: np.ndarray  # rows that only predict
     gate: "_Gate | None"
     initial: np.ndarray  # [coefficients, ∫σ] in the loop's precision
+    shifts: np.ndarray | None = None  # (K, n) each row's node shift in a moving frame (solver/frame.py)
 
 
 class _Gate:
@@ -767,8 +811,9 @@ class _Gate:
     threshold; ``correction`` the exact term from the predicted density; ``scores`` the gated rows."""
 
     def __init__(self, obs: Observation, terms: RowTerms, keys: np.ndarray, gaps: np.ndarray,
-                 engine: YauYauFilter):
+                 engine: YauYauFilter, shifts: np.ndarray | None = None):
         self.obs, self.keys, self.gaps, self.engine = obs, keys, gaps, engine
+        self.shifts = shifts  # (K, n) in a moving frame: h at each row's moved nodes
         self.terms = terms
         self.bias = terms.bound_bias().tolist()
         self.threshold = terms.threshold.tolist()
@@ -786,15 +831,18 @@ class _Gate:
         floor[missing | ~np.isfinite(self.terms.threshold)] = 0.0
         return np.nan_to_num(floor, nan=np.inf).tolist()
 
-    def correction(self, k: int, s: np.ndarray) -> float:
-        """log det(I + κ²S₀⁻¹C), C = Cov(h_o) under the propagated nodal density s."""
+    def correction(self, k: int, s: np.ndarray, shift: np.ndarray | None = None) -> float:
+        """log det(I + κ²S₀⁻¹C), C = Cov(h_o) under the propagated nodal density s (its nodes moved by
+        ``shift``, or by the row's in a moving frame)."""
         key = int(self.keys[k])
         index = self.obs.pattern(key).index
         ws = self.engine.weights * np.asarray(s, dtype=float)
         total = float(ws.sum())
         if not total > 0.0:
             return 0.0
-        h = self.engine._h_nodes[:, index]
+        if shift is None and self.shifts is not None:
+            shift = self.shifts[k]
+        h = (self.engine._h_nodes if shift is None else self.engine._h_shifted(shift[None])[0])[:, index]
         centred = h - (ws @ h) / total
         cov = (centred * ws[:, None]).T @ centred / total
         tau = float(self.gaps[k])

@@ -329,7 +329,7 @@ def streamline_tau(b: np.ndarray, h: np.ndarray, a: np.ndarray) -> np.ndarray:
         return np.where(moving, h * xi / (2.0 * np.where(moving, speed, 1.0)), 0.0)
 
 
-def supg(basis: Basis, model) -> tuple[sps.csr_matrix, sps.csr_matrix, sps.csr_matrix]:
+def supg(basis: Basis, model, drift=None) -> tuple[sps.csr_matrix, sps.csr_matrix, sps.csr_matrix]:
     """The streamline-upwind Petrov–Galerkin terms of ∂u/∂t = L u − q u (L u = ½a:∇²u − div(f u))
     on P1 elements: the test function v + τ f·∇v applied to the strong residual
 
@@ -345,12 +345,13 @@ def supg(basis: Basis, model) -> tuple[sps.csr_matrix, sps.csr_matrix, sps.csr_m
         S_q(u, v) = ∫ τ q u f·∇v,
 
     and (M + S_M) du/dt = (A − S_A) u for Fokker–Planck, (A_K − S_A − S_q) u for Kolmogorov, A and A_K
-    the Galerkin matrices.  Returns (S_M, S_A, S_q)."""
+    the Galerkin matrices (``drift``: f, or the moving frame's, solver/frame.py).  Returns (S_M, S_A, S_q)."""
     a = np.asarray(model.a, dtype=float)
+    f = model.f if drift is None else drift
     n = a.shape[0]
 
     def streamline(w):
-        b = _at(model.f, w.x)
+        b = _at(f, w.x)
         return b, streamline_tau(b, np.broadcast_to(np.asarray(w.h), b.shape[1:]), a)
 
     def weighted(coefficient):  # ∫ τ c u f·∇v
@@ -406,7 +407,10 @@ def assemble(model, disc: FESpace) -> Operators:
     half_k = disc.nodal(0.5 * stiffness(basis, model.a))
     ab = model.basis_diffusion
     half_basis = half_k if np.array_equal(ab, model.a) else disc.nodal(0.5 * stiffness(basis, ab))
-    fp = -half_k + disc.nodal(advection(basis, model.f))
+    from .frame import drift_of
+
+    drift = drift_of(model)  # f, or f(x) − f(c₀) in a frame moving with the mean's ODE
+    fp = -half_k + disc.nodal(advection(basis, drift))
     kol = fp - disc.nodal(reaction(basis, model.half_hRh))
     mass, scheme = None, model.spec.scheme()
     if scheme != "galerkin":
@@ -415,7 +419,7 @@ def assemble(model, disc: FESpace) -> Operators:
                             f"{scheme} is built for the P1 elements of 2-D and 3-D balls")
         mass = consistent_mass(basis)
     if scheme == "supg":
-        s_mass, s_fp, s_q = supg(basis, model)
+        s_mass, s_fp, s_q = supg(basis, model, drift)
         mass = mass + s_mass
         fp, kol = fp - s_fp, kol - s_fp - s_q
     sub = lambda mat: mat[idx][:, idx].tocsr()  # noqa: E731 - Dirichlet: keep interior rows/cols

@@ -41,6 +41,7 @@ import numpy as np
 from .atlas import kept, move_step, needs_atlas
 from .errors import InputError, SpecError
 from .filtering import ChunkedFilter, ChunkResult, concat_results
+from .frame import affine_frame
 from .measurement import check_rows
 
 SHELL = 0.9  # |x − c| > SHELL·R is the outer shell whose mass the trigger reads
@@ -83,12 +84,13 @@ def check_follow(model: Any, form: str = "stable") -> tuple[int, ...]:
     """The directions the ball may move along (every one with ``[domain] region``: an atlas,
     solver/atlas.py); SpecError when follow cannot apply."""
     directions = model.shift_directions
-    if model.spec.domain.region is not None:
-        directions = tuple(range(model.n))
+    if model.spec.domain.region is not None or affine_frame(model) is not None:
+        directions = tuple(range(model.n))  # an atlas, or a frame moving with ċ = Ac + b (solver/frame.py)
     if not directions:
-        raise SpecError("domain.follow", "the drift depends on every state variable, so the Fokker-Planck "
-                                         "operator changes when the ball moves and one stored propagator "
-                                         "cannot serve a moved ball; declare where the state may go, "
+        raise SpecError("domain.follow", "the drift depends on every state variable and is not affine, so "
+                                         "the Fokker-Planck operator changes when the ball moves and one "
+                                         "stored propagator cannot serve a moved ball; declare where the "
+                                         "state may go, "
                                          "domain.region = [[lo, hi], ...] (one pair per state variable), for "
                                          "an atlas of propagators, or leave follow out (and size "
                                          "domain.radius for the whole path)")
@@ -124,6 +126,21 @@ class FollowingFilter(ChunkedFilter):
             raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
                                              "they were solved): precompute the spec again")
         self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius
+        self.frame = affine_frame(engine.model) if self.atlas is None else None
+        self._framed: OrderedDict[Any, Any] = OrderedDict()
+
+    def runner(self, center: np.ndarray) -> Any:
+        """The engine that runs a block from ``center``: the centred engine, or in a moving frame
+        (solver/frame.py) the one engine whose nodes move every step."""
+        if self.frame is None:
+            return self.engine(center)
+
+        def make():
+            found = self.home.framed(self.frame)
+            found.gate_override = self.gate_override
+            return found
+
+        return kept(self._framed, self.gate_override, make, 4)
 
     def __getattr__(self, name: str) -> Any:  # offline, nodes, weights, N, form, precision, flow...
         if name.startswith("__") or name == "home":
@@ -158,11 +175,13 @@ class FollowingFilter(ChunkedFilter):
         """``center`` with the shift coordinates moved to ``target``'s, on the mesh's step (move_step)."""
         new = np.array(center, dtype=float)
         axes = () if self.atlas is None else self.atlas.lattice.axes
+        # whole steps from the home centre; in a moving frame (any centre) from the current one
+        base = self.home_center if self.frame is None else new.copy()
         for i in self.directions:
-            offset = float(target[i]) - self.home_center[i]
+            offset = float(target[i]) - base[i]
             if self._lattice and i not in axes:
                 offset = round(offset / self._lattice) * self._lattice
-            new[i] = self.home_center[i] + offset
+            new[i] = base[i] + offset
         return new if self.atlas is None else self.atlas.lattice.nearest(new)
 
     def left_region(self, point: np.ndarray) -> str | None:
@@ -228,28 +247,31 @@ class FollowingFilter(ChunkedFilter):
                             self.observation.discrete)
             times = np.asarray(times, dtype=float)
         if K == 0 or state.degenerate:
-            new, result = self.engine(state.center).run_arrays(state, rows, times)
+            new, result = self.runner(state.center).run_arrays(state, rows, times)
             return self._placed(new, state.center), _with_centers(result, state.center)
         parts, start, block, velocity, jitter = [], 0, FIRST_BLOCK, None, 0.0
         along = list(self.directions)
         while start < K:
             stop = min(K, start + block)
             center = np.asarray(state.center, dtype=float)
-            new, part = self.engine(center).run_arrays(state, rows[start:stop],
+            new, part = self.runner(center).run_arrays(state, rows[start:stop],
                                                        None if times is None else times[start:stop])
-            stray = self._strayed(part.mean, center)
+            centers = center if self.frame is None else part.center  # (K, n) in a moving frame
+            stray = self._strayed(part.mean, centers)
             if (stray is not None or new.degenerate) and stop - start > 1:
                 # again from the block's start: up to the row before the stray one (or half the block)
                 block = max(1, stray if stray else (stop - start) // 2)
                 continue
             length = stop - start
-            drift = (part.mean[-1, along] - state.last.mean[along]) / length  # per row
+            offsets = part.mean - centers  # the mean relative to the ball (whose centre may ride a frame)
+            drift = (offsets[-1, along] - (state.last.mean - center)[along]) / length  # per row
             velocity = drift if velocity is None else 0.5 * (velocity + drift)
             if length > 1:  # the mean's random part: its mean square move per row, drift removed
-                steps = np.diff(part.mean[:, along], axis=0)
+                steps = np.diff(offsets[:, along], axis=0)
                 jitter = float(np.max(np.mean((steps - steps.mean(axis=0)) ** 2, axis=0)))
             state = self._placed(new, center)
             block = self._block_for(velocity, jitter)
+            center = self.ball_center(state)  # the frame's centre at the block's end
             if not state.degenerate:
                 # the travel looked ahead to is this chunk's next block only (none after its last row:
                 # the next chunk starts afresh), so a stream of short chunks does not move on noise
@@ -261,7 +283,7 @@ class FollowingFilter(ChunkedFilter):
             parts.append(_with_centers(part, center, state.center))
             start = stop
             if state.degenerate and start < K:  # the rest stays degenerate
-                new, part = self.engine(state.center).run_arrays(state, rows[start:],
+                new, part = self.runner(state.center).run_arrays(state, rows[start:],
                                                                  None if times is None else times[start:])
                 parts.append(_with_centers(part, state.center))
                 state = self._placed(new, state.center)
@@ -288,14 +310,19 @@ class FollowingFilter(ChunkedFilter):
         return int(np.clip(root * root, MIN_BLOCK, MAX_BLOCK))
 
     def _placed(self, state: Any, center: np.ndarray) -> Any:
-        """The engine's new state with the centre it was computed on (engine states do not carry it)."""
+        """The engine's new state with the centre it was computed on (engine states do not carry it;
+        in a moving frame the engine's state has the frame's centre after its last row)."""
+        if self.frame is not None and state.center is not None:
+            return state
         return dataclasses.replace(state, center=np.asarray(center, dtype=float))
 
     def _strayed(self, means: np.ndarray, center: np.ndarray) -> int | None:
-        """The first row whose mean is further than the stray limit from the centre (None: none)."""
+        """The first row whose mean is further than the stray limit from the centre ((n,), or (K, n) in
+        a moving frame) (None: none)."""
         if not len(means):
             return None
-        gap = np.abs(means[:, list(self.directions)] - center[list(self.directions)]).max(axis=1)
+        along = list(self.directions)
+        gap = np.abs(means[:, along] - np.asarray(center)[..., along]).max(axis=1)
         far = np.flatnonzero(~(gap <= self.stray))
         return int(far[0]) if len(far) else None
 
@@ -377,6 +404,9 @@ def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | N
     """The result with the ball's centre after each row (the last row's is ``after``: a re-centre)."""
     K = len(result)
     centers = np.repeat(np.asarray(before, dtype=float)[None, :], K, axis=0)
+    if result.center is not None and len(result.center) == K:  # a moving frame's centres, row by row
+        centers = np.array(result.center, dtype=float)
+        before = centers[-1] if K else before
     moved = np.zeros(K, dtype=bool)
     if after is not None and K and not np.array_equal(after, before):
         centers[-1], moved[-1] = after, True

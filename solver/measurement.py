@@ -211,13 +211,15 @@ class Observation:
     # -- the factor at given points ----------------------------------------------------------
     def log_factors(self, h_points: np.ndarray, rows: np.ndarray, taus: np.ndarray, keys: np.ndarray,
                     terms: "RowTerms", cache: dict | None = None, penalty: bool = True) -> np.ndarray:
-        """log e_k at the points (K, P) of h (P, m); rows with key 0 (nothing observed) get 0.
+        """log e_k at the points (K, P) of h (P, m), or of h per row (K, P, m): a moving frame's nodes;
+        rows with key 0 (nothing observed) get 0.
 
         Elementwise numpy per row (no BLAS): a row's bits do not depend on the chunk it came in.
         ``cache`` keeps, per pattern, h_o R_oo⁻¹ and ½h_oᵀR_oo⁻¹h_o at the points (the engine's
         nodes are fixed).  ``penalty=False``: the continuous factor without −½hᵀR⁻¹h τ (the literal
         form of seed 002 (5.35), whose propagator carries it)."""
-        K, P = len(rows), h_points.shape[0]
+        K, P = len(rows), h_points.shape[-2]
+        per_row = h_points.ndim == 3
         groups = terms.groups
         whole = len(groups) == 1  # one pattern (the usual chunk): work in place on the whole array
         out = np.empty((K, P)) if whole else np.zeros((K, P))
@@ -227,16 +229,23 @@ class Observation:
                     out[sel] = 0.0
                     continue
                 pat = self.pattern(key)
-                hR, half = self._point_terms(h_points, key, pat, cache)
+                if per_row:  # (k, |o|, P) and (k, P): each row its own points
+                    hR, half = self._row_terms(h_points[sel], pat)
+                else:
+                    hR, half = self._point_terms(h_points, key, pat, cache)
+                    hR = hR[None]
                 y = rows[sel][:, pat.index]
                 block = out if whole else np.empty((len(y), P))
-                np.multiply(y[:, 0, None], hR[0], out=block)
+                np.multiply(y[:, 0, None], hR[:, 0], out=block)
                 for j in range(1, len(pat.index)):
-                    block += y[:, j, None] * hR[j]
+                    block += y[:, j, None] * hR[:, j]
                 if not self.discrete:
                     if penalty:
                         tau = taus[sel]
-                        block -= tau[0] * half if np.all(tau == tau[0]) else np.multiply.outer(tau, half)
+                        if per_row:
+                            block -= tau[:, None] * half
+                        else:
+                            block -= tau[0] * half if np.all(tau == tau[0]) else np.multiply.outer(tau, half)
                 elif self.likelihood == "gaussian":
                     block -= half
                     block += terms.constant[sel, None]
@@ -252,6 +261,14 @@ class Observation:
                 if not whole:
                     out[sel] = block
         return out
+
+    @staticmethod
+    def _row_terms(h_rows: np.ndarray, pat: Pattern) -> tuple[np.ndarray, np.ndarray]:
+        """h_o R_oo⁻¹ (k, |o|, P) and ½h_oᵀR_oo⁻¹h_o (k, P) of h per row (k, P, m)."""
+        h_o = h_rows[:, :, pat.index]
+        hR = np.ascontiguousarray(np.einsum("kpi,ij->kjp", h_o, pat.R_inv))
+        half = 0.5 * np.einsum("kpi,ij,kpj->kp", h_o, pat.R_inv, h_o)
+        return hR, half
 
     def _point_terms(self, h_points, key: int, pat: Pattern, cache: dict | None):
         if cache is not None and key in cache:

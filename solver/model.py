@@ -156,6 +156,22 @@ class Model:
                      if all(sp.simplify(jacobian[j, i]) == 0 for j in range(self.n)))
 
     @cached_property
+    def affine_drift(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(A, b) when f(x) = Ax + b exactly (the Jacobian of f is constant, SymPy), else None."""
+        import sympy as sp
+
+        jacobian = self.jacobian_drift
+        if any(sp.simplify(entry).free_symbols & set(self.symbols) for entry in jacobian):
+            return None
+        at_zero = {s: 0 for s in self.symbols}
+        try:
+            A = np.array([[float(sp.simplify(jacobian[j, i])) for i in range(self.n)] for j in range(self.n)])
+            b = np.array([float(sp.simplify(fj.subs(at_zero))) for fj in self.drift])
+        except TypeError:  # a complex constant cannot pass the spec's checks; be safe anyway
+            return None
+        return A, b
+
+    @cached_property
     def jacobian_drift(self) -> "sp.Matrix":
         import sympy as sp
 

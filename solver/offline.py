@@ -39,8 +39,9 @@ from .model import Model
 
 ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
                "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
-# stored since irregular times; a file without it rebuilds it from its mesh on first use
-OPTIONAL_ARRAYS = ("generator",)
+# stored since irregular times; a file without it rebuilds it from its mesh on first use.  "frame":
+# f(c₀), what a moving frame's propagator leaves out of the drift (solver/frame.py)
+OPTIONAL_ARRAYS = ("generator", "frame")
 Progress = Callable[[int, int], None]
 
 
@@ -240,6 +241,11 @@ class OfflineModel:
         arrays["generator"] = self.fokker_planck_generator()
         if self.atlas is not None:
             arrays["atlas_centers"] = self.atlas.centers()
+        from .frame import affine_frame
+
+        frame = affine_frame(self.model)
+        if frame is not None:
+            arrays["frame"] = frame.offset
         return arrays
 
     def lazy_arrays(self) -> dict[str, np.ndarray]:
@@ -266,6 +272,7 @@ class OfflineModel:
             size = values["basis"].shape[1]
             if generator.shape != (size, size) or not np.all(np.isfinite(generator)):
                 raise InputError("arrays.generator", f"must be a finite ({size}, {size}) matrix")
+        _check_frame(model, arrays.get("frame"))
         found = cls(model=model, generator=generator, **values)
         from .atlas import attach_stored, needs_atlas
 
@@ -369,6 +376,22 @@ def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
             raise InputError(f"arrays.{name}", "contains NaN or infinity")
     if np.any(a["weights"] <= 0):
         raise InputError("arrays.weights", "must be positive")
+
+
+def _check_frame(model: Model, stored: Any) -> None:
+    """A moving frame's arrays must be the frame's: a file solved before frames (with f itself) is
+    the same only where f(c₀) = 0."""
+    from .frame import affine_frame
+
+    frame = affine_frame(model)
+    if frame is None:
+        return
+    offset = frame.offset
+    found = np.zeros_like(offset) if stored is None and not np.any(offset) else stored
+    if found is None or np.shape(found) != offset.shape or not np.allclose(found, offset, rtol=1e-12, atol=0):
+        raise InputError("arrays.frame", "these offline arrays were not solved in the moving frame this "
+                                         "model follows its state in (solver/frame.py): precompute the spec "
+                                         "again")
 
 
 # -- precompute ---------------------------------------------------------------------------------

@@ -25,7 +25,8 @@ def disk():
 
 def test_array_contract(disk):
     arrays = disk.to_arrays()
-    assert set(arrays) == set(ARRAY_NAMES) | set(OPTIONAL_ARRAYS)
+    assert set(arrays) == set(ARRAY_NAMES) | {"generator"}  # "frame" only for a moving frame (test_frame)
+    assert set(OPTIONAL_ARRAYS) == {"generator", "frame"}
     q, n = arrays["nodes"].shape
     size = disk.size
     assert (n, size) == (2, 40)

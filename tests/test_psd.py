@@ -155,7 +155,7 @@ def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tra
     issue's 1e-3 is missed (docs/bench-psd.md)."""
     model, offline = tracking
     flt = build(model, offline)
-    assert isinstance(flt, FollowingFilter) and flt.directions == (0,)
+    assert isinstance(flt, FollowingFilter) and flt.directions == (0, 1)
     sim = simulate(model, 5000, np.random.default_rng(1))
     assert np.ptp(sim.states[:, 0]) > 6 * model.radius
     _, result = flt.run_arrays(flt.initial_state(), sim.increments)
@@ -218,7 +218,9 @@ def test_a_nonlinear_sensor_against_a_fine_grid_reference():
     gap = np.abs(result.mean - reference).max(axis=1)
     print(f"atan sensor: {int(result.recentred.sum())} moves, gap median {np.median(gap):.2e} "
           f"max {gap.max():.2e}")
-    assert not result.degenerate.any() and result.recentred.sum() > 5
+    assert not result.degenerate.any() and result.recentred.sum() >= 1
+    # the ball rode the frame of ċ = (c_v, −0.2c_v) (solver/frame.py) with the target, and moved onto it
+    assert result.center[-1, 0] - result.center[0, 0] > 2 * model.radius
     assert np.median(gap) < 0.01 and gap.max() < 0.05
 
 
