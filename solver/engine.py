@@ -151,7 +151,8 @@ class YauYauFilter(ChunkedFilter):
         if self.frame is None:
             return None
         if state.center is None:
-            raise InputError("state.center", "a filter in a moving frame needs the ball's centre in its state")
+            raise InputError("state.center", "a filter in a moving frame needs the ball's centre in its "
+                                             "state")
         return self.frame.path(state.center, gaps) - self.frame.origin
 
     def _h_shifted(self, shifts: np.ndarray) -> np.ndarray:
@@ -361,7 +362,8 @@ class YauYauFilter(ChunkedFilter):
                 if k < len(pll):
                     pll[k] = gate.attempted.get(k, -math.inf)
         shifts = ready.shifts
-        mean, cov, mode = self._moments(sigma[:done], masses[:done], None if shifts is None else shifts[:done])
+        mean, cov, mode = self._moments(sigma[:done], masses[:done],
+                                        None if shifts is None else shifts[:done])
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
