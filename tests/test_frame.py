@@ -90,7 +90,8 @@ def test_linear_growth_rides_the_frame_and_matches_the_exact_kalman_filter(growt
     exact = _exact(model, sim.increments)
     gap = np.abs(result.mean[:, 0] - exact.mean[:, 0])
     var = np.abs(result.cov[:, 0, 0] / exact.cov[:, 0, 0] - 1)
-    print(f"linear growth: {int(result.recentred.sum())} moves, gap {gap.max():.2e}, variance {var.max():.2e}")
+    print(f"linear growth: {int(result.recentred.sum())} moves, gap {gap.max():.2e}, "
+          f"variance {var.max():.2e}")
     assert not result.degenerate.any(), result.reason
     assert gap.max() <= 1e-3 and var.max() <= 0.01
     assert abs(result.loglik[-1] - exact.loglik[-1]) < 1e-3
