@@ -40,6 +40,7 @@ TOPICS = [
     ("load_windows", "bench-load-windows.md"),
     ("follow", "bench-follow.md"),
     ("psd", "bench-psd.md"),
+    ("three_d", "bench-3d.md"),
 ]
 
 HEADER = """# Benchmarks

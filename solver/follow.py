@@ -395,24 +395,25 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     inside = np.linalg.norm(points - old.model.center, axis=1) < old.model.radius * (1 - 1e-12)
     out = np.where(matched & inside, nodal[nearest], 0.0)
     rest = inside & ~matched
-    if rest.any() and old.nodes.shape[1] == 3:  # no lattice: every node is new
-        out[rest] = _smooth_carry(old, nodal, points[rest])
+    if rest.any() and old.nodes.shape[1] == 3 and CARRY_NEIGHBOURS:  # no lattice: every node is new
+        out[rest] = _smooth_carry(old, nodal, points[rest], CARRY_NEIGHBOURS)
     elif rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])
     return out
 
 
-CARRY_NEIGHBOURS = 30  # old nodes per point of the 3-D carry's local fit
+# Old nodes per point of a 3-D carry's local spline fit; 0 (the default): P1 interpolation.  Measured
+# side by side (docs/bench-3d.md, radius 3.5, N = 1000, ~50 moves over two runs of 500 steps): the fit
+# halves the rms mean gap (6.3e-3 -> 3.1e-3) and the median variance error (1.5% -> 0.7%) but raises the
+# worst one (5.2% -> 8.0%) and costs ~0.1 s a move (4.7 -> 10.6 ms per observation).
+CARRY_NEIGHBOURS = 0
 
 
-def _smooth_carry(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _smooth_carry(old: Any, nodal: np.ndarray, points: np.ndarray, neighbours: int = 30) -> np.ndarray:
     """The old density at ``points`` by a local thin-plate-spline fit with a quadratic term (scipy's
-    RBFInterpolator over the nearest old nodes and the sphere, where σ = 0).  In 3-D the ball's nodes
-    are not a lattice, so a move interpolates every node; P1 interpolation there smooths the density by
-    O(h²) per move.  Measured on the 3-D linear model of docs/bench-3d.md (radius 3.5, N = 1000, ~25
-    moves in 500 steps): with P1 the variance error jumped by ~2.5 points at each move (median 1.5%,
-    rms mean gap 6.8e-3); with this fit median 0.6%, rms gap 2.9e-3 (tests/test_engine_3d.py).  It costs
-    ~0.1 s a move (Q = 4991), about 20 steps of filtering there."""
+    RBFInterpolator over the ``neighbours`` nearest old nodes and the sphere, where σ = 0).  In
+    3-D the ball's nodes are not a lattice, so a move interpolates every node, and P1 smooths the
+    density by O(h²) a move; the fit does not, but overshoots (the figures above)."""
     from scipy.interpolate import RBFInterpolator
 
     n, radius = old.nodes.shape[1], float(old.model.radius)
@@ -422,7 +423,7 @@ def _smooth_carry(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray
     sphere = np.column_stack([np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)])
     sites = np.vstack([old.nodes, radius * sphere[:, :n] + old.model.center])
     values = np.concatenate([nodal, np.zeros(count)])
-    fit = RBFInterpolator(sites, values, neighbors=CARRY_NEIGHBOURS, kernel="thin_plate_spline", degree=2)
+    fit = RBFInterpolator(sites, values, neighbors=neighbours, kernel="thin_plate_spline", degree=2)
     return fit(points)
 
 

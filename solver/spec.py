@@ -151,7 +151,8 @@ FOLLOW_MASS = 1e-4  # of ∫σ in the outer tenth of the ball: this much mass th
 class Domain(_Strict):
     """The ball B_R(c) the density lives on.  ``follow = true``: c moves with the posterior
     (solver/follow.py) — re-centred when the mean is more than ``follow_distance``·R from c, or when
-    more than ``follow_mass`` of the mass lies in the ball's outer tenth."""
+    more than ``follow_mass`` of the mass lies in the ball's outer tenth; for an affine drift c also
+    rides the mean's ODE ċ = Ac + b between moves (solver/frame.py)."""
 
     radius: float = Field(gt=0, le=1e6)
     center: list[float] | None = None
