@@ -41,6 +41,7 @@ TOPICS = [
     ("follow", "bench-follow.md"),
     ("psd", "bench-psd.md"),
     ("three_d", "bench-3d.md"),
+    ("follow_cost", "bench-follow-cost.md"),
 ]
 
 HEADER = """# Benchmarks
