@@ -9,10 +9,9 @@ over t = 0..30, two radii and more.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
+from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine import build
 from yauyau.solver.errors import InputError, SpecError
@@ -31,13 +30,7 @@ STEPS = 3000  # t in [0, 30]
 
 
 def _doc(**changes):
-    doc = json.loads(json.dumps(GROWTH))
-    for key, value in changes.items():
-        if isinstance(value, dict):
-            doc[key].update(value)
-        else:
-            doc[key] = value
-    return doc
+    return modified(GROWTH, **changes)
 
 
 @pytest.fixture(scope="module")

@@ -20,6 +20,7 @@ import json
 import numpy as np
 import pytest
 import scipy.linalg as sla
+from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine import build
 from yauyau.solver.errors import SpecError
@@ -40,13 +41,7 @@ NOISE = np.diag([0.0, 1.0])
 
 
 def _doc(**changes):
-    doc = json.loads(json.dumps(CV))
-    for key, value in changes.items():
-        if isinstance(value, dict):
-            doc[key].update(value)
-        else:
-            doc[key] = value
-    return doc
+    return modified(CV, **changes)
 
 
 def _exact_moments(mean0, cov0, t):
