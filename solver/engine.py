@@ -698,7 +698,12 @@ class YauYauFilter(ChunkedFilter):
                                 step=int(steps[-1]) if K else state.step,
                                 t=float(times[-1]) if K else state.t, loglik=state.loglik, last=last,
                                 degenerate=True, reason=reason, form=self.form)
-        result = _stack_results(steps, times, *self._empty_moments(), np.empty(0), np.empty(0), last, reason)
+        frame = {}
+        if self.frame is not None and state.center is not None:  # the frame stops where it degenerated
+            new_state = dataclasses.replace(new_state, center=np.array(state.center, dtype=float))
+            frame = {"center": np.repeat(np.asarray(state.center, dtype=float)[None], K, axis=0)}
+        result = _stack_results(steps, times, *self._empty_moments(), np.empty(0), np.empty(0), last, reason,
+                                **frame)
         return new_state, result
 
     def _empty_moments(self):

@@ -256,7 +256,8 @@ class FollowingFilter(ChunkedFilter):
             center = np.asarray(state.center, dtype=float)
             new, part = self.runner(center).run_arrays(state, rows[start:stop],
                                                        None if times is None else times[start:stop])
-            centers = center if self.frame is None else part.center  # (K, n) in a moving frame
+            # (K, n) in a moving frame (an engine that only stayed degenerate gives none: the centre stays)
+            centers = center if self.frame is None or part.center is None else part.center
             stray = self._strayed(part.mean, centers)
             if (stray is not None or new.degenerate) and stop - start > 1:
                 # again from the block's start: up to the row before the stray one (or half the block)

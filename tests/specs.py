@@ -11,7 +11,7 @@ def modified(base: dict, **changes) -> dict:
     doc = json.loads(json.dumps(base))
     for key, value in changes.items():
         if isinstance(value, dict):
-            doc[key].update(value)
+            doc.setdefault(key, {}).update(value)
         else:
             doc[key] = value
     return doc

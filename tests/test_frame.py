@@ -177,3 +177,19 @@ def test_a_nonlinear_drift_without_region_is_still_refused():
     with pytest.raises(SpecError, match="domain.follow") as err:
         build(model, precompute(model))
     assert "not affine" in str(err.value)
+
+
+def test_a_degenerate_frame_says_why_keeps_its_centre_and_restarts():
+    """An impossible increment (gate off) stops the filter with a reason; later chunks stay degenerate
+    without error, with the frame's centre where it stopped; a fresh state from the prior recovers."""
+    model = compile_model(spec_from_dict(_doc(measurement={"gate": 0}, discretization={"basis": 60})))
+    flt = build(model, precompute(model))
+    rows = simulate(model, 300, np.random.default_rng(3)).increments
+    rows[120, 0] = 1e6
+    state, result = flt.run_arrays(flt.initial_state(), rows[:200])
+    assert state.degenerate and result.degenerate[120:].all() and not result.degenerate[:120].any()
+    assert result.reason and np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.center))
+    later, tail = flt.run_arrays(state, rows[200:], np.arange(201, 301) * model.dt)
+    assert later.degenerate and tail.degenerate.all() and np.array_equal(later.center, state.center)
+    fresh, again = flt.run_arrays(flt.initial_state(), rows[:100])
+    assert not again.degenerate.any() and not fresh.degenerate
