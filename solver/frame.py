@@ -40,17 +40,14 @@ class AffineFrame:
         return self.A @ self.origin + self.b
 
     def step(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
-        """(e^{Aτ}, ∫₀^τ e^{As} ds b), from the exponential of [[A, b], [0, 0]]τ (kept per τ)."""
+        """(e^{Aτ}, ∫₀^τ e^{As} ds b) (Van Loan's exponential, solver/reference/kalman.py; kept per τ)."""
         key = float(tau)
         found = self._steps.get(key)
         if found is None:
-            from scipy.linalg import expm
+            from .reference.kalman import van_loan
 
-            n = len(self.b)
-            block = np.zeros((n + 1, n + 1))
-            block[:n, :n], block[:n, n] = self.A, self.b
-            E = expm(block * key)
-            found = (E[:n, :n], E[:n, n])
+            phi, shift, _ = van_loan(self.A, np.zeros_like(self.A), self.b, key)
+            found = (phi, shift)
             if len(self._steps) < 64:
                 self._steps[key] = found
         return found

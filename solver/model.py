@@ -158,18 +158,13 @@ class Model:
     @cached_property
     def affine_drift(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(A, b) when f(x) = Ax + b exactly (the Jacobian of f is constant, SymPy), else None."""
-        import sympy as sp
+        from .errors import SpecError
+        from .reference.kalman import affine_coefficients
 
-        jacobian = self.jacobian_drift
-        if any(sp.simplify(entry).free_symbols & set(self.symbols) for entry in jacobian):
-            return None
-        at_zero = {s: 0 for s in self.symbols}
         try:
-            A = np.array([[float(sp.simplify(jacobian[j, i])) for i in range(self.n)] for j in range(self.n)])
-            b = np.array([float(sp.simplify(fj.subs(at_zero))) for fj in self.drift])
-        except TypeError:  # a complex constant cannot pass the spec's checks; be safe anyway
+            return affine_coefficients(self.drift, self.symbols, "drift")
+        except SpecError:
             return None
-        return A, b
 
     @cached_property
     def jacobian_drift(self) -> "sp.Matrix":
