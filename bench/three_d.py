@@ -9,8 +9,8 @@ Q = 4991 P1 nodes), against the exact Kalman filter of the sampled model over 50
 * the issue's starting point: a fixed ball of radius 4 and N = 500;
 * the same ball with N = 1500 (the dense eigensolver's cost grows with Q, not N);
 * a ball of radius 3.5 that follows the posterior in the frame of ċ = Ac (solver/frame.py), N = 1000,
-  its moves carried by P1 interpolation (the default), then by the local spline fit over 30 nodes
-  (solver/follow.py ``CARRY_NEIGHBOURS``).
+  its moves carried by P1 interpolation.  (A local spline carry was measured on 2026-11-24 and
+  dropped: docs/bench-3d.md's analysis has its figures.)
 
 Precompute seconds and peak memory of the process; µs per observation with one BLAS thread (one run
 each: the runs take minutes).
@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver import follow as follow_module
 from yauyau.solver.engine import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
 from yauyau.solver.offline import precompute
@@ -74,10 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     steps, seeds = (100, (5,)) if args.quick else (500, (5, 6))
     scale = 0.4 if args.quick else 1.0
-    configs = [("fixed ball (the issue's)", 4.0, 500, False, None),
-               ("fixed ball", 4.0, 1500, False, None),
-               ("following ball, P1 carry", 3.5, 1000, True, 0),
-               ("following ball, spline carry", 3.5, 1000, True, 30)]
+    configs = [("fixed ball (the issue's)", 4.0, 500, False),
+               ("fixed ball", 4.0, 1500, False),
+               ("following ball", 3.5, 1000, True)]
     lines = ["## 3-D: a fixed ball against one that follows the state", "",
              "`python -m bench.three_d" + (" --quick" if args.quick else "") + "`", "",
              "f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the general "
@@ -88,28 +86,19 @@ def main(argv: list[str] | None = None) -> int:
              "| ball | radius | N | Q | precompute s | peak MB | rms mean gap | max mean gap "
              "| variance error median | variance error max | moves | µs/obs |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    solved = {}
-    saved = follow_module.CARRY_NEIGHBOURS
-    try:
-        for name, radius, basis, follow, carry in configs:
-            basis = int(basis * scale)
-            key = (radius, basis, follow)
-            model = compile_model(spec_from_dict(_doc(radius, basis, follow)))
-            if key not in solved:
-                start = time.perf_counter()
-                with threadpool_limits(limits=1, user_api="blas"):
-                    solved[key] = (precompute(model), time.perf_counter() - start)
-            offline, seconds = solved[key]
-            if carry is not None:
-                follow_module.CARRY_NEIGHBOURS = carry
-            rms, worst, var_median, var_max, moves, per = _run(model, offline, steps, seeds)
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
-            cells = [name, radius, basis, len(offline.weights), f"{seconds:.0f}", peak, f"{rms:.1e}",
-                     f"{worst:.1e}", f"{var_median:.1%}", f"{var_max:.1%}", moves, f"{per * 1e6:.0f}"]
-            lines.append("| " + " | ".join(map(str, cells)) + " |")
-            print(lines[-1], flush=True)
-    finally:
-        follow_module.CARRY_NEIGHBOURS = saved
+    for name, radius, basis, follow in configs:
+        basis = int(basis * scale)
+        model = compile_model(spec_from_dict(_doc(radius, basis, follow)))
+        start = time.perf_counter()
+        with threadpool_limits(limits=1, user_api="blas"):
+            offline = precompute(model)
+        seconds = time.perf_counter() - start
+        rms, worst, var_median, var_max, moves, per = _run(model, offline, steps, seeds)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
+        cells = [name, radius, basis, len(offline.weights), f"{seconds:.0f}", peak, f"{rms:.1e}",
+                 f"{worst:.1e}", f"{var_median:.1%}", f"{var_max:.1%}", moves, f"{per * 1e6:.0f}"]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+        print(lines[-1], flush=True)
     write_fragment(FRAGMENT, lines)
     return 0
 

@@ -396,36 +396,9 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     inside = np.linalg.norm(points - old.model.center, axis=1) < old.model.radius * (1 - 1e-12)
     out = np.where(matched & inside, nodal[nearest], 0.0)
     rest = inside & ~matched
-    if rest.any() and old.nodes.shape[1] == 3 and CARRY_NEIGHBOURS:  # no lattice: every node is new
-        out[rest] = _smooth_carry(old, nodal, points[rest], CARRY_NEIGHBOURS)
-    elif rest.any():
+    if rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])
     return out
-
-
-# Old nodes per point of a 3-D carry's local spline fit; 0 (the default): P1 interpolation.  Measured
-# side by side (docs/bench-3d.md, radius 3.5, N = 1000, ~50 moves over two runs of 500 steps): the fit
-# halves the rms mean gap (6.3e-3 -> 3.1e-3) and the median variance error (1.5% -> 0.7%) but raises the
-# worst one (5.2% -> 8.0%) and costs ~0.1 s a move (4.7 -> 10.6 ms per observation).
-CARRY_NEIGHBOURS = 0
-
-
-def _smooth_carry(old: Any, nodal: np.ndarray, points: np.ndarray, neighbours: int = 30) -> np.ndarray:
-    """The old density at ``points`` by a local thin-plate-spline fit with a quadratic term (scipy's
-    RBFInterpolator over the ``neighbours`` nearest old nodes and the sphere, where σ = 0).  In
-    3-D the ball's nodes are not a lattice, so a move interpolates every node, and P1 smooths the
-    density by O(h²) a move; the fit does not, but overshoots (the figures above)."""
-    from scipy.interpolate import RBFInterpolator
-
-    n, radius = old.nodes.shape[1], float(old.model.radius)
-    count = max(64, int(np.ceil(4 * np.pi * len(old.nodes) ** (2 / 3))))  # ~ the surface's share of nodes
-    i = np.arange(count) + 0.5  # a Fibonacci sphere
-    polar, turn = np.arccos(1 - 2 * i / count), np.pi * (1 + 5 ** 0.5) * i
-    sphere = np.column_stack([np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)])
-    sites = np.vstack([old.nodes, radius * sphere[:, :n] + old.model.center])
-    values = np.concatenate([nodal, np.zeros(count)])
-    fit = RBFInterpolator(sites, values, neighbors=neighbours, kernel="thin_plate_spline", degree=2)
-    return fit(points)
 
 
 def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | None = None) -> ChunkResult:

@@ -122,20 +122,3 @@ def test_3d_follow_rides_the_linear_frame_and_meets_the_issue_targets():
     assert np.sqrt(np.mean(gap ** 2)) <= 0.01 and np.abs(gap).max() <= 0.04
     assert np.median(var) <= 0.025 and var.max() <= 0.07
 
-
-def test_the_3d_spline_carry_is_closer_to_a_gaussian_than_p1(linear_3d):
-    """A move's carry (solver/follow.py): N(0, 0.6²I) at the nodes of the refinement-3 ball, read at the
-    nodes moved by (0.3, −0.2, 0.1), against the exact density there."""
-    from yauyau.solver.follow import _smooth_carry
-
-    model, offline = linear_3d
-    yy = YauYauFilter(model, offline)
-    gauss = lambda x: np.exp(-0.5 * (x ** 2).sum(axis=1) / 0.36)  # noqa: E731
-    points = offline.nodes + np.array([0.3, -0.2, 0.1])
-    points = points[np.linalg.norm(points, axis=1) < 0.95 * model.radius]
-    exact = gauss(points)
-    p1 = offline.interpolate(gauss(offline.nodes), points)
-    spline = _smooth_carry(yy, gauss(offline.nodes), points)
-    p1_error, spline_error = np.abs(p1 - exact).max(), np.abs(spline - exact).max()
-    print(f"carry of a Gaussian: P1 {p1_error:.2e}, spline {spline_error:.2e}")
-    assert spline_error < 0.5 * p1_error and spline_error < 0.05
