@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     max_precompute_basis: int = Field(
         1000, ge=1, le=100_000, description="largest basis a POST /v1/models may precompute (413 beyond)")
     max_precompute_nodes: int = Field(
-        6000, ge=1, le=12_000, description="most mesh nodes a POST /v1/models may precompute (413 beyond)")
+        6000, ge=1, le=50_000, description="most mesh nodes a POST /v1/models may precompute (413 beyond)")
     max_precompute_centres: int = Field(
         256, ge=1, le=4096, description="most atlas centres ([domain] region) a POST /v1/models may "
                                         "precompute (413 beyond)")

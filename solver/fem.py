@@ -44,6 +44,7 @@ from skfem import (
 )
 from skfem.helpers import dot, grad
 
+from .basis import DENSE_NODES
 from .errors import SpecError
 
 # Interior degrees of freedom per basis function when the mesh is not given (Q ≈ 2N).  The online
@@ -52,10 +53,12 @@ from .errors import SpecError
 # every bundled 1-D model (the two-peaked √(1+x²) sensor: 4.4e-2, 3.0e-3, 4.3e-6; the cubic sensor
 # 3.2e-4, 1.7e-4, 6.2e-5).  A spec may set ``mesh`` to trade the margin for speed (the cubic example).
 NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
-# The basis comes from a dense eigensolve, O(Q²) memory and O(Q³) time: 12000 nodes is ~1.1 GiB.
-MAX_NODES = 12000
-# Interior vertices of the ball refined r times (r = 5 would exceed MAX_NODES: ~4e4).
-BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991}
+# Up to DENSE_NODES the basis comes from a dense eigensolve, beyond from shift-invert Lanczos
+# (solver/basis.py).  MAX_NODES bounds what a spec may ask for: the 3-D ball refined five times
+# (41727 nodes) takes ~8 min and 2.6 GB for N = 1000.  A default mesh stays within the dense solver.
+MAX_NODES = 50000
+# Interior vertices of the ball refined r times.
+BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991, 5: 41727}
 
 
 @dataclass(frozen=True)
@@ -198,12 +201,13 @@ def interior_count(n: int, order: int, resolution: int) -> int:
 
 def default_resolution(n: int, order: int, size: int) -> int:
     """Smallest resolution whose interior DOF count reaches NODES_PER_MODE[n] · N; if that one is
-    too large for the eigensolver, the previous one when it still has N nodes (coarse 3-D steps)."""
+    beyond the dense eigensolver (DENSE_NODES), the previous one when it still has N nodes (coarse
+    3-D steps: a finer ball is for a spec that asks for it with ``mesh``)."""
     target = NODES_PER_MODE[n] * size
     resolution = 1 if n == 3 else 2
     while interior_count(n, order, resolution) < target:
         resolution += 1
-    if interior_count(n, order, resolution) > MAX_NODES and resolution > 1:
+    if interior_count(n, order, resolution) > DENSE_NODES and resolution > 1:
         if interior_count(n, order, resolution - 1) >= size:
             resolution -= 1
     return resolution
@@ -246,8 +250,8 @@ def discretise(model, size: int | None = None) -> FESpace:
     nodes = interior_count(model.n, order, resolution)
     if nodes > MAX_NODES:
         field = "discretization.mesh" if spec.mesh else "discretization.basis"
-        raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} the dense "
-                               "eigensolver allows; use a smaller basis or mesh")
+        raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} allowed; "
+                               "use a smaller basis or mesh")
     disc = build(model.n, model.center, model.radius, resolution, order,
                  lattice=bool(model.spec.domain.follow))
     if len(disc.interior) < size:

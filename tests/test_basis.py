@@ -107,3 +107,56 @@ def test_too_many_basis_functions_is_a_spec_error():
     with pytest.raises(SpecError) as err:
         fem.discretise(model)
     assert err.value.field == "discretization.basis"
+
+
+def ball_dirichlet_spectrum(radius, count):
+    """The lowest eigenvalues of −½Δ on the ball with u = 0 on the sphere: ½ (z/R)² for every zero z
+    of the spherical Bessel function j_l, with multiplicity 2l + 1 (found here by bracketing)."""
+    from scipy.optimize import brentq
+    from scipy.special import spherical_jn
+
+    values = []
+    grid = np.linspace(0.1, 20.0, 4000)
+    for ell in range(8):
+        f = spherical_jn(ell, grid)
+        for i in np.flatnonzero(np.sign(f[:-1]) != np.sign(f[1:])):
+            zero = brentq(lambda z, degree: spherical_jn(degree, z), grid[i], grid[i + 1], args=(ell,))
+            values += [0.5 * (zero / radius) ** 2] * (2 * ell + 1)
+    return np.sort(values)[:count]
+
+
+def test_lanczos_ball_spectrum_converges_and_matches_the_dense_solve(monkeypatch):
+    """Above DENSE_NODES the basis comes from shift-invert Lanczos: forced here on meshes the dense
+    solve also handles.  The 17 lowest eigenvalues (full multiplets l = 0, 1, 2, 3 and the second
+    l = 0) converge to the closed form at the P1 rate, the Gram matrix is I, and the result is the
+    same on a second run (a fixed start vector)."""
+    import yauyau.solver.basis as basis_module
+
+    radius, size = 2.0, 17
+    exact = ball_dirichlet_spectrum(radius, size)
+    dense = basis_of(make_model(3, radius, size, mesh=3, order=1))[2]
+    monkeypatch.setattr(basis_module, "DENSE_NODES", 0)
+    errors = []
+    for mesh in (3, 4):
+        _, ops, basis = basis_of(make_model(3, radius, size, mesh=mesh, order=1))
+        gram = basis.values.T @ (ops.weights[:, None] * basis.values)
+        np.testing.assert_allclose(gram, np.eye(size), atol=1e-9)
+        np.testing.assert_allclose(basis.projector @ basis.values, np.eye(size), atol=1e-9)
+        # the mesh splits each multiplet slightly: compare the multiplets' means
+        groups = np.unique(np.round(exact, 9), return_inverse=True)[1]
+        means = np.bincount(groups, basis.eigenvalues) / np.bincount(groups)
+        errors.append(np.abs(means / (np.bincount(groups, exact) / np.bincount(groups)) - 1.0))
+        if mesh == 3:
+            np.testing.assert_allclose(basis.eigenvalues, dense.eigenvalues, rtol=1e-9)
+            again = basis_of(make_model(3, radius, size, mesh=mesh, order=1))[2]
+            np.testing.assert_array_equal(again.values, basis.values)
+    assert errors[1].max() < 0.02, errors[1]
+    assert np.all(errors[0] / errors[1] > 3.0), errors[0] / errors[1]
+
+
+def test_node_counts_of_the_refined_balls_are_those_built():
+    """The node table a service checks before it accepts a precompute (fem.planned_nodes) against
+    the meshes themselves, up to the finest 3-D ball (beyond the dense eigensolver)."""
+    for resolution in (1, 2, 3, 4, 5):
+        built = fem.build(3, np.zeros(3), 1.0, resolution, 1)
+        assert fem.interior_count(3, 1, resolution) == len(built.interior)
