@@ -40,6 +40,7 @@ TOPICS = [
     ("load_windows", "bench-load-windows.md"),
     ("follow", "bench-follow.md"),
     ("psd", "bench-psd.md"),
+    ("cv_basis", "bench-cv-basis.md"),
     ("three_d", "bench-3d.md"),
     ("follow_cost", "bench-follow-cost.md"),
 ]

@@ -108,17 +108,20 @@ class Diagnostics:
                      "(refine discretization.basis / mesh)")
 
     def explain_outlier(self, before: np.ndarray, row: np.ndarray, step: int, why: str,
-                        tau: float | None = None, discrete: bool = False) -> str:
+                        tau: float | None = None, discrete: bool = False,
+                        h_nodes: np.ndarray | None = None) -> str:
         """``why`` prefixed by the size of the row's surprise when it is an outlier: |Δy − E[h]τ| in
         standard deviations √(R_jj τ) (continuous; τ = dt unless given), |z − E[h]| in √R_jj
         (discrete), E[h] over the nodal density before the step (a glitch collapses the density or
         throws it at the wall, which is not the basis' or the ball's fault).  Missing components
-        are skipped."""
+        are skipped.  ``h_nodes``: h at the nodes where ``before`` lives (a moving frame's row; the
+        ball's own nodes by default)."""
+        h_nodes = self._h_nodes if h_nodes is None else h_nodes
         weights = self.weights * np.clip(np.nan_to_num(before), 0.0, None)
         total = weights.sum()
-        if not total > 0 or not np.all(np.isfinite(self._h_nodes)):
+        if not total > 0 or not np.all(np.isfinite(h_nodes)):
             return why
-        expected = weights @ self._h_nodes / total
+        expected = weights @ h_nodes / total
         tau = self.dt if tau is None else tau
         scale = 1.0 if discrete else tau
         with np.errstate(invalid="ignore"):

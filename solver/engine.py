@@ -368,9 +368,9 @@ class YauYauFilter(ChunkedFilter):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)
         if bad is not None:
-            why = self._explained(sigma, state, rows, steps, skip, bad, why, gaps)
+            why = self._explained(sigma, state, rows, steps, skip, bad, why, gaps, shifts)
         elif reason is not None:  # the hot loop stopped at step `done` (no positive mass, overflow)
-            reason = self._explained(sigma, state, rows, steps, skip, done, reason, gaps)
+            reason = self._explained(sigma, state, rows, steps, skip, done, reason, gaps, shifts)
         if bad is not None:
             done, reason = bad, why
             carried = self._carried_after(sigma, masses, bad, initial, taus)
@@ -522,13 +522,15 @@ class YauYauFilter(ChunkedFilter):
             raise InputError(why[0], f"the literal form (propagator_k over dt) cannot take {why[1]}: use the "
                                      "stable form (the default)")
 
-    def _explained(self, sigma, state, rows, steps, missing, k: int, why: str, gaps) -> str:
-        """``why`` the filter failed at row k, led by the outlier it met there, if it was one."""
+    def _explained(self, sigma, state, rows, steps, missing, k: int, why: str, gaps, shifts=None) -> str:
+        """``why`` the filter failed at row k, led by the outlier it met there, if it was one (in a
+        moving frame, E[h] over that row's moved nodes)."""
         if missing[k]:
             return why
         before = sigma[k - 1] if k > 0 else np.asarray(self.offline.basis) @ state.density_coefficients
+        h_nodes = None if shifts is None else self._h_shifted(shifts[k:k + 1])[0]
         return self._diagnostics.explain_outlier(before, rows[k], int(steps[k]), why, float(gaps[k]),
-                                                 self.observation.discrete)
+                                                 self.observation.discrete, h_nodes)
 
     @cached_property
     def _factor_cache(self) -> dict:

@@ -193,3 +193,10 @@ def test_a_degenerate_frame_says_why_keeps_its_centre_and_restarts():
     assert later.degenerate and tail.degenerate.all() and np.array_equal(later.center, state.center)
     fresh, again = flt.run_arrays(flt.initial_state(), rows[:100])
     assert not again.degenerate.any() and not fresh.degenerate
+    # a 50σ glitch: the reason names it, its size read off the row's moved nodes (Kalman: the one-step
+    # prediction m + f(m)dt of E[h] = E[x], in standard deviations √(R dt))
+    rows[120, 0] = 5.0
+    _, hit = flt.run_arrays(flt.initial_state(), rows[:200])
+    m = _exact(model, rows[:120]).mean[-1, 0]
+    sigmas = abs(5.0 - (m + (0.1 * m + 0.2) * model.dt) * model.dt) / np.sqrt(model.dt)
+    assert hit.degenerate[120] and f"is {sigmas:.3g} standard deviations" in hit.reason, (sigmas, hit.reason)
