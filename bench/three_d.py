@@ -11,6 +11,8 @@ Q = 4991 P1 nodes), against the exact Kalman filter of the sampled model over 50
 * a ball of radius 3.5 that follows the posterior in the frame of ċ = Ac (solver/frame.py), N = 1000,
   its moves carried by P1 interpolation.  (A local spline carry was measured on 2026-11-24 and
   dropped: docs/bench-3d.md's analysis has its figures.)
+* the same following ball on the ball refined five times (``mesh = 5``, Q = 41727: the basis from
+  shift-invert Lanczos, solver/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process.
 
 Precompute seconds and peak memory of the process; µs per observation with one BLAS thread (one run
 each: the runs take minutes).
@@ -37,12 +39,12 @@ ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-3d.md"
 
 
-def _doc(radius: float, basis: int, follow: bool) -> dict:
+def _doc(radius: float, basis: int, follow: bool, mesh: int | None = None) -> dict:
     return {"name": "linear-3d", "state": ["x1", "x2", "x3"], "method": "yau-yau",
             "drift": ["-x1 + 0.5*x2", "-x2", "-0.5*x3"], "observation": ["x1", "x3"],
             "initial": {"kind": "gaussian", "mean": [0.0, 0.0, 0.0], "cov": (0.5 * np.eye(3)).tolist()},
             "domain": {"radius": radius, **({"follow": True} if follow else {})},
-            "discretization": {"dt": 0.02, "basis": basis}}
+            "discretization": {"dt": 0.02, "basis": basis, **({"mesh": mesh} if mesh else {})}}
 
 
 def _run(model, offline, steps: int, seeds) -> tuple:
@@ -73,22 +75,24 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     steps, seeds = (100, (5,)) if args.quick else (500, (5, 6))
     scale = 0.4 if args.quick else 1.0
-    configs = [("fixed ball (the issue's)", 4.0, 500, False),
-               ("fixed ball", 4.0, 1500, False),
-               ("following ball", 3.5, 1000, True)]
+    configs = [("fixed ball (the issue's)", 4.0, 500, False, None),
+               ("fixed ball", 4.0, 1500, False, None),
+               ("following ball", 3.5, 1000, True, None)]
+    if not args.quick:
+        configs.append(("following ball, mesh 5", 3.5, 1000, True, 5))
     lines = ["## 3-D: a fixed ball against one that follows the state", "",
              "`python -m bench.three_d" + (" --quick" if args.quick else "") + "`", "",
              "f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the general "
-             f"engine on the default 3-D mesh, against the exact Kalman filter of the sampled model, {steps} "
-             f"steps, seeds {', '.join(map(str, seeds))}. The following ball rides the frame of ċ = Ac "
-             "(solver/frame.py). Peak memory is the process's so far; µs per observation with one BLAS "
-             "thread, one run each.", "",
+             "engine on the default 3-D mesh (or the one named), against the exact Kalman filter of the "
+             f"sampled model, {steps} steps, seeds {', '.join(map(str, seeds))}. The following ball rides "
+             "the frame of ċ = Ac (solver/frame.py). Peak memory is the process's so far; µs per "
+             "observation with one BLAS thread, one run each.", "",
              "| ball | radius | N | Q | precompute s | peak MB | rms mean gap | max mean gap "
              "| variance error median | variance error max | moves | µs/obs |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for name, radius, basis, follow in configs:
+    for name, radius, basis, follow, mesh in configs:
         basis = int(basis * scale)
-        model = compile_model(spec_from_dict(_doc(radius, basis, follow)))
+        model = compile_model(spec_from_dict(_doc(radius, basis, follow, mesh)))
         start = time.perf_counter()
         with threadpool_limits(limits=1, user_api="blas"):
             offline = precompute(model)

@@ -190,7 +190,8 @@ class Discretization(_Strict):
     """Time step and resolution of the offline stage.
 
     ``basis`` is N, the number of L²(B_R)-orthonormal basis functions.  ``mesh`` is the
-    number of elements across the radius (None: chosen from N and n).  ``order`` is the
+    number of elements across the radius in 1-D, of rings in 2-D, of refinements of the ball in 3-D
+    (at most 5: 41727 nodes, a Lanczos basis) (None: chosen from N and n).  ``order`` is the
     polynomial degree of the finite elements.  ``substeps`` splits dt for the offline time
     integration.  ``precision`` is the floating point of the online engine's two matrix-vector
     products per observation: "single" halves their memory traffic (the speed-up is measured in
