@@ -271,8 +271,14 @@ class YauYauFilter(ChunkedFilter):
                             dtype=self._arith.dtype)
 
     def run_arrays(self, state: YauYauState, increments: np.ndarray,
-                   times: np.ndarray | None = None) -> tuple[YauYauState, ChunkResult]:
-        """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
+                   times: np.ndarray | None = None, until: Any = None) -> tuple[YauYauState, ChunkResult]:
+        """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays.
+
+        ``until(mean, centers)`` (a ball that follows the state, solver/follow.py): given the rows'
+        means (K, n) and, in a moving frame, their centres (else None), the number j ≥ 1 of rows to
+        keep, or None for all.  The chunk then ends after row j − 1: the result has j rows and the new
+        state is the one the hot loop carried there, bit for bit, as if the chunk had been j rows long.
+        Rows over long gaps (filtered in pieces) always run whole."""
         model, obs = self.model, self.observation
         rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
         K = rows.shape[0]
@@ -288,7 +294,7 @@ class YauYauFilter(ChunkedFilter):
             return self._stay_degenerate(state, steps, times, state.reason)
         pieces = self._pieces(rows, taus)
         if pieces is None:
-            return self._run(state, rows, steps, times, taus, gating=True)
+            return self._run(state, rows, steps, times, taus, gating=True, until=until)
         parts, start = [], 0
         for stop in _blocks(pieces, MAX_CHUNK_PIECES):  # bounded memory: the pieces of a block at a time
             if state.degenerate:  # an earlier block degenerated: the rest stays so
@@ -310,12 +316,12 @@ class YauYauFilter(ChunkedFilter):
         return run_batch(self, states, chunks, times, return_exceptions)
 
     def _run(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-             taus: np.ndarray | None, gating: bool) -> tuple[YauYauState, ChunkResult]:
+             taus: np.ndarray | None, gating: bool, until: Any = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
         ready = self._prepare(state, rows, taus, gating)
         loop = self._propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
                                taus)
-        return self._finish(state, rows, steps, times, taus, ready, *loop)
+        return self._finish(state, rows, steps, times, taus, ready, *loop, until=until)
 
     def _prepare(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None,
                  gating: bool) -> "_Prepared":
@@ -337,7 +343,7 @@ class YauYauFilter(ChunkedFilter):
 
     def _finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
                 taus: np.ndarray | None, ready: "_Prepared", sigma, masses, carried, done: int,
-                reason: str | None) -> tuple[YauYauState, ChunkResult]:
+                reason: str | None, until: Any = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk's estimates, checks and new state from what the hot loop left (``sigma``: the
         nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last)."""
         obs = self.observation
@@ -364,6 +370,15 @@ class YauYauFilter(ChunkedFilter):
         shifts = ready.shifts
         mean, cov, mode = self._moments(sigma[:done], masses[:done],
                                         None if shifts is None else shifts[:done])
+        cut = None if until is None or not done else until(
+            mean, None if shifts is None else shifts[:done] + self.frame.origin)
+        if cut is not None and 1 <= cut < done:  # the chunk ends after row cut − 1 (run_arrays)
+            K = done = int(cut)
+            rows, steps, times, missing, skip = rows[:K], steps[:K], times[:K], missing[:K], skip[:K]
+            sigma, masses, pll, gated, scores = sigma[:K], masses[:K], pll[:K], gated[:K], scores[:K]
+            mean, cov, mode = mean[:K], cov[:K], mode[:K]
+            shifts = None if shifts is None else shifts[:K]
+            carried, reason = self._carried_after(sigma, masses, K, initial, taus), None
         with np.errstate(over="ignore", invalid="ignore"):
             growth = masses[:done] * np.exp(top[:done] - top_before[:done])
         bad, why = self._diagnostics.first_implausible(sigma[:done], masses[:done], cov, growth)

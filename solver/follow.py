@@ -255,7 +255,9 @@ class FollowingFilter(ChunkedFilter):
             stop = min(K, start + block)
             center = np.asarray(state.center, dtype=float)
             new, part = self.runner(center).run_arrays(state, rows[start:stop],
-                                                       None if times is None else times[start:stop])
+                                                       None if times is None else times[start:stop],
+                                                       until=self._keep_until(center))
+            stop = start + len(part.step)  # the engine ends the block before a row that strays
             # (K, n) in a moving frame (an engine that only stayed degenerate gives none: the centre stays)
             centers = center if self.frame is None or part.center is None else part.center
             stray = self._strayed(part.mean, centers)
@@ -316,6 +318,14 @@ class FollowingFilter(ChunkedFilter):
         if self.frame is not None and state.center is not None:
             return state
         return dataclasses.replace(state, center=np.asarray(center, dtype=float))
+
+    def _keep_until(self, center: np.ndarray):
+        """The engine's ``until`` rule for a block run from ``center``: keep the rows before the first
+        that strays (at least one), so the block need not run again shorter."""
+        def keep(means: np.ndarray, centers: np.ndarray | None) -> int | None:
+            stray = self._strayed(means, center if centers is None else centers)
+            return None if stray is None else max(1, stray)
+        return keep
 
     def _strayed(self, means: np.ndarray, center: np.ndarray) -> int | None:
         """The first row whose mean is further than the stray limit from the centre ((n,), or (K, n) in

@@ -271,3 +271,52 @@ def test_a_stream_of_single_rows_moves_as_often_as_one_chunk(trend):
     print(f"moves: one chunk {int(whole.recentred.sum())}, single rows {int(single.recentred.sum())}")
     assert single.recentred.sum() <= 1.5 * whole.recentred.sum() + 2
     assert np.abs(single.mean - exact.mean).max() <= 1e-3 and not single.degenerate.any()
+
+
+def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(trend):
+    """``run_arrays(..., until=rule)`` (what a following ball uses instead of running a strayed block
+    again): the chunk ends after the rows the rule keeps; result and state are those of the shorter
+    chunk, bit for bit, and the run goes on from there as it would have.  A following filter gives
+    the same estimates with and without the rule, running fewer rows."""
+    model, offline = trend
+    flt = build(model, offline)
+    engine = flt.runner(flt.initial_state().center)
+    rows = simulate(model, 120, np.random.default_rng(9)).increments
+    start = flt.initial_state()
+    seen = []
+    state, part = engine.run_arrays(start, rows, until=lambda mean, centers: seen.append(len(mean)) or 40)
+    short_state, short = engine.run_arrays(start, rows[:40])
+    assert seen == [120] and len(part.step) == 40 and not part.degenerate.any()
+    for name in ("step", "t", "mean", "cov", "loglik", "loglik_increment"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(short, name))
+    np.testing.assert_array_equal(state.coefficients, short_state.coefficients)
+    assert (state.step, state.t, state.mass, state.loglik) == (40, short_state.t, short_state.mass,
+                                                              short_state.loglik)
+    _, rest = engine.run_arrays(state, rows[40:])
+    _, whole = engine.run_arrays(start, rows)
+    np.testing.assert_array_equal(rest.mean, whole.mean[40:])
+    _, kept_all = engine.run_arrays(start, rows, until=lambda mean, centers: None)
+    np.testing.assert_array_equal(kept_all.mean, whole.mean)
+
+    counted = {"rows": 0}
+    original = YauYauFilter.run_arrays
+
+    def counting(self, *args, **kwargs):
+        counted["rows"] += len(args[1])
+        return original(self, *args, **kwargs)
+
+    long_rows = simulate(model, 2000, np.random.default_rng(10)).increments
+    runs = {}
+    for mode in ("rule", "again"):
+        follower = build(model, offline)
+        if mode == "again":  # the rule keeps every row: a strayed block runs again, shorter
+            follower._keep_until = lambda center: (lambda mean, centers: None)
+        counted["rows"] = 0
+        YauYauFilter.run_arrays = counting
+        try:
+            runs[mode] = (_run(follower, long_rows, 1000)[1], counted["rows"])
+        finally:
+            YauYauFilter.run_arrays = original
+    np.testing.assert_array_equal(runs["rule"][0].mean, runs["again"][0].mean)
+    np.testing.assert_array_equal(runs["rule"][0].loglik, runs["again"][0].loglik)
+    assert runs["rule"][1] < runs["again"][1], (runs["rule"][1], runs["again"][1])
