@@ -55,7 +55,8 @@ from .errors import SpecError
 NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
 # Up to DENSE_NODES the basis comes from a dense eigensolve, beyond from shift-invert Lanczos
 # (solver/basis.py).  MAX_NODES bounds what a spec may ask for: the 3-D ball refined five times
-# (41727 nodes) takes ~8 min and 2.6 GB for N = 1000.  A default mesh stays within the dense solver.
+# (41727 nodes), N = 1000: its eigensolve takes ~8 min and 2.6 GB, the whole precompute ~25 min and
+# 3.5 GB on one process (docs/bench-3d.md).  A default mesh stays within the dense solver.
 MAX_NODES = 50000
 # Interior vertices of the ball refined r times.
 BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991, 5: 41727}
