@@ -110,6 +110,30 @@ def test_a_worker_killed_during_the_solves_changes_nothing(cluster, local, tmp_p
     _same_arrays(tmp_path / "store", model_id, local)
 
 
+def test_a_block_whose_future_is_cancelled_is_solved_again(cluster, local, tmp_path):
+    """What a worker's death can also do: the scheduler gives up a block's key instead of computing it
+    again (seen once in CI).  Here one pending block is cancelled outright from the progress callback;
+    the block is submitted again under a new key and the arrays are still those of one process."""
+    from distributed import Future, default_client
+
+    cancelled = []
+
+    def progress(done: int, size: int) -> None:
+        if cancelled:
+            return
+        client = default_client()  # the run's own client
+        waiting = [key for key, state in client.futures.items()
+                   if str(key).startswith("yauyau-propagators-") and state.status == "pending"]
+        if waiting:
+            client.cancel([Future(waiting[-1], client)])
+            cancelled.append(waiting[-1])
+
+    model_id = yauyau.precompute(spec_from_dict(SPEC), tmp_path / "store", scheduler=cluster.address,
+                                 progress=progress)
+    assert cancelled
+    _same_arrays(tmp_path / "store", model_id, local)
+
+
 def test_a_local_cluster_of_two_workers_writes_the_same_arrays(local, tmp_path):
     model_id = yauyau.precompute(spec_from_dict(SPEC), tmp_path / "store", workers=2)
     _same_arrays(tmp_path / "store", model_id, local)
