@@ -49,6 +49,7 @@ STRAY = 0.1  # of R beyond follow_distance: a block whose mean strays further ru
 FIRST_BLOCK = 32  # rows of the first block of a chunk; later blocks adapt to the mean's speed
 MIN_BLOCK, MAX_BLOCK = 4, 512
 CACHE = 16  # centred engines kept (each shares the stored arrays; owns h and moments at its nodes)
+CARRIES = 64  # carries kept, one per move offset in mesh steps (index arrays and a few interpolated rows)
 
 
 class TranslatedOffline:
@@ -128,6 +129,7 @@ class FollowingFilter(ChunkedFilter):
         self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
+        self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
 
     def runner(self, center: np.ndarray) -> Any:
         """The engine that runs a block from ``center``: the centred engine, or in a moving frame
@@ -386,9 +388,58 @@ class FollowingFilter(ChunkedFilter):
 
     def _carried_to(self, state: Any, new: Any) -> tuple[np.ndarray, float]:
         """The state's density at ``new``'s nodes, and its ∫σ on the old ball."""
-        old = self.engine(np.asarray(state.center, dtype=float))
+        center = np.asarray(state.center, dtype=float)
+        old = self.engine(center)
         nodal = np.asarray(old.offline.basis) @ state.density_coefficients
-        return _carried(old, nodal, new.nodes), float(old.weights @ nodal)
+        carry = self._carry(np.asarray(new.model.center, dtype=float) - center)
+        carried = _carried(old, nodal, new.nodes) if carry is None else carry.apply(nodal)
+        return carried, float(old.weights @ nodal)
+
+    def _carry(self, offset: np.ndarray) -> "_Carry | None":
+        """The carry by a move of whole mesh steps (1-D elements, the 2-D lattice), kept per move: it
+        depends on the offset only, every ball being the home ball translated (None: a move of any
+        other length, or a mesh without steps: :func:`_carried` then works on the nodes themselves)."""
+        if not self._lattice:
+            return None
+        steps = np.round(offset / self._lattice)
+        if not np.allclose(offset, steps * self._lattice, rtol=0, atol=1e-9 * self.radius):
+            return None
+        return kept(self._carries, tuple(int(k) for k in steps),
+                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset), CARRIES)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Carry:
+    """The carry by one offset as index arrays and a small matrix: ``carried[matched] =
+    nodal[source]``, ``carried[rest] = rows @ nodal`` (interpolation in the old mesh), 0 elsewhere."""
+
+    size: int
+    matched: np.ndarray
+    source: np.ndarray
+    rest: np.ndarray
+    rows: np.ndarray  # (len(rest), Q)
+
+    @classmethod
+    def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray) -> "_Carry":
+        """On the home ball (nodes ``home.nodes`` around ``center``): where its nodes moved by
+        ``offset`` land, as :func:`_carried` finds it."""
+        from scipy.spatial import cKDTree
+
+        nodes = np.asarray(home.nodes, dtype=float)
+        points = nodes + offset
+        scale = max(1.0, float(np.abs(nodes).max()))
+        gap, nearest = cKDTree(nodes).query(points)
+        inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
+        matched = (gap <= 1e-9 * scale) & inside
+        rest = np.flatnonzero(inside & ~matched)
+        rows = home.interpolate(np.eye(len(nodes)), points[rest]) if len(rest) else np.zeros((0, len(nodes)))
+        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows)
+
+    def apply(self, nodal: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.size)
+        out[self.matched] = nodal[self.source]
+        out[self.rest] = self.rows @ nodal
+        return out
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -409,6 +460,7 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     if rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])
     return out
+
 
 
 def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | None = None) -> ChunkResult:

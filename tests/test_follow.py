@@ -320,3 +320,37 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
     np.testing.assert_array_equal(runs["rule"][0].mean, runs["again"][0].mean)
     np.testing.assert_array_equal(runs["rule"][0].loglik, runs["again"][0].loglik)
     assert runs["rule"][1] < runs["again"][1], (runs["rule"][1], runs["again"][1])
+
+
+@pytest.mark.parametrize("element, degree", [("lagrange", 1), ("bubble", 2)])
+def test_a_move_by_whole_lattice_steps_carries_polynomials_exactly_and_is_kept_per_offset(element, degree):
+    """Truth: the element reproduces polynomials of its degree (P1: linear, P2 + bubble: quadratic), so
+    the carry of g's nodal values from a ball away from home onto the ball moved by whole lattice
+    steps is g at the new nodes inside the old ball and 0 outside it.  The carry is kept per offset
+    and serves every centre (every ball is the home ball translated)."""
+    doc = json.loads(json.dumps(TREND))
+    doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
+               initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
+    doc["discretization"].update(basis=300, element=element)
+    model = compile_model(spec_from_dict(doc))
+    flt = build(model, precompute(model))
+    step = flt._lattice
+
+    def g(points):
+        x, y = points[:, 0], points[:, 1]
+        return 1.0 + 0.3 * x - 0.7 * y + (0.05 * x * x - 0.02 * x * y if degree == 2 else 0.0)
+
+    for old_center in (np.array([3 * step, -2 * step]), np.array([40 * step, 17 * step])):
+        old = flt.engine(old_center)
+        for offset in (np.array([2 * step, step]), np.array([-4 * step, 3 * step])):
+            carry = flt._carry(offset)
+            assert carry is flt._carry(offset + 1e-13)  # kept: one per offset in lattice steps
+            new_nodes = old.nodes + offset
+            carried = carry.apply(g(old.nodes))
+            distance = np.linalg.norm(new_nodes - old_center, axis=1)
+            inside = distance < model.radius - 2 * step  # well inside the old (polygonal) ball
+            assert inside.sum() > 20
+            assert np.abs(carried[inside] - g(new_nodes[inside])).max() < 1e-12
+            assert np.all(carried[distance >= model.radius] == 0.0)
+            assert 0 < len(carry.rest) < 0.5 * len(carried)  # a rim is interpolated, the rest read off
+    assert flt._carry(np.array([0.5 * step, 0.0])) is None  # off the lattice: the direct carry
