@@ -351,9 +351,8 @@ class FollowingFilter(ChunkedFilter):
         along = list(self.directions)
         offset = mean[along] - center[along]
         far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
-        if not far:
-            eng = self.engine(center)
-            sigma = np.clip(eng.nodal_density(state), 0.0, None) * eng.weights
+        if not far:  # the basis and weights are the same on every ball: no engine at this centre needed
+            sigma = np.clip(self.home.nodal_density(state), 0.0, None) * self.home.weights
             total = float(sigma.sum())
             far = total > 0 and float(sigma[self._shell].sum()) > self.mass_limit * total
         if not far:
@@ -389,11 +388,10 @@ class FollowingFilter(ChunkedFilter):
     def _carried_to(self, state: Any, new: Any) -> tuple[np.ndarray, float]:
         """The state's density at ``new``'s nodes, and its ∫σ on the old ball."""
         center = np.asarray(state.center, dtype=float)
-        old = self.engine(center)
-        nodal = np.asarray(old.offline.basis) @ state.density_coefficients
+        nodal = self.home.nodal_density(state)  # the basis is the same on every ball
         carry = self._carry(np.asarray(new.model.center, dtype=float) - center)
-        carried = _carried(old, nodal, new.nodes) if carry is None else carry.apply(nodal)
-        return carried, float(old.weights @ nodal)
+        carried = _carried(self.engine(center), nodal, new.nodes) if carry is None else carry.apply(nodal)
+        return carried, float(self.home.weights @ nodal)
 
     def _carry(self, offset: np.ndarray) -> "_Carry | None":
         """The carry by a move of whole mesh steps (1-D elements, the 2-D lattice), kept per move: it
