@@ -415,7 +415,7 @@ class _Carry:
     matched: np.ndarray
     source: np.ndarray
     rest: np.ndarray
-    rows: np.ndarray  # (len(rest), Q)
+    rows: Any  # (len(rest), Q) sparse
 
     @classmethod
     def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray) -> "_Carry":
@@ -426,18 +426,48 @@ class _Carry:
         nodes = np.asarray(home.nodes, dtype=float)
         points = nodes + offset
         scale = max(1.0, float(np.abs(nodes).max()))
-        gap, nearest = cKDTree(nodes).query(points)
+        tree = cKDTree(nodes)
+        gap, nearest = tree.query(points)
         inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
         matched = (gap <= 1e-9 * scale) & inside
         rest = np.flatnonzero(inside & ~matched)
-        rows = home.interpolate(np.eye(len(nodes)), points[rest]) if len(rest) else np.zeros((0, len(nodes)))
-        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows)
+        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest,
+                   _interpolation_rows(home, tree, points[rest]))
 
     def apply(self, nodal: np.ndarray) -> np.ndarray:
         out = np.zeros(self.size)
         out[self.matched] = nodal[self.source]
         out[self.rest] = self.rows @ nodal
         return out
+
+
+def _interpolation_rows(home: Any, tree: Any, points: np.ndarray, memory: int = 4_000_000) -> Any:
+    """(P, Q) sparse: row p holds the weights with which ``home.interpolate`` takes point p's value from
+    the nodal values.  Only nodes within an element's diameter of a point can share its element, so
+    only their unit vectors are interpolated, ``memory`` values at a time (never a Q × Q identity)."""
+    from scipy.sparse import coo_matrix
+
+    Q = len(home.nodes)
+    if not len(points):
+        return coo_matrix((0, Q)).tocsr()
+    corners = np.asarray(home.mesh_points, dtype=float)[:, np.asarray(home.mesh_cells)]  # (n, n+1, C)
+    diameter = max(float(np.linalg.norm(corners[:, i] - corners[:, j], axis=0).max())
+                   for i in range(corners.shape[1]) for j in range(i))
+    near = np.unique(np.concatenate([np.asarray(found, dtype=int) for found in
+                                     tree.query_ball_point(points, diameter * (1 + 1e-9))]))
+    rows, cols, values = [], [], []
+    block = max(32, memory // Q)
+    for start in range(0, len(near), block):
+        columns = near[start:start + block]
+        unit = np.zeros((Q, len(columns)))
+        unit[columns, np.arange(len(columns))] = 1.0
+        weights = home.interpolate(unit, points)  # (P, len(columns))
+        r, c = np.nonzero(weights)
+        rows.append(r)
+        cols.append(columns[c])
+        values.append(weights[r, c])
+    return coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(len(points), Q)).tocsr()
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
