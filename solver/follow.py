@@ -26,8 +26,10 @@ issue's: evaluate the old expansion at the new nodes, zero outside the old ball,
 basis.  ∫σ of the carried density becomes the state's mass, so the next step renormalises by it;
 the log-likelihood is not touched by a move (it is the sum of the steps' log ∫σ_k/∫σ_(k−1), none of
 which the move changes).  The mass the move leaves outside the new ball is measured and reported.
-A block in which the mean strays beyond ``follow_distance`` + ¼ of R (or that degenerates) is run
-again from its start in a shorter block, so a fast state is caught before it reaches the wall.
+A move by whole mesh steps is the same map wherever the ball is (every ball is the home ball
+translated), so it is built once per offset and kept (:class:`_Carry`).  A block ends in the engine
+before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
+shorter), so a fast state is caught before it reaches the wall.
 """
 
 from __future__ import annotations
@@ -425,12 +427,9 @@ class _Carry:
 
         nodes = np.asarray(home.nodes, dtype=float)
         points = nodes + offset
-        scale = max(1.0, float(np.abs(nodes).max()))
         tree = cKDTree(nodes)
-        gap, nearest = tree.query(points)
-        inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
-        matched = (gap <= 1e-9 * scale) & inside
-        rest = np.flatnonzero(inside & ~matched)
+        nearest, matched, rest = _landing(tree, nodes, points, center, radius)
+        rest = np.flatnonzero(rest)
         return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest,
                    _interpolation_rows(home, tree, points[rest]))
 
@@ -476,18 +475,26 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     in the old mesh elsewhere (the nodes near the boundary, or a mesh without a lattice)."""
     from scipy.spatial import cKDTree
 
-    scale = max(1.0, float(np.abs(old.nodes).max()))
     tree = old.__dict__.get("_node_tree")
     if tree is None:  # kept on the (cached) centred engine: its nodes never change
         tree = old.__dict__["_node_tree"] = cKDTree(old.nodes)
-    gap, nearest = tree.query(points)
-    matched = gap <= 1e-9 * scale
-    inside = np.linalg.norm(points - old.model.center, axis=1) < old.model.radius * (1 - 1e-12)
-    out = np.where(matched & inside, nodal[nearest], 0.0)
-    rest = inside & ~matched
+    nearest, matched, rest = _landing(tree, old.nodes, points, old.model.center, old.model.radius)
+    out = np.where(matched, nodal[nearest], 0.0)
     if rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])
     return out
+
+
+def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any,
+             radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: the
+    nearest node of each, the points inside the ball that are nodes (read off), and those inside that
+    are not (interpolated).  The sphere itself counts as outside (Dirichlet: σ = 0 there)."""
+    scale = max(1.0, float(np.abs(nodes).max()))
+    gap, nearest = tree.query(points)
+    inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
+    matched = (gap <= 1e-9 * scale) & inside
+    return nearest, matched, inside & ~matched
 
 
 
