@@ -271,14 +271,19 @@ class YauYauFilter(ChunkedFilter):
                             dtype=self._arith.dtype)
 
     def run_arrays(self, state: YauYauState, increments: np.ndarray,
-                   times: np.ndarray | None = None, until: Any = None) -> tuple[YauYauState, ChunkResult]:
+                   times: np.ndarray | None = None, until: Any = None,
+                   follow: Any = None) -> tuple[YauYauState, ChunkResult]:
         """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays.
 
         ``until(mean, centers)`` (a ball that follows the state, solver/follow.py): given the rows'
         means (K, n) and, in a moving frame, their centres (else None), the number j ≥ 1 of rows to
         keep, or None for all.  The chunk then ends after row j − 1: the result has j rows and the new
         state is the one the hot loop carried there, bit for bit, as if the chunk had been j rows long.
-        Rows over long gaps (filtered in pieces) always run whole."""
+        Rows over long gaps (filtered in pieces) always run whole.
+
+        ``follow`` (regular rows only): ``(follower, velocity)``, a ball that moves inside the loop
+        (solver/recentring.py); ``state.center`` is the ball's centre, the result has each row's, and
+        the chunk may end early (after a row the loop could not move from: the caller re-centres)."""
         model, obs = self.model, self.observation
         rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
         K = rows.shape[0]
@@ -292,9 +297,11 @@ class YauYauFilter(ChunkedFilter):
             self._check_literal(rows, taus)
         if state.degenerate:
             return self._stay_degenerate(state, steps, times, state.reason)
+        if follow is not None and taus is not None:
+            raise ValueError("a ball that moves inside the loop takes regular rows only")
         pieces = self._pieces(rows, taus)
         if pieces is None:
-            return self._run(state, rows, steps, times, taus, gating=True, until=until)
+            return self._run(state, rows, steps, times, taus, gating=True, until=until, follow=follow)
         parts, start = [], 0
         for stop in _blocks(pieces, MAX_CHUNK_PIECES):  # bounded memory: the pieces of a block at a time
             if state.degenerate:  # an earlier block degenerated: the rest stays so
@@ -316,30 +323,45 @@ class YauYauFilter(ChunkedFilter):
         return run_batch(self, states, chunks, times, return_exceptions)
 
     def _run(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-             taus: np.ndarray | None, gating: bool, until: Any = None) -> tuple[YauYauState, ChunkResult]:
+             taus: np.ndarray | None, gating: bool, until: Any = None,
+             follow: Any = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
-        ready = self._prepare(state, rows, taus, gating)
+        ready = self._prepare(state, rows, taus, gating, follow)
         loop = self._propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
-                               taus)
+                               taus, ready.moving)
         return self._finish(state, rows, steps, times, taus, ready, *loop, until=until)
 
     def _prepare(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None,
-                 gating: bool) -> "_Prepared":
-        """What the hot loop needs of a chunk: the update factors, the gate, the carried vector."""
+                 gating: bool, follow: Any = None) -> "_Prepared":
+        """What the hot loop needs of a chunk: the update factors, the gate, the carried vector (on a
+        ball that moves in the loop, the factors come a window at a time: solver/recentring.py)."""
         obs = self.observation
         gaps = np.full(len(rows), self.model.dt) if taus is None else taus
-        shifts = self._shifts(state, gaps)
-        keys, terms, log_factor, top, impossible = self._factors(rows, gaps, shifts)
+        moving, origin = None, None if self.frame is None else self.frame.origin
+        if follow is None:
+            shifts = self._shifts(state, gaps)
+            keys, terms, log_factor, top, impossible = self._factors(rows, gaps, shifts)
+        else:
+            from .recentring import Recentring
+
+            keys = obs.pattern_keys(~np.isnan(rows))
+            terms = obs.row_terms(rows, gaps, keys)
+            moving = Recentring(self, follow[0], state, rows, gaps, keys, terms, keys == 0, follow[1])
+            log_factor, top, impossible = moving.log_factor, moving.top, moving.impossible
+            shifts, origin = moving.shifts, moving.origin
         missing = keys == 0
         gate = _Gate(obs, terms, keys, gaps, self, shifts) if obs.gating and gating else None
         skip = missing.copy()
         if gate is not None:  # rejected before the loop: no finite factor to weigh
             skip |= impossible
             gate.scores.update({int(k): math.inf for k in np.flatnonzero(impossible)})
+        if moving is not None:  # its windows add their impossible rows to these
+            moving.skip, moving.gate = skip, gate
         initial = np.append(state.coefficients, state.mass).astype(self._arith.dtype)
         # _rescue may shift top[k]: the growth is relative to the factor's maximum
-        return _Prepared(gaps, keys, terms, log_factor, top, top.copy(), impossible, missing, skip, gate,
-                         initial, shifts)
+        top_before = top.copy() if moving is None else moving.top_before
+        return _Prepared(gaps, keys, terms, log_factor, top, top_before, impossible, missing, skip, gate,
+                         initial, shifts, origin, moving)
 
     def _finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
                 taus: np.ndarray | None, ready: "_Prepared", sigma, masses, carried, done: int,
@@ -371,8 +393,11 @@ class YauYauFilter(ChunkedFilter):
         mean, cov, mode = self._moments(sigma[:done], masses[:done],
                                         None if shifts is None else shifts[:done])
         cut = None if until is None or not done else until(
-            mean, None if shifts is None else shifts[:done] + self.frame.origin)
-        if cut is not None and 1 <= cut < done:  # the chunk ends after row cut − 1 (run_arrays)
+            mean, None if shifts is None else shifts[:done] + ready.origin)
+        stopped = None if ready.moving is None else ready.moving.stopped
+        if stopped is not None:  # the loop could not move the ball after row stopped − 1: it ends there
+            cut = stopped
+        if cut is not None and 1 <= cut < K and (cut < done or cut == stopped):
             K = done = int(cut)
             rows, steps, times, missing, skip = rows[:K], steps[:K], times[:K], missing[:K], skip[:K]
             sigma, masses, pll, gated, scores = sigma[:K], masses[:K], pll[:K], gated[:K], scores[:K]
@@ -414,7 +439,7 @@ class YauYauFilter(ChunkedFilter):
         gated[done:], scores[done:] = False, np.nan
         frame = {}
         if shifts is not None:  # the frame's centre after each row (after the last good one when stopped)
-            centers = shifts + self.frame.origin
+            centers = shifts + ready.origin
             end = centers[-1] if good else (centers[done - 1] if done else np.asarray(state.center, float))
             new_state = dataclasses.replace(new_state, center=np.array(end))
             frame = {"center": centers}
@@ -553,7 +578,7 @@ class YauYauFilter(ChunkedFilter):
         return {}
 
     def _propagate(self, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray, missing: list[bool],
-                   gate: "_Gate | None", taus: np.ndarray | None):
+                   gate: "_Gate | None", taus: np.ndarray | None, moving: Any = None):
         """The hot loop, two BLAS calls per step.  ``carried`` is [coefficients, ∫σ] (N+1,).
 
         Regular steps use the stored propagator over dt; with ``taus`` (irregular gaps) the coefficients
@@ -563,16 +588,29 @@ class YauYauFilter(ChunkedFilter):
         ``scores`` and ``attempted`` log E_pred[e] are recorded there).  Returns nodal σ_k
         (pre-projection, K×Q, each relative to a unit-mass σ_{k−1}), ∫σ_k, the final carried vector,
         the number of good steps and the reason it stopped early (or None).
+
+        ``moving`` (solver/recentring.py): the ball re-centres after a row whose mean or shell mass
+        calls for it; the factors come a window at a time; the carried vector has the trigger's sums
+        after ∫σ (the projector's extra rows).
         """
         K, Q = log_factor.shape
         N = self.N
         arith = self._arith
-        factor = np.exp(log_factor).astype(arith.dtype, copy=False)
-        factor[factor < arith.negligible] = 0.0
+        if moving is None:
+            factor = np.exp(log_factor).astype(arith.dtype, copy=False)
+            factor[factor < arith.negligible] = 0.0
+        else:  # filled a window at a time
+            factor = moving.factor
         sigma = np.empty((K, Q), dtype=arith.dtype)
         scratch = np.empty(Q, dtype=arith.dtype)
         masses = [0.0] * K
         predict, observe, project, gemv = self._predict, self._observe, self._project, arith.gemv
+        next_window, last, watch = -1, K - 1, ()
+        if moving is not None:  # the trigger: Σw(x − c)_iσ beyond ±reach·∫σ, or the shell's Σwσ over limit·∫σ
+            project = moving.project
+            carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
+            next_window, watch = 0, tuple(range(N + 1, N + 1 + moving.d))
+            reach, shell, shell_limit = moving.reach, N + 1 + moving.d, moving.shell_limit
         flow = self.flow if taus is not None else None
         modal = flow is not None and not flow.exact
         if modal:
@@ -591,11 +629,15 @@ class YauYauFilter(ChunkedFilter):
         # the gate's bound g = bias − 2(log ∫σ + top) ≤ threshold is ∫σ ≥ floor: one comparison a step
         floors = [0.0] * K if gate is None else gate.floors(top, missing)
         observed = [not m for m in missing]
+        if moving is not None:
+            moving.observed, moving.floors = observed, floors
         tiny, huge, multiply = arith.tiny, arith.huge, np.multiply
         rows, factors = list(sigma), list(factor)  # made once, not per step
         mass = carried.item(N)
         for k in range(K):
             row = rows[k]
+            if k == next_window:  # the update factors of the next rows at the ball's centre
+                next_window = moving.window(k)
             if modal:
                 multiply(real_c, real_scale[k], out=real_c)
                 if pairs:
@@ -622,6 +664,22 @@ class YauYauFilter(ChunkedFilter):
             if modal:
                 real_c, real_f = real_f, real_c
                 pair_c, pair_f = pair_f, pair_c
+            elif watch and k < last:
+                far = carried.item(shell) > shell_limit * mass
+                for i in watch:
+                    if far:
+                        break
+                    far = not -reach * mass <= carried.item(i) <= reach * mass
+                if not far or k < moving.quiet:
+                    continue
+                moved = moving.move(k, carried, following, mass)
+                if moved is None:  # the loop cannot move on: the chunk ends after row k
+                    moving.stopped = k + 1
+                    return sigma, np.array(masses[:k + 1]), carried.copy(), k + 1, None
+                if moved > 0.0:
+                    mass = moved
+                    carried, following = following, carried
+                    next_window = moving.window(k + 1)
         return sigma, np.array(masses), carried.copy(), K, None
 
     def _slow_step(self, k, new_mass, s, row, observed, log_factor, top, gate, project, following):
@@ -828,6 +886,8 @@ class _Prepared:
     gate: "_Gate | None"
     initial: np.ndarray  # [coefficients, ∫σ] in the loop's precision
     shifts: np.ndarray | None = None  # (K, n) each row's node shift in a moving frame (solver/frame.py)
+    origin: np.ndarray | None = None  # the centre the shifts are from
+    moving: Any = None  # solver/recentring.py: a ball that moves inside the loop
 
 
 class _Gate:
@@ -847,12 +907,15 @@ class _Gate:
     def size(self, k: int) -> int:
         return int(self.keys[k]).bit_count()
 
-    def floors(self, top: np.ndarray, missing: np.ndarray) -> list[float]:
+    def floors(self, top: np.ndarray, missing: np.ndarray, start: int = 0) -> list[float]:
         """Per row, the ∫σ below which the cheap bound is over the threshold: exp((bias − threshold)/2
-        − top) (0 where nothing is gated: a row without observation, the gate off for its size)."""
+        − top) (0 where nothing is gated: a row without observation, the gate off for its size);
+        ``top`` and ``missing`` of the rows from ``start`` on."""
+        part = slice(start, start + len(top))
+        threshold = self.terms.threshold[part]
         with np.errstate(over="ignore", invalid="ignore"):
-            floor = np.exp(0.5 * (self.terms.bound_bias() - self.terms.threshold) - top)
-        floor[missing | ~np.isfinite(self.terms.threshold)] = 0.0
+            floor = np.exp(0.5 * (self.terms.bound_bias()[part] - threshold) - top)
+        floor[missing | ~np.isfinite(threshold)] = 0.0
         return np.nan_to_num(floor, nan=np.inf).tolist()
 
     def correction(self, k: int, s: np.ndarray, shift: np.ndarray | None = None) -> float:

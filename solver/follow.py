@@ -30,6 +30,10 @@ A move by whole mesh steps is the same map wherever the ball is (every ball is t
 translated), so it is built once per offset and kept (:class:`_Carry`).  A block ends in the engine
 before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
 shorter), so a fast state is caught before it reaches the wall.
+
+Where every move is a kept carry (no moving frame, no atlas, regular rows: ``moves_in_loop``), the
+engine's loop applies the same trigger and carry after any row (solver/recentring.py): a block's fixed
+cost is then paid once per chunk instead of once per move.
 """
 
 from __future__ import annotations
@@ -132,6 +136,10 @@ class FollowingFilter(ChunkedFilter):
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
+        # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
+        self.moves_in_loop = self.frame is None and self.atlas is None and bool(self._lattice)
+        self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
+        self._h: OrderedDict[tuple, tuple[np.ndarray, dict]] = OrderedDict()
 
     def runner(self, center: np.ndarray) -> Any:
         """The engine that runs a block from ``center``: the centred engine, or in a moving frame
@@ -253,6 +261,8 @@ class FollowingFilter(ChunkedFilter):
         if K == 0 or state.degenerate:
             new, result = self.runner(state.center).run_arrays(state, rows, times)
             return self._placed(new, state.center), _with_centers(result, state.center)
+        if self.moves_in_loop and times is None:
+            return self._run_moving(state, rows)
         parts, start, block, velocity, jitter = [], 0, FIRST_BLOCK, None, 0.0
         along = list(self.directions)
         while start < K:
@@ -296,6 +306,61 @@ class FollowingFilter(ChunkedFilter):
                 state = self._placed(new, state.center)
                 break
         return state, concat_results(parts)
+
+    def _run_moving(self, state: Any, rows: np.ndarray) -> tuple[Any, ChunkResult]:
+        """The chunk through the home engine's loop, which re-centres the ball itself
+        (solver/recentring.py); between passes (where the loop could not move on) the block logic's
+        re-centre, or its degenerate reason."""
+        parts, start, K, velocity = [], 0, len(rows), None
+        along = list(self.directions)
+        while start < K:
+            before = state.last.mean[along]
+            new, part = self.home.run_arrays(state, rows[start:], follow=(self, velocity))
+            length = len(part.mean)  # rows with estimates (fewer when it degenerated)
+            if length:
+                drift = (part.mean[-1, along] - before) / length  # per row
+                velocity = drift if velocity is None else 0.5 * (velocity + drift)
+            state, balls = new, np.asarray(part.center, dtype=float)  # each row's ball
+            if not state.degenerate:
+                state = self._maybe_recentre(state, np.zeros(len(along)))
+                if state.degenerate:  # the move failed, or the mean left the region: flag its row
+                    flags = part.degenerate.copy()
+                    flags[length - 1] = True
+                    part = dataclasses.replace(part, degenerate=flags, reason=part.reason or state.reason)
+            after = np.concatenate([balls[1:], np.asarray(state.center, dtype=float)[None, :]])
+            moved = np.any(after != balls, axis=1)
+            parts.append(dataclasses.replace(part, center=after, recentred=moved))
+            start += len(part.step)
+            if state.degenerate and start < K:  # the rest stays degenerate
+                new, part = self.runner(state.center).run_arrays(state, rows[start:])
+                parts.append(_with_centers(part, state.center))
+                state = self._placed(new, state.center)
+                break
+        return state, concat_results(parts)
+
+    def h_at(self, center: np.ndarray) -> tuple[np.ndarray, dict]:
+        """h at the nodes of the ball around ``center`` (Q, m) and a factor cache for them (kept a few
+        at a time: what a centred engine holds for the update factors, without the rest of it)."""
+        def make():
+            return np.asarray(self.model.h(self.home.nodes + (center - self.home_center)), dtype=float), {}
+
+        return kept(self._h, tuple(float(c) for c in center), make, CACHE)
+
+    def watch_arrays(self, dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+        """For a loop that moves the ball (solver/recentring.py), in the loop's precision: the home
+        engine's projector with the trigger's rows w·(x − c)_i along the shift directions and w on the
+        outer shell, and the basis with a zero column (it reads the carried vector [a, ∫σ, …])."""
+        found = self._watch.get(dtype)
+        if found is None:
+            from .engine import _with_zero_column
+
+            home = self.home
+            offsets = home.nodes - self.home_center
+            rows = [home.weights * offsets[:, i] for i in self.directions] + [home.weights * self._shell]
+            project = np.vstack([np.asarray(home._project, dtype=float), rows])
+            found = self._watch[dtype] = (np.asfortranarray(project, dtype=dtype),
+                                          _with_zero_column(home.offline.basis, dtype))
+        return found
 
     def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
                   return_exceptions: bool = False) -> list[Any]:
@@ -391,18 +456,18 @@ class FollowingFilter(ChunkedFilter):
         """The state's density at ``new``'s nodes, and its ∫σ on the old ball."""
         center = np.asarray(state.center, dtype=float)
         nodal = self.home.nodal_density(state)  # the basis is the same on every ball
-        carry = self._carry(np.asarray(new.model.center, dtype=float) - center)
+        carry = self.carry(np.asarray(new.model.center, dtype=float) - center)
         carried = _carried(self.engine(center), nodal, new.nodes) if carry is None else carry.apply(nodal)
         return carried, float(self.home.weights @ nodal)
 
-    def _carry(self, offset: np.ndarray) -> "_Carry | None":
+    def carry(self, offset: np.ndarray) -> "_Carry | None":
         """The carry by a move of whole mesh steps (1-D elements, the 2-D lattice), kept per move: it
         depends on the offset only, every ball being the home ball translated (None: a move of any
         other length, or a mesh without steps: :func:`_carried` then works on the nodes themselves)."""
         if not self._lattice:
             return None
         steps = np.round(offset / self._lattice)
-        if not np.allclose(offset, steps * self._lattice, rtol=0, atol=1e-9 * self.radius):
+        if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
         return kept(self._carries, tuple(int(k) for k in steps),
                     lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset), CARRIES)

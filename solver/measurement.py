@@ -274,8 +274,9 @@ class Observation:
         if cache is not None and key in cache:
             return cache[key]
         h_o = h_points[:, pat.index]
-        hR = np.ascontiguousarray((h_o @ pat.R_inv).T)  # (|o|, P)
-        half = 0.5 * np.einsum("pi,ij,pj->p", h_o, pat.R_inv, h_o)
+        h_R = h_o @ pat.R_inv
+        hR = np.ascontiguousarray(h_R.T)  # (|o|, P)
+        half = 0.5 * (h_R * h_o).sum(axis=1)
         if cache is not None:
             cache[key] = (hR, half)
         return hR, half
@@ -313,6 +314,13 @@ class RowTerms:
     def bound_bias(self) -> np.ndarray:
         """g = bias − 2 log E_pred[e]: −2·offset − log det 2πS₀."""
         return -2.0 * self.offset - self.log_det_S0
+
+    def rows(self, start: int, stop: int, keys: np.ndarray) -> "RowTerms":
+        """The terms of rows start..stop − 1 (``keys``: the whole chunk's pattern keys)."""
+        part = slice(start, stop)
+        return RowTerms(offset=self.offset[part], log_det_S0=self.log_det_S0[part], kappa2=self.kappa2[part],
+                        threshold=self.threshold[part], constant=self.constant[part],
+                        quadratic=self.quadratic[part], groups=Observation.groups(keys[part]))
 
 
 # -- rows and times --------------------------------------------------------------------------

@@ -1,0 +1,151 @@
+"""A ball that moves inside the engine's hot loop (``[domain] follow``, solver/follow.py).
+
+Between blocks, :class:`~solver.follow.FollowingFilter` re-centres B_R(c) on the posterior.  Every
+block is one pass through the engine, whose fixed cost (the chunk's row terms, factors, moments,
+checks: ~0.1–0.3 ms) is paid per block; a state that moves a mesh step every few dozen rows paid it
+that often (1-D: 3× the fixed ball's cost per observation).  Where a move is a fixed map of the
+coefficients — a shift-invariant drift and a move by whole mesh steps (:class:`~solver.follow._Carry`)
+— the loop itself re-centres:
+
+* the projection that gives the coefficients and ∫σ_k also gives Σ_q w_q (x_q − c)_i σ_k(x_q) along
+  the shift directions and the outer shell's mass (extra rows of the projector), so the trigger of
+  solver/follow.py (mean beyond ``follow_distance``·R, or ``follow_mass`` in the shell) costs a few
+  comparisons a row;
+* a move after row k carries the vector: σ = Φ a at the old nodes, the kept carry onto the new nodes,
+  the projection (coefficients and ∫σ of the carried density, the state's new mass); the log-likelihood
+  is not touched, as between blocks;
+* the update factors e_k depend on the ball (h at its nodes): they are computed a window of rows at a
+  time at the current centre, and again from the row after a move.
+
+Each row's ball is the home ball shifted by ``shifts[k]`` (the moments read it as in a moving frame).
+What the loop cannot do — leave ``[domain] region``, a carry that leaves no mass, an observation
+function not finite at the new nodes — ends the pass after that row (``stopped``); the block logic of
+solver/follow.py then re-centres or reports the degenerate reason.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+QUIET = 16  # rows without a new trigger after one whose snapped centre is the current one
+FIRST_WINDOW = 64  # rows of update factors computed at once before the pace of moves is known
+MIN_WINDOW, MAX_WINDOW = 16, 512
+
+
+class Recentring:
+    """One pass of the hot loop on a ball that moves (module docstring).  ``engine``: the home engine;
+    ``follower``: the :class:`~solver.follow.FollowingFilter`; the arrays of the chunk's rows."""
+
+    def __init__(self, engine: Any, follower: Any, state: Any, rows: np.ndarray, gaps: np.ndarray,
+                 keys: np.ndarray, terms: Any, missing: np.ndarray, velocity: np.ndarray | None):
+        self.engine, self.follower = engine, follower
+        self.rows, self.gaps, self.keys, self.terms, self.missing = rows, gaps, keys, terms, missing
+        K, Q = len(rows), len(engine.nodes)
+        self.dtype = engine._arith.dtype
+        self.log_factor = np.zeros((K, Q))
+        self.factor = np.empty((K, Q), dtype=self.dtype)
+        self.top, self.top_before = np.zeros(K), np.zeros(K)
+        self.impossible = np.zeros(K, dtype=bool)
+        self.origin = np.asarray(follower.home_center, dtype=float)
+        self.center = np.array(state.center, dtype=float)
+        self.shifts = np.repeat((self.center - self.origin)[None, :], K, axis=0)
+        self.project, self.basis = follower.watch_arrays(self.dtype)
+        self.along = list(follower.directions)
+        self.d = len(self.along)
+        self.reach, self.shell_limit = follower.distance, follower.mass_limit
+        self.velocity = np.zeros(self.d) if velocity is None else np.asarray(velocity, dtype=float)
+        self.pace = float(FIRST_WINDOW)  # rows between moves (an average)
+        self.last_move: tuple[int, np.ndarray] | None = None  # row and mean of the last move
+        self.stopped: int | None = None  # rows done when the loop ended before the chunk's end
+        self.quiet = 0
+        self.moves = 0
+        self.observed: list[bool] = []
+        self.floors: list[float] = []
+        self.skip = missing
+        self.gate = None
+        self.h, self.cache = follower.h_at(self.center)
+
+    # -- the update factors ---------------------------------------------------------------------
+    def window(self, start: int) -> int:
+        """The update factors of rows from ``start`` at the current centre, as the engine's
+        ``_prepare`` computes them for a whole chunk; the row where the next window starts (−1: none)."""
+        K = len(self.rows)
+        stop = min(K, start + min(MAX_WINDOW, max(MIN_WINDOW, int(1.5 * self.pace) + MIN_WINDOW)))
+        engine, obs = self.engine, self.engine.observation
+        part = slice(start, stop)
+        log_factor = obs.log_factors(self.h, self.rows[part], self.gaps[part], self.keys[part],
+                                     self.terms.rows(start, stop, self.keys), self.cache,
+                                     penalty=engine.form != "literal")
+        missing = self.missing[part]
+        top = log_factor.max(axis=1)
+        if missing.any() or not np.isfinite(top).all():
+            impossible = ~missing & ~np.isfinite(top)
+            top[missing | impossible] = 0.0
+            log_factor -= top[:, None]
+            log_factor[missing | impossible] = 0.0
+            self.impossible[part] = impossible
+        else:
+            impossible = None
+            log_factor -= top[:, None]
+        self.log_factor[part], self.top[part], self.top_before[part] = log_factor, top, top
+        factor = self.factor[part]
+        if factor.dtype == log_factor.dtype:
+            np.exp(log_factor, out=factor)
+        else:
+            factor[...] = np.exp(log_factor)
+        factor[factor < engine._arith.negligible] = 0.0
+        if self.gate is not None:
+            if start == 0:  # log of the gate's floors (engine._Gate.floors) but for the factor's top
+                terms = self.gate.terms
+                with np.errstate(invalid="ignore"):
+                    base = 0.5 * (terms.bound_bias() - terms.threshold)
+                base[self.missing | ~np.isfinite(terms.threshold)] = -np.inf
+                self._floor = np.nan_to_num(base, nan=np.inf, posinf=np.inf, neginf=-np.inf)
+            with np.errstate(over="ignore"):
+                self.floors[part] = np.exp(self._floor[part] - top).tolist()
+            for k in [] if impossible is None else (start + np.flatnonzero(impossible)).tolist():
+                self.skip[k], self.observed[k] = True, False  # rejected before the loop reaches them
+                self.gate.scores[k] = np.inf
+        return stop if stop < K else -1
+
+    # -- a move ------------------------------------------------------------------------------------
+    def move(self, k: int, carried: np.ndarray, following: np.ndarray, mass: float) -> float | None:
+        """Re-centre after row k: ``following`` gets the carried vector; its ∫σ (0.0: no move, the
+        snapped centre is the current one; None: the loop must stop after row k)."""
+        N1 = self.engine.N + 1
+        follower = self.follower
+        mean = self.center.copy()
+        mean[self.along] += carried[N1:N1 + self.d] / mass
+        if follower.left_region(mean):
+            return None
+        if self.last_move is not None:
+            row, before = self.last_move
+            rows = max(1, k - row)
+            self.velocity = 0.5 * (self.velocity + (mean[self.along] - before) / rows)
+            self.pace = 0.5 * (self.pace + rows)
+        self.last_move = (k, mean[self.along].copy())
+        ahead = mean.copy()  # led by half the travel to the next move, at most half the trigger distance
+        ahead[self.along] += np.clip(0.5 * self.velocity * self.pace, -0.5 * self.reach, 0.5 * self.reach)
+        target = follower.snapped(self.center, ahead)
+        if np.array_equal(target, self.center):
+            self.quiet = k + QUIET
+            return 0.0
+        carry = follower.carry(target - self.center)
+        if carry is None:
+            return None
+        h, cache = follower.h_at(target)
+        if not np.all(np.isfinite(h)):
+            return None
+        arith = self.engine._arith
+        nodal = arith.gemv(1.0, self.basis, carried)
+        moved = carry.apply(nodal).astype(self.dtype, copy=False)
+        arith.gemv(1.0, self.project, moved, 0.0, following, 0, 1, 0, 1, 0, 1)
+        new_mass = following.item(self.engine.N)
+        if not arith.tiny < new_mass < arith.huge:
+            return None
+        self.h, self.cache, self.center = h, cache, target
+        self.shifts[k + 1:] = target - self.origin
+        self.moves += 1
+        return new_mass
