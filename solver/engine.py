@@ -281,9 +281,10 @@ class YauYauFilter(ChunkedFilter):
         state is the one the hot loop carried there, bit for bit, as if the chunk had been j rows long.
         Rows over long gaps (filtered in pieces) always run whole.
 
-        ``follow`` (regular rows only): ``(follower, velocity)``, a ball that moves inside the loop
-        (solver/recentring.py); ``state.center`` is the ball's centre, the result has each row's, and
-        the chunk may end early (after a row the loop could not move from: the caller re-centres)."""
+        ``follow`` (regular rows only): ``(follower, velocity, moves)``, a ball that moves inside the
+        loop (solver/recentring.py; ``moves`` gets (row, new centre) per move); ``state.center`` is the
+        ball's centre, the result has each row's, and the chunk may end early (after a row the loop
+        could not move from: the caller re-centres)."""
         model, obs = self.model, self.observation
         rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
         K = rows.shape[0]
@@ -346,7 +347,7 @@ class YauYauFilter(ChunkedFilter):
 
             keys = obs.pattern_keys(~np.isnan(rows))
             terms = obs.row_terms(rows, gaps, keys)
-            moving = Recentring(self, follow[0], state, rows, gaps, keys, terms, keys == 0, follow[1])
+            moving = Recentring(self, follow[0], state, rows, gaps, keys, terms, keys == 0, *follow[1:])
             log_factor, top, impossible = moving.log_factor, moving.top, moving.impossible
             shifts, origin = moving.shifts, moving.origin
         missing = keys == 0

@@ -31,7 +31,7 @@ translated), so it is built once per offset and kept (:class:`_Carry`).  A block
 before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
 shorter), so a fast state is caught before it reaches the wall.
 
-Where every move is a kept carry (no moving frame, no atlas, regular rows: ``moves_in_loop``), the
+Where every move is a kept carry (a mesh with steps, no atlas, regular rows: ``moves_in_loop``), the
 engine's loop applies the same trigger and carry after any row (solver/recentring.py): a block's fixed
 cost is then paid once per chunk instead of once per move.
 """
@@ -137,7 +137,7 @@ class FollowingFilter(ChunkedFilter):
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
-        self.moves_in_loop = self.frame is None and self.atlas is None and bool(self._lattice)
+        self.moves_in_loop = self.atlas is None and bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
         self._h: OrderedDict[tuple, tuple[np.ndarray, dict]] = OrderedDict()
 
@@ -308,28 +308,34 @@ class FollowingFilter(ChunkedFilter):
         return state, concat_results(parts)
 
     def _run_moving(self, state: Any, rows: np.ndarray) -> tuple[Any, ChunkResult]:
-        """The chunk through the home engine's loop, which re-centres the ball itself
+        """The chunk through the loop of the home engine (or the frame's), which re-centres the ball itself
         (solver/recentring.py); between passes (where the loop could not move on) the block logic's
         re-centre, or its degenerate reason."""
         parts, start, K, velocity = [], 0, len(rows), None
         along = list(self.directions)
         while start < K:
-            before = state.last.mean[along]
-            new, part = self.home.run_arrays(state, rows[start:], follow=(self, velocity))
+            before, moves = state.last.mean[along], []
+            engine = self.home if self.frame is None else self.runner(state.center)  # nodes at home
+            new, part = engine.run_arrays(state, rows[start:], follow=(self, velocity, moves))
             length = len(part.mean)  # rows with estimates (fewer when it degenerated)
-            if length:
+            if length and self.frame is None:  # (in a frame the loop leads by nothing)
                 drift = (part.mean[-1, along] - before) / length  # per row
                 velocity = drift if velocity is None else 0.5 * (velocity + drift)
-            state, balls = new, np.asarray(part.center, dtype=float)  # each row's ball
+            state = new
+            centers = np.array(part.center, dtype=float)  # each row's ball, then where a move took it
+            moved = np.zeros(len(centers), dtype=bool)
+            for k, target in moves:
+                centers[k], moved[k] = target, True
+            end = np.asarray(state.center, dtype=float)
             if not state.degenerate:
                 state = self._maybe_recentre(state, np.zeros(len(along)))
                 if state.degenerate:  # the move failed, or the mean left the region: flag its row
                     flags = part.degenerate.copy()
                     flags[length - 1] = True
                     part = dataclasses.replace(part, degenerate=flags, reason=part.reason or state.reason)
-            after = np.concatenate([balls[1:], np.asarray(state.center, dtype=float)[None, :]])
-            moved = np.any(after != balls, axis=1)
-            parts.append(dataclasses.replace(part, center=after, recentred=moved))
+                elif not np.array_equal(state.center, end):
+                    centers[-1], moved[-1] = state.center, True
+            parts.append(dataclasses.replace(part, center=centers, recentred=moved))
             start += len(part.step)
             if state.degenerate and start < K:  # the rest stays degenerate
                 new, part = self.runner(state.center).run_arrays(state, rows[start:])

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+SEGMENT = 256  # rows of a regular path computed from one start (powers of e^{Aτ} kept per τ)
+
 
 @dataclass(frozen=True, eq=False)
 class AffineFrame:
@@ -33,6 +35,7 @@ class AffineFrame:
     b: np.ndarray
     origin: np.ndarray
     _steps: dict = field(default_factory=dict, repr=False)
+    _powers: dict = field(default_factory=dict, repr=False)
 
     @property
     def offset(self) -> np.ndarray:
@@ -53,14 +56,38 @@ class AffineFrame:
         return found
 
     def path(self, start: np.ndarray, gaps: np.ndarray) -> np.ndarray:
-        """The centres after each gap (K, n), from ``start`` at the first gap's beginning."""
+        """The centres after each gap (K, n), from ``start`` at the first gap's beginning.  Equal gaps
+        (regular rows) in segments: c_j = Φʲc + Σ_(i<j) Φⁱs for j ≤ SEGMENT (:meth:`powers`)."""
+        gaps = np.asarray(gaps, dtype=float)
         out = np.empty((len(gaps), len(self.b)))
         c = np.asarray(start, dtype=float)
-        for k, tau in enumerate(np.asarray(gaps, dtype=float).tolist()):
+        if len(gaps) > 1 and np.all(gaps == gaps[0]):
+            powers, sums = self.powers(float(gaps[0]))
+            for first in range(0, len(gaps), SEGMENT):
+                size = min(SEGMENT, len(gaps) - first)
+                out[first:first + size] = powers[:size] @ c + sums[:size]
+                c = out[first + size - 1]
+            return out
+        for k, tau in enumerate(gaps.tolist()):
             phi, shift = self.step(tau)
             c = phi @ c + shift
             out[k] = c
         return out
+
+    def powers(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """Φʲ and Σ_(i<j) Φⁱs for j = 1..SEGMENT, (Φ, s) = :meth:`step` (τ) (kept for a few τ)."""
+        found = self._powers.get(tau)
+        if found is None:
+            phi, shift = self.step(tau)
+            powers, sums = np.empty((SEGMENT,) + phi.shape), np.empty((SEGMENT, len(shift)))
+            powers[0], sums[0] = phi, shift
+            for j in range(1, SEGMENT):
+                powers[j] = phi @ powers[j - 1]
+                sums[j] = phi @ sums[j - 1] + shift
+            found = (powers, sums)
+            if len(self._powers) < 8:
+                self._powers[tau] = found
+        return found
 
     def drift(self, f: Any):
         """The stored propagator's drift x ↦ f(x) − f(c₀) (= A(x − c₀))."""

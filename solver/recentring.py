@@ -18,6 +18,8 @@ coefficients — a shift-invariant drift and a move by whole mesh steps (:class:
   time at the current centre, and again from the row after a move.
 
 Each row's ball is the home ball shifted by ``shifts[k]`` (the moments read it as in a moving frame).
+In a moving frame (solver/frame.py) the centre also rides ċ = Ac + b between moves: a window computes
+the frame's path over its rows (from the centre a move left, after one) and h at each row's nodes.
 What the loop cannot do — leave ``[domain] region``, a carry that leaves no mass, an observation
 function not finite at the new nodes — ends the pass after that row (``stopped``); the block logic of
 solver/follow.py then re-centres or reports the degenerate reason.
@@ -36,11 +38,14 @@ MIN_WINDOW, MAX_WINDOW = 16, 512
 
 class Recentring:
     """One pass of the hot loop on a ball that moves (module docstring).  ``engine``: the home engine;
-    ``follower``: the :class:`~solver.follow.FollowingFilter`; the arrays of the chunk's rows."""
+    ``follower``: the :class:`~solver.follow.FollowingFilter`; the arrays of the chunk's rows;
+    ``velocity``: the mean's drift per row so far (None: not known; no lead in a moving frame);
+    ``moves``: a list that gets (row, new centre) for every move after a row."""
 
     def __init__(self, engine: Any, follower: Any, state: Any, rows: np.ndarray, gaps: np.ndarray,
-                 keys: np.ndarray, terms: Any, missing: np.ndarray, velocity: np.ndarray | None):
-        self.engine, self.follower = engine, follower
+                 keys: np.ndarray, terms: Any, missing: np.ndarray, velocity: np.ndarray | None,
+                 moves: list):
+        self.engine, self.follower, self.frame = engine, follower, engine.frame
         self.rows, self.gaps, self.keys, self.terms, self.missing = rows, gaps, keys, terms, missing
         K, Q = len(rows), len(engine.nodes)
         self.dtype = engine._arith.dtype
@@ -49,18 +54,19 @@ class Recentring:
         self.top, self.top_before = np.zeros(K), np.zeros(K)
         self.impossible = np.zeros(K, dtype=bool)
         self.origin = np.asarray(follower.home_center, dtype=float)
-        self.center = np.array(state.center, dtype=float)
+        self.center = np.array(state.center, dtype=float)  # the ball's (a frame's: where its path starts)
         self.shifts = np.repeat((self.center - self.origin)[None, :], K, axis=0)
+        self.path_from: np.ndarray | None = self.center  # a frame's path is computed from here next
         self.project, self.basis = follower.watch_arrays(self.dtype)
         self.along = list(follower.directions)
         self.d = len(self.along)
         self.reach, self.shell_limit = follower.distance, follower.mass_limit
         self.velocity = np.zeros(self.d) if velocity is None else np.asarray(velocity, dtype=float)
+        self.moved = moves
         self.pace = float(FIRST_WINDOW)  # rows between moves (an average)
         self.last_move: tuple[int, np.ndarray] | None = None  # row and mean of the last move
         self.stopped: int | None = None  # rows done when the loop ended before the chunk's end
         self.quiet = 0
-        self.moves = 0
         self.observed: list[bool] = []
         self.floors: list[float] = []
         self.skip = missing
@@ -75,8 +81,15 @@ class Recentring:
         stop = min(K, start + min(MAX_WINDOW, max(MIN_WINDOW, int(1.5 * self.pace) + MIN_WINDOW)))
         engine, obs = self.engine, self.engine.observation
         part = slice(start, stop)
-        log_factor = obs.log_factors(self.h, self.rows[part], self.gaps[part], self.keys[part],
-                                     self.terms.rows(start, stop, self.keys), self.cache,
+        h, cache = self.h, self.cache
+        if self.frame is not None:  # the frame's centres over the window, h at each row's nodes
+            begin = self.origin + self.shifts[start - 1] if self.path_from is None else self.path_from
+            self.shifts[start:stop] = self.frame.path(begin, self.gaps[part]) - self.origin
+            self.shifts[stop:] = self.shifts[stop - 1]  # beyond the rows run: where the frame stopped
+            self.path_from = None
+            h, cache = engine._h_shifted(self.shifts[part]), None
+        log_factor = obs.log_factors(h, self.rows[part], self.gaps[part], self.keys[part],
+                                     self.terms.rows(start, stop, self.keys), cache,
                                      penalty=engine.form != "literal")
         missing = self.missing[part]
         top = log_factor.max(axis=1)
@@ -116,11 +129,12 @@ class Recentring:
         snapped centre is the current one; None: the loop must stop after row k)."""
         N1 = self.engine.N + 1
         follower = self.follower
-        mean = self.center.copy()
+        center = self.origin + self.shifts[k]  # row k's ball
+        mean = center.copy()
         mean[self.along] += carried[N1:N1 + self.d] / mass
         if follower.left_region(mean):
             return None
-        if self.last_move is not None:
+        if self.last_move is not None and self.frame is None:  # (in a frame: relative to it, no lead)
             row, before = self.last_move
             rows = max(1, k - row)
             self.velocity = 0.5 * (self.velocity + (mean[self.along] - before) / rows)
@@ -128,11 +142,11 @@ class Recentring:
         self.last_move = (k, mean[self.along].copy())
         ahead = mean.copy()  # led by half the travel to the next move, at most half the trigger distance
         ahead[self.along] += np.clip(0.5 * self.velocity * self.pace, -0.5 * self.reach, 0.5 * self.reach)
-        target = follower.snapped(self.center, ahead)
-        if np.array_equal(target, self.center):
+        target = follower.snapped(center, ahead)
+        if np.array_equal(target, center):
             self.quiet = k + QUIET
             return 0.0
-        carry = follower.carry(target - self.center)
+        carry = follower.carry(target - center)
         if carry is None:
             return None
         h, cache = follower.h_at(target)
@@ -146,6 +160,9 @@ class Recentring:
         if not arith.tiny < new_mass < arith.huge:
             return None
         self.h, self.cache, self.center = h, cache, target
-        self.shifts[k + 1:] = target - self.origin
-        self.moves += 1
+        if self.frame is None:
+            self.shifts[k + 1:] = target - self.origin
+        else:  # the window from row k + 1 computes the path from here
+            self.path_from = target
+        self.moved.append((k, target))
         return new_mass

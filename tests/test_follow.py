@@ -13,6 +13,7 @@ import json
 
 import numpy as np
 import pytest
+from loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine import YauYauFilter, build
@@ -330,46 +331,13 @@ def test_a_move_inside_the_loop_is_the_move_between_blocks(trend, window, monkey
     from there (the issue's carry: the old expansion at the new nodes, zero outside, projected) — to
     rounding, with a missing row and an outlier the gate rejects among the rows, and the update
     factors a window at a time (``window``: 3 rows at a time, so most windows end without a move)."""
-    import dataclasses
-
-    from yauyau.solver import recentring
-
     if window:
-        monkeypatch.setattr(recentring, "FIRST_WINDOW", window)
-        monkeypatch.setattr(recentring, "MIN_WINDOW", window)
-        monkeypatch.setattr(recentring, "MAX_WINDOW", window)
+        from yauyau.solver import recentring
 
+        for name in ("FIRST_WINDOW", "MIN_WINDOW", "MAX_WINDOW"):
+            monkeypatch.setattr(recentring, name, window)
     model, offline = trend
-    flt = build(model, offline)
-    rows = simulate(model, 600, np.random.default_rng(11)).increments.copy()
-    rows[50] = np.nan
-    rows[230] += 5.0  # 50 sd of an increment over dt = 0.01
-    start_state = flt.initial_state()
-    state, result = flt.run_arrays(start_state, rows)
-    moves = np.flatnonzero(result.recentred)
-    assert len(moves) >= 3 and bool(result.gated[230]) and not result.degenerate.any()
-
-    replay, first, parts = start_state, 0, []
-    for k in [*moves.tolist(), len(rows) - 1]:
-        if k < first:
-            continue
-        center = np.asarray(replay.center, dtype=float)
-        replay, part = flt.engine(center).run_arrays(replay, rows[first:k + 1])
-        replay = dataclasses.replace(replay, center=center)
-        parts.append(part)
-        if result.recentred[k]:
-            replay = flt.recentre(replay, result.center[k])
-        first = k + 1
-    from yauyau.solver.filtering import concat_results
-
-    blocks = concat_results(parts)
-    np.testing.assert_allclose(result.mean, blocks.mean, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(result.cov, blocks.cov, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(result.loglik, blocks.loglik, rtol=1e-11, atol=1e-9)
-    np.testing.assert_array_equal(result.gated, blocks.gated)
-    np.testing.assert_array_equal(state.center, replay.center)
-    np.testing.assert_allclose(state.coefficients, replay.coefficients, rtol=1e-9,
-                               atol=1e-12 * np.abs(replay.coefficients).max())
+    assert_loop_moves_as_blocks(build(model, offline), simulate(model, 600, np.random.default_rng(11)))
 
 
 @pytest.mark.parametrize("element, degree", [("lagrange", 1), ("bubble", 2)])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from loop_moves import assert_loop_moves_as_blocks
 from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine import build
@@ -70,6 +71,13 @@ def test_the_frame_flow_is_the_closed_form_of_the_ode():
     rotation = AffineFrame(A=np.array([[0.0, 1.0], [-1.0, 0.0]]), b=np.zeros(2), origin=np.zeros(2))
     end = rotation.path(np.array([1.0, 0.0]), np.full(100, np.pi / 200))[-1]
     assert end == pytest.approx([0.0, -1.0], abs=1e-12)
+    # regular gaps over more than one segment of kept powers (frame.SEGMENT rows from one start)
+    regular = frame.path(np.array([2.0]), np.full(1000, 0.01))
+    t = 0.01 * np.arange(1, 1001)
+    assert regular[:, 0] == pytest.approx(4.0 * np.exp(0.1 * t) - 2.0, rel=1e-13)
+    turns = rotation.path(np.array([1.0, 0.0]), np.full(700, np.pi / 200))
+    angle = np.pi / 200 * np.arange(1, 701)
+    np.testing.assert_allclose(turns, np.column_stack([np.cos(angle), -np.sin(angle)]), rtol=0, atol=1e-12)
 
 
 def test_linear_growth_rides_the_frame_and_matches_the_exact_kalman_filter(growth):
@@ -200,3 +208,13 @@ def test_a_degenerate_frame_says_why_keeps_its_centre_and_restarts():
     m = _exact(model, rows[:120]).mean[-1, 0]
     sigmas = abs(5.0 - (m + (0.1 * m + 0.2) * model.dt) * model.dt) / np.sqrt(model.dt)
     assert hit.degenerate[120] and f"is {sigmas:.3g} standard deviations" in hit.reason, (sigmas, hit.reason)
+
+
+def test_in_the_frame_a_move_inside_the_loop_is_the_move_between_blocks(growth):
+    """The loop's moves (solver/recentring.py) ride the frame too: the same estimates and state, to
+    rounding, as blocks that end where the loop moved, FollowingFilter.recentre and the next block
+    (the frame's path restarted from the new centre)."""
+    model, offline = growth
+    flt = build(model, offline)
+    assert flt.frame is not None
+    assert_loop_moves_as_blocks(flt, simulate(model, 900, np.random.default_rng(4)))
