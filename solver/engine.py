@@ -609,6 +609,8 @@ class YauYauFilter(ChunkedFilter):
         next_window, last, watch = -1, K - 1, ()
         if moving is not None:  # the trigger: Σw(x − c)_iσ beyond ±reach·∫σ, or the shell's Σwσ over limit·∫σ
             project = moving.project
+            if moving.predict is not None:  # an atlas centre's propagator
+                predict = observe = moving.predict
             carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
             next_window, watch = 0, tuple(range(N + 1, N + 1 + moving.d))
             reach, shell, shell_limit = moving.reach, N + 1 + moving.d, moving.shell_limit
@@ -681,6 +683,8 @@ class YauYauFilter(ChunkedFilter):
                     mass = moved
                     carried, following = following, carried
                     next_window = moving.window(k + 1)
+                    if moving.predict is not None:
+                        predict = observe = moving.predict
         return sigma, np.array(masses), carried.copy(), K, None
 
     def _slow_step(self, k, new_mass, s, row, observed, log_factor, top, gate, project, following):

@@ -31,9 +31,10 @@ translated), so it is built once per offset and kept (:class:`_Carry`).  A block
 before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
 shorter), so a fast state is caught before it reaches the wall.
 
-Where every move is a kept carry (a mesh with steps, no atlas, regular rows: ``moves_in_loop``), the
-engine's loop applies the same trigger and carry after any row (solver/recentring.py): a block's fixed
-cost is then paid once per chunk instead of once per move.
+Where every move is a kept carry (a mesh with steps, regular rows: ``moves_in_loop``), the engine's
+loop applies the same trigger and carry after any row (solver/recentring.py; with an atlas it also
+switches to the new centre's propagator): a block's fixed cost is then paid once per chunk instead of
+once per move.
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ class FollowingFilter(ChunkedFilter):
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
-        self.moves_in_loop = self.atlas is None and bool(self._lattice)
+        self.moves_in_loop = bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
         self._h: OrderedDict[tuple, tuple[np.ndarray, dict]] = OrderedDict()
 
@@ -343,6 +344,13 @@ class FollowingFilter(ChunkedFilter):
                 state = self._placed(new, state.center)
                 break
         return state, concat_results(parts)
+
+    def propagator_at(self, center: np.ndarray) -> np.ndarray | None:
+        """With an atlas, the stored propagator (with the engine's zero column) of the lattice centre
+        ``center`` is at; None without one (every ball shares the home propagator)."""
+        if self.atlas is None:
+            return None
+        return self._atlas_engine(self.atlas.lattice.index(center))._predict
 
     def h_at(self, center: np.ndarray) -> tuple[np.ndarray, dict]:
         """h at the nodes of the ball around ``center`` (Q, m) and a factor cache for them (kept a few

@@ -20,6 +20,7 @@ coefficients — a shift-invariant drift and a move by whole mesh steps (:class:
 Each row's ball is the home ball shifted by ``shifts[k]`` (the moments read it as in a moving frame).
 In a moving frame (solver/frame.py) the centre also rides ċ = Ac + b between moves: a window computes
 the frame's path over its rows (from the centre a move left, after one) and h at each row's nodes.
+With an atlas (``[domain] region``) a move also switches to the new centre's stored propagator.
 What the loop cannot do — leave ``[domain] region``, a carry that leaves no mass, an observation
 function not finite at the new nodes — ends the pass after that row (``stopped``); the block logic of
 solver/follow.py then re-centres or reports the degenerate reason.
@@ -72,6 +73,7 @@ class Recentring:
         self.skip = missing
         self.gate = None
         self.h, self.cache = follower.h_at(self.center)
+        self.predict = follower.propagator_at(self.center)  # an atlas centre's (None: the engine's)
 
     # -- the update factors ---------------------------------------------------------------------
     def window(self, start: int) -> int:
@@ -152,6 +154,7 @@ class Recentring:
         h, cache = follower.h_at(target)
         if not np.all(np.isfinite(h)):
             return None
+        predict = follower.propagator_at(target)
         arith = self.engine._arith
         nodal = arith.gemv(1.0, self.basis, carried)
         moved = carry.apply(nodal).astype(self.dtype, copy=False)
@@ -159,7 +162,7 @@ class Recentring:
         new_mass = following.item(self.engine.N)
         if not arith.tiny < new_mass < arith.huge:
             return None
-        self.h, self.cache, self.center = h, cache, target
+        self.h, self.cache, self.center, self.predict = h, cache, target, predict
         if self.frame is None:
             self.shifts[k + 1:] = target - self.origin
         else:  # the window from row k + 1 computes the path from here

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 from irregular_refs import GridReference
+from loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.atlas import MAX_CENTERS, lattice, lattice_step
@@ -263,3 +264,13 @@ def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_
     assert sum(bool(row.get("recentred")) for row in rows) == int(local.recentred.sum()) > 10
     first = next(i for i, row in enumerate(rows) if row.get("degenerate"))
     assert first == int(np.argmax(local.degenerate)) and "left domain.region" in rows[first]["reason"]
+
+
+def test_with_an_atlas_a_move_inside_the_loop_is_the_move_between_blocks(sin):
+    """The loop's moves (solver/recentring.py) switch to the new centre's stored propagator: the same
+    estimates and state, to rounding, as blocks that end where the loop moved, FollowingFilter.recentre
+    and the next block on the new centre's engine."""
+    model, offline = sin
+    flt = build(model, offline)
+    assert flt.atlas is not None
+    assert_loop_moves_as_blocks(flt, simulate(model, 900, np.random.default_rng(6)))
