@@ -912,16 +912,21 @@ class _Gate:
     def size(self, k: int) -> int:
         return int(self.keys[k]).bit_count()
 
+    def floor_exponents(self, missing: np.ndarray, start: int = 0) -> np.ndarray:
+        """(bias − threshold)/2 of the rows from ``start`` (``missing``: theirs), −inf where nothing is
+        gated (a row without observation, the gate off for its size): log of :meth:`floors` but the top."""
+        part = slice(start, start + len(missing))
+        threshold = self.terms.threshold[part]
+        with np.errstate(invalid="ignore"):
+            exponent = 0.5 * (self.terms.bound_bias()[part] - threshold)
+        exponent[np.asarray(missing) | ~np.isfinite(threshold)] = -np.inf
+        return np.nan_to_num(exponent, nan=np.inf, posinf=np.inf, neginf=-np.inf)
+
     def floors(self, top: np.ndarray, missing: np.ndarray, start: int = 0) -> list[float]:
         """Per row, the ∫σ below which the cheap bound is over the threshold: exp((bias − threshold)/2
-        − top) (0 where nothing is gated: a row without observation, the gate off for its size);
-        ``top`` and ``missing`` of the rows from ``start`` on."""
-        part = slice(start, start + len(top))
-        threshold = self.terms.threshold[part]
+        − top) (0 where nothing is gated); ``top`` and ``missing`` of the rows from ``start`` on."""
         with np.errstate(over="ignore", invalid="ignore"):
-            floor = np.exp(0.5 * (self.terms.bound_bias()[part] - threshold) - top)
-        floor[missing | ~np.isfinite(threshold)] = 0.0
-        return np.nan_to_num(floor, nan=np.inf).tolist()
+            return np.exp(self.floor_exponents(missing, start) - top).tolist()
 
     def correction(self, k: int, s: np.ndarray, shift: np.ndarray | None = None) -> float:
         """log det(I + κ²S₀⁻¹C), C = Cov(h_o) under the propagated nodal density s (its nodes moved by

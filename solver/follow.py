@@ -295,16 +295,11 @@ class FollowingFilter(ChunkedFilter):
                 # the next chunk starts afresh), so a stream of short chunks does not move on noise
                 state = self._maybe_recentre(state, velocity * min(block, K - stop))
                 if state.degenerate:  # the move failed, or the mean left the region: flag its row
-                    flags = part.degenerate.copy()
-                    flags[-1] = True
-                    part = dataclasses.replace(part, degenerate=flags, reason=part.reason or state.reason)
+                    part = _flagged(part, len(part.degenerate) - 1, state.reason)
             parts.append(_with_centers(part, center, state.center))
             start = stop
             if state.degenerate and start < K:  # the rest stays degenerate
-                new, part = self.runner(state.center).run_arrays(state, rows[start:],
-                                                                 None if times is None else times[start:])
-                parts.append(_with_centers(part, state.center))
-                state = self._placed(new, state.center)
+                state = self._stay(state, rows[start:], None if times is None else times[start:], parts)
                 break
         return state, concat_results(parts)
 
@@ -331,19 +326,21 @@ class FollowingFilter(ChunkedFilter):
             if not state.degenerate:
                 state = self._maybe_recentre(state, np.zeros(len(along)))
                 if state.degenerate:  # the move failed, or the mean left the region: flag its row
-                    flags = part.degenerate.copy()
-                    flags[length - 1] = True
-                    part = dataclasses.replace(part, degenerate=flags, reason=part.reason or state.reason)
+                    part = _flagged(part, length - 1, state.reason)
                 elif not np.array_equal(state.center, end):
                     centers[-1], moved[-1] = state.center, True
             parts.append(dataclasses.replace(part, center=centers, recentred=moved))
             start += len(part.step)
             if state.degenerate and start < K:  # the rest stays degenerate
-                new, part = self.runner(state.center).run_arrays(state, rows[start:])
-                parts.append(_with_centers(part, state.center))
-                state = self._placed(new, state.center)
+                state = self._stay(state, rows[start:], None, parts)
                 break
         return state, concat_results(parts)
+
+    def _stay(self, state: Any, rows: np.ndarray, times: Any, parts: list) -> Any:
+        """A degenerate state through the rest of the chunk (its result appended to ``parts``)."""
+        new, part = self.runner(state.center).run_arrays(state, rows, times)
+        parts.append(_with_centers(part, state.center))
+        return self._placed(new, state.center)
 
     def propagator_at(self, center: np.ndarray) -> np.ndarray | None:
         """With an atlas, the stored propagator (with the engine's zero column) of the lattice centre
@@ -588,6 +585,13 @@ def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | N
     if after is not None and K and not np.array_equal(after, before):
         centers[-1], moved[-1] = after, True
     return dataclasses.replace(result, center=centers, recentred=moved)
+
+
+def _flagged(result: ChunkResult, row: int, reason: str | None) -> ChunkResult:
+    """The result with ``row`` flagged degenerate (a move after it failed, or it left the region)."""
+    flags = result.degenerate.copy()
+    flags[row] = True
+    return dataclasses.replace(result, degenerate=flags, reason=result.reason or reason)
 
 
 def _prior_mean(model: Any, prior: Any | None) -> np.ndarray | None:

@@ -55,9 +55,9 @@ class Recentring:
         self.top, self.top_before = np.zeros(K), np.zeros(K)
         self.impossible = np.zeros(K, dtype=bool)
         self.origin = np.asarray(follower.home_center, dtype=float)
-        self.center = np.array(state.center, dtype=float)  # the ball's (a frame's: where its path starts)
-        self.shifts = np.repeat((self.center - self.origin)[None, :], K, axis=0)
-        self.path_from: np.ndarray | None = self.center  # a frame's path is computed from here next
+        center = np.array(state.center, dtype=float)  # the ball's (a frame's: where its path starts)
+        self.shifts = np.repeat((center - self.origin)[None, :], K, axis=0)  # row k: origin + shifts[k]
+        self.path_from: np.ndarray | None = center  # a frame's path is computed from here next
         self.project, self.basis = follower.watch_arrays(self.dtype)
         self.along = list(follower.directions)
         self.d = len(self.along)
@@ -72,8 +72,8 @@ class Recentring:
         self.floors: list[float] = []
         self.skip = missing
         self.gate = None
-        self.h, self.cache = follower.h_at(self.center)
-        self.predict = follower.propagator_at(self.center)  # an atlas centre's (None: the engine's)
+        self.h, self.cache = follower.h_at(center)
+        self.predict = follower.propagator_at(center)  # an atlas centre's (None: the engine's)
 
     # -- the update factors ---------------------------------------------------------------------
     def window(self, start: int) -> int:
@@ -112,12 +112,8 @@ class Recentring:
             factor[...] = np.exp(log_factor)
         factor[factor < engine._arith.negligible] = 0.0
         if self.gate is not None:
-            if start == 0:  # log of the gate's floors (engine._Gate.floors) but for the factor's top
-                terms = self.gate.terms
-                with np.errstate(invalid="ignore"):
-                    base = 0.5 * (terms.bound_bias() - terms.threshold)
-                base[self.missing | ~np.isfinite(terms.threshold)] = -np.inf
-                self._floor = np.nan_to_num(base, nan=np.inf, posinf=np.inf, neginf=-np.inf)
+            if start == 0:  # the gate's floors but for the factor's top, once a chunk
+                self._floor = self.gate.floor_exponents(self.missing)
             with np.errstate(over="ignore"):
                 self.floors[part] = np.exp(self._floor[part] - top).tolist()
             for k in [] if impossible is None else (start + np.flatnonzero(impossible)).tolist():
@@ -162,7 +158,7 @@ class Recentring:
         new_mass = following.item(self.engine.N)
         if not arith.tiny < new_mass < arith.huge:
             return None
-        self.h, self.cache, self.center, self.predict = h, cache, target, predict
+        self.h, self.cache, self.predict = h, cache, predict
         if self.frame is None:
             self.shifts[k + 1:] = target - self.origin
         else:  # the window from row k + 1 computes the path from here
