@@ -33,11 +33,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import SpecError
+from .errors import InputError, SpecError
 
 MAX_CENTERS = 4096  # a larger atlas is refused with its count (raise follow_distance or shrink the region)
 CACHE = 32  # centres kept in memory at once (lazily loaded from the file)
 LAZY_NAMES = ("atlas_propagator_fp", "atlas_generator")  # (K, Q, N), (K, N, N): one centre per read
+Sink = Callable[[int, int, dict[str, np.ndarray]], None]  # (k, K, that centre's row of each LAZY_NAMES)
 
 
 @dataclass(frozen=True)
@@ -173,6 +174,7 @@ class Atlas:
         self._kept: OrderedDict[int, Any] = OrderedDict()
         self.loads = 0  # centres read so far (a cache miss each)
         self.solved: AtlasArrays | None = None  # all centres in memory (just precomputed)
+        self.streamed = False  # just precomputed, each centre written to a store as it was solved
 
     @property
     def size(self) -> int:
@@ -225,9 +227,11 @@ class AtlasArrays:
 
 def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], grid: Lattice, workers: int = 1,
                 progress: Callable[[int, int], None] | None = None,
-                scheduler: str | None = None) -> AtlasArrays:
+                scheduler: str | None = None, sink: Sink | None = None) -> AtlasArrays | None:
     """The propagator e^{dt L_c}φ_k and generator of every lattice centre c (module docstring), the
-    home ball's basis ``phi`` on each; the solves as Dask tasks (solver/distributed.py)."""
+    home ball's basis ``phi`` on each; the solves as Dask tasks (solver/distributed.py).  With ``sink``
+    each centre k goes to ``sink(k, K, {name: row})`` (names :data:`LAZY_NAMES`) as soon as it is
+    solved, in any order, and nothing is kept (returns None): a store writes the atlas centre by centre."""
     from .offline import _Job, check_stable, propagate_jobs
     from .semigroup import galerkin_generator
 
@@ -244,21 +248,38 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
         discs.append(d)
         jobs.append(_Job(d.fokker_planck, None, disc.weights, model.dt, model.spec.discretization.substeps,
                          phi.values, token=uuid.uuid4().hex, mass=d.mass))
-    solved = propagate_jobs(jobs, workers, progress, scheduler)
-    fps = np.empty((len(centers),) + phi.values.shape)
-    generators = np.empty((len(centers), phi.values.shape[1], phi.values.shape[1]))
-    for k, (center, d, (fp, _)) in enumerate(zip(centers, discs, solved, strict=True)):
+    K, N = len(centers), phi.values.shape[1]
+    kept = None if sink is not None else AtlasArrays(
+        centers=centers, propagator_fp=np.empty((K,) + phi.values.shape), generator=np.empty((K, N, N)),
+        lattice=grid)
+
+    def finished(k: int, fp: np.ndarray, _: Any) -> None:
+        center, d = centers[k], discs[k]
         if not np.all(np.isfinite(fp)):
             raise SpecError("discretization", f"the propagator of the atlas centre {_point(center)} is not "
                                               "finite: refine the mesh or the substeps")
         check_stable(model.translated(center), d.nodes, disc.weights, phi.values, phi.projector, fp)
-        fps[k] = fp
-        generators[k] = galerkin_generator(phi.values, d.fokker_planck, d.mass, disc.weights)
-    return AtlasArrays(centers=centers, propagator_fp=fps, generator=generators, lattice=grid)
+        generator = galerkin_generator(phi.values, d.fokker_planck, d.mass, disc.weights)
+        if kept is None:
+            sink(k, K, {"atlas_propagator_fp": fp, "atlas_generator": generator})
+        else:
+            kept.propagator_fp[k], kept.generator[k] = fp, generator
+
+    propagate_jobs(jobs, workers, progress, scheduler, finished=finished)
+    return kept
 
 
-def attach_solved(offline: Any, solved: AtlasArrays) -> None:
-    """``offline.atlas`` from a just-solved atlas (every centre in memory)."""
+def attach_solved(offline: Any, solved: AtlasArrays | None, grid: Lattice) -> None:
+    """``offline.atlas`` from a just-solved atlas: every centre in memory, or (None) none, the centres
+    having gone to a store as they were solved (read them back with the stored model)."""
+    if solved is None:
+        def load(k: int) -> dict[str, np.ndarray]:
+            raise InputError("model", "this atlas was written to the model store centre by centre as it was "
+                                      "solved: open the model from the store to filter with it")
+
+        offline.atlas = Atlas(offline, grid, load)
+        offline.atlas.streamed = True
+        return
     offline.atlas = Atlas(offline, solved.lattice, solved.load)
     offline.atlas.solved = solved
 
@@ -266,8 +287,6 @@ def attach_solved(offline: Any, solved: AtlasArrays) -> None:
 def attach_stored(offline: Any, centers: Any, lazy: Any) -> None:
     """``offline.atlas`` read from a store: ``lazy.read(name, k)`` gives centre k's row of a stored
     (K, ...) array; the stored centres must be the spec's lattice."""
-    from .errors import InputError
-
     grid = model_lattice(offline.model, offline.mesh_points)
     if centers is None or lazy is None:
         raise InputError("arrays.atlas_centers", "is missing: this file was saved without its atlas; run "

@@ -163,12 +163,16 @@ def propagate_all(job: _Job, workers: int = 1, progress: Progress | None = None,
 
 
 def propagate_jobs(jobs: list[_Job], workers: int = 1, progress: Progress | None = None,
-                   scheduler: str | None = None) -> list[tuple[np.ndarray, np.ndarray | None]]:
+                   scheduler: str | None = None,
+                   finished: Callable[[int, np.ndarray, np.ndarray | None], None] | None = None,
+                   ) -> list[tuple[np.ndarray, np.ndarray | None] | None]:
     """Every column block of every job: in this process (one worker and no scheduler, or a single
     block), else as Dask tasks (solver/distributed.py).  The blocks are fixed, so the arrays are
-    bit-identical whoever solves them.  ``progress(done, total)`` counts basis columns over all jobs."""
-    out = [(np.empty_like(job.initial), None if job.kolmogorov is None else np.empty_like(job.initial))
-           for job in jobs]
+    bit-identical whoever solves them.  ``progress(done, total)`` counts basis columns over all jobs.
+    ``finished(j, e^{dt L}φ, e^{dt L_K}φ)``: called as soon as job j's last block is in, which then
+    keeps nothing of it (its entry is None): an atlas's centres are not all held at once."""
+    out: list[Any] = [None] * len(jobs)
+    left = [job.initial.shape[1] for job in jobs]
     tasks = [(j, block) for j, job in enumerate(jobs) for block in column_blocks(job.initial.shape[1])]
     total = sum(job.initial.shape[1] for job in jobs)
     done = 0
@@ -176,12 +180,19 @@ def propagate_jobs(jobs: list[_Job], workers: int = 1, progress: Progress | None
     def store(j, result):
         nonlocal done
         start, stop, a, b = result
+        if out[j] is None:  # the job's arrays, made when its first block arrives
+            initial = jobs[j].initial
+            out[j] = (np.empty_like(initial), None if jobs[j].kolmogorov is None else np.empty_like(initial))
         out[j][0][:, start:stop] = a
         if b is not None:
             out[j][1][:, start:stop] = b
+        left[j] -= stop - start
         done += stop - start
         if progress is not None:
             progress(done, total)
+        if finished is not None and left[j] == 0:
+            finished(j, *out[j])
+            out[j] = None
 
     if scheduler is None and (workers <= 1 or len(tasks) == 1):
         for j, job in enumerate(jobs):
@@ -249,10 +260,11 @@ class OfflineModel:
         return arrays
 
     def lazy_arrays(self) -> dict[str, np.ndarray]:
-        """The arrays a store should read one row (one atlas centre) at a time: (K, ...) each."""
-        if self.atlas is None:
+        """The arrays a store should read one row (one atlas centre) at a time: (K, ...) each (none
+        kept when the atlas went to a store centre by centre as it was solved)."""
+        solved = None if self.atlas is None else self.atlas.solved
+        if solved is None:
             return {}
-        solved = self.atlas.solved
         return {"atlas_propagator_fp": solved.propagator_fp, "atlas_generator": solved.generator}
 
     @classmethod
@@ -399,10 +411,11 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
                space: Callable[[Model], Discretisation] = finite_element_space,
                basis: Callable[[Discretisation, int], Any] = dirichlet_eigenbasis,
                propagators: Callable[..., tuple[np.ndarray, np.ndarray]] = sdirk_propagators,
-               scheduler: str | None = None) -> OfflineModel:
+               scheduler: str | None = None, atlas_sink: Any | None = None) -> OfflineModel:
     """Nodes, basis and propagators of ``model`` (seed 002 §5 offline stage), from the three builders;
     the propagators' solves on ``workers`` local processes or the Dask cluster at ``scheduler``
-    (solver/distributed.py)."""
+    (solver/distributed.py).  ``atlas_sink(k, K, rows)``: an atlas's centres go there as they are
+    solved instead of being kept (solver/atlas.py ``solve_atlas``; a store's ``ModelWriter.rows``)."""
     if not isinstance(workers, int) or workers < 1:
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
@@ -438,7 +451,8 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
     if grid is not None:
         from .atlas import attach_solved, solve_atlas
 
-        attach_solved(found, solve_atlas(model, disc, phi, space, grid, workers, atlas_progress, scheduler))
+        attach_solved(found, solve_atlas(model, disc, phi, space, grid, workers, atlas_progress, scheduler,
+                                         sink=atlas_sink), grid)
     return found
 
 

@@ -12,7 +12,9 @@ chunk, with the sha256 of every row in the attribute ``row_sha256``; they are no
 but row by row (:class:`LazyArrays`), each row checked against its hash.
 
 Writes go to a hidden temporary file in the same directory which is flushed, fsynced and
-``os.replace``d, so a killed writer never leaves a half-written file under the final name.
+``os.replace``d, so a killed writer never leaves a half-written file under the final name.  The rows
+of the lazy arrays may be written as they are computed (:class:`ModelWriter`: an atlas centre by
+centre, never all in memory), the arrays and the hashes at the end.
 Storage knows files, not math: it never imports solver or service.
 """
 
@@ -160,10 +162,6 @@ def _lazy_layout(rows: dict[str, tuple[tuple[int, ...], str, list[str]]]) -> lis
             for name, (shape, dtype, hashes) in sorted(rows.items())]
 
 
-def _row_hashes(arr: np.ndarray) -> list[str]:
-    return [hashlib.sha256(np.ascontiguousarray(row).tobytes()).hexdigest() for row in arr]
-
-
 def _checked_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     if not isinstance(arrays, dict):
         raise StoreError("arrays", "must be a mapping of names to arrays")
@@ -270,29 +268,28 @@ class ModelStore:
              lazy: dict[str, Any] | None = None) -> str:
         """Write the model atomically and return its id (an existing file is replaced); ``lazy``:
         (K, ...) arrays stored to be read one row at a time (module docstring)."""
-        spec = canonical_spec(spec_json)
-        mid = model_id(spec)
         checked = _checked_arrays(arrays)
         lazy = _checked_arrays(lazy or {})
         for name, arr in lazy.items():
             if arr.ndim < 1 or arr.shape[0] < 1 or name in checked:
                 raise StoreError(f"lazy.{name}",
                                  "must be a (K, ...) array with K >= 1, named apart from the arrays")
-        attrs_text = _attrs_json(attrs)
+        _attrs_json(attrs)  # refused before anything is written
+        with self.writer(spec_json) as writer:
+            for name, arr in lazy.items():
+                for k, row in enumerate(arr):
+                    writer.row(name, k, len(arr), row)
+            return writer.finish(checked, attrs)
+
+    def writer(self, spec_json: str) -> "ModelWriter":
+        """A model file written in parts (``with store.writer(spec) as w: w.row(...); w.finish(...)``):
+        the rows of the lazy arrays as they are computed (an atlas, centre by centre, so they never all
+        sit in memory), then the arrays; the file appears under its id only at ``finish``, and a writer
+        left without it (an error, an interrupt) leaves nothing behind."""
+        spec = canonical_spec(spec_json)
         self.ensure_writable()
         self.clean_stale_temporaries()
-        tmp = self.directory / f"{TMP_PREFIX}{mid}-{os.getpid()}-{secrets.token_hex(4)}{SUFFIX}"
-        try:
-            self._write_file(tmp, mid, spec, checked, attrs_text, lazy)
-            os.replace(tmp, self.path(mid))
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            raise StoreError("store", f"cannot write model to {self.directory}: {exc}") from None
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        _fsync_directory(self.directory)
-        return mid
+        return ModelWriter(self, spec)
 
     def ensure_writable(self) -> None:
         """Create the directory if needed; StoreError('store') unless files can be written there."""
@@ -302,33 +299,6 @@ class ModelStore:
             raise StoreError("store", f"cannot create directory {self.directory}: {exc}") from None
         if not os.access(self.directory, os.W_OK | os.X_OK):
             raise StoreError("store", f"directory {self.directory} is not writable")
-
-    def _write_file(self, tmp: Path, mid: str, spec: str, arrays: dict[str, np.ndarray], attrs: str,
-                    lazy: dict[str, np.ndarray]) -> None:
-        created, versions = _utc_now(), json.dumps(library_versions(), sort_keys=True)
-        rows = {name: (arr.shape, arr.dtype.str, _row_hashes(arr)) for name, arr in lazy.items()}
-        with h5py.File(tmp, "w-") as h5:
-            h5.attrs["format_version"] = FORMAT_VERSION
-            h5.attrs["model_id"] = mid
-            h5.attrs["spec"] = spec
-            h5.attrs["created"] = created
-            h5.attrs["versions"] = versions
-            h5.attrs["attrs"] = attrs
-            h5.attrs["meta_sha256"] = _meta_digest(spec, attrs, created, versions,
-                                                   _layout(arrays) + _lazy_layout(rows))
-            group = h5.create_group("arrays")
-            for name, arr in arrays.items():
-                _write_dataset(group, name, arr, self.compress_floats)
-            if lazy:
-                group = h5.create_group("lazy")
-                for name, arr in lazy.items():
-                    dset = group.create_dataset(name, data=arr, chunks=(1,) + arr.shape[1:], fletcher32=True)
-                    dset.attrs["row_sha256"] = np.array(rows[name][2], dtype="S64")
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)  # the bytes are on disk before the rename makes them visible
-        finally:
-            os.close(fd)
 
     def clean_stale_temporaries(self) -> list[str]:
         """Remove temporary files whose writer process (on this host) no longer runs."""
@@ -393,6 +363,111 @@ class ModelStore:
             swapped = f"the file holds model {held}, not {mid} (renamed or swapped); not served"
             return ModelSummary(id=mid, file_size=size, error=swapped)
         return _summary_from_spec(mid, spec, created, size, basis_shape, attrs)
+
+
+class ModelWriter:
+    """One model file being written (:meth:`ModelStore.writer`): a hidden temporary file in the store's
+    directory until :meth:`finish` verifies that every lazy row was written, records the hashes and
+    ``os.replace``s it under the model's id."""
+
+    def __init__(self, store: ModelStore, spec: str):
+        self.store, self.spec, self.id = store, spec, model_id(spec)
+        self.tmp = store.directory / f"{TMP_PREFIX}{self.id}-{os.getpid()}-{secrets.token_hex(4)}{SUFFIX}"
+        self._rows: dict[str, tuple[tuple[int, ...], str, list[str | None]]] = {}
+        self._h5: h5py.File | None = None
+
+    def __enter__(self) -> "ModelWriter":
+        try:
+            self._h5 = h5py.File(self.tmp, "w-")
+        except OSError as exc:
+            raise StoreError("store", f"cannot write model to {self.store.directory}: {exc}") from None
+        return self
+
+    def __exit__(self, kind, exc, traceback) -> None:
+        if self._h5 is not None:  # not finished: an error or an interrupt; nothing stays
+            self._h5.close()
+            self._h5 = None
+            self.tmp.unlink(missing_ok=True)
+
+    def row(self, name: str, k: int, count: int, value: Any) -> None:
+        """Row k of the lazy (count, ...) array ``name`` (the first row written fixes its shape and
+        dtype; rows may come in any order, each once)."""
+        if self._h5 is None:
+            raise StoreError("store", "the writer is closed (use it inside its with block, before finish)")
+        arr = _checked_arrays({name: value})[name]
+        found = self._rows.get(name)
+        if found is None:
+            if not isinstance(count, int) or count < 1:
+                raise StoreError(f"lazy.{name}", f"needs a row count >= 1, got {count!r}")
+            group = self._h5.require_group("lazy")
+            shape = (count,) + arr.shape
+            group.create_dataset(name, shape=shape, dtype=arr.dtype, chunks=(1,) + arr.shape, fletcher32=True)
+            found = self._rows[name] = (shape, arr.dtype.str, [None] * count)
+        shape, dtype, hashes = found
+        if count != shape[0] or arr.shape != shape[1:] or arr.dtype.str != dtype:
+            raise StoreError(f"lazy.{name}", f"row {k} is {arr.shape} {arr.dtype.str} of {count}, the array "
+                                             f"is {shape} {dtype}")
+        if not isinstance(k, int) or not 0 <= k < count or hashes[k] is not None:
+            raise StoreError(f"lazy.{name}", f"row {k!r} is out of range (0..{count - 1}) or written twice")
+        try:
+            self._h5["lazy"][name][k] = arr
+        except OSError as exc:
+            raise StoreError("store", f"cannot write model to {self.store.directory}: {exc}") from None
+        hashes[k] = hashlib.sha256(arr.tobytes()).hexdigest()
+
+    def rows(self, k: int, count: int, values: dict[str, Any]) -> None:
+        """Row k of each lazy (count, ...) array named in ``values`` (an atlas centre's arrays)."""
+        for name, value in values.items():
+            self.row(name, k, count, value)
+
+    def finish(self, arrays: dict[str, Any], attrs: dict[str, Any] | None = None) -> str:
+        """Write the arrays and the attributes, check that every lazy row is there, and put the file
+        in place atomically; returns the model id."""
+        if self._h5 is None:
+            raise StoreError("store", "the writer is closed (finish is called once)")
+        checked = _checked_arrays(arrays)
+        attrs_text = _attrs_json(attrs)
+        for name, (shape, _, hashes) in self._rows.items():
+            if name in checked:
+                raise StoreError(f"lazy.{name}", "must be named apart from the arrays")
+            if None in hashes:
+                raise StoreError(f"lazy.{name}", f"row {hashes.index(None)} of {shape[0]} was never written")
+        h5, self._h5 = self._h5, None
+        try:
+            self._close(h5, checked, attrs_text)
+            os.replace(self.tmp, self.store.path(self.id))
+        except OSError as exc:
+            self.tmp.unlink(missing_ok=True)
+            raise StoreError("store", f"cannot write model to {self.store.directory}: {exc}") from None
+        except BaseException:
+            self.tmp.unlink(missing_ok=True)
+            raise
+        _fsync_directory(self.store.directory)
+        return self.id
+
+    def _close(self, h5: h5py.File, arrays: dict[str, np.ndarray], attrs: str) -> None:
+        try:
+            created, versions = _utc_now(), json.dumps(library_versions(), sort_keys=True)
+            h5.attrs["format_version"] = FORMAT_VERSION
+            h5.attrs["model_id"] = self.id
+            h5.attrs["spec"] = self.spec
+            h5.attrs["created"] = created
+            h5.attrs["versions"] = versions
+            h5.attrs["attrs"] = attrs
+            h5.attrs["meta_sha256"] = _meta_digest(self.spec, attrs, created, versions,
+                                                   _layout(arrays) + _lazy_layout(self._rows))
+            group = h5.create_group("arrays")
+            for name, arr in arrays.items():
+                _write_dataset(group, name, arr, self.store.compress_floats)
+            for name, (_, _, hashes) in self._rows.items():
+                h5["lazy"][name].attrs["row_sha256"] = np.array(hashes, dtype="S64")
+        finally:
+            h5.close()
+        fd = os.open(self.tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # the bytes are on disk before the rename makes them visible
+        finally:
+            os.close(fd)
 
 
 def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shape,

@@ -275,3 +275,59 @@ def test_saving_an_existing_model_replaces_it_atomically(store: ModelStore):
     assert store.save(SPEC, {"a": np.ones(3)}) == mid
     assert np.array_equal(store.load(mid).arrays["a"], np.ones(3))
     assert [p.name for p in store.directory.iterdir()] == [f"{mid}.h5"]
+
+
+def _lazy(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    return {"atlas_propagator_fp": rng.standard_normal((5, 40, 6)),
+            "atlas_generator": rng.standard_normal((5, 6, 6))}
+
+
+def test_rows_written_as_they_come_give_the_file_save_writes(store: ModelStore):
+    """Truth: the arrays themselves, and a file written by ``save`` in one go.  The writer takes the
+    rows in any order; nothing is under the model's id before ``finish``."""
+    rng = np.random.default_rng(3)
+    arrays, lazy = _arrays(rng), _lazy(rng)
+    with store.writer(SPEC) as writer:
+        for k in (3, 0, 4, 1, 2):
+            writer.rows(k, 5, {name: arr[k] for name, arr in lazy.items()})
+        assert not store.exists(writer.id) and writer.tmp.exists()
+        mid = writer.finish(arrays, {"a": 1})
+    streamed = store.load(mid)
+    other = ModelStore(store.directory.parent / "other")
+    whole = other.load(other.save(SPEC, arrays, {"a": 1}, lazy=lazy))
+    for name, arr in arrays.items():
+        assert np.array_equal(streamed.arrays[name], arr) and streamed.arrays[name].dtype == arr.dtype
+    for name, arr in lazy.items():
+        assert streamed.lazy.shape(name) == whole.lazy.shape(name) == arr.shape
+        for k in range(5):
+            assert np.array_equal(streamed.lazy.read(name, k), arr[k])
+    with h5py.File(store.path(mid), "r") as a, h5py.File(other.path(mid), "r") as b:
+        for name in lazy:
+            assert np.array_equal(a["lazy"][name].attrs["row_sha256"], b["lazy"][name].attrs["row_sha256"])
+            assert a["lazy"][name].chunks == b["lazy"][name].chunks and a["lazy"][name].fletcher32
+    assert [p.name for p in store.directory.iterdir()] == [f"{mid}.h5"]
+
+
+def test_a_writer_that_misses_a_row_or_fails_leaves_nothing(store: ModelStore):
+    rng = np.random.default_rng(4)
+    arrays, lazy = _arrays(rng), _lazy(rng)
+    with pytest.raises(StoreError) as missing:
+        with store.writer(SPEC) as writer:
+            for k in (0, 1, 3, 4):
+                writer.rows(k, 5, {name: arr[k] for name, arr in lazy.items()})
+            writer.finish(arrays)
+    assert missing.value.field.startswith("lazy.") and "row 2 of 5 was never written" in missing.value.message
+    with pytest.raises(StoreError) as wrong:
+        with store.writer(SPEC) as writer:
+            writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
+            writer.row("atlas_generator", 1, 5, lazy["atlas_generator"][1, :5])  # a row of another shape
+    assert wrong.value.field == "lazy.atlas_generator" and "(5, 6)" in wrong.value.message
+    with pytest.raises(StoreError, match="written twice"):
+        with store.writer(SPEC) as writer:
+            writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
+            writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
+    with pytest.raises(KeyboardInterrupt):  # an interrupt mid-computation
+        with store.writer(SPEC) as writer:
+            writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
+            raise KeyboardInterrupt
+    assert list(store.directory.iterdir()) == [] and not store.exists(model_id(SPEC))

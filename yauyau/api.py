@@ -67,11 +67,12 @@ class Solved:
 
 def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
           time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None,
-          scheduler: str | None = None) -> Solved:
+          scheduler: str | None = None, atlas_sink: Any | None = None) -> Solved:
     """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis,
     bounded by ``time_limit``), without storing anything.  The propagators' independent solves run
     as Dask tasks on ``workers`` local processes, or on the cluster at ``scheduler``
-    ("tcp://HOST:PORT"); the arrays are bit-identical either way."""
+    ("tcp://HOST:PORT"); the arrays are bit-identical either way.  ``atlas_sink(k, K, rows)``: an
+    atlas's centres go there as they are solved instead of being kept (a ``ModelWriter.rows``)."""
     import time
 
     from .solver.model import compile_model
@@ -87,7 +88,8 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
         from .solver.follow import check_follow
 
         check_follow(model)
-    offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler)
+    offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler,
+                            atlas_sink=atlas_sink)
     seconds = time.perf_counter() - started
     method, reason = choose_method(model, offline=offline, time_limit=time_limit)
     return Solved(spec, model, offline, method, reason, seconds, workers)
@@ -142,9 +144,20 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             return mid
         except StoreError:
             pass  # unusable file: compute it again
-    store.ensure_writable()  # fail before the (long) computation, not after
-    solved = solve(spec, workers=workers, time_limit=time_limit, progress=progress, scheduler=scheduler)
-    return store.save(spec_json, solved.arrays(), solved.attrs(), lazy=solved.lazy_arrays())
+    return save_solved(store, spec, workers=workers, time_limit=time_limit, progress=progress,
+                       scheduler=scheduler)[0]
+
+
+def save_solved(store: ModelStore, spec: ModelSpec, **solve_args: Any) -> tuple[str, Solved]:
+    """:func:`solve` ``spec`` into ``store``: the file is opened first (an unwritable store fails
+    before the long computation), an atlas's centres are written as they are solved, the rest at the
+    end; returns the model id and what was solved."""
+    with store.writer(spec.canonical_json()) as writer:
+        solved = solve(spec, atlas_sink=writer.rows, **solve_args)
+        for name, arr in solved.lazy_arrays().items():
+            for k, row in enumerate(arr):
+                writer.row(name, k, len(arr), row)
+        return writer.finish(solved.arrays(), solved.attrs()), solved
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.solver.offline import default_workers
     from yauyau.storage.model_store import ModelStore, model_id
 
-    from yauyau.api import solve
+    from yauyau.api import save_solved
 
     spec = load_spec(args.spec)
     workers = default_workers() if args.workers is None else args.workers
@@ -98,10 +98,9 @@ def run(args: argparse.Namespace) -> int:
         def progress(done: int, of: int) -> None:
             bar.total = of
             bar.update(done - bar.n)
-        solved = solve(spec, workers=workers, time_limit=args.time_limit, progress=progress,
-                       scheduler=args.scheduler)
+        saved, solved = save_solved(store, spec, workers=workers, time_limit=args.time_limit,
+                                    progress=progress, scheduler=args.scheduler)
     _say(args, f"method {solved.method}: {solved.method_reason}")
-    saved = store.save(spec_json, solved.arrays(), solved.attrs(), lazy=solved.lazy_arrays())
     size = store.path(saved).stat().st_size
     what = f"{total} basis functions" if solved.offline is not None else "mesh-free, no offline arrays"
     atlas = getattr(solved.offline, "atlas", None)
