@@ -237,7 +237,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
 
     centers = grid.centers()
     home = np.asarray(model.center, dtype=float)
-    jobs, discs = [], []
+    jobs, nodes = [], []  # (a centre's discretisation is not kept: its job holds the matrices needed)
     for center in centers:
         moved = model.translated(center)
         d = space(moved)
@@ -245,7 +245,7 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
         moved_nodes = disc.nodes + (center - home)
         if d.nodes.shape != disc.nodes.shape or not np.allclose(d.nodes, moved_nodes, rtol=0, atol=tol):
             raise SpecError("domain.region", "the translated mesh does not match the home mesh node for node")
-        discs.append(d)
+        nodes.append(d.nodes)
         jobs.append(_Job(d.fokker_planck, None, disc.weights, model.dt, model.spec.discretization.substeps,
                          phi.values, token=uuid.uuid4().hex, mass=d.mass))
     K, N = len(centers), phi.values.shape[1]
@@ -254,12 +254,12 @@ def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], gr
         lattice=grid)
 
     def finished(k: int, fp: np.ndarray, _: Any) -> None:
-        center, d = centers[k], discs[k]
+        center, job = centers[k], jobs[k]
         if not np.all(np.isfinite(fp)):
             raise SpecError("discretization", f"the propagator of the atlas centre {_point(center)} is not "
                                               "finite: refine the mesh or the substeps")
-        check_stable(model.translated(center), d.nodes, disc.weights, phi.values, phi.projector, fp)
-        generator = galerkin_generator(phi.values, d.fokker_planck, d.mass, disc.weights)
+        check_stable(model.translated(center), nodes[k], disc.weights, phi.values, phi.projector, fp)
+        generator = galerkin_generator(phi.values, job.fokker_planck, job.mass, disc.weights)
         if kept is None:
             sink(k, K, {"atlas_propagator_fp": fp, "atlas_generator": generator})
         else:
