@@ -407,8 +407,13 @@ class ModelWriter:
         if count != shape[0] or arr.shape != shape[1:] or arr.dtype.str != dtype:
             raise StoreError(f"lazy.{name}", f"row {k} is {arr.shape} {arr.dtype.str} of {count}, the array "
                                              f"is {shape} {dtype}")
-        if not isinstance(k, int) or not 0 <= k < count or hashes[k] is not None:
-            raise StoreError(f"lazy.{name}", f"row {k!r} is out of range (0..{count - 1}) or written twice")
+        if not isinstance(k, (int, np.integer)) or isinstance(k, bool):
+            raise StoreError(f"lazy.{name}", f"a row index must be an integer, got {k!r}")
+        k = int(k)
+        if not 0 <= k < count:
+            raise StoreError(f"lazy.{name}", f"row {k} is out of range (0..{count - 1})")
+        if hashes[k] is not None:
+            raise StoreError(f"lazy.{name}", f"row {k} was written twice")
         try:
             self._h5["lazy"][name][k] = arr
         except OSError as exc:

@@ -326,6 +326,11 @@ def test_a_writer_that_misses_a_row_or_fails_leaves_nothing(store: ModelStore):
         with store.writer(SPEC) as writer:
             writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
             writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
+    for k, words in ((5, "out of range"), (-1, "out of range"), (1.0, "must be an integer")):
+        with pytest.raises(StoreError, match=words):
+            with store.writer(SPEC) as writer:
+                writer.row("atlas_generator", np.int64(0), 5, lazy["atlas_generator"][0])  # numpy ints do
+                writer.row("atlas_generator", k, 5, lazy["atlas_generator"][1])
     with pytest.raises(KeyboardInterrupt):  # an interrupt mid-computation
         with store.writer(SPEC) as writer:
             writer.row("atlas_generator", 0, 5, lazy["atlas_generator"][0])
