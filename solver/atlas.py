@@ -174,7 +174,6 @@ class Atlas:
         self._kept: OrderedDict[int, Any] = OrderedDict()
         self.loads = 0  # centres read so far (a cache miss each)
         self.solved: AtlasArrays | None = None  # all centres in memory (just precomputed)
-        self.streamed = False  # just precomputed, each centre written to a store as it was solved
 
     @property
     def size(self) -> int:
@@ -278,7 +277,6 @@ def attach_solved(offline: Any, solved: AtlasArrays | None, grid: Lattice) -> No
                                       "solved: open the model from the store to filter with it")
 
         offline.atlas = Atlas(offline, grid, load)
-        offline.atlas.streamed = True
         return
     offline.atlas = Atlas(offline, solved.lattice, solved.load)
     offline.atlas.solved = solved

@@ -276,9 +276,7 @@ class ModelStore:
                                  "must be a (K, ...) array with K >= 1, named apart from the arrays")
         _attrs_json(attrs)  # refused before anything is written
         with self.writer(spec_json) as writer:
-            for name, arr in lazy.items():
-                for k, row in enumerate(arr):
-                    writer.row(name, k, len(arr), row)
+            writer.arrays_by_row(lazy)
             return writer.finish(checked, attrs)
 
     def writer(self, spec_json: str) -> "ModelWriter":
@@ -424,6 +422,12 @@ class ModelWriter:
         """Row k of each lazy (count, ...) array named in ``values`` (an atlas centre's arrays)."""
         for name, value in values.items():
             self.row(name, k, count, value)
+
+    def arrays_by_row(self, arrays: dict[str, Any]) -> None:
+        """Every row of each whole (K, ...) lazy array in ``arrays``."""
+        for name, arr in arrays.items():
+            for k, row in enumerate(arr):
+                self.row(name, k, len(arr), row)
 
     def finish(self, arrays: dict[str, Any], attrs: dict[str, Any] | None = None) -> str:
         """Write the arrays and the attributes, check that every lazy row is there, and put the file

@@ -299,7 +299,7 @@ def test_a_precomputed_atlas_goes_to_the_store_centre_by_centre_and_is_never_all
         peaks[name] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     assert sorted(seen) == list(range(K)) and all(seen.values())
-    assert offline.atlas.streamed and offline.atlas.solved is None and offline.lazy_arrays() == {}
+    assert offline.atlas.solved is None and offline.lazy_arrays() == {}
     with pytest.raises(InputError, match="open the model from the store"):
         offline.atlas.offline(0)
     atlas_bytes = solved.propagator_fp.nbytes + solved.generator.nbytes

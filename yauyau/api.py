@@ -154,9 +154,7 @@ def save_solved(store: ModelStore, spec: ModelSpec, **solve_args: Any) -> tuple[
     end; returns the model id and what was solved."""
     with store.writer(spec.canonical_json()) as writer:
         solved = solve(spec, atlas_sink=writer.rows, **solve_args)
-        for name, arr in solved.lazy_arrays().items():
-            for k, row in enumerate(arr):
-                writer.row(name, k, len(arr), row)
+        writer.arrays_by_row(solved.lazy_arrays())
         return writer.finish(solved.arrays(), solved.attrs()), solved
 
 
