@@ -73,12 +73,20 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
             cluster.close()
         raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
     try:
-        basis = None  # an atlas's jobs share the basis values: sent once, not once per centre
+        values = None  # an atlas's jobs share the basis values: sent once, not once per centre
         if len(jobs) > 1 and all(job.initial is jobs[0].initial for job in jobs):
-            basis = client.scatter(jobs[0].initial, broadcast=True, hash=False)
+            values = jobs[0].initial
             jobs = [dataclasses.replace(job, initial=None) for job in jobs]
+        basis = None if values is None else client.scatter(values, broadcast=True, hash=False)
         shared = [client.scatter(job, broadcast=True, hash=False) for job in jobs]
+
         def submit(j: int, block: tuple[int, int], attempt: int):
+            nonlocal basis
+            if attempt:  # the scattered data may be what was lost (a cancel "for lost dependencies")
+                if basis is not None and basis.status != "finished":
+                    basis = client.scatter(values, broadcast=True, hash=False)
+                if shared[j].status != "finished":
+                    shared[j] = client.scatter(jobs[j], broadcast=True, hash=False)
             key = f"yauyau-propagators-{jobs[j].token}-{block[0]}" + (f"-again{attempt}" if attempt else "")
             return client.submit(solve_block, shared[j], block, basis, retries=2, pure=False, key=key)
 
@@ -89,9 +97,10 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
             try:
                 result = future.result()
             except CancelledError:
-                # a worker died holding this block's finished result and the scheduler gave the key
-                # up instead of recomputing it (seen once in CI, the atlas's killed-worker test):
-                # the block is deterministic, so it is solved again under a new key
+                # a worker died holding this block's finished result, or the only copy of the job's
+                # scattered data, and the scheduler gave the key up instead of recomputing it (the
+                # killed-worker tests, about one run in two): the block is deterministic, so it is
+                # solved again under a new key, with the lost data scattered again
                 if attempt >= RESUBMITS:
                     raise
                 again = submit(j, block, attempt + 1)
