@@ -68,6 +68,8 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
             client = Client(cluster)
         else:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+    except InputError:  # the local cluster's own message (an InputError is a ValueError too)
+        raise
     except (OSError, TimeoutError, ValueError) as exc:
         if cluster is not None:
             cluster.close()

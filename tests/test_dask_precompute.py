@@ -181,3 +181,23 @@ def test_an_atlas_on_a_running_cluster_is_the_same_file_also_with_a_worker_kille
         assert set(got) == set(want)
         for name, value in want.items():
             assert np.array_equal(got[name], value), name
+
+
+def test_a_script_without_the_main_guard_is_told_why_its_local_workers_did_not_start(tmp_path):
+    """Local workers import the calling script again (spawn): without ``if __name__ == "__main__":`` they
+    cannot start.  The error names ``workers`` and the fix, not an unreachable scheduler "None"."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from yauyau.solver import compile_model, spec_from_dict\n"
+        "from yauyau.solver.errors import InputError\n"
+        "from yauyau.solver.offline import precompute\n"
+        f"spec = {dict(SPEC, discretization={'dt': 0.02, 'basis': 100})!r}\n"  # 4 column blocks: a cluster
+        "try:\n"
+        "    precompute(compile_model(spec_from_dict(spec)), workers=2)\n"
+        "except InputError as exc:\n"
+        "    print('FIELD', exc.field)\n"
+        "    print('MESSAGE', exc)\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path).stdout
+    assert "FIELD workers" in out, out
+    assert 'if __name__ == "__main__"' in out and "scheduler None" not in out
