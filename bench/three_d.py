@@ -12,7 +12,13 @@ Q = 4991 P1 nodes), against the exact Kalman filter of the sampled model over 50
   its moves carried by P1 interpolation.  (A local spline carry was measured on 2026-11-24 and
   dropped: docs/bench-3d.md's analysis has its figures.)
 * the same following ball on the ball refined five times (``mesh = 5``, Q = 41727: the basis from
-  shift-invert Lanczos, solver/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process.
+  shift-invert Lanczos, solver/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process;
+* the same following ball with ``element = "bubble"`` (P2 plus face and interior bubbles, the
+  15-node mass-lumped tetrahedron, solver/fem.py) on the ball refined twice (Q = 2047) and three
+  times (Q = 17023, a Lanczos basis; N = 600 and 1000).
+
+``--only WORD ...`` runs the rows whose name contains one of the WORDs (``--only bubbles``); the others
+are kept from the fragment as it was (their figures are then from the run that wrote them).
 
 Precompute seconds and peak memory of the process; µs per observation with one BLAS thread (one run
 each: the runs take minutes).
@@ -39,12 +45,13 @@ ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-3d.md"
 
 
-def _doc(radius: float, basis: int, follow: bool, mesh: int | None = None) -> dict:
+def _doc(radius: float, basis: int, follow: bool, mesh: int | None = None, element: str = "lagrange") -> dict:
     return {"name": "linear-3d", "state": ["x1", "x2", "x3"], "method": "yau-yau",
             "drift": ["-x1 + 0.5*x2", "-x2", "-0.5*x3"], "observation": ["x1", "x3"],
             "initial": {"kind": "gaussian", "mean": [0.0, 0.0, 0.0], "cov": (0.5 * np.eye(3)).tolist()},
             "domain": {"radius": radius, **({"follow": True} if follow else {})},
-            "discretization": {"dt": 0.02, "basis": basis, **({"mesh": mesh} if mesh else {})}}
+            "discretization": {"dt": 0.02, "basis": basis, "element": element,
+                               **({"mesh": mesh} if mesh else {})}}
 
 
 def _run(model, offline, steps: int, seeds) -> tuple:
@@ -72,14 +79,19 @@ def _run(model, offline, steps: int, seeds) -> tuple:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.three_d", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller bases, fewer steps")
+    parser.add_argument("--only", nargs="+", metavar="WORD", help="run only the rows whose name has a WORD")
     args = parser.parse_args(argv)
     steps, seeds = (100, (5,)) if args.quick else (500, (5, 6))
     scale = 0.4 if args.quick else 1.0
-    configs = [("fixed ball (the issue's)", 4.0, 500, False, None),
-               ("fixed ball", 4.0, 1500, False, None),
-               ("following ball", 3.5, 1000, True, None)]
+    configs = [("fixed ball (the issue's)", 4.0, 500, False, None, "lagrange"),
+               ("fixed ball", 4.0, 1500, False, None, "lagrange"),
+               ("following ball", 3.5, 1000, True, None, "lagrange")]
     if not args.quick:
-        configs.append(("following ball, mesh 5", 3.5, 1000, True, 5))
+        configs += [("following ball, mesh 5", 3.5, 1000, True, 5, "lagrange"),
+                    ("following ball, P2 + bubbles, mesh 2", 3.5, 1000, True, 2, "bubble"),
+                    ("following ball, P2 + bubbles, mesh 3", 3.5, 600, True, 3, "bubble"),
+                    ("following ball, P2 + bubbles, mesh 3, N = 1000", 3.5, 1000, True, 3, "bubble")]
+    kept = _previous_rows() if args.only else {}
     lines = ["## 3-D: a fixed ball against one that follows the state", "",
              "`python -m bench.three_d" + (" --quick" if args.quick else "") + "`", "",
              "f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the general "
@@ -90,9 +102,13 @@ def main(argv: list[str] | None = None) -> int:
              "| ball | radius | N | Q | precompute s | peak MB | rms mean gap | max mean gap "
              "| variance error median | variance error max | moves | µs/obs |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for name, radius, basis, follow, mesh in configs:
+    for name, radius, basis, follow, mesh, element in configs:
+        if args.only and not any(word.lower() in name.lower() for word in args.only):
+            if name in kept:
+                lines.append(kept[name])
+            continue
         basis = int(basis * scale)
-        model = compile_model(spec_from_dict(_doc(radius, basis, follow, mesh)))
+        model = compile_model(spec_from_dict(_doc(radius, basis, follow, mesh, element)))
         start = time.perf_counter()
         with threadpool_limits(limits=1, user_api="blas"):
             offline = precompute(model)
@@ -105,6 +121,18 @@ def main(argv: list[str] | None = None) -> int:
         print(lines[-1], flush=True)
     write_fragment(FRAGMENT, lines)
     return 0
+
+
+def _previous_rows() -> dict[str, str]:
+    """The table rows of the fragment as it is, by their first cell (the ball's name)."""
+    if not FRAGMENT.exists():
+        return {}
+    rows = {}
+    for line in FRAGMENT.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| ") and len(cells) == 12 and cells[1].replace(".", "").isdigit():
+            rows[cells[0]] = line
+    return rows
 
 
 if __name__ == "__main__":

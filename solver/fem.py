@@ -10,10 +10,15 @@ Densities live at the interior degrees of freedom ("nodes"); the mass matrix is 
 (row sums), which for P1 (any n), for P2 on intervals (Simpson weights h/6, 4h/6, h/6) and for
 P2 plus the cubic bubble on triangles (``[discretization] element = "bubble"`` in 2-D, the
 mass-lumped element of Cohen, Joly and Tordjman: nodes at the vertices, edge midpoints and
-centroid, weights |T|/20, 2|T|/15, 9|T|/20) gives positive quadrature weights, so pointwise
-products at the nodes are exact in the discrete L² inner product.  scikit-fem's P2+bubble
-basis is hierarchical (the bubble is added to the P2 functions), so every matrix is taken to the
-nodal (Lagrange) basis ψ = φ P⁻¹, P_ij = φ_j(x_i): A ↦ P⁻ᵀ A P⁻¹.
+centroid, weights |T|/20, 2|T|/15, 9|T|/20) and for P2 plus the cubic face bubbles and the quartic
+interior bubble on tetrahedra (``element = "bubble"`` in 3-D, the 15-node degree-2 mass-lumped
+tetrahedron of Chin-Joe-Kong, Mulder and Van Veldhuizen, J. Eng. Math. 35, 1999: nodes at the
+vertices, edge midpoints, face centroids and centroid, weights 17|T|/840, 4|T|/105, 27|T|/280,
+32|T|/105, exact for cubics; tests/test_fem_bubble.py derives the weights with SymPy)
+gives positive quadrature weights, so pointwise products at the nodes are exact in the discrete L²
+inner product.  scikit-fem's P2+bubble triangle is hierarchical (the bubble is added to the P2
+functions), so every matrix is taken to the nodal (Lagrange) basis ψ = φ P⁻¹, P_ij = φ_j(x_i):
+A ↦ P⁻ᵀ A P⁻¹; its tetrahedron (``ElementTetCCR``) is nodal at those 15 points already.
 
 Meshes: n = 1 a uniform interval mesh; n = 2 concentric rings of 6i points triangulated by
 Delaunay (near-equilateral triangles, boundary vertices on the circle), or with ``[domain] follow`` a
@@ -33,6 +38,7 @@ from skfem import (
     BilinearForm,
     ElementLineP1,
     ElementLineP2,
+    ElementTetCCR,
     ElementTetP1,
     ElementTriCCR,
     ElementTriP1,
@@ -60,6 +66,8 @@ NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
 MAX_NODES = 50000
 # Interior vertices of the ball refined r times.
 BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991, 5: 41727}
+# Interior DOFs of the P2 + bubbles tetrahedra on the same balls (refinement 4 would have ~135 000).
+BALL_INTERIOR_BUBBLE = {1: 239, 2: 2047, 3: 17023}
 
 
 @dataclass(frozen=True)
@@ -85,21 +93,21 @@ class FESpace:
 
 
 def element_for(n: int, order: int):
-    """Effective order 2: P2 on intervals (its lumped mass is Simpson's rule), P2 plus the cubic bubble
-    on triangles (positive lumped weights, module docstring); P1 otherwise (and on tetrahedra)."""
+    """Effective order 2: P2 on intervals (its lumped mass is Simpson's rule), P2 plus bubbles on
+    triangles and tetrahedra (positive lumped weights, module docstring); P1 otherwise."""
     if n == 1:
         return ElementLineP2() if order == 2 else ElementLineP1()
     if n == 2:
         return ElementTriCCR() if order == 2 else ElementTriP1()
-    return ElementTetP1()
+    return ElementTetCCR() if order == 2 else ElementTetP1()
 
 
 def effective_order(n: int, order: int, element: str = "lagrange") -> int:
     """The degree the element family gives ``order`` (``[discretization] element``): 1-D Lagrange P1
-    or P2; 2-D P1, or P2 + bubble with element = "bubble"; 3-D P1."""
+    or P2; 2-D and 3-D P1, or P2 + bubbles with element = "bubble"."""
     if n == 1:
         return order
-    return 2 if n == 2 and order == 2 and element == "bubble" else 1
+    return 2 if order == 2 and element == "bubble" else 1
 
 
 def _space(mesh: Mesh, n: int, order: int) -> FESpace:
@@ -197,7 +205,7 @@ def interior_count(n: int, order: int, resolution: int) -> int:
         vertices = 3 * resolution * (resolution - 1) + 1
         edges, triangles = 9 * resolution ** 2 - 3 * resolution, 6 * resolution ** 2
         return vertices if order == 1 else vertices + edges + triangles
-    return BALL_INTERIOR.get(resolution, MAX_NODES + 1)
+    return (BALL_INTERIOR if order == 1 else BALL_INTERIOR_BUBBLE).get(resolution, MAX_NODES + 1)
 
 
 def default_resolution(n: int, order: int, size: int) -> int:
@@ -247,6 +255,10 @@ def discretise(model, size: int | None = None) -> FESpace:
     if model.n == 3 and spec.mesh is not None and spec.mesh > max(BALL_INTERIOR):
         raise SpecError("discretization.mesh",
                         f"in 3-D mesh counts refinements of the ball, at most {max(BALL_INTERIOR)}")
+    if model.n == 3 and order == 2 and spec.mesh is not None and spec.mesh > max(BALL_INTERIOR_BUBBLE):
+        raise SpecError("discretization.mesh", "in 3-D the P2 + bubbles element allows at most "
+                        f"{max(BALL_INTERIOR_BUBBLE)} refinements ({BALL_INTERIOR_BUBBLE[3]} nodes); "
+                        "finer balls are for element = \"lagrange\"")
     resolution = spec.mesh or default_resolution(model.n, order, size)
     nodes = interior_count(model.n, order, resolution)
     if nodes > MAX_NODES:
@@ -453,6 +465,19 @@ def bubble_values(space: FESpace, elem: np.ndarray, lam: np.ndarray, full: np.nd
     weights.append(B)
     out = 0.0
     for j, w in enumerate(weights):
+        out = out + (w if full.ndim == 1 else w[:, None]) * full[dofs[j]]
+    return out
+
+
+def tet_bubble_values(space: FESpace, elem: np.ndarray, lam: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """The 3-D P2+bubbles function with nodal values ``full`` (all DOFs, (D,) or (D, k)) at points in
+    tetrahedra ``elem`` with barycentrics ``lam`` (P, 4) in the order of the mesh's vertices: scikit-fem's
+    nodal ``ElementTetCCR`` at the reference coordinates λ₁, λ₂, λ₃ (the mapping is affine)."""
+    element, dofs = space.basis.elem, space.basis.element_dofs[:, elem]  # (15, P)
+    reference = np.ascontiguousarray(lam[:, 1:].T)  # (3, P)
+    out = 0.0
+    for j in range(dofs.shape[0]):
+        w = element.lbasis(reference, j)[0]
         out = out + (w if full.ndim == 1 else w[:, None]) * full[dofs[j]]
     return out
 

@@ -338,7 +338,7 @@ class OfflineModel:
 
     def _simplex_values(self, X: np.ndarray, full: np.ndarray) -> np.ndarray:
         """The finite-element function at X: barycentric coordinates in the element containing each
-        point (P1: linear in them; 2-D order 2: P2 + bubble)."""
+        point (P1: linear in them; order 2: P2 + bubbles)."""
         from scipy.spatial import cKDTree
 
         from . import fem
@@ -351,6 +351,9 @@ class OfflineModel:
         out = np.zeros((X.shape[0],) + full.shape[1:])
         if self.model.n == 2 and int(self.element_order) == 2:  # P2 + bubble (solver/fem.py)
             out[found] = fem.bubble_values(self.space, elem[found], bary[found], full)
+            return out
+        if self.model.n == 3 and int(self.element_order) == 2:
+            out[found] = fem.tet_bubble_values(self.space, elem[found], bary[found], full)
             return out
         vertices = cells[:, elem[found]]  # (n+1, P)
         out[found] = np.einsum("pv,vp...->p...", bary[found], full[vertices])

@@ -196,14 +196,14 @@ class Discretization(_Strict):
     integration.  ``precision`` is the floating point of the online engine's two matrix-vector
     products per observation: "single" halves their memory traffic (the speed-up is measured in
     docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
-    stored state stay in double.  ``element = "bubble"`` (2-D, order 2): P2 plus the cubic bubble with
-    its positive lumped mass instead of P1 (solver/fem.py; ~5x closer to the exact filter at the same
-    cost, tests/test_fem_bubble.py).  ``scheme`` is how the Fokker–Planck operator is discretised:
-    "galerkin" (plain Galerkin with the lumped mass) or "supg" (streamline-upwind Petrov–Galerkin:
-    the test functions tilted along the drift, consistent mass; P1 elements in 2-D and 3-D).  Left
-    out, it is "supg" where the diffusion is only positive semi-definite (noise on some coordinates:
-    the operator is hypoelliptic and plain Galerkin rings along the drift, docs/bench-psd.md) and
-    "galerkin" otherwise.
+    stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
+    their positive lumped mass instead of P1 (solver/fem.py; in 2-D ~5x closer to the exact filter at
+    the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
+    Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass) or "supg"
+    (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent mass;
+    P1 elements in 2-D and 3-D).  Left out, it is "supg" where the diffusion is only positive
+    semi-definite (noise on some coordinates: the operator is hypoelliptic and plain Galerkin rings
+    along the drift, docs/bench-psd.md) and "galerkin" otherwise.
     """
 
     dt: float = Field(gt=0, le=10.0)
@@ -321,9 +321,10 @@ class ModelSpec(_Strict):
             raise SpecError("domain.center", f"needs {n} coordinates, got {len(self.domain.center)}")
         if self.domain.center is not None:
             _finite_or_raise(self.domain.center, "domain.center")
-        if self.discretization.element == "bubble" and (n != 2 or self.discretization.order != 2):
-            raise SpecError("discretization.element", "bubble (P2 plus the cubic bubble) is the 2-D element "
-                                                      "of order 2: it needs 2 state variables and order = 2")
+        if self.discretization.element == "bubble" and (n == 1 or self.discretization.order != 2):
+            raise SpecError("discretization.element", "bubble (P2 plus bubbles) is the element of order 2 on "
+                                                      "triangles and tetrahedra: it needs 2 or 3 state "
+                                                      "variables and order = 2")
         self._check_scheme(n)
         if self.domain.region is not None and len(self.domain.region) != n:
             raise SpecError("domain.region", f"needs one [lo, hi] pair per state variable ({n}), "

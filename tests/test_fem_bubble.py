@@ -1,10 +1,11 @@
-"""2-D ``element = "bubble"``: P2 plus the cubic bubble with a lumped mass (solver/fem.py), against exact
-truth.
+"""``element = "bubble"``: P2 plus bubbles with a lumped mass (solver/fem.py), against exact truth.
 
-Truth: the element's nodal quadrature |T|/20 (vertices), 2|T|/15 (edge midpoints), 9|T|/20 (centroid),
-which integrates cubics exactly (checked here on x³ and x²y over the triangles); the Dirichlet eigenvalues
-of the unit disk, j_{k,1}² (Bessel zeros); a quadratic, which the element reproduces exactly; and the
-exact Kalman filter of a 2-D OU model.
+Truth, 2-D: the element's nodal quadrature |T|/20 (vertices), 2|T|/15 (edge midpoints), 9|T|/20
+(centroid), which integrates cubics exactly (checked here on x³ and x²y over the triangles); the Dirichlet
+eigenvalues of the unit disk, j_{k,1}² (Bessel zeros); a quadratic, which the element reproduces exactly;
+and the exact Kalman filter of a 2-D OU model.  3-D: the 15-node tetrahedron's weights derived here with
+SymPy from its nodal basis (17/840, 4/105, 27/280, 32/105 of |T|) and their exactness for cubics; a
+quadratic reproduced exactly; the exact Kalman filter of tests/test_engine_3d.py's model.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sps
 from scipy.special import jn_zeros
-from skfem import Basis, ElementTriP1, LinearForm, asm
+from skfem import Basis, ElementTetCCR, ElementTetP1, ElementTriP1, LinearForm, asm
 from yauyau.solver import compile_model, fem, spec_from_dict
 from yauyau.solver.engine import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
@@ -98,13 +99,110 @@ def test_a_2d_ou_filter_against_kalman_at_the_default_basis(order, bound):
         assert gap > 3 * 0.015  # the bubble element is several times closer at the same cost
 
 
-def test_bubble_is_refused_outside_2d_and_leaves_other_ids_alone():
+def test_bubble_is_refused_in_1d_and_at_order_1_and_leaves_other_ids_alone():
     from yauyau.solver.errors import SpecError
 
     with pytest.raises(SpecError) as caught:
         spec_from_dict({**OU, "discretization": {"dt": 0.01, "basis": 50, "order": 1, "element": "bubble"}})
     assert caught.value.field == "discretization.element"
+    one = {"name": "ou1", "state": ["x"], "drift": ["-x"], "observation": ["x"], "domain": {"radius": 5.0},
+           "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+           "discretization": {"dt": 0.01, "basis": 20, "element": "bubble"}}
+    with pytest.raises(SpecError) as caught:
+        spec_from_dict(one)
+    assert caught.value.field == "discretization.element" and "2 or 3 state variables" in str(caught.value)
     plain = spec_from_dict({**OU, "discretization": {"dt": 0.01, "basis": 50}})
     assert "element" not in plain.canonical_json()
     assert "bubble" in spec_from_dict({**OU, "discretization": {"dt": 0.01, "basis": 50,
                                                                  "element": "bubble"}}).canonical_json()
+
+
+# -- 3-D: P2 plus four cubic face bubbles and the quartic interior bubble (scikit-fem's ElementTetCCR) --
+def _tet_weights_by_sympy() -> list:
+    """∫ψ_i / |T| of the nodal basis of P2 + λ_iλ_jλ_k (faces) + λ₀λ₁λ₂λ₃ on the reference tetrahedron,
+    nodes in scikit-fem's order (4 vertices, 6 edge midpoints, 4 face centroids, the centroid)."""
+    import itertools
+
+    import sympy as sp
+
+    x, y, z = sp.symbols("x y z")
+    lam = [1 - x - y - z, x, y, z]
+    space = [sp.Integer(1), x, y, z, x * x, y * y, z * z, x * y, y * z, x * z]
+    space += [lam[i] * lam[j] * lam[k] for i, j, k in itertools.combinations(range(4), 3)]
+    space.append(lam[0] * lam[1] * lam[2] * lam[3])
+    nodes = [[sp.nsimplify(c, tolerance=1e-12, rational=True) for c in v] for v in ElementTetCCR().doflocs]
+    values = sp.Matrix([[f.subs({x: p[0], y: p[1], z: p[2]}) for f in space] for p in nodes])
+    integral = sp.Matrix([sp.integrate(f, (z, 0, 1 - x - y), (y, 0, 1 - x), (x, 0, 1)) for f in space])
+    return list(6 * values.inv().T * integral)  # ψ = (values⁻¹)ᵀ-combination of the space; |T| = 1/6
+
+
+def _volumes(space):
+    p, t = space.mesh.p, space.mesh.t
+    a = p[:, t[0]]
+    return np.abs(np.einsum("ij,ij->j", p[:, t[1]] - a, np.cross(p[:, t[2]] - a, p[:, t[3]] - a, axis=0))) / 6
+
+
+def test_tetrahedron_lumped_weights_are_mulders_positive_quadrature_exact_for_cubics():
+    import sympy as sp
+
+    derived = _tet_weights_by_sympy()
+    expected = [sp.Rational(17, 840)] * 4 + [sp.Rational(4, 105)] * 6 + [sp.Rational(27, 280)] * 4 + [
+        sp.Rational(32, 105)]
+    assert [sp.nsimplify(w) for w in derived] == expected and sum(expected) == 1
+    space = fem.build(3, np.array([0.3, -0.2, 0.1]), 2.0, 2, 2)
+    weights = fem.lumped_mass(space.basis, space)
+    volumes = _volumes(space)
+    assert np.all(weights > 0)
+    interior = space.basis.element_dofs[-1]  # one centroid DOF per tetrahedron
+    assert np.allclose(weights[interior], 32 * volumes / 105, rtol=1e-12)
+    assert np.isclose(weights.sum(), volumes.sum(), rtol=1e-12)
+    x = space.basis.doflocs.T
+    cubics = (lambda P: P[:, 0] ** 3 + 2 * P[:, 1],
+              lambda P: P[:, 0] ** 2 * P[:, 1] + P[:, 2] ** 2 + P[:, 1] * P[:, 2],
+              lambda P: P[:, 0] * P[:, 1] * P[:, 2] + 1)
+    for g in cubics:
+        form = LinearForm(lambda v, w, g=g: g(np.stack([c.ravel() for c in w.x], 1))
+                          .reshape(w.x[0].shape) * v)
+        gauss = asm(form, Basis(space.mesh, ElementTetP1(), intorder=4)).sum()
+        assert np.isclose(weights @ g(x), gauss, rtol=1e-11, atol=1e-12)
+    quartic = lambda P: P[:, 0] ** 4  # noqa: E731 -- beyond the rule's degree: not exact
+    form = LinearForm(lambda v, w: quartic(np.stack([c.ravel() for c in w.x], 1)).reshape(w.x[0].shape) * v)
+    gauss = asm(form, Basis(space.mesh, ElementTetP1(), intorder=5)).sum()
+    assert not np.isclose(weights @ quartic(x), gauss, rtol=1e-8)
+
+
+def test_3d_bubble_interpolation_reproduces_quadratics_and_the_basis_is_orthonormal():
+    doc = {"name": "ou3", "state": ["x", "y", "z"], "drift": ["-x", "-y", "-z"], "observation": ["x"],
+           "method": "yau-yau", "domain": {"radius": 3.0},
+           "initial": {"kind": "gaussian", "mean": [0.0, 0.0, 0.0], "cov": np.eye(3).tolist()},
+           "discretization": {"dt": 0.02, "basis": 150, "mesh": 2, "element": "bubble"}}
+    offline = precompute(compile_model(spec_from_dict(doc)))
+    assert int(offline.element_order) == 2 and len(offline.nodes) == fem.BALL_INTERIOR_BUBBLE[2]
+    q = lambda P: 1 + P[:, 0] - 2 * P[:, 2] + 0.3 * P[:, 0] ** 2 + 0.2 * P[:, 1] * P[:, 2]  # noqa: E731
+    points = np.random.default_rng(0).uniform(-0.8, 0.8, (400, 3))  # in tetrahedra off the boundary
+    assert np.abs(offline.interpolate(q(offline.nodes), points) - q(points)).max() < 1e-11
+    # anywhere inside (near the sphere too, where the boundary DOFs are 0), as scikit-fem's own element
+    # finder and basis evaluate the same nodal values
+    full = np.zeros(offline.space.basis.N)
+    full[offline.node_index] = q(offline.nodes)
+    anywhere = np.random.default_rng(1).uniform(-1.6, 1.6, (400, 3))
+    assert np.allclose(offline.interpolate(q(offline.nodes), anywhere),
+                       offline.space.basis.probes(anywhere.T) @ full, atol=1e-11)
+    gram = offline.basis.T @ (offline.weights[:, None] * offline.basis)
+    assert np.abs(gram - np.eye(offline.size)).max() < 1e-10
+
+
+def test_3d_bubble_beyond_three_refinements_is_refused_by_name_before_any_mesh():
+    from yauyau.solver.errors import SpecError
+
+    doc = {"name": "ou3", "state": ["x", "y", "z"], "drift": ["-x", "-y", "-z"], "observation": ["x"],
+           "method": "yau-yau", "domain": {"radius": 3.0},
+           "initial": {"kind": "gaussian", "mean": [0.0, 0.0, 0.0], "cov": np.eye(3).tolist()},
+           "discretization": {"dt": 0.02, "basis": 150, "mesh": 4, "element": "bubble"}}
+    spec = spec_from_dict(doc)
+    assert fem.planned_nodes(spec) > fem.MAX_NODES  # what a service checks before it accepts a precompute
+    with pytest.raises(SpecError) as caught:
+        fem.discretise(compile_model(spec))
+    assert caught.value.field == "discretization.mesh" and "at most 3" in str(caught.value)
+    doc["discretization"]["mesh"] = None
+    assert fem.planned_nodes(spec_from_dict(doc)) == fem.BALL_INTERIOR_BUBBLE[2]  # the first with ≥ 2N nodes
