@@ -452,34 +452,25 @@ def space_from_arrays(n: int, points: np.ndarray, cells: np.ndarray, order: int)
     return _space(mesh, n, order)
 
 
-def bubble_values(space: FESpace, elem: np.ndarray, lam: np.ndarray, full: np.ndarray) -> np.ndarray:
-    """The 2-D P2+bubble function with nodal values ``full`` (all DOFs, (D,) or (D, k)) at points in
-    triangles ``elem`` with barycentrics ``lam`` (P, 3): the nodal basis in barycentric coordinates,
-    B = 27λ₀λ₁λ₂,  ψ_i = λ_i(2λ_i − 1) + B/9,  ψ_ij = 4λ_iλ_j − 4B/9,  ψ_c = B."""
-    dofs = space.basis.element_dofs[:, elem]  # (7, P): 3 vertices, 3 edges, the bubble
+def local_weights(space: FESpace, elem: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nodal basis functions of the order-2 elements ``elem`` at points with barycentrics ``lam``
+    (P, n+1): (DOFs (k, P), values (k, P)), so that a function with nodal values u is
+    Σ_j values[j] u[DOFs[j]] (P1's are the barycentrics themselves).  Triangle P2 + bubble:
+    B = 27λ₀λ₁λ₂,  ψ_i = λ_i(2λ_i − 1) + B/9,  ψ_ij = 4λ_iλ_j − 4B/9,  ψ_c = B.  Tetrahedron P2 +
+    bubbles: scikit-fem's nodal ``ElementTetCCR`` at the reference coordinates λ₁, λ₂, λ₃ (the mapping
+    is affine, and λ is in the order of the mesh's vertices)."""
+    n = lam.shape[1] - 1
+    dofs = space.basis.element_dofs[:, elem]
+    if n == 3:
+        reference = np.ascontiguousarray(lam[:, 1:].T)  # (3, P)
+        return dofs, np.stack([space.basis.elem.lbasis(reference, j)[0] for j in range(dofs.shape[0])])
     pairs = _edge_pairs(space)[:, :, elem]  # (3, 2, P): the vertices of each local edge
     B = 27.0 * lam[:, 0] * lam[:, 1] * lam[:, 2]
     rows = np.arange(len(elem))
     weights = [lam[:, i] * (2.0 * lam[:, i] - 1.0) + B / 9.0 for i in range(3)]
     weights += [4.0 * lam[rows, pairs[k, 0]] * lam[rows, pairs[k, 1]] - 4.0 * B / 9.0 for k in range(3)]
     weights.append(B)
-    out = 0.0
-    for j, w in enumerate(weights):
-        out = out + (w if full.ndim == 1 else w[:, None]) * full[dofs[j]]
-    return out
-
-
-def tet_bubble_values(space: FESpace, elem: np.ndarray, lam: np.ndarray, full: np.ndarray) -> np.ndarray:
-    """The 3-D P2+bubbles function with nodal values ``full`` (all DOFs, (D,) or (D, k)) at points in
-    tetrahedra ``elem`` with barycentrics ``lam`` (P, 4) in the order of the mesh's vertices: scikit-fem's
-    nodal ``ElementTetCCR`` at the reference coordinates λ₁, λ₂, λ₃ (the mapping is affine)."""
-    element, dofs = space.basis.elem, space.basis.element_dofs[:, elem]  # (15, P)
-    reference = np.ascontiguousarray(lam[:, 1:].T)  # (3, P)
-    out = 0.0
-    for j in range(dofs.shape[0]):
-        w = element.lbasis(reference, j)[0]
-        out = out + (w if full.ndim == 1 else w[:, None]) * full[dofs[j]]
-    return out
+    return dofs, np.stack(weights)
 
 
 def _edge_pairs(space: FESpace) -> np.ndarray:

@@ -84,6 +84,9 @@ class TranslatedOffline:
     def interpolate(self, nodal: np.ndarray, points: Any) -> np.ndarray:
         return self.home.interpolate(nodal, self._points(points))
 
+    def interpolation_matrix(self, points: Any) -> Any:
+        return self.home.interpolation_matrix(self._points(points))
+
     def fokker_planck_generator(self) -> np.ndarray:
         return self.home.fokker_planck_generator()
 
@@ -137,6 +140,7 @@ class FollowingFilter(ChunkedFilter):
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
+        self._node_tree: Any = None
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
@@ -480,8 +484,13 @@ class FollowingFilter(ChunkedFilter):
         steps = np.round(offset / self._lattice)
         if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
+        if self._node_tree is None:  # the home nodes' KD-tree, built once for every carry
+            from scipy.spatial import cKDTree
+
+            self._node_tree = cKDTree(np.asarray(self.home.offline.nodes, dtype=float))
         return kept(self._carries, tuple(int(k) for k in steps),
-                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset), CARRIES)
+                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset,
+                                         self._node_tree), CARRIES)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -493,56 +502,29 @@ class _Carry:
     matched: np.ndarray
     source: np.ndarray
     rest: np.ndarray
-    rows: Any  # (len(rest), Q) sparse
+    rows: Any  # (len(rest), Q) sparse; None: no row is interpolated
 
     @classmethod
-    def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray) -> "_Carry":
-        """On the home ball (nodes ``home.nodes`` around ``center``): where its nodes moved by
-        ``offset`` land, as :func:`_carried` finds it."""
+    def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray,
+              tree: Any = None) -> "_Carry":
+        """On the home ball (nodes ``home.nodes`` around ``center``, ``tree`` their KD-tree): where its
+        nodes moved by ``offset`` land, as :func:`_carried` finds it."""
         from scipy.spatial import cKDTree
 
         nodes = np.asarray(home.nodes, dtype=float)
         points = nodes + offset
-        tree = cKDTree(nodes)
+        tree = cKDTree(nodes) if tree is None else tree
         nearest, matched, rest = _landing(tree, nodes, points, center, radius)
         rest = np.flatnonzero(rest)
-        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest,
-                   _interpolation_rows(home, tree, points[rest]))
+        rows = home.interpolation_matrix(points[rest]) if len(rest) else None
+        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows)
 
     def apply(self, nodal: np.ndarray) -> np.ndarray:
         out = np.zeros(self.size)
         out[self.matched] = nodal[self.source]
-        out[self.rest] = self.rows @ nodal
+        if self.rows is not None:
+            out[self.rest] = self.rows @ nodal
         return out
-
-
-def _interpolation_rows(home: Any, tree: Any, points: np.ndarray, memory: int = 4_000_000) -> Any:
-    """(P, Q) sparse: row p holds the weights with which ``home.interpolate`` takes point p's value from
-    the nodal values.  Only nodes within an element's diameter of a point can share its element, so
-    only their unit vectors are interpolated, ``memory`` values at a time (never a Q × Q identity)."""
-    from scipy.sparse import coo_matrix
-
-    Q = len(home.nodes)
-    if not len(points):
-        return coo_matrix((0, Q)).tocsr()
-    corners = np.asarray(home.mesh_points, dtype=float)[:, np.asarray(home.mesh_cells)]  # (n, n+1, C)
-    diameter = max(float(np.linalg.norm(corners[:, i] - corners[:, j], axis=0).max())
-                   for i in range(corners.shape[1]) for j in range(i))
-    near = np.unique(np.concatenate([np.asarray(found, dtype=int) for found in
-                                     tree.query_ball_point(points, diameter * (1 + 1e-9))]))
-    rows, cols, values = [], [], []
-    block = max(32, memory // Q)
-    for start in range(0, len(near), block):
-        columns = near[start:start + block]
-        unit = np.zeros((Q, len(columns)))
-        unit[columns, np.arange(len(columns))] = 1.0
-        weights = home.interpolate(unit, points)  # (P, len(columns))
-        r, c = np.nonzero(weights)
-        rows.append(r)
-        cols.append(columns[c])
-        values.append(weights[r, c])
-    return coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(len(points), Q)).tocsr()
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:

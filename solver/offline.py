@@ -311,21 +311,44 @@ class OfflineModel:
 
     def interpolate(self, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
         """The finite-element function(s) with these values at ``nodes`` ((Q,) or (Q, k)) at points."""
+        return self.interpolation_matrix(points) @ np.asarray(nodal, dtype=float)
+
+    def interpolation_matrix(self, points: np.ndarray) -> Any:
+        """(P, Q) sparse: row p the weights with which the finite-element function takes its value at
+        point p from its nodal values (the element's nodal basis functions there); a zero row outside
+        the ball, and on ∂B_R itself (Dirichlet: every basis function is 0 there)."""
+        import scipy.sparse as sps
+
+        from . import fem
+
         X = _check_points(points, self.model.n)
-        nodal = np.asarray(nodal, dtype=float)
-        full = np.zeros((self.space.basis.N,) + nodal.shape[1:])
-        full[self.node_index] = nodal
-        out = np.zeros((X.shape[0],) + nodal.shape[1:])
-        # on ∂B_R every basis function is 0 (Dirichlet): the sphere itself counts as outside (and the
-        # interval mesh's element finder has no element for its right end point)
-        inside = np.linalg.norm(X - self.model.center, axis=1) < self.model.radius * (1 - 1e-12)
-        if not inside.any():
-            return out
+        Q = len(self.node_index)
+        linear = self.model.n > 1 and int(self.element_order) == 1  # DOFs are the mesh's vertices
+        column = np.full(self.mesh_points.shape[1] if linear else self.space.basis.N, -1)
+        column[self.node_index] = np.arange(Q)
+        # the interval mesh's element finder has no element for its right end point: the sphere is outside
+        distance = np.linalg.norm(X - self.model.center, axis=1)
+        inside = np.flatnonzero(distance < self.model.radius * (1 - 1e-12))
+        if not len(inside):
+            return sps.csr_matrix((len(X), Q))
         if self.model.n == 1:
-            out[inside] = self.space.basis.probes(X[inside].T) @ full
+            probe = self.space.basis.probes(X[inside].T).tocoo()
+            rows, dofs, values = inside[probe.row], probe.col, probe.data
         else:
-            out[inside] = self._simplex_values(X[inside], full)
-        return out
+            if self._tree is None:
+                from scipy.spatial import cKDTree
+
+                self._tree = cKDTree(self.mesh_points[:, self.mesh_cells].mean(axis=1).T)
+            elem, bary = fem.locate(self.mesh_points, self.mesh_cells, self._tree, X[inside])
+            found = elem >= 0
+            if linear:  # the barycentrics at the vertices (no finite-element space is built)
+                local, weights = self.mesh_cells[:, elem[found]], bary[found].T
+            else:
+                local, weights = fem.local_weights(self.space, elem[found], bary[found])  # (k, P)
+            rows = np.broadcast_to(inside[found], local.shape).ravel()
+            dofs, values = local.ravel(), weights.ravel()
+        kept = column[dofs] >= 0  # boundary DOFs carry 0
+        return sps.csr_matrix((values[kept], (rows[kept], column[dofs[kept]])), shape=(len(X), Q))
 
     @property
     def space(self) -> Any:
@@ -335,29 +358,6 @@ class OfflineModel:
             self._space = fem.space_from_arrays(self.model.n, self.mesh_points, self.mesh_cells,
                                                 int(self.element_order))
         return self._space
-
-    def _simplex_values(self, X: np.ndarray, full: np.ndarray) -> np.ndarray:
-        """The finite-element function at X: barycentric coordinates in the element containing each
-        point (P1: linear in them; order 2: P2 + bubbles)."""
-        from scipy.spatial import cKDTree
-
-        from . import fem
-
-        if self._tree is None:
-            self._tree = cKDTree(self.mesh_points[:, self.mesh_cells].mean(axis=1).T)
-        cells = self.mesh_cells
-        elem, bary = fem.locate(self.mesh_points, cells, self._tree, X)
-        found = elem >= 0
-        out = np.zeros((X.shape[0],) + full.shape[1:])
-        if self.model.n == 2 and int(self.element_order) == 2:  # P2 + bubble (solver/fem.py)
-            out[found] = fem.bubble_values(self.space, elem[found], bary[found], full)
-            return out
-        if self.model.n == 3 and int(self.element_order) == 2:
-            out[found] = fem.tet_bubble_values(self.space, elem[found], bary[found], full)
-            return out
-        vertices = cells[:, elem[found]]  # (n+1, P)
-        out[found] = np.einsum("pv,vp...->p...", bary[found], full[vertices])
-        return out
 
 
 def _check_points(points, n: int) -> np.ndarray:

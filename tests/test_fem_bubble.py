@@ -206,3 +206,30 @@ def test_3d_bubble_beyond_three_refinements_is_refused_by_name_before_any_mesh()
     assert caught.value.field == "discretization.mesh" and "at most 3" in str(caught.value)
     doc["discretization"]["mesh"] = None
     assert fem.planned_nodes(spec_from_dict(doc)) == fem.BALL_INTERIOR_BUBBLE[2]  # the first with ≥ 2N nodes
+
+
+@pytest.mark.parametrize("n, element", [(2, "lagrange"), (2, "bubble"), (3, "lagrange"), (3, "bubble")])
+def test_the_interpolation_matrix_is_scikit_fems_own_evaluation(n, element):
+    """``OfflineModel.interpolation_matrix`` (what a move carries with) against scikit-fem's element
+    finder and basis on the same nodal values (through P⁻¹ for the hierarchical triangle), and 0 outside
+    the ball."""
+    state = ["x", "y", "z"][:n]
+    doc = {"name": "ou", "state": state, "drift": [f"-{s}" for s in state], "observation": [state[0]],
+           "method": "yau-yau", "domain": {"radius": 3.0},
+           "initial": {"kind": "gaussian", "mean": [0.0] * n, "cov": np.eye(n).tolist()},
+           "discretization": {"dt": 0.02, "basis": 40, "mesh": 2 if n == 3 else 5, "element": element}}
+    offline = precompute(compile_model(spec_from_dict(doc)))
+    nodal = np.random.default_rng(2).standard_normal(len(offline.nodes))
+    points = np.random.default_rng(3).uniform(-3.5, 3.5, (500, n))
+    points[:5] = offline.nodes[:5]  # at nodes: the nodal values themselves
+    ours = offline.interpolation_matrix(points) @ nodal
+    assert np.allclose(ours[:5], nodal[:5], atol=1e-12)
+    space = offline.space
+    full = np.zeros(space.basis.N)
+    full[offline.node_index] = nodal
+    coefficients = full if space.to_nodal is None else space.to_nodal @ full
+    within = np.linalg.norm(points, axis=1) < 0.8 * 3.0  # inside the meshed polygon / polyhedron
+    assert within.sum() > 50
+    assert np.allclose(ours[within], space.basis.probes(points[within].T) @ coefficients, atol=1e-12)
+    outside = np.linalg.norm(points, axis=1) >= 3.0
+    assert outside.sum() > 50 and np.all(ours[outside] == 0.0)
