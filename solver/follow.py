@@ -140,7 +140,7 @@ class FollowingFilter(ChunkedFilter):
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
-        self._node_tree: Any = None
+        self._home_tree: Any = None
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
@@ -244,8 +244,12 @@ class FollowingFilter(ChunkedFilter):
     def density(self, state: Any, points: np.ndarray) -> np.ndarray:
         return self.engine(state.center).density(state, points)
 
+    def centred(self, state: Any) -> Any:
+        """The engine of the ball where ``state`` is: its ``nodes`` are those of ``nodal_density``."""
+        return self.engine(state.center)
+
     def nodal_density(self, state: Any) -> np.ndarray:
-        return self.engine(state.center).nodal_density(state)
+        return self.centred(state).nodal_density(state)
 
     def marginal(self, state: Any, var_index: int, grid: np.ndarray, resolution: int = 64) -> np.ndarray:
         return self.engine(state.center).marginal(state, var_index, grid, resolution)
@@ -484,13 +488,13 @@ class FollowingFilter(ChunkedFilter):
         steps = np.round(offset / self._lattice)
         if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
-        if self._node_tree is None:  # the home nodes' KD-tree, built once for every carry
+        if self._home_tree is None:  # the home nodes' KD-tree, built once for every carry
             from scipy.spatial import cKDTree
 
-            self._node_tree = cKDTree(np.asarray(self.home.offline.nodes, dtype=float))
+            self._home_tree = cKDTree(np.asarray(self.home.offline.nodes, dtype=float))
         return kept(self._carries, tuple(int(k) for k in steps),
                     lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset,
-                                         self._node_tree), CARRIES)
+                                         self._home_tree), CARRIES)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -155,7 +155,8 @@ def mode(flt: Any, state: Any, estimate: Any | None = None) -> np.ndarray | None
     if is_gaussian(flt):
         return np.asarray(estimate.mean, float).copy()
     if hasattr(flt, "nodal_density"):
-        return _refine_on_nodes(flt, state)
+        centred = getattr(flt, "centred", None)  # a ball that follows the state: its nodes where it is
+        return _refine_on_nodes(flt if centred is None else centred(state), state)
     return _search_mode(flt, state, estimate)
 
 

@@ -141,6 +141,21 @@ def test_the_ball_starts_around_the_prior_and_the_density_is_where_the_state_is(
     assert q[0][0] == pytest.approx(40.0, abs=1e-3)
 
 
+def test_the_mode_of_a_following_ball_is_where_the_ball_is(trend):
+    """The posterior is Gaussian (Kalman), so its mode is its mean.  The mode is read off the nodes of
+    the ball where the state is (before 2026-11-24 it was read off the home ball's nodes: 0.456 for a
+    mean of 7.84 on a ball centred at 7.38)."""
+    from yauyau.solver import summaries
+
+    model, offline = trend
+    flt = build(model, offline)
+    rows = simulate(model, 1500, np.random.default_rng(5)).increments
+    state, result = flt.run_arrays(flt.initial_state(), rows)
+    assert result.recentred.sum() > 3 and abs(state.center[0]) > 8  # the ball has travelled
+    mean = flt.estimate(state).mean[0]
+    assert summaries.mode(flt, state)[0] == pytest.approx(mean, abs=0.02)
+
+
 def test_without_follow_the_spec_and_its_model_id_are_unchanged():
     doc = json.loads(json.dumps(TREND))
     doc["domain"] = {"radius": 6.0}
