@@ -173,7 +173,7 @@ class YauYauFilter(ChunkedFilter):
         shift = center - np.asarray(getattr(self.offline, "home_center", self.model.center), dtype=float)
         new = copy.copy(self)
         new.__dict__.pop("_marginal_operators", None)
-        new.__dict__.pop("_node_tree", None)  # solver/follow.py's KD-tree of the old nodes
+        new.__dict__.pop("node_tree", None)  # the KD-tree of the old nodes
         new.__dict__.setdefault("_flow_owner", self)
         new.model = self.model.translated(center)
         new.offline = TranslatedOffline(home, shift, center - shift)
@@ -211,13 +211,18 @@ class YauYauFilter(ChunkedFilter):
                            step=0, t=0.0, loglik=0.0, last=last, form=self.form, precision=self.precision)
 
     @cached_property
-    def node_spacing(self) -> float:
-        """The median distance from a node to its nearest neighbour: the finest feature the nodes see."""
+    def node_tree(self) -> Any:
+        """scipy's cKDTree of the nodes (built once: a move's carry, the mode, the node spacing)."""
         from scipy.spatial import cKDTree
 
+        return cKDTree(self.nodes)
+
+    @cached_property
+    def node_spacing(self) -> float:
+        """The median distance from a node to its nearest neighbour: the finest feature the nodes see."""
         if len(self.nodes) < 2:
             return math.inf
-        distances, _ = cKDTree(self.nodes).query(self.nodes, k=2)
+        distances, _ = self.node_tree.query(self.nodes, k=2)
         return float(np.median(distances[:, 1]))
 
     def _check_resolved(self, prior: Any) -> None:

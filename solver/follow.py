@@ -140,7 +140,6 @@ class FollowingFilter(ChunkedFilter):
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
-        self._home_tree: Any = None
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
@@ -488,13 +487,9 @@ class FollowingFilter(ChunkedFilter):
         steps = np.round(offset / self._lattice)
         if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
-        if self._home_tree is None:  # the home nodes' KD-tree, built once for every carry
-            from scipy.spatial import cKDTree
-
-            self._home_tree = cKDTree(np.asarray(self.home.offline.nodes, dtype=float))
         return kept(self._carries, tuple(int(k) for k in steps),
                     lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset,
-                                         self._home_tree), CARRIES)
+                                         self.home.node_tree), CARRIES)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -510,14 +505,11 @@ class _Carry:
 
     @classmethod
     def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray,
-              tree: Any = None) -> "_Carry":
+              tree: Any) -> "_Carry":
         """On the home ball (nodes ``home.nodes`` around ``center``, ``tree`` their KD-tree): where its
         nodes moved by ``offset`` land, as :func:`_carried` finds it."""
-        from scipy.spatial import cKDTree
-
         nodes = np.asarray(home.nodes, dtype=float)
         points = nodes + offset
-        tree = cKDTree(nodes) if tree is None else tree
         nearest, matched, rest = _landing(tree, nodes, points, center, radius)
         rest = np.flatnonzero(rest)
         rows = home.interpolation_matrix(points[rest]) if len(rest) else None
@@ -535,12 +527,7 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball: read off
     where a point is an old node (a move by whole steps: 1-D elements, the 2-D lattice), interpolated
     in the old mesh elsewhere (the nodes near the boundary, or a mesh without a lattice)."""
-    from scipy.spatial import cKDTree
-
-    tree = old.__dict__.get("_node_tree")
-    if tree is None:  # kept on the (cached) centred engine: its nodes never change
-        tree = old.__dict__["_node_tree"] = cKDTree(old.nodes)
-    nearest, matched, rest = _landing(tree, old.nodes, points, old.model.center, old.model.radius)
+    nearest, matched, rest = _landing(old.node_tree, old.nodes, points, old.model.center, old.model.radius)
     out = np.where(matched, nodal[nearest], 0.0)
     if rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])

@@ -168,10 +168,7 @@ def _refine_on_nodes(flt: Any, state: Any) -> np.ndarray:
     sigma = flt.nodal_density(state)
     top = int(np.argmax(sigma))
     n = nodes.shape[1]
-    tree = getattr(flt, "_node_tree", None)
-    if tree is None:
-        tree = cKDTree(nodes)
-        flt._node_tree = tree
+    tree = flt.node_tree if hasattr(flt, "node_tree") else cKDTree(nodes)
     terms = 1 + n + n * (n + 1) // 2
     _, near = tree.query(nodes[top], k=min(len(nodes), 2 * terms + 1))
     near = np.atleast_1d(near)
