@@ -494,12 +494,27 @@ def _edge_pairs(space: FESpace) -> np.ndarray:
 
 
 def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (P, k, n+1) of X (P, n) in candidate simplices elem (P, k)."""
+    """Barycentric coordinates (P, k, n+1) of X (P, n) in candidate simplices elem (P, k): with the
+    edges e_i = v_i − v_0 and r = X − v_0, λ = E⁻¹r by Cramer's rule (2-D: λ_1 = r×e_2 / e_1×e_2; 3-D:
+    λ_i = r·(e_j × e_k) / det E, (i, j, k) cyclic), elementwise instead of a batched LAPACK solve of
+    many 2×2 or 3×3 systems."""
     vert = points[:, cells[:, elem]]  # (n, n+1, P, k)
     v0 = vert[:, 0]
-    edges = np.moveaxis(vert[:, 1:] - v0[:, None], (0, 1), (-2, -1))  # (P, k, n, n)
-    rhs = np.moveaxis(X.T[:, :, None] - v0, 0, -1)[..., None]  # (P, k, n, 1)
-    lam = np.linalg.solve(edges, rhs)[..., 0]
+    e = vert[:, 1:] - v0[:, None]  # (n, n, P, k): e[c, i] is component c of edge i
+    r = X.T[:, :, None] - v0  # (n, P, k)
+    n = points.shape[0]
+    if n == 2:
+        det = e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0]
+        lam = np.stack([(r[0] * e[1, 1] - r[1] * e[0, 1]) / det,
+                        (e[0, 0] * r[1] - e[1, 0] * r[0]) / det], axis=-1)
+    elif n == 3:
+        edges = np.moveaxis(e, 1, 0)  # (edge, component, P, k)
+        cross = [np.cross(edges[j], edges[k], axis=0) for j, k in ((1, 2), (2, 0), (0, 1))]
+        det = np.einsum("cpk,cpk->pk", edges[0], cross[0])
+        lam = np.stack([np.einsum("cpk,cpk->pk", r, c) / det for c in cross], axis=-1)
+    else:
+        edges = np.moveaxis(e, (0, 1), (-2, -1))  # (P, k, n, n)
+        lam = np.linalg.solve(edges, np.moveaxis(r, 0, -1)[..., None])[..., 0]
     return np.concatenate([1.0 - lam.sum(axis=-1, keepdims=True), lam], axis=-1)
 
 

@@ -356,11 +356,22 @@ class FollowingFilter(ChunkedFilter):
             return None
         return self._atlas_engine(self.atlas.lattice.index(center))._predict
 
-    def h_at(self, center: np.ndarray) -> tuple[np.ndarray, dict]:
+    def h_at(self, center: np.ndarray, carry: "_Carry | None" = None,
+             before: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """h at the nodes of the ball around ``center`` (Q, m) and a factor cache for them (kept a few
-        at a time: what a centred engine holds for the update factors, without the rest of it)."""
+        at a time: what a centred engine holds for the update factors, without the rest of it).  With
+        the ``carry`` that moved the ball there and h at the old ball's nodes (``before``), h is read
+        off where a new node is an old one and evaluated only at the others (a move shares most
+        nodes)."""
         def make():
-            return np.asarray(self.model.h(self.home.nodes + (center - self.home_center)), dtype=float), {}
+            nodes = self.home.nodes + (center - self.home_center)
+            if carry is None or before is None:
+                return np.asarray(self.model.h(nodes), dtype=float), {}
+            h = np.empty_like(before)
+            h[carry.matched] = before[carry.source]
+            h[carry.others] = np.asarray(self.model.h(nodes[carry.others]), dtype=float).reshape(
+                -1, h.shape[1])
+            return h, {}
 
         return kept(self._h, tuple(float(c) for c in center), make, CACHE)
 
@@ -502,6 +513,7 @@ class _Carry:
     source: np.ndarray
     rest: np.ndarray
     rows: Any  # (len(rest), Q) sparse; None: no row is interpolated
+    others: np.ndarray  # the new nodes that are not old ones (``rest`` and those outside the old ball)
 
     @classmethod
     def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray,
@@ -513,7 +525,8 @@ class _Carry:
         nearest, matched, rest = _landing(tree, nodes, points, center, radius)
         rest = np.flatnonzero(rest)
         rows = home.interpolation_matrix(points[rest]) if len(rest) else None
-        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows)
+        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows,
+                   np.flatnonzero(~matched))
 
     def apply(self, nodal: np.ndarray) -> np.ndarray:
         out = np.zeros(self.size)

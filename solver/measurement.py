@@ -210,19 +210,23 @@ class Observation:
 
     # -- the factor at given points ----------------------------------------------------------
     def log_factors(self, h_points: np.ndarray, rows: np.ndarray, taus: np.ndarray, keys: np.ndarray,
-                    terms: "RowTerms", cache: dict | None = None, penalty: bool = True) -> np.ndarray:
+                    terms: "RowTerms", cache: dict | None = None, penalty: bool = True,
+                    out: np.ndarray | None = None) -> np.ndarray:
         """log e_k at the points (K, P) of h (P, m), or of h per row (K, P, m): a moving frame's nodes;
         rows with key 0 (nothing observed) get 0.
 
         Elementwise numpy per row (no BLAS): a row's bits do not depend on the chunk it came in.
         ``cache`` keeps, per pattern, h_o R_oo⁻¹ and ½h_oᵀR_oo⁻¹h_o at the points (the engine's
         nodes are fixed).  ``penalty=False``: the continuous factor without −½hᵀR⁻¹h τ (the literal
-        form of seed 002 (5.35), whose propagator carries it)."""
+        form of seed 002 (5.35), whose propagator carries it).  ``out``: a (K, P) array to write into."""
         K, P = len(rows), h_points.shape[-2]
         per_row = h_points.ndim == 3
         groups = terms.groups
         whole = len(groups) == 1  # one pattern (the usual chunk): work in place on the whole array
-        out = np.empty((K, P)) if whole else np.zeros((K, P))
+        if out is None:
+            out = np.empty((K, P)) if whole else np.zeros((K, P))
+        elif not whole:
+            out[...] = 0.0
         with np.errstate(over="ignore", invalid="ignore"):
             for key, sel in groups:
                 if key == 0:

@@ -33,8 +33,11 @@ from typing import Any
 import numpy as np
 
 QUIET = 16  # rows without a new trigger after one whose snapped centre is the current one
-FIRST_WINDOW = 64  # rows of update factors computed at once before the pace of moves is known
+FIRST_WINDOW = 64  # rows between moves assumed before a move is seen (the lead, the first window)
 MIN_WINDOW, MAX_WINDOW = 16, 512
+# a window's fixed cost (the calls around the factors: ~28 µs) in node-rows of factors (~3.5 ns each),
+# measured in 1-D (Q = 99) and 2-D (Q = 633); see :meth:`Recentring.window`
+WINDOW_NODE_ROWS = 8000.0
 
 
 class Recentring:
@@ -62,10 +65,12 @@ class Recentring:
         self.along = list(follower.directions)
         self.d = len(self.along)
         self.reach, self.shell_limit = follower.distance, follower.mass_limit
-        self.velocity = np.zeros(self.d) if velocity is None else np.asarray(velocity, dtype=float)
+        self.velocity = [0.0] * self.d if velocity is None else [float(v) for v in velocity]
+        self.home_list = self.origin.tolist()
         self.moved = moves
         self.pace = float(FIRST_WINDOW)  # rows between moves (an average)
-        self.last_move: tuple[int, np.ndarray] | None = None  # row and mean of the last move
+        self.window_cost = WINDOW_NODE_ROWS / Q  # a window's fixed cost in rows of factors
+        self.last_move: tuple[int, list] | None = None  # row and mean (shift directions) of the last move
         self.stopped: int | None = None  # rows done when the loop ended before the chunk's end
         self.quiet = 0
         self.observed: list[bool] = []
@@ -80,7 +85,7 @@ class Recentring:
         """The update factors of rows from ``start`` at the current centre, as the engine's
         ``_prepare`` computes them for a whole chunk; the row where the next window starts (−1: none)."""
         K = len(self.rows)
-        stop = min(K, start + min(MAX_WINDOW, max(MIN_WINDOW, int(1.5 * self.pace) + MIN_WINDOW)))
+        stop = min(K, start + self.window_rows(start))
         engine, obs = self.engine, self.engine.observation
         part = slice(start, stop)
         h, cache = self.h, self.cache
@@ -92,7 +97,7 @@ class Recentring:
             h, cache = engine._h_shifted(self.shifts[part]), None
         log_factor = obs.log_factors(h, self.rows[part], self.gaps[part], self.keys[part],
                                      self.terms.rows(start, stop, self.keys), cache,
-                                     penalty=engine.form != "literal")
+                                     penalty=engine.form != "literal", out=self.log_factor[part])
         missing = self.missing[part]
         top = log_factor.max(axis=1)
         if missing.any() or not np.isfinite(top).all():
@@ -104,7 +109,7 @@ class Recentring:
         else:
             impossible = None
             log_factor -= top[:, None]
-        self.log_factor[part], self.top[part], self.top_before[part] = log_factor, top, top
+        self.top[part], self.top_before[part] = top, top  # (log_factor is the view self.log_factor[part])
         factor = self.factor[part]
         if factor.dtype == log_factor.dtype:
             np.exp(log_factor, out=factor)
@@ -121,33 +126,51 @@ class Recentring:
                 self.gate.scores[k] = np.inf
         return stop if stop < K else -1
 
+    def window_rows(self, start: int) -> int:
+        """Rows of the window from ``start``.  Rows computed beyond the next move are wasted; a window
+        ending before it costs another window's fixed part, c rows' worth of factors.  With T the rows
+        expected to the next move (the pace of moves, or the rows since the last one when longer:
+        the state has been slow), windows of W rows cost about c·T/W + W/2 rows: least at W = √(2cT)."""
+        since = start - (0 if self.last_move is None else self.last_move[0])
+        expected = max(self.pace, float(since))
+        return int(min(MAX_WINDOW, max(MIN_WINDOW, np.sqrt(2.0 * self.window_cost * expected))))
+
     # -- a move ------------------------------------------------------------------------------------
     def move(self, k: int, carried: np.ndarray, following: np.ndarray, mass: float) -> float | None:
         """Re-centre after row k: ``following`` gets the carried vector; its ∫σ (0.0: no move, the
-        snapped centre is the current one; None: the loop must stop after row k)."""
+        snapped centre is the current one; None: the loop must stop after row k).
+
+        The bookkeeping (the mean, its velocity, the lead, the new centre's lattice steps) is done in
+        Python floats: it is a handful of numbers, which numpy handles at a microsecond a call."""
         N1 = self.engine.N + 1
         follower = self.follower
         center = self.origin + self.shifts[k]  # row k's ball
-        mean = center.copy()
-        mean[self.along] += carried[N1:N1 + self.d] / mass
-        if follower.left_region(mean):
-            return None
+        at = center.tolist()
+        mean = [at[i] + carried.item(N1 + j) / mass for j, i in enumerate(self.along)]
+        if follower.region is not None:
+            point = center.copy()
+            point[self.along] = mean
+            if follower.left_region(point):
+                return None
         if self.last_move is not None and self.frame is None:  # (in a frame: relative to it, no lead)
             row, before = self.last_move
             rows = max(1, k - row)
-            self.velocity = 0.5 * (self.velocity + (mean[self.along] - before) / rows)
+            self.velocity = [0.5 * (v + (m - b) / rows)
+                             for v, m, b in zip(self.velocity, mean, before, strict=True)]
             self.pace = 0.5 * (self.pace + rows)
-        self.last_move = (k, mean[self.along].copy())
-        ahead = mean.copy()  # led by half the travel to the next move, at most half the trigger distance
-        ahead[self.along] += np.clip(0.5 * self.velocity * self.pace, -0.5 * self.reach, 0.5 * self.reach)
-        target = follower.snapped(center, ahead)
-        if np.array_equal(target, center):
+        self.last_move = (k, mean)
+        half = 0.5 * self.reach  # led by half the travel to the next move, at most half the trigger distance
+        ahead = [m + min(max(0.5 * v * self.pace, -half), half)
+                 for m, v in zip(mean, self.velocity, strict=True)]
+        target = self._target(center, ahead)
+        if target is None:
             self.quiet = k + QUIET
             return 0.0
         carry = follower.carry(target - center)
         if carry is None:
             return None
-        h, cache = follower.h_at(target)
+        # (in a frame, self.h is not h at row k's nodes: the window evaluates h along the frame's path)
+        h, cache = follower.h_at(target) if self.frame is not None else follower.h_at(target, carry, self.h)
         if not np.all(np.isfinite(h)):
             return None
         predict = follower.propagator_at(target)
@@ -165,3 +188,23 @@ class Recentring:
             self.path_from = target
         self.moved.append((k, target))
         return new_mass
+
+    def _target(self, center: np.ndarray, ahead: list[float]) -> np.ndarray | None:
+        """The centre a move from ``center`` goes to for the lead point ``ahead`` (along the shift
+        directions); None: the current one.  On a plain lattice (no frame, no atlas) it is
+        :meth:`~solver.follow.FollowingFilter.snapped`'s arithmetic in Python floats: the home centre
+        plus whole steps."""
+        follower = self.follower
+        if self.frame is None and follower.atlas is None:
+            step, home = follower._lattice, self.home_list
+            at = center.tolist()
+            moved = False
+            for i, a in zip(self.along, ahead, strict=True):
+                value = home[i] + round((a - home[i]) / step) * step
+                moved = moved or value != at[i]
+                at[i] = value
+            return np.array(at) if moved else None
+        point = center.copy()
+        point[self.along] = ahead
+        target = follower.snapped(center, point)
+        return None if np.array_equal(target, center) else target

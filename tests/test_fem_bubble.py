@@ -233,3 +233,20 @@ def test_the_interpolation_matrix_is_scikit_fems_own_evaluation(n, element):
     assert np.allclose(ours[within], space.basis.probes(points[within].T) @ coefficients, atol=1e-12)
     outside = np.linalg.norm(points, axis=1) >= 3.0
     assert outside.sum() > 50 and np.all(ours[outside] == 0.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_barycentric_coordinates_rebuild_the_point(n):
+    """fem.barycentric (Cramer's rule in 2-D and 3-D, a solve otherwise) against the definition:
+    Σ λ_i v_i = X and Σ λ_i = 1, for random simplices, each point against several candidates."""
+    rng = np.random.default_rng(n)
+    points = rng.normal(size=(n, 40))
+    cells = np.array([rng.choice(40, n + 1, replace=False) for _ in range(25)]).T
+    elem = rng.integers(0, 25, size=(30, 6))
+    X = rng.normal(size=(30, n))
+    lam = fem.barycentric(points, cells, elem, X)
+    assert lam.shape == (30, 6, n + 1)
+    vertices = points[:, cells[:, elem]]  # (n, n+1, P, k)
+    rebuilt = np.einsum("cvpk,pkv->pkc", vertices, lam)
+    assert np.abs(rebuilt - X[:, None, :]).max() < 1e-9
+    assert np.abs(lam.sum(axis=-1) - 1.0).max() < 1e-12
