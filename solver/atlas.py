@@ -72,7 +72,8 @@ class Lattice:
 
     def steps(self, point: np.ndarray) -> tuple[int, ...]:
         """The lattice steps j nearest ``point`` along the axes, clipped to the lattice."""
-        return tuple(int(np.clip(round((float(point[a]) - self.anchor[a]) / self.spacing), lo, hi))
+        anchor = self.anchor.tolist()  # (Python numbers: numpy on scalars costs microseconds a call)
+        return tuple(min(max(round((float(point[a]) - anchor[a]) / self.spacing), lo), hi)
                      for a, lo, hi in zip(self.axes, self.first, self.last, strict=True))
 
     def nearest(self, point: np.ndarray) -> np.ndarray:

@@ -133,6 +133,7 @@ class FollowingFilter(ChunkedFilter):
         self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
         self.atlas = getattr(engine.offline, "atlas", None)  # solver/atlas.py: a propagator per centre
         self._bases: OrderedDict[int, Any] = OrderedDict()
+        self._predicts: OrderedDict[int, np.ndarray] = OrderedDict()  # an atlas centre's, for the loop
         if self.atlas is None and needs_atlas(engine.model):
             raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
                                              "they were solved): precompute the spec again")
@@ -351,10 +352,18 @@ class FollowingFilter(ChunkedFilter):
 
     def propagator_at(self, center: np.ndarray) -> np.ndarray | None:
         """With an atlas, the stored propagator (with the engine's zero column) of the lattice centre
-        ``center`` is at; None without one (every ball shares the home propagator)."""
+        ``center`` is at; None without one (every ball shares the home propagator).  Only that matrix
+        is made (a loop's move needs nothing else of the centre's engine) and kept a few at a time."""
         if self.atlas is None:
             return None
-        return self._atlas_engine(self.atlas.lattice.index(center))._predict
+        k = self.atlas.lattice.index(center)
+
+        def make():
+            from .engine import _with_zero_column
+
+            return _with_zero_column(self.atlas.offline(k).propagator_fp, self.home._arith.dtype)
+
+        return kept(self._predicts, k, make, CACHE)
 
     def h_at(self, center: np.ndarray, carry: "_Carry | None" = None,
              before: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
