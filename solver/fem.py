@@ -519,8 +519,10 @@ def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.n
 
 
 def locate(points: np.ndarray, cells: np.ndarray, tree, X: np.ndarray,
-           candidates: tuple[int, ...] = (8, 64)) -> tuple[np.ndarray, np.ndarray]:
-    """Element index (−1 where none: outside the polygonal ball) and barycentrics of each point."""
+           candidates: tuple[int, ...] = (3, 8, 64)) -> tuple[np.ndarray, np.ndarray]:
+    """Element index (−1 where none: outside the polygonal ball) and barycentrics of each point: the
+    first element, nearest centroid first, that holds it, among ``candidates[0]`` centroids, then more
+    for the points not found (the same element whatever the rounds: the nearest holding one)."""
     n_cells = cells.shape[1]
     elem = np.full(len(X), -1)
     bary = np.zeros((len(X), cells.shape[0]))
