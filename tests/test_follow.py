@@ -387,3 +387,18 @@ def test_a_move_by_whole_lattice_steps_carries_polynomials_exactly_and_is_kept_p
             assert np.all(carried[distance >= model.radius] == 0.0)
             assert 0 < len(carry.rest) < 0.5 * len(carried)  # a rim is interpolated, the rest read off
     assert flt.carry(np.array([0.5 * step, 0.0])) is None  # off the lattice: the direct carry
+
+
+def test_the_nearest_node_on_a_line_is_the_kd_trees():
+    """follow._nearest_1d (a binary search, for 1-D carries) against scipy's cKDTree: the same
+    distances and nodes, for points between, beyond and on the nodes."""
+    from scipy.spatial import cKDTree
+    from yauyau.solver.follow import _nearest_1d
+
+    rng = np.random.default_rng(0)
+    nodes = rng.uniform(-5.0, 5.0, (99, 1))
+    points = np.vstack([rng.uniform(-7.0, 7.0, (300, 1)), nodes + 1e-13, nodes[:5]])
+    gap, index = _nearest_1d(nodes, points)
+    tree_gap, tree_index = cKDTree(nodes).query(points)
+    np.testing.assert_array_equal(gap, tree_gap)
+    np.testing.assert_array_equal(index, tree_index)
