@@ -497,12 +497,20 @@ def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.n
     """Barycentric coordinates (P, k, n+1) of X (P, n) in candidate simplices elem (P, k): with the
     edges e_i = v_i − v_0 and r = X − v_0, λ = E⁻¹r by Cramer's rule (2-D: λ_1 = r×e_2 / e_1×e_2; 3-D:
     λ_i = r·(e_j × e_k) / det E, (i, j, k) cyclic), elementwise instead of a batched LAPACK solve of
-    many 2×2 or 3×3 systems."""
+    many 2×2 or 3×3 systems.  A cell of zero area or volume gets non-finite coordinates (no point is
+    found in it), where the solve raised."""
     vert = points[:, cells[:, elem]]  # (n, n+1, P, k)
     v0 = vert[:, 0]
     e = vert[:, 1:] - v0[:, None]  # (n, n, P, k): e[c, i] is component c of edge i
     r = X.T[:, :, None] - v0  # (n, P, k)
     n = points.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = _cramer(e, r, n)
+        return np.concatenate([1.0 - lam.sum(axis=-1, keepdims=True), lam], axis=-1)
+
+
+def _cramer(e: np.ndarray, r: np.ndarray, n: int) -> np.ndarray:
+    """λ = E⁻¹r (P, k, n) for the edges e (n, n, P, k) and the points r (n, P, k) (barycentric)."""
     if n == 2:
         det = e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0]
         lam = np.stack([(r[0] * e[1, 1] - r[1] * e[0, 1]) / det,
@@ -515,14 +523,15 @@ def barycentric(points: np.ndarray, cells: np.ndarray, elem: np.ndarray, X: np.n
     else:
         edges = np.moveaxis(e, (0, 1), (-2, -1))  # (P, k, n, n)
         lam = np.linalg.solve(edges, np.moveaxis(r, 0, -1)[..., None])[..., 0]
-    return np.concatenate([1.0 - lam.sum(axis=-1, keepdims=True), lam], axis=-1)
+    return lam
 
 
 def locate(points: np.ndarray, cells: np.ndarray, tree, X: np.ndarray,
            candidates: tuple[int, ...] = (3, 8, 64)) -> tuple[np.ndarray, np.ndarray]:
     """Element index (−1 where none: outside the polygonal ball) and barycentrics of each point: the
     first element, nearest centroid first, that holds it, among ``candidates[0]`` centroids, then more
-    for the points not found (the same element whatever the rounds: the nearest holding one)."""
+    for the points not found (a point on an edge or vertex shared by several elements may get any of
+    them; the finite-element function has the same value there)."""
     n_cells = cells.shape[1]
     elem = np.full(len(X), -1)
     bary = np.zeros((len(X), cells.shape[0]))

@@ -361,6 +361,9 @@ class FollowingFilter(ChunkedFilter):
         def make():
             from .engine import _with_zero_column
 
+            engine = self._bases.get(k)  # the centre's engine, where the block path built it: its matrix
+            if engine is not None:
+                return engine._predict
             return _with_zero_column(self.atlas.offline(k).propagator_fp, self.home._arith.dtype)
 
         return kept(self._predicts, k, make, CACHE)

@@ -141,7 +141,8 @@ class Recentring:
         snapped centre is the current one; None: the loop must stop after row k).
 
         The bookkeeping (the mean, its velocity, the lead, the new centre's lattice steps) is done in
-        Python floats: it is a handful of numbers, which numpy handles at a microsecond a call."""
+        Python floats: it is a handful of numbers, which numpy handles at a microsecond a call (so in
+        single precision the mean is read in double, as the block path reads it)."""
         N1 = self.engine.N + 1
         follower = self.follower
         center = self.origin + self.shifts[k]  # row k's ball

@@ -276,6 +276,25 @@ def test_with_an_atlas_a_move_inside_the_loop_is_the_move_between_blocks(sin):
     assert_loop_moves_as_blocks(flt, simulate(model, 900, np.random.default_rng(6)))
 
 
+def test_the_loops_propagator_at_a_centre_is_the_one_stored_for_it(sin):
+    """Truth: the atlas's stored arrays.  What a move in the loop multiplies by at a centre
+    (FollowingFilter.propagator_at, made without the centre's engine) is that centre's stored
+    propagator with the engine's zero column, for centres met in either order and in single precision."""
+    model, offline = sin
+    for precision in ("double", "single"):
+        flt = build(model, offline, precision=precision)
+        solved = offline.atlas.solved
+        for k in (3, 40, 3):
+            center = offline.atlas.center(k)
+            found = flt.propagator_at(center)
+            assert found.dtype == np.dtype(np.float64 if precision == "double" else np.float32)
+            assert found.flags.f_contiguous and found.shape == (len(offline.nodes), offline.size + 1)
+            np.testing.assert_array_equal(found[:, :-1], solved.propagator_fp[k].astype(found.dtype))
+            assert not found[:, -1].any()
+        flt.engine(offline.atlas.center(7))  # the block path's engine there: its matrix is the one used
+        assert flt.propagator_at(offline.atlas.center(7)) is flt._atlas_engine(7)._predict
+
+
 def test_a_precomputed_atlas_goes_to_the_store_centre_by_centre_and_is_never_all_in_memory(sin, tmp_path):
     """Truth: the atlas solved in memory (the fixture).  Streamed, each centre reaches the sink once,
     bit for bit the same, and the solve keeps none of them: its peak of traced memory is below the

@@ -250,3 +250,12 @@ def test_barycentric_coordinates_rebuild_the_point(n):
     rebuilt = np.einsum("cvpk,pkv->pkc", vertices, lam)
     assert np.abs(rebuilt - X[:, None, :]).max() < 1e-9
     assert np.abs(lam.sum(axis=-1) - 1.0).max() < 1e-12
+    if n > 1:  # a cell of zero area or volume: no coordinates, no warning, and no point found in it
+        flat = np.zeros((n, n + 1))
+        flat[0] = np.arange(n + 1)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            lam = fem.barycentric(flat, np.arange(n + 1)[:, None], np.zeros((1, 1), dtype=int), X[:1])
+        assert not np.isfinite(lam).all()

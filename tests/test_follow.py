@@ -402,3 +402,25 @@ def test_the_nearest_node_on_a_line_is_the_kd_trees():
     tree_gap, tree_index = cKDTree(nodes).query(points)
     np.testing.assert_array_equal(gap, tree_gap)
     np.testing.assert_array_equal(index, tree_index)
+
+
+def test_h_read_off_a_move_is_h_at_the_new_nodes():
+    """A move's h (FollowingFilter.h_at with the carry: read off the old ball's nodes where a new node is
+    an old one, evaluated at the others) against the observation function evaluated at every new node,
+    for a nonlinear h on the 2-D lattice, moves of several offsets."""
+    doc = json.loads(json.dumps(TREND))
+    doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["sin(x) + y**2", "atan(y/5) * x"],
+               initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
+    doc["discretization"].update(basis=120)
+    model = compile_model(spec_from_dict(doc))
+    flt = build(model, precompute(model))
+    step = flt._lattice
+    old_center = np.array([3 * step, -2 * step])
+    before = model.h(flt.home.nodes + old_center)
+    for offset in (np.array([2 * step, step]), np.array([-4 * step, 3 * step]), np.array([0.0, step])):
+        target = old_center + offset
+        carry = flt.carry(offset)
+        assert 0 < len(carry.others) < 0.5 * len(before)  # most read off, the rest evaluated
+        flt._h.clear()
+        h, _ = flt.h_at(target, carry, before)
+        np.testing.assert_allclose(h, model.h(flt.home.nodes + target), rtol=0, atol=1e-13)
