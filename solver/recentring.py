@@ -66,7 +66,6 @@ class Recentring:
         self.d = len(self.along)
         self.reach, self.shell_limit = follower.distance, follower.mass_limit
         self.velocity = [0.0] * self.d if velocity is None else [float(v) for v in velocity]
-        self.home_list = self.origin.tolist()
         self.moved = moves
         self.pace = float(FIRST_WINDOW)  # rows between moves (an average)
         self.window_cost = WINDOW_NODE_ROWS / Q  # a window's fixed cost in rows of factors
@@ -192,20 +191,8 @@ class Recentring:
 
     def _target(self, center: np.ndarray, ahead: list[float]) -> np.ndarray | None:
         """The centre a move from ``center`` goes to for the lead point ``ahead`` (along the shift
-        directions); None: the current one.  On a plain lattice (no frame, no atlas) it is
-        :meth:`~solver.follow.FollowingFilter.snapped`'s arithmetic in Python floats: the home centre
-        plus whole steps."""
-        follower = self.follower
-        if self.frame is None and follower.atlas is None:
-            step, home = follower._lattice, self.home_list
-            at = center.tolist()
-            moved = False
-            for i, a in zip(self.along, ahead, strict=True):
-                value = home[i] + round((a - home[i]) / step) * step
-                moved = moved or value != at[i]
-                at[i] = value
-            return np.array(at) if moved else None
+        directions), :meth:`~solver.follow.FollowingFilter.snapped`; None: the current one."""
         point = center.copy()
         point[self.along] = ahead
-        target = follower.snapped(center, point)
+        target = self.follower.snapped(center, point)
         return None if np.array_equal(target, center) else target
