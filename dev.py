@@ -38,7 +38,10 @@ def test(args: list[str]) -> int:
     provision.install(VENV, editable=True, extras=EXTRAS)
     provision.browser()  # Debian's chromium + chromedriver for tests/test_live_page.py
     provision.postgres()  # Debian's PostgreSQL server for the shared session store's tests
-    command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q", *args]
+    # the whole suite runs its files in parallel, one per core (pytest-xdist; a file's tests stay together,
+    # so its module fixtures are built once); arguments given replace that
+    command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q",
+               *(args or ["-n", "auto", "--dist", "loadfile"])]
     return subprocess.run(command, cwd=ROOT).returncode
 
 

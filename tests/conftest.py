@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import sys
 from pathlib import Path
@@ -10,6 +11,23 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (``python3 dev.py test``), each worker's BLAS gets its share of the cores: two
+    workers with a thread per core each would oversubscribe the dense solves."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        from threadpoolctl import threadpool_limits
+
+        config._blas_share = threadpool_limits(max(1, (os.cpu_count() or 1) // workers))
+
+
+def pytest_collection_modifyitems(config, items):
+    """The files with ``slow`` tests first (the order within a file kept): with parallel workers
+    (``--dist loadfile``) the longest files start at once instead of last, on one worker."""
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)
 
 
 def precompute_into(store: Path, spec_path: Path) -> str:

@@ -121,6 +121,7 @@ def _follow_3d(mesh=None, workers=1, element="lagrange", basis=1000):
     return moves, gap, var
 
 
+@pytest.mark.slow
 def test_3d_follow_rides_the_linear_frame_on_the_default_mesh():
     """Issue 10 part 6: f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the
     general engine.  Before: a fixed ball of radius 4, basis 500, default mesh (Q = 4991): rms mean gap
@@ -135,6 +136,7 @@ def test_3d_follow_rides_the_linear_frame_on_the_default_mesh():
     assert np.median(var) <= 0.025 and var.max() <= 0.07
 
 
+@pytest.mark.slow
 def test_3d_follow_with_p2_and_bubbles_meets_the_issue_targets():
     """Issue 10 part 6 at its targets: the model of the test above with ``element = "bubble"`` (P2 plus
     face and interior bubbles, the 15-node mass-lumped tetrahedron, solver/fem.py) on scikit-fem's

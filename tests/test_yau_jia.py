@@ -199,6 +199,7 @@ def test_1d_nonlinear_sensor_against_the_point_mass_reference():
     assert gaps.max() <= 0.01
 
 
+@pytest.mark.slow
 def test_2d_nonlinear_sensor_against_the_point_mass_reference():
     """A damped rotation seen through the range √(1 + |x|²): 10 seeds × 1000 steps, mean gap ≤ 0.01.
     The posterior becomes a ring; with the default 128 components and up to 16 splits per step
@@ -258,6 +259,7 @@ def _cv_particle_filter(model, increments, N, rng, substeps=2):
     return np.array(means)
 
 
+@pytest.mark.slow
 def test_4d_range_only_tracking_against_a_million_particles():
     """Over 10 seeds × 100 steps, the mean gap (averaged over steps and coordinates) of yau-jia to a
     10⁶-particle filter is smaller than that of a 10k-particle filter and of the UKF on the same data.
