@@ -44,6 +44,7 @@ from collections import OrderedDict
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sps
 
 from .atlas import kept, move_step, needs_atlas
 from .errors import InputError, SpecError
@@ -57,6 +58,10 @@ FIRST_BLOCK = 32  # rows of the first block of a chunk; later blocks adapt to th
 MIN_BLOCK, MAX_BLOCK = 4, 512
 CACHE = 16  # centred engines kept (each shares the stored arrays; owns h and moments at its nodes)
 CARRIES = 64  # carries kept, one per move offset in mesh steps (index arrays and a few interpolated rows)
+# The carries of every offset a move usually takes are built with the filter (FollowingFilter._table):
+# a move goes to the lead point, at most the stray limit (follow_distance + STRAY)·R from the centre plus
+# the lead's ½·follow_distance·R along each axis; offsets within that length (Euclidean) are tabled.
+LEAD = 0.5
 
 
 class TranslatedOffline:
@@ -141,6 +146,7 @@ class FollowingFilter(ChunkedFilter):
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
+        self._table = self._carry_table() if self._lattice else {}
         # moves inside the engine's loop (solver/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
         self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
@@ -510,9 +516,30 @@ class FollowingFilter(ChunkedFilter):
         steps = np.round(offset / self._lattice)
         if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
-        return kept(self._carries, tuple(int(k) for k in steps),
+        key = tuple(int(k) for k in steps)
+        found = self._table.get(key)
+        if found is not None:
+            return found
+        return kept(self._carries, key,
                     lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset,
                                          self.home.node_tree), CARRIES)
+
+    def _carry_table(self) -> dict[tuple, "_Carry"]:
+        """The carries of the offsets (whole steps along the shift directions) no longer than a move
+        usually goes (:data:`LEAD`, ``STRAY``), built at once with the filter, so that a move in the
+        stream costs the projection only, also the first one by an offset (a carry built alone costs
+        a few dozen steps of a 2-D filter)."""
+        reach = (float(self.distance) * (1.0 + LEAD) + STRAY * self.radius) / self._lattice
+        span = np.arange(-int(reach), int(reach) + 1)
+        grid = np.stack(np.meshgrid(*[span] * len(self.directions), indexing="ij"), axis=-1)
+        grid = grid.reshape(-1, len(self.directions))
+        grid = grid[(np.linalg.norm(grid, axis=1) <= reach) & np.any(grid != 0, axis=1)]
+        offsets = np.zeros((len(grid), self.model.n))
+        offsets[:, list(self.directions)] = grid * self._lattice
+        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius, offsets,
+                                    self.home.node_tree)
+        return {tuple(int(k) for k in np.round(o / self._lattice)): c
+                for o, c in zip(offsets, carries, strict=True)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -532,13 +559,28 @@ class _Carry:
               tree: Any) -> "_Carry":
         """On the home ball (nodes ``home.nodes`` around ``center``, ``tree`` their KD-tree): where its
         nodes moved by ``offset`` land, as :func:`_carried` finds it."""
+        return cls.build_many(home, center, radius, np.asarray(offset, dtype=float)[None, :], tree)[0]
+
+    @classmethod
+    def build_many(cls, home: Any, center: np.ndarray, radius: float, offsets: np.ndarray,
+                   tree: Any) -> list["_Carry"]:
+        """:meth:`build` for every row of ``offsets`` (M, n) at once: one search of the landing nodes
+        and one interpolation matrix for all of them (a carry alone pays both calls' fixed cost)."""
         nodes = np.asarray(home.nodes, dtype=float)
-        points = nodes + offset
+        Q = len(nodes)
+        points = (nodes[None, :, :] + offsets[:, None, :]).reshape(-1, nodes.shape[1])
         nearest, matched, rest = _landing(tree, nodes, points, center, radius)
-        rest = np.flatnonzero(rest)
-        rows = home.interpolation_matrix(points[rest]) if len(rest) else None
-        return cls(len(nodes), np.flatnonzero(matched), nearest[matched], rest, rows,
-                   np.flatnonzero(~matched))
+        everywhere = np.flatnonzero(rest)
+        rows = home.interpolation_matrix(points[everywhere]).tocsr() if len(everywhere) else None
+        bounds = np.searchsorted(everywhere, np.arange(len(offsets) + 1) * Q)
+        found = []
+        for m in range(len(offsets)):
+            part = slice(m * Q, (m + 1) * Q)
+            hit = np.flatnonzero(matched[part])
+            lo, hi = int(bounds[m]), int(bounds[m + 1])
+            found.append(cls(Q, hit, nearest[part][hit], everywhere[lo:hi] - m * Q,
+                             _row_block(rows, lo, hi), np.flatnonzero(~matched[part])))
+        return found
 
     def apply(self, nodal: np.ndarray) -> np.ndarray:
         out = np.zeros(self.size)
@@ -546,6 +588,16 @@ class _Carry:
         if self.rows is not None:
             out[self.rest] = self.rows @ nodal
         return out
+
+
+def _row_block(rows: Any, lo: int, hi: int) -> Any:
+    """Rows lo:hi of a CSR matrix as a CSR matrix of their own (None: no row), without scipy's slicing
+    (~50 µs a call, for a table of carries the bulk of the split)."""
+    if hi <= lo:
+        return None
+    start, stop = rows.indptr[lo], rows.indptr[hi]
+    return sps.csr_matrix((rows.data[start:stop], rows.indices[start:stop], rows.indptr[lo:hi + 1] - start),
+                          shape=(hi - lo, rows.shape[1]))
 
 
 def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -561,13 +613,18 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any,
              radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: the
-    nearest node of each, the points inside the ball that are nodes (read off), and those inside that
-    are not (interpolated).  The sphere itself counts as outside (Dirichlet: σ = 0 there)."""
-    scale = max(1.0, float(np.abs(nodes).max()))
-    gap, nearest = _nearest_1d(nodes, points) if nodes.shape[1] == 1 < len(nodes) else tree.query(points)
+    """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: a
+    node at each point (where one is: the rest get an arbitrary valid index), the points inside the ball
+    that are nodes (read off), and those inside that are not (interpolated).  The sphere itself counts
+    as outside (Dirichlet: σ = 0 there)."""
+    tolerance = 1e-9 * max(1.0, float(np.abs(nodes).max()))
+    if nodes.shape[1] == 1 < len(nodes):
+        gap, nearest = _nearest_1d(nodes, points)
+    else:  # only a node within the tolerance counts: the tree stops looking beyond it (~3× faster)
+        gap, nearest = tree.query(points, distance_upper_bound=2.0 * tolerance)
+        nearest = np.minimum(nearest, len(nodes) - 1)
     inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
-    matched = (gap <= 1e-9 * scale) & inside
+    matched = (gap <= tolerance) & inside
     return nearest, matched, inside & ~matched
 
 

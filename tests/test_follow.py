@@ -355,18 +355,23 @@ def test_a_move_inside_the_loop_is_the_move_between_blocks(trend, window, monkey
     assert_loop_moves_as_blocks(build(model, offline), simulate(model, 600, np.random.default_rng(11)))
 
 
+def _trend_2d(element: str):
+    """The 2-D trend f = (1, 0.5), h = (x, y) on the lattice mesh, basis 300: (model, filter)."""
+    doc = json.loads(json.dumps(TREND))
+    doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
+               initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
+    doc["discretization"].update(basis=300, element=element)
+    model = compile_model(spec_from_dict(doc))
+    return model, build(model, precompute(model))
+
+
 @pytest.mark.parametrize("element, degree", [("lagrange", 1), ("bubble", 2)])
 def test_a_move_by_whole_lattice_steps_carries_polynomials_exactly_and_is_kept_per_offset(element, degree):
     """Truth: the element reproduces polynomials of its degree (P1: linear, P2 + bubble: quadratic), so
     the carry of g's nodal values from a ball away from home onto the ball moved by whole lattice
     steps is g at the new nodes inside the old ball and 0 outside it.  The carry is kept per offset
     and serves every centre (every ball is the home ball translated)."""
-    doc = json.loads(json.dumps(TREND))
-    doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
-               initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
-    doc["discretization"].update(basis=300, element=element)
-    model = compile_model(spec_from_dict(doc))
-    flt = build(model, precompute(model))
+    model, flt = _trend_2d(element)
     step = flt._lattice
 
     def g(points):
@@ -375,7 +380,7 @@ def test_a_move_by_whole_lattice_steps_carries_polynomials_exactly_and_is_kept_p
 
     for old_center in (np.array([3 * step, -2 * step]), np.array([40 * step, 17 * step])):
         old = flt.engine(old_center)
-        for offset in (np.array([2 * step, step]), np.array([-4 * step, 3 * step])):
+        for offset in (np.array([step, 0.0]), np.array([2 * step, step]), np.array([-4 * step, 3 * step])):
             carry = flt.carry(offset)
             assert carry is flt.carry(offset + 1e-13)  # kept: one per offset in lattice steps
             new_nodes = old.nodes + offset
@@ -387,6 +392,29 @@ def test_a_move_by_whole_lattice_steps_carries_polynomials_exactly_and_is_kept_p
             assert np.all(carried[distance >= model.radius] == 0.0)
             assert 0 < len(carry.rest) < 0.5 * len(carried)  # a rim is interpolated, the rest read off
     assert flt.carry(np.array([0.5 * step, 0.0])) is None  # off the lattice: the direct carry
+
+
+@pytest.mark.parametrize("element", ["lagrange", "bubble"])
+def test_the_carries_built_with_the_filter_are_those_built_one_at_a_time(element):
+    """The table of carries built at once with the filter (every offset a move usually takes: within
+    (1.5·follow_distance + 0.1)·R) holds, for each offset, the arrays and interpolated rows that the
+    carry built alone has; an offset beyond it is built when a move first takes it."""
+    from yauyau.solver.follow import _Carry
+
+    model, flt = _trend_2d(element)
+    step, reach = flt._lattice, (1.5 * flt.distance + 0.1 * model.radius)
+    assert len(flt._table) >= 8 and all(0 < np.hypot(*k) * step <= reach for k in flt._table)
+    for key, tabled in flt._table.items():
+        alone = _Carry.build(flt.home.offline, flt.home_center, flt.radius, np.array(key) * step,
+                             flt.home.node_tree)
+        for name in ("size", "matched", "source", "rest", "others"):
+            assert np.array_equal(getattr(tabled, name), getattr(alone, name)), (key, name)
+        assert (tabled.rows is None) == (alone.rows is None)
+        if alone.rows is not None:
+            assert abs(tabled.rows - alone.rows).max() == 0.0
+        assert flt.carry(np.array(key) * step) is tabled
+    far = (int(reach / step) + 2, 0)
+    assert far not in flt._table and flt.carry(np.array(far) * step) is flt.carry(np.array(far) * step)
 
 
 def test_the_nearest_node_on_a_line_is_the_kd_trees():
