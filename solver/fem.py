@@ -433,10 +433,10 @@ def assemble(model, disc: FESpace) -> Operators:
     kol = fp - disc.nodal(reaction(basis, model.half_hRh))
     mass, scheme = None, model.spec.scheme()
     if scheme != "galerkin":
-        if model.n == 1 or disc.order != 1:
+        if model.n == 1 or (disc.order != 1 and scheme == "supg"):
             raise SpecError("discretization.scheme",
                             f"{scheme} is built for the P1 elements of 2-D and 3-D balls")
-        mass = consistent_mass(basis)
+        mass = disc.nodal(consistent_mass(basis))  # (P2 + bubble: in the nodal basis, as A)
     if scheme == "supg":
         s_mass, s_fp, s_q = supg(basis, model, drift)
         mass = mass + s_mass
