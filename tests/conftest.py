@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import socket
 import sys
 from pathlib import Path
@@ -11,16 +10,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
-
-
-def pytest_configure(config):
-    """Under pytest-xdist (``python3 dev.py test``), each worker's BLAS gets its share of the cores: two
-    workers with a thread per core each would oversubscribe the dense solves."""
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    if workers > 1:
-        from threadpoolctl import threadpool_limits
-
-        config._blas_share = threadpool_limits(max(1, (os.cpu_count() or 1) // workers))
 
 
 def pytest_collection_modifyitems(config, items):
