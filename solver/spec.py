@@ -199,13 +199,14 @@ class Discretization(_Strict):
     stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
     their positive lumped mass instead of P1 (solver/fem.py; in 2-D ~5x closer to the exact filter at
     the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
-    Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass), "consistent"
-    (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or "supg"
-    (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent mass; P1
-    elements in 2-D and 3-D).  For noise on some coordinates only, "consistent" on the bubble element is the closest to the
-    exact filter at a given cost (docs/bench-cv-basis.md).  Left out, it is "supg" where the diffusion
-    is only positive semi-definite (noise on some coordinates: the operator is hypoelliptic and plain
-    Galerkin rings along the drift, docs/bench-psd.md) and "galerkin" otherwise.
+    Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
+    "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or
+    "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent
+    mass; P1 elements in 2-D and 3-D).  For noise on some coordinates only, "consistent" on the bubble
+    element is the closest to the exact filter at a given cost (docs/bench-cv-basis.md).  Left out, it
+    is "supg" where the diffusion is only positive semi-definite (noise on some coordinates: the
+    operator is hypoelliptic and plain Galerkin rings along the drift, docs/bench-psd.md) and "galerkin"
+    otherwise.
     """
 
     dt: float = Field(gt=0, le=10.0)
