@@ -7,10 +7,15 @@ cannot resolve it, every bit of mass vanished) used to end a stream for good.  T
   last good estimate with the reason, and waits for the user to reset it (``restart``; over HTTP
   ``POST /v1/sessions/{id}/reset``);
 * ``on_degenerate = "reinitialise"``: the filter starts again at the failing row's time from
-  :func:`broadened_prior` of the last good estimate — N(m, 4P + s²I), the standard deviations doubled,
-  s the finest scale the filter resolves — and goes on with the next row.  The failing row's
-  observation is not used; the row is flagged ``reinitialised`` with the reason.  The log-likelihood
-  is carried on across the restart.
+  :func:`broadened_prior` of the last good estimate — N(m, 4P + s²I), the standard deviations doubled, s
+  the finest scale the filter resolves, on a ball no wider than R/4.5 — and goes on with the next row.
+  The failing row's observation is not used; the row is flagged ``reinitialised`` with the reason.  The
+  log-likelihood is carried on across the restart.  A ball that follows the state (solver/follow.py)
+  restarts centred on that prior; the row's ``center`` is the new centre and it is flagged
+  ``recentred``.  If the broadened prior is refused, a fixed ball starts from the model's own prior; a
+  following ball does not (that prior describes t₀, where a travelling state no longer is; a state that
+  left ``[domain] region`` cannot be filtered at all): it stays degenerate with the reason, as under
+  "stop".
 
 "stop" is the default because a restart hides a model that does not fit its data; a stream that must
 not stop (a service) asks for "reinitialise".
@@ -30,6 +35,7 @@ from .filtering import ChunkResult, Estimate, concat_results, slice_result
 POLICIES = ("stop", "reinitialise")
 DEFAULT_POLICY = "stop"
 BROADEN = 2.0  # the restart's standard deviations: the last good ones times this
+FIT = 4.5  # ... but on a ball at most R/FIT (N(0, (R/4.5)²) leaves 7e-6 of its mass beyond R)
 
 
 def check_policy(policy: Any, field: str = "on_degenerate") -> str:
@@ -40,7 +46,8 @@ def check_policy(policy: Any, field: str = "on_degenerate") -> str:
 
 def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     """N(m, BROADEN²·P + s²I) around the last good estimate (m, P); s the node spacing of a mesh
-    (the finest feature the engine resolves), else 1e-6 of the state's scale."""
+    (the finest feature the engine resolves), else 1e-6 of the state's scale.  On a ball of radius R
+    each variance is at most (R/FIT)², unless P's own is larger."""
     mean = np.asarray(estimate.mean, dtype=float)
     cov = np.asarray(estimate.cov, dtype=float)
     cov = 0.5 * (cov + cov.T)
@@ -49,7 +56,13 @@ def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     resolved = math.isfinite(spacing) and spacing > 0
     floor = spacing ** 2 if resolved else 1e-12 * (1.0 + float(np.abs(mean).max()))
     lam, U = np.linalg.eigh(cov) if np.all(np.isfinite(cov)) else (np.zeros(n), np.eye(n))
-    cov = (U * (BROADEN ** 2 * np.clip(lam, 0.0, None) + floor)) @ U.T
+    lam = np.clip(lam, 0.0, None)
+    wide = BROADEN ** 2 * lam + floor
+    radius = getattr(getattr(flt, "model", None), "radius", None) if resolved else None
+    if radius:  # on a ball: no wider than FIT standard deviations across the radius (else the
+        # restarted density leaks through ∂B_R and degenerates again at once), nor narrower than before
+        wide = np.minimum(wide, np.maximum((float(radius) / FIT) ** 2, lam + floor))
+    cov = (U * wide) @ U.T
     return {"kind": "gaussian", "mean": mean.tolist(), "cov": (0.5 * (cov + cov.T)).tolist()}
 
 
@@ -76,12 +89,38 @@ def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
 
 def restart_from_last(flt: Any, state: Any) -> tuple[Any, str]:
     """Start again around the last good estimate; if that prior does not fit the filter (e.g. too
-    close to the ball's rim), from the model's own prior.  (new state, what was done)."""
+    close to the ball's rim), from the model's own prior — not on a ball that follows the state, where
+    :class:`NoRestart` says why.  (new state, what was done)."""
     last = flt.estimate(state)
     try:
         return restart(flt, state, broadened_prior(flt, last)), "re-initialised around the last good estimate"
     except (SpecError, InputError) as exc:
+        if _follows(flt):
+            raise NoRestart(exc.message) from None
         return restart(flt, state, None), f"re-initialised from the model's prior ({exc.message})"
+
+
+def _not_restarted(reason: str | None, why: str) -> str:
+    if reason and "left domain.region" in reason and "domain.region" in why:
+        return f"{reason} (not re-initialised: the last good estimate is outside the region too)"
+    return f"{reason}; not re-initialised: {why}"
+
+
+class NoRestart(InputError):
+    """A following filter cannot start again around its last good estimate (the message says why;
+    over HTTP and in the library a 4xx / InputError on ``from``: send a prior instead)."""
+
+    def __init__(self, message: str):
+        super().__init__("from", f"cannot start again around the last good estimate: {message}; send a "
+                                 "prior where the state is now, or precompute a wider region")
+        self.reason = message
+
+
+def _follows(flt: Any) -> bool:
+    """A ball that follows the state (results carry its centre)."""
+    from .follow import FollowingFilter
+
+    return isinstance(flt, FollowingFilter)
 
 
 def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = None,
@@ -96,7 +135,10 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
     offset, K = 0, len(rows)
     restarted_before = None
     if state.degenerate and K:
-        state, restarted_before = _restart_note(flt, state, state.reason, before=True)
+        try:
+            state, restarted_before = _restart_note(flt, state, state.reason, before=True)
+        except NoRestart:
+            return flt.run_arrays(state, rows, times)  # stays degenerate (its reason says why)
     while True:
         chunk_times = None if times_arr is None else times_arr[offset:]
         new_state, result = flt.run_arrays(state, rows[offset:], chunk_times)
@@ -111,7 +153,14 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
         if k:
             parts.append(slice_result(result, slice(0, k)))
         at = dataclasses.replace(_degenerate_at(new_state, result, k), degenerate=True)
-        state, note = _restart_note(flt, at, result.reason)
+        try:
+            state, note = _restart_note(flt, at, result.reason)
+        except NoRestart as exc:  # stays degenerate, as under "stop", and says why it did not restart
+            rest = slice_result(result, slice(k, None))
+            why = _not_restarted(result.reason, exc.reason)
+            parts.append(dataclasses.replace(rest, reason=why))
+            state = dataclasses.replace(new_state, reason=why) if hasattr(new_state, "reason") else new_state
+            break
         parts.append(_restart_row(flt, state, note))
         offset += k + 1
         if offset >= K:
@@ -138,11 +187,15 @@ def _restart_row(flt: Any, state: Any, note: str) -> ChunkResult:
     e = flt.estimate(state)
     n = len(e.mean)
     mode = np.asarray(e.mode if e.mode is not None else e.mean, dtype=float)[None]
+    # a following ball restarts centred on the new prior: the row has its centre, like every other row
+    center = getattr(state, "center", None) if _follows(flt) else None
     return ChunkResult(step=np.array([state.step]), t=np.array([float(state.t)]),
                        mean=np.asarray(e.mean)[None], cov=np.asarray(e.cov).reshape(1, n, n), mode=mode,
                        loglik=np.array([float(state.loglik)]),
                        loglik_increment=np.zeros(1), degenerate=np.zeros(1, dtype=bool),
-                       reinitialised=np.ones(1, dtype=bool), notes={0: note})
+                       reinitialised=np.ones(1, dtype=bool), notes={0: note},
+                       center=None if center is None else np.asarray(center, dtype=float).reshape(1, n),
+                       recentred=np.array([center is not None]))
 
 
 def _flag(result: ChunkResult, k: int, note: str) -> ChunkResult:

@@ -127,6 +127,31 @@ def test_leaving_the_region_is_a_degenerate_step_with_its_reason(sin):
     assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
 
 
+def test_a_state_that_left_the_region_is_not_re_initialised_at_the_model_prior(sin):
+    """on_degenerate = "reinitialise" cannot restart a ball that left its region (a prior around the last
+    estimate lies outside it too, and the model's prior describes t = 0, ~20 units behind): the rows stay
+    degenerate, with the reason, as under "stop" (before, they restarted at x = 0 and ran on garbage)."""
+    from yauyau.solver.recovery import restart_from_last, run_with_policy
+
+    model = compile_model(_spec(region=[[-5.0, 20.0]]))
+    flt = build(model, precompute(model))
+    sim = simulate(model, STEPS, np.random.default_rng(2))
+    _, stopped = flt.run_arrays(flt.initial_state(), sim.increments)
+    state, result = run_with_policy(flt, flt.initial_state(), sim.increments, policy="reinitialise")
+    first = int(np.argmax(stopped.degenerate))
+    assert not result.reinitialised.any() and state.degenerate
+    assert result.degenerate[first:].all() and not result.degenerate[:first].any()
+    assert "left domain.region" in result.reason and "not re-initialised" in result.reason
+    assert "not re-initialised" in state.reason
+    assert np.array_equal(result.mean, stopped.mean)  # the last good estimate, never the prior at 0
+    assert result.center is not None and np.isfinite(result.center).all()
+    again, more = run_with_policy(flt, state, sim.increments[:5], policy="reinitialise")  # a later chunk
+    assert again.degenerate and more.degenerate.all() and not more.reinitialised.any()
+    with pytest.raises(InputError, match="send a prior where the state is now") as info:
+        restart_from_last(flt, state)  # a reset "from last" (library, HTTP) says so too: a 4xx, not a restart
+    assert info.value.field == "from"
+
+
 def test_a_stored_atlas_is_read_one_centre_at_a_time_and_checked(tmp_path):
     spec = _spec()
     model_id = yauyau.precompute(spec, tmp_path)

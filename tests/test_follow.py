@@ -214,6 +214,36 @@ def test_the_cli_writes_the_centre_and_the_moves(tmp_path):
                  str(tmp_path / "o2.csv"), "--density", str(tmp_path / "d.h5")]) == 2
 
 
+def test_a_restart_row_has_the_ball_centre_and_the_csv_keeps_its_columns(tmp_path):
+    """on_degenerate = "reinitialise" on a following ball: the restart row carries the new ball's centre
+    (the broadened prior's, flagged recentred), so the result keeps its centre column and every CSV row
+    has the header's fields (before, the restart row had none and the rows after it lost two columns)."""
+    doc = json.loads(json.dumps(TREND))
+    doc["measurement"] = {"gate": 0}
+    spec = spec_from_dict(doc)
+    store = tmp_path / "store"
+    model_id = yauyau.precompute(spec, store)
+    sim = simulate(compile_model(spec), 400, np.random.default_rng(2))
+    rows = sim.increments[:, 0].copy()
+    rows[250] = 1e5  # no density survives this row: the filter degenerates there and restarts
+    inc = tmp_path / "inc.csv"
+    inc.write_text("dy\n" + "\n".join(repr(float(v)) for v in rows) + "\n")
+    out = tmp_path / "out.csv"
+    assert main(["filter", model_id, "--store", str(store), "--increments", str(inc), "--out", str(out),
+                 "--on-degenerate", "reinitialise", "--chunk", "100"]) == 0
+    with out.open() as fh:
+        table = list(csv.reader(fh))
+    header, body = table[0], table[1:]
+    assert len(body) == 400 and {len(r) for r in body} == {len(header)}
+    rows_by = [dict(zip(header, r, strict=True)) for r in body]
+    again = [k for k, r in enumerate(rows_by) if r["reinitialised"] == "1"]
+    assert again == [250]
+    restart = rows_by[250]
+    assert restart["recentred"] == "1"
+    assert abs(float(restart["center_x"]) - float(restart["mean_x"])) < 0.2  # the ball sits on the prior
+    assert abs(float(rows_by[-1]["mean_x"]) - sim.states[-1, 0]) < 4.0  # and follows the state on
+
+
 def _moments(flt, state):
     """Mean and covariance of the state's nodal density on its ball (lumped quadrature)."""
     engine = flt.engine(state.center)
