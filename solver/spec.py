@@ -333,6 +333,7 @@ class ModelSpec(_Strict):
             raise SpecError("domain.region", f"needs one [lo, hi] pair per state variable ({n}), "
                                              f"got {len(self.domain.region)}")
         _check_prior(self.initial, n)
+        _check_prior_in_region(self.initial, self.domain.region)
         return self
 
     def _check_scheme(self, n: int) -> None:
@@ -484,6 +485,28 @@ def _check_prior(prior: GaussianPrior | MixturePrior | DensityPrior, n: int) -> 
                 check_spd(cov, n, "cov")
             except ValueError as exc:
                 raise SpecError(f"initial.covs[{i}]", str(exc).removeprefix("cov ")) from None
+
+
+def _check_prior_in_region(prior: GaussianPrior | MixturePrior | DensityPrior,
+                           region: list[list[float]] | None) -> None:
+    """A following ball starts at the prior's mean, which must lie in ``[domain] region`` (refused here,
+    before any precompute, so nothing is stored for such a spec)."""
+    if region is None or isinstance(prior, DensityPrior):
+        return
+    if isinstance(prior, GaussianPrior):
+        field, mean = "initial.mean", [float(v) for v in prior.mean]
+    else:
+        weights = [max(float(w), 0.0) for w in prior.weights]
+        total = sum(weights) or 1.0
+        field = "initial.means"
+        mean = [sum(w * float(m[i]) for w, m in zip(weights, prior.means, strict=True)) / total
+                for i in range(len(region))]
+    if all(lo <= v <= hi for v, (lo, hi) in zip(mean, region, strict=True)):
+        return
+    where = ", ".join(f"{v:.4g}" for v in mean)
+    bounds = ", ".join(f"[{lo:g}, {hi:g}]" for lo, hi in region)
+    raise SpecError(field, f"the prior mean ({where}) lies outside domain.region ({bounds}), where the state "
+                           "is declared to stay: move the prior into the region or widen the region")
 
 
 def _field_path(loc: tuple[Any, ...]) -> str:

@@ -202,11 +202,33 @@ def test_follow_without_a_region_says_to_declare_one_and_a_prior_outside_is_refu
     with pytest.raises(SpecError, match="domain.region") as caught:
         solve(spec_from_dict(doc))
     assert caught.value.field == "domain.follow"
-    model = compile_model(_spec(region=[[5.0, 60.0]]))
-    with pytest.raises(SpecError, match="prior mean \\(0\\) lies outside domain.region"):
-        build(model, precompute(model)).initial_state()
+    with pytest.raises(SpecError, match="prior mean \\(0\\) lies outside domain.region") as caught:
+        _spec(region=[[5.0, 60.0]])  # refused with the spec, before any precompute
+    assert caught.value.field == "initial.mean" and "move the prior into the region" in caught.value.message
+    mixture = {"kind": "mixture", "weights": [1.0, 3.0], "means": [[0.0], [8.0]], "covs": [[[1.0]], [[1.0]]]}
+    spec_from_dict({**SIN, "initial": mixture, "domain": {**SIN["domain"], "region": [[5.0, 60.0]]}})
+    with pytest.raises(SpecError, match="prior mean \\(2\\) lies outside") as caught:
+        spec_from_dict({**SIN, "initial": {**mixture, "weights": [3.0, 1.0]},
+                        "domain": {**SIN["domain"], "region": [[5.0, 60.0]]}})
+    assert caught.value.field == "initial.means"
+    model = compile_model(_spec(region=[[-5.0, 60.0]]))
+    flt = build(model, precompute(model))
+    with pytest.raises(SpecError, match="prior mean \\(70\\) lies outside domain.region"):
+        flt.initial_state({"kind": "gaussian", "mean": [70.0], "cov": [[1.0]]})  # a prior sent later
     # without a region the spec's id is what it was before regions existed
     assert "region" not in spec_from_dict({**SIN, "domain": {"radius": 6.0}}).canonical_json()
+
+
+def test_a_spec_whose_prior_is_outside_the_region_is_refused_and_nothing_is_stored(tmp_path, capsys):
+    spec_file = tmp_path / "outside.json"
+    doc = json.loads(_spec().canonical_json())
+    doc["domain"]["region"] = [[20.0, 30.0]]
+    spec_file.write_text(json.dumps(doc))
+    store = tmp_path / "store"
+    assert main(["precompute", str(spec_file), "--store", str(store)]) == 2
+    err = capsys.readouterr().err
+    assert "initial.mean: the prior mean (0) lies outside domain.region ([20, 30])" in err
+    assert "Traceback" not in err and not list(store.glob("*.h5"))
 
 
 def test_the_cli_precomputes_and_filters_an_atlas(tmp_path, capsys):

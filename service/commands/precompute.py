@@ -121,8 +121,13 @@ def _warn_if_unresolved(args: argparse.Namespace, spec, solved) -> None:
 
     if solved.offline is None or solved.method != "yau-yau" or args.quiet:
         return
-    report = resolution_check(spec, suggest=False, offline=solved.offline,
-                              exact_only=True)
+    from yauyau.solver.errors import YauyauError
+
+    try:  # the file is stored already: a check that cannot run is a warning, never a failed precompute
+        report = resolution_check(spec, suggest=False, offline=solved.offline, exact_only=True)
+    except YauyauError as exc:
+        _say(args, f"warning: the resolution check could not run ({exc}); run `yauyau check {args.spec}`")
+        return
     if report is not None and not report.requested.ok:
         r = report.requested
         _say(args, f"warning: basis {r.basis} does not resolve this model's posterior: on simulated paths "
