@@ -4,7 +4,9 @@
 discretisation (the general engine, seed 002 §5) and compares the conditional means with the truth:
 the exact Kalman filter when the model is linear with a Gaussian prior and increments (then the
 truth is exact), otherwise the same engine at twice the basis (and its default mesh) — a finer
-resolution whose own error is far smaller where the coarse one is off.  It reports the mean and the
+resolution whose own error is far smaller where the coarse one is off; if that reference degenerates
+on some step it is doubled once more, and one that still does judges nothing (no basis passes against
+it).  A suggested basis is compared with a reference at twice its own basis.  It reports the mean and the
 largest gap, the fraction of degenerate steps, a verdict against ``target`` (on the mean gap, with no
 degenerate step allowed) and, when it fails, the smallest basis of N·(1.5, 2, 3) that passes.  The
 paths are simulated from the model itself, so the posterior they make is the one the data will make
@@ -33,6 +35,7 @@ class Trial:
     degenerate: float  # fraction of degenerate steps
     rmse: float  # of the estimates against the simulated states
     ok: bool
+    against: str = ""  # the reference it was compared with, when not the report's (a finer engine)
 
 
 @dataclass
@@ -43,6 +46,7 @@ class CheckReport:
     steps: int
     trials: list[Trial] = field(default_factory=list)
     truth_rmse: float = float("nan")
+    truth_degenerate: float = 0.0  # fraction of the reference's own degenerate steps (then nothing passes)
 
     @property
     def requested(self) -> Trial:
@@ -57,7 +61,7 @@ class CheckReport:
     def to_dict(self) -> dict[str, Any]:
         return {"truth": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
                 "ok": self.requested.ok, "suggested_basis": self.suggested, "truth_rmse": self.truth_rmse,
-                "trials": [t.__dict__ for t in self.trials]}
+                "truth_degenerate": self.truth_degenerate, "trials": [t.__dict__ for t in self.trials]}
 
     def render(self) -> str:
         r = self.requested
@@ -68,9 +72,13 @@ class CheckReport:
             lines.append(f"  OK: the mean gap is within the target {self.target:g}")
             return "\n".join(lines)
         lines.append(f"  NOT RESOLVED: the target is a mean gap <= {self.target:g} with no degenerate step")
+        if self.truth_degenerate:
+            lines.append(f"  the reference itself degenerates on {self.truth_degenerate:.1%} of the steps: "
+                         "no basis can be judged against it")
         for t in self.trials[1:]:
+            versus = f" (against {t.against})" if t.against else ""
             lines.append(f"  basis {t.basis} ({t.nodes} nodes): mean gap {t.mean_gap:.3g}, degenerate "
-                         f"{t.degenerate:.1%}{'  <- passes' if t.ok else ''}")
+                         f"{t.degenerate:.1%}{versus}{'  <- passes' if t.ok else ''}")
         suggestion = self.suggested
         lines.append(f"  suggestion: discretization.basis = {suggestion}" if suggestion else
                      "  suggestion: none of the bases tried passes: shrink domain.radius or refine the mesh")
@@ -96,19 +104,23 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
         return None
     rng = np.random.default_rng(seed)
     data = [simulate(model, steps, rng) for _ in range(paths)]
-    truth, name = _truth(spec, model, data)
+    truth, name, wrong, finest = _truth(spec, model, data, 2 * spec.discretization.basis)
     report = CheckReport(truth=name, target=target, paths=paths, steps=steps,
-                         truth_rmse=_rmse([t[0] for t in truth], data))
-    report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline))
-    if suggest and not report.requested.ok:
+                         truth_rmse=_rmse([t[0] for t in truth], data), truth_degenerate=wrong)
+    report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline, wrong))
+    if suggest and not report.requested.ok and not wrong:
         for scale in SCALES:
             basis = int(round(spec.discretization.basis * scale))
+            against = ""
             try:
-                trial = _trial(spec, basis, data, truth, target)
+                if finest and 2 * basis > finest:  # an engine reference: at twice the trial's basis
+                    truth, against, wrong, finest = _truth(spec, model, data, 2 * basis)
+                trial = _trial(spec, basis, data, truth, target, None, wrong)
             except SpecError:  # more nodes than the eigensolver takes: stop here
                 break
+            trial.against = against
             report.trials.append(trial)
-            if trial.ok:
+            if trial.ok or wrong:
                 break
     return report
 
@@ -146,25 +158,40 @@ def _kalman(model: Any):
         return None
 
 
-def _truth(spec: Any, model: Any, data: list) -> tuple[list[tuple[np.ndarray, np.ndarray]], str]:
-    """Per path (means (K, n), degenerate (K,)) of the truth, and its name."""
+def _truth(spec: Any, model: Any, data: list, fine: int) -> tuple[list, str, float, int]:
+    """Per path (means (K, n), degenerate (K,)) of the truth, its name, the fraction of its own
+    degenerate steps and its basis (an engine's): the exact Kalman filter, else the engine at basis
+    ``fine`` — or at twice that, when ``fine`` degenerates on some step (then the gaps would be measured
+    on the other steps only)."""
     kalman = _kalman(model)
     if kalman is not None:
         out = []
         for sim in data:
             _, estimates = kalman.run(kalman.initial_state(), sim.rows)
             out.append((np.array([e.mean for e in estimates]), np.zeros(len(estimates), dtype=bool)))
-        return out, "the exact Kalman filter (the model is linear)"
-    fine = 2 * spec.discretization.basis
-    engine = _filter(spec, fine)
-    out = []
-    for sim in data:
-        _, result = engine.run_arrays(engine.initial_state(), sim.rows)
-        out.append((result.mean, result.degenerate))
-    return out, f"the engine at basis {fine} ({len(engine.nodes)} nodes)"
+        return out, "the exact Kalman filter (the model is linear)", 0.0, 0
+    for basis in (fine, 2 * fine):
+        try:
+            engine = _filter(spec, basis)
+        except SpecError:
+            if basis == fine:
+                raise
+            break
+        out = []
+        for sim in data:
+            _, result = engine.run_arrays(engine.initial_state(), sim.rows)
+            out.append((result.mean, result.degenerate))
+        wrong = float(np.mean(np.concatenate([bad for _, bad in out])))
+        name = f"the engine at basis {basis} ({len(engine.nodes)} nodes)"
+        if not wrong:
+            break
+    return out, name, wrong, basis
 
 
-def _trial(spec: Any, basis: int, data: list, truth: list, target: float, offline: Any = None) -> Trial:
+def _trial(spec: Any, basis: int, data: list, truth: list, target: float, offline: Any = None,
+           wrong: float = 0.0) -> Trial:
+    """``basis`` filtered on the paths against ``truth``; it passes only where the truth has no degenerate
+    step (``wrong``: their fraction)."""
     engine = _filter(spec, basis, offline)
     gaps, worst, degenerate, total, means = [], 0.0, 0, 0, []
     for sim, (ref, ref_bad) in zip(data, truth, strict=True):
@@ -179,7 +206,7 @@ def _trial(spec: Any, basis: int, data: list, truth: list, target: float, offlin
     mean_gap = float(np.mean(np.concatenate(gaps))) if gaps else 0.0
     fraction = degenerate / total if total else 0.0
     return Trial(basis=basis, nodes=len(engine.nodes), mean_gap=mean_gap, max_gap=worst, degenerate=fraction,
-                 rmse=_rmse(means, data), ok=mean_gap <= target and degenerate == 0)
+                 rmse=_rmse(means, data), ok=mean_gap <= target and degenerate == 0 and not wrong)
 
 
 def _rmse(means: list[np.ndarray], data: list) -> float:

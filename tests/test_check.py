@@ -91,3 +91,26 @@ def test_precompute_warns_when_the_exact_filter_shows_the_basis_is_too_small(tmp
         assert ("warning: basis 400 does not resolve" in err) is warned, err
         if warned:
             assert f"yauyau check {path}" in err
+
+
+ATLAS = {"name": "sin drift", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "observation": ["x"],
+         "method": "yau-yau", "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+         "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 60.0]]},
+         "discretization": {"dt": 0.02, "basis": 4}}
+
+
+def test_a_reference_that_degenerates_is_refined_or_judges_nothing():
+    """Basis 4 on the atlas: the engine at 8 degenerates on ~40% of the steps, so the reference is the
+    engine at 16; a suggested basis is judged against twice its own (before, basis 12 'passed' against
+    the degenerate basis 8, its gaps taken over the steps where 8 still worked).  From basis 2 the
+    references 4 and 8 both degenerate: then nothing passes and nothing is suggested."""
+    report = resolution_check(spec_from_dict(ATLAS), paths=2, steps=200)
+    assert "basis 16" in report.truth and report.truth_degenerate == 0.0
+    assert not report.requested.ok and report.suggested is not None
+    passing = [t for t in report.trials if t.ok]
+    assert passing and all(f"basis {2 * t.basis} " in (t.against or report.truth) for t in passing)
+    coarse = resolution_check(spec_from_dict({**ATLAS, "discretization": {"dt": 0.02, "basis": 2}}),
+                              paths=2, steps=200)
+    assert "basis 8" in coarse.truth and coarse.truth_degenerate > 0.1
+    assert coarse.suggested is None and len(coarse.trials) == 1
+    assert "the reference itself degenerates" in coarse.render()

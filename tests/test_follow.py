@@ -482,3 +482,16 @@ def test_h_read_off_a_move_is_h_at_the_new_nodes():
         flt._h.clear()
         h, _ = flt.h_at(target, carry, before)
         np.testing.assert_allclose(h, model.h(flt.home.nodes + target), rtol=0, atol=1e-13)
+
+
+def test_precompute_says_when_follow_has_no_effect(tmp_path, capsys):
+    """method auto on a linear-Gaussian model chooses the exact Kalman–Bucy filter, which has no ball:
+    precompute says follow does nothing there and how to get it (before, it was silently ignored)."""
+    doc = json.loads(json.dumps(TREND))
+    del doc["method"]
+    spec_file = tmp_path / "trend.json"
+    spec_file.write_text(json.dumps(doc))
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "store")]) == 0
+    err = capsys.readouterr().err
+    assert "method kalman-bucy" in err
+    assert "domain.follow has no effect here" in err and 'method = "yau-yau"' in err

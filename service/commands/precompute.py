@@ -101,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
         saved, solved = save_solved(store, spec, workers=workers, time_limit=args.time_limit,
                                     progress=progress, scheduler=args.scheduler)
     _say(args, f"method {solved.method}: {solved.method_reason}")
+    if spec.domain.follow and solved.method != "yau-yau":
+        _say(args, f"note: domain.follow has no effect here: {solved.method} is exact for this model and "
+                   "needs no ball; set method = \"yau-yau\" to filter on a ball that follows the state")
     size = store.path(saved).stat().st_size
     what = f"{total} basis functions" if solved.offline is not None else "mesh-free, no offline arrays"
     atlas = getattr(solved.offline, "atlas", None)
