@@ -165,23 +165,40 @@ def test_filter_uses_the_stored_method_says_so_and_never_analyses(store, tmp_pat
     assert "yauyau filter: method kalman-bucy (stored at precompute: f and h are affine" in out.stderr
 
 
+# the hot path's BLAS threads, read by a spy around filter_rows, in a fresh process: under pytest-xdist a
+# worker's earlier tests can leave OpenBLAS capped (a fresh CI run once read 1 thread for --blas-threads 2)
+_SPY = """
+import json, sys
+from threadpoolctl import threadpool_info
+from yauyau.service.commands import filter as command
+real, seen = command.filter_rows, []
+def spy(*args, **kwargs):
+    seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+    return real(*args, **kwargs)
+command.filter_rows = spy
+from yauyau.service.cli import main
+code = main(sys.argv[1:])
+print(json.dumps({"code": code, "seen": seen}))
+"""
+
+
 @pytest.mark.parametrize("flag, threads", [([], 1), (["--blas-threads", "2"], 2)])
-def test_blas_threads_of_the_hot_path(store, tmp_path, monkeypatch, flag, threads):
-    from threadpoolctl import threadpool_info
-    from yauyau.service.commands import filter as command
+def test_blas_threads_of_the_hot_path(store, tmp_path, flag, threads):
+    import json
+    import os
+    import subprocess
+    import sys
 
-    seen = []
-    real = command.filter_rows
-
-    def spy(*args, **kwargs):
-        seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(command, "filter_rows", spy)
+    directory, ids, _ = store
     source = tmp_path / "in.csv"
     source.write_text("0.1\n")
-    code, _ = _filter(store, "ou", tmp_path, source, "--method", "yau-yau", *flag)
-    assert code == 0 and seen and set(seen) == {threads}
+    root = str(Path(__file__).resolve().parent.parent)
+    out = subprocess.run([sys.executable, "-c", _SPY, "filter", ids["ou"], "--store", str(directory),
+                          "--increments", str(source), "--out", str(tmp_path / "o.csv"),
+                          "--method", "yau-yau", *flag], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=root), timeout=120)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["code"] == 0 and result["seen"] and set(result["seen"]) == {threads}, out.stderr
 
 
 def test_blas_threads_refused_when_not_positive(store, tmp_path, capsys, monkeypatch):
