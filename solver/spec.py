@@ -495,12 +495,11 @@ def _check_prior_in_region(prior: GaussianPrior | MixturePrior | DensityPrior,
         return
     if isinstance(prior, GaussianPrior):
         field, mean = "initial.mean", [float(v) for v in prior.mean]
-    else:
-        weights = [max(float(w), 0.0) for w in prior.weights]
-        total = sum(weights) or 1.0
+    else:  # the mixture's mean, as Model.prior_moments takes it
+        from .model import mixture_weights
+
         field = "initial.means"
-        mean = [sum(w * float(m[i]) for w, m in zip(weights, prior.means, strict=True)) / total
-                for i in range(len(region))]
+        mean = (mixture_weights(prior.weights) @ np.asarray(prior.means, dtype=float)).tolist()
     if all(lo <= v <= hi for v, (lo, hi) in zip(mean, region, strict=True)):
         return
     where = ", ".join(f"{v:.4g}" for v in mean)
