@@ -20,12 +20,13 @@ naming the field.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 import numpy as np
 from pydantic import (
@@ -70,8 +71,9 @@ def check_spd(matrix: list[list[float]], size: int, what: str, semi: bool = Fals
     if semi and low >= -1e-12 * scale and np.abs(arr).max() > 0:
         return
     if low <= 1e-12 * scale:
+        eigenvalues = ", ".join(f"{v:.4g}" for v in np.linalg.eigvalsh(arr))
         raise ValueError(f"{what} must be positive {'semi-' if semi else ''}definite"
-                         + (" and not zero" if semi else ""))
+                         + (" and not zero" if semi else "") + f" (its eigenvalues are {eigenvalues})")
 
 
 def singular(matrix: np.ndarray) -> bool:
@@ -520,6 +522,42 @@ def _field_path(loc: tuple[Any, ...]) -> str:
     return path or "spec"
 
 
+_PRIOR_KINDS = {"gaussian": GaussianPrior, "mixture": MixturePrior, "density": DensityPrior}
+
+
+def _table_keys(loc: tuple[Any, ...]) -> list[str]:
+    """The keys the table holding ``loc``'s last part accepts (a model's fields; a prior's by its kind)."""
+    models: list[type[BaseModel]] = [ModelSpec]
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        if part in _PRIOR_KINDS:  # the tag pydantic inserts for the prior's kind
+            models = [_PRIOR_KINDS[part]]
+            continue
+        field = next((m.model_fields[part] for m in models if part in m.model_fields), None)
+        if field is None:
+            return []
+        models = [t for t in _classes(field.annotation) if issubclass(t, BaseModel)]
+    return sorted({key for m in models for key in m.model_fields})
+
+
+def _classes(annotation: Any) -> list[type]:
+    if isinstance(annotation, type):
+        return [annotation]
+    return [t for arg in get_args(annotation) for t in _classes(arg)]
+
+
+def _unknown_key(loc: tuple[Any, ...]) -> str:
+    """An unknown key's message: the nearest accepted key, if one is close, and the accepted keys."""
+    key, allowed = str(loc[-1]), _table_keys(loc)
+    if not allowed:
+        return f"unknown key {key!r}"
+    close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6) or [
+        a for a in allowed if len(a) >= 3 and (key.lower().startswith(a) or a.startswith(key.lower()))][:1]
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"unknown key {key!r} ({hint}this table accepts {', '.join(allowed)})"
+
+
 def spec_from_dict(data: Any) -> ModelSpec:
     """Validate a parsed document; every failure becomes one SpecError naming the field."""
     if not isinstance(data, dict):
@@ -527,11 +565,15 @@ def spec_from_dict(data: Any) -> ModelSpec:
     try:
         spec = ModelSpec.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
+        errors = exc.errors()
+        # a misspelt key first: the "Field required" pydantic also reports is its consequence
+        err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
         ctx_error = (err.get("ctx") or {}).get("error")
         if isinstance(ctx_error, SpecError):
             raise ctx_error from None
         msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            msg = _unknown_key(tuple(err["loc"]))
         raise SpecError(_field_path(tuple(err["loc"])), msg) from None
     spec.numeric()  # the expressions, checked (safely) and finite on the ball; kept for compile_model
     return spec

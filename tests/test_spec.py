@@ -70,6 +70,35 @@ def test_bad_spec_names_field(over, field):
     assert err.value.field == field, str(err.value)
 
 
+@pytest.mark.parametrize("over, field, hint", [
+    ({"domain": {"radius": 7.0, "folow": True}}, "domain.folow", "did you mean 'follow'?"),
+    ({"diffusoin": [[1.0]]}, "diffusoin", "did you mean 'diffusion'?"),
+    ({"initial": {"kind": "gaussian", "mean": [0.5], "covariance": [[1.0]]}}, "initial.covariance",
+     "did you mean 'cov'?"),
+    ({"initial": {"kind": "mixture", "weights": [1.0], "means": [[0.5]], "covs": [[[1.0]]], "cov": 1}},
+     "initial.cov", "did you mean 'covs'?"),
+    ({"discretization": {"dt": 0.01, "basis": 16, "zzz": 1}}, "discretization.zzz",
+     "this table accepts basis, dt, element, mesh, order, precision, scheme, substeps"),
+])
+def test_unknown_key_names_the_nearest_accepted_one(over, field, hint):
+    """A misspelt key is named with the key it most likely meant and the keys its table accepts
+    (pydantic alone says "Extra inputs are not permitted")."""
+    with pytest.raises(SpecError) as err:
+        spec_from_dict(base(**over))
+    assert err.value.field == field
+    assert hint in str(err.value)
+    assert f"unknown key '{field.rsplit('.', 1)[-1]}'" in str(err.value)
+
+
+def test_diffusion_error_shows_its_eigenvalues():
+    with pytest.raises(SpecError) as err:
+        spec_from_dict(base(state=["x", "y"], drift=["-x", "-y"], observation=["x"],
+                            initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]},
+                            diffusion=[[1.0, 2.0], [2.0, 1.0]]))
+    assert err.value.field == "diffusion"
+    assert "its eigenvalues are -1, 3" in str(err.value)  # (1 1; 1 1)·… : 1 ∓ 2, computed by hand
+
+
 def test_parameters_are_exact_numbers():
     model = compile_model(spec_from_dict(base(drift=["-theta*x"], parameters={"theta": 0.2})))
     assert model.drift[0] == -X / 5
