@@ -190,6 +190,8 @@ class SessionInfo(BaseModel):
     next_seq: int = Field(description="seq the next chunk (or reset) must carry")
     estimate: EstimateFull
     options: SessionOptions
+    center: list[float] | None = Field(None, description="([domain] follow = true only) the centre of the "
+                                                         "domain ball now")
 
 
 class ModelCreate(_Body):
@@ -253,6 +255,10 @@ class ModelSummary(BaseModel):
     dt: float | None = None
     radius: float | None = None
     basis: int | None = None
+    follow: bool | None = Field(None, description="[domain] follow: the domain ball re-centres on the "
+                                                  "posterior (a session's rows then carry its centre)")
+    region: list[list[float]] | None = Field(None, description="[domain] region, one [lo, hi] per state "
+                                                               "variable: where a following ball may go")
     method: str | None = Field(None, description="the filter a session runs by default (chosen at "
                                                  "precompute)")
     error: str | None = Field(None, description="set, and the rest left out, when the model file is "

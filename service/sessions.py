@@ -471,9 +471,12 @@ class Sessions:
         out = estimate_full(estimate)
         if extras:
             out.update(summaries_of(filt, state, estimate, extras))
-        return {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
+        info = {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
                 "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out,
                 "options": _shown_options(_options(rec), filt)}
+        if getattr(state, "center", None) is not None:  # a ball that follows the state
+            info["center"] = np.asarray(filt.ball_center(state), dtype=float).tolist()
+        return info
 
     def version(self, session_id: str) -> int:
         """The seq the next chunk must carry (changes when a chunk is applied): what /events polls."""

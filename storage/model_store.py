@@ -106,6 +106,8 @@ class ModelSummary:
     dt: float | None = None
     radius: float | None = None
     basis: int | None = None
+    follow: bool | None = None  # [domain] follow: the ball re-centres on the posterior
+    region: list[list[float]] | None = None  # [domain] region: where a following ball may go (an atlas)
     created: str | None = None
     file_size: int = 0
     error: str | None = None
@@ -114,7 +116,8 @@ class ModelSummary:
     def to_dict(self) -> dict[str, Any]:
         return {"id": self.id, "name": self.name, "state": self.state, "n": self.n, "m": self.m,
                 "dt": self.dt,
-                "radius": self.radius, "basis": self.basis, "created": self.created,
+                "radius": self.radius, "basis": self.basis, "follow": self.follow, "region": self.region,
+                "created": self.created,
                 "file_size": self.file_size, "error": self.error, **self.extra}
 
 
@@ -491,7 +494,8 @@ def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shap
         id=mid, name=spec.get("name"), state=state if isinstance(state, list) else None,
         n=len(state) if isinstance(state, list) else None,
         m=len(obs) if isinstance(obs, list) else None, dt=disc.get("dt"), radius=domain.get("radius"),
-        basis=basis, created=created, file_size=size,
+        basis=basis, follow=bool(domain.get("follow", False)), region=domain.get("region"),
+        created=created, file_size=size,
         extra={key: (attrs or {})[key] for key in ("method", "method_reason") if key in (attrs or {})})
 
 

@@ -236,6 +236,13 @@ def test_the_cli_precomputes_and_filters_an_atlas(tmp_path, capsys):
     spec_file.write_text(_spec().canonical_json())
     assert main(["precompute", str(spec_file), "--store", str(tmp_path / "store"), "--quiet"]) == 0
     model_id = capsys.readouterr().out.strip()
+    assert main(["models", "--store", str(tmp_path / "store")]) == 0
+    header, line = capsys.readouterr().out.splitlines()
+    at = header.index("follow")  # the name has a space: read the column where its header starts
+    assert line[at:].split()[0] == "region"
+    assert main(["models", "--store", str(tmp_path / "store"), "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert (listed[0]["follow"], listed[0]["region"]) == (True, _spec().domain.region)
     sim = simulate(compile_model(_spec()), 1000, np.random.default_rng(1))
     inc = tmp_path / "inc.csv"
     inc.write_text("dy\n" + "\n".join(repr(float(v)) for v in sim.increments[:, 0]) + "\n")
@@ -298,13 +305,19 @@ def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_
     local = concat_results(parts)
     settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3")
     with TestClient(create_app(settings), raise_server_exceptions=False) as api:
+        listed = {m["id"]: m for m in api.get("/v1/models").json()}[model_id]
+        assert (listed["follow"], listed["region"]) == (True, [[-5.0, 20.0]])
+        detail = api.get(f"/v1/models/{model_id}").json()
+        assert (detail["follow"], detail["region"]) == (True, [[-5.0, 20.0]])
         sid = api.post("/v1/sessions", json={"model": model_id}).json()["id"]
+        assert api.get(f"/v1/sessions/{sid}").json()["center"] == [0.0]  # the prior's mean, on the lattice
         rows = []
         for seq, start in enumerate(range(0, STEPS, 500)):
             r = api.post(f"/v1/sessions/{sid}/observations",
                          json={"seq": seq, "increments": increments[start:start + 500].tolist()})
             assert r.status_code == 200, r.text
             rows += r.json()["estimates"]
+            assert api.get(f"/v1/sessions/{sid}").json()["center"] == rows[-1]["center"]
     means = np.array([row["mean"][0] for row in rows])
     assert np.abs(means - local.mean[:, 0]).max() < 1e-9  # the state (and its centre) kept between chunks
     assert all(len(row["center"]) == 1 for row in rows)

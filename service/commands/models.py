@@ -1,7 +1,8 @@
 """`yauyau models --store DIR [--json]`: the stored models, from the HDF5 attributes only.
 
-A table (id, name, n, m, dt, radius, basis, size, created) or, with --json, a JSON list of the
-same fields plus ``error`` (set for a file that cannot be read).
+A table (id, name, n, m, dt, radius, follow, basis, size, created; follow is "yes" for a ball that
+re-centres on the posterior, "region" for one confined to ``[domain] region``) or, with --json, a JSON
+list of the same fields plus ``region`` and ``error`` (set for a file that cannot be read).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import json
 
 from .precompute import store_argument
 
-_COLUMNS = ("id", "name", "n", "m", "dt", "radius", "basis", "size", "created")
+_COLUMNS = ("id", "name", "n", "m", "dt", "radius", "follow", "basis", "size", "created")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,8 +24,9 @@ def _row(summary) -> list[str]:
     if summary.error:
         return [summary.id, f"unreadable: {summary.error}"] + [""] * (len(_COLUMNS) - 2)
     size = f"{summary.file_size / 1e6:.2f} MB"
-    values = (summary.id, summary.name, summary.n, summary.m, summary.dt, summary.radius, summary.basis,
-              size, summary.created)
+    follow = "region" if summary.region else "yes" if summary.follow else "no"
+    values = (summary.id, summary.name, summary.n, summary.m, summary.dt, summary.radius, follow,
+              summary.basis, size, summary.created)
     return ["" if v is None else str(v) for v in values]
 
 
