@@ -21,6 +21,7 @@ worker with more threads solves its blocks one at a time (a lock: the factorisat
 from __future__ import annotations
 
 import dataclasses
+import socket
 import threading
 from concurrent.futures import CancelledError
 from typing import Any, Callable
@@ -29,6 +30,7 @@ from .errors import InputError
 
 _LOCK = threading.Lock()
 CONNECT_TIMEOUT = "30s"
+PROBE_TIMEOUT = 5.0  # seconds a TCP connection to the scheduler may take (checked before the Client)
 RESUBMITS = 3  # times a block whose future was cancelled (its worker died) is submitted again
 
 
@@ -41,6 +43,27 @@ def solve_block(job: Any, columns: tuple[int, int], basis: Any = None):
         job = dataclasses.replace(job, initial=basis)
     with _LOCK:
         return dask_block(job, columns)
+
+
+def _check_reachable(scheduler: str) -> None:
+    """Refuse at once a tcp:// address where nothing listens (Dask's Client retries a refused
+    connection until its 30 s timeout); a scheduler that answers slowly still gets the timeout."""
+    from urllib.parse import urlsplit
+
+    if not scheduler.startswith("tcp://"):
+        return
+    try:
+        parts = urlsplit(scheduler)
+        host, port = parts.hostname, parts.port or 8786
+    except ValueError as exc:
+        raise InputError("scheduler", f"{scheduler!r} is not a Dask scheduler address ({exc}): give "
+                                      "tcp://HOST:PORT") from None
+    try:
+        socket.create_connection((host, port), timeout=PROBE_TIMEOUT).close()
+    except OSError as exc:
+        raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: nothing answers at "
+                                      f"{host}:{port} ({exc.strerror or exc}); start one with `dask "
+                                      "scheduler` or check the address") from None
 
 
 def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
@@ -67,6 +90,7 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
                                             "again), or use workers = 1") from None
             client = Client(cluster)
         else:
+            _check_reachable(scheduler)
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)
     except InputError:  # the local cluster's own message (an InputError is a ValueError too)
         raise

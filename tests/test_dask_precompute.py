@@ -93,6 +93,8 @@ def test_the_cli_on_a_running_cluster_writes_the_same_arrays(cluster, local, tmp
     assert code == 0
     model_id = capsys.readouterr().out.strip().splitlines()[-1]
     _same_arrays(tmp_path / "store", model_id, local)
+    attrs = ModelStore(tmp_path / "store").load(model_id).attrs
+    assert attrs["scheduler"] == cluster.address and "workers" not in attrs  # not the unused --workers
 
 
 def test_a_worker_killed_during_the_solves_changes_nothing(cluster, local, tmp_path):
@@ -145,6 +147,12 @@ def test_an_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):
     assert main(["precompute", str(spec_file), "--store", str(tmp_path / "s"),
                  "--scheduler", "localhost:1"]) == 2
     assert "--scheduler" in capsys.readouterr().err
+    # a well-formed address where nothing listens: refused by the probe, not after the Client's 30 s
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "s"),
+                 "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot reach the Dask scheduler tcp://127.0.0.1:1: nothing answers at 127.0.0.1:1" in err
+    assert "Traceback" not in err and not ModelStore(tmp_path / "s").ids()
 
 
 ATLAS = {"name": "sin drift atlas", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "observation": ["x"],

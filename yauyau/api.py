@@ -49,10 +49,13 @@ class Solved:
     method_reason: str
     seconds: float
     workers: int
+    scheduler: str | None = None  # the running Dask cluster that solved it (``workers`` then unused)
 
     def attrs(self) -> dict[str, Any]:
-        """What the model file records besides the arrays (read back by :func:`load_model`)."""
-        return {"precompute_seconds": round(self.seconds, 3), "workers": self.workers, "name": self.spec.name,
+        """What the model file records besides the arrays (read back by :func:`load_model`): where it was
+        solved is ``workers`` local processes, or the cluster at ``scheduler``."""
+        where = {"workers": self.workers} if self.scheduler is None else {"scheduler": self.scheduler}
+        return {"precompute_seconds": round(self.seconds, 3), **where, "name": self.spec.name,
                 "method": self.method, "method_reason": self.method_reason,
                 "offline": self.offline is not None}
 
@@ -92,7 +95,7 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
                             atlas_sink=atlas_sink)
     seconds = time.perf_counter() - started
     method, reason = choose_method(model, offline=offline, time_limit=time_limit)
-    return Solved(spec, model, offline, method, reason, seconds, workers)
+    return Solved(spec, model, offline, method, reason, seconds, workers, scheduler)
 
 
 def mesh_free_only(model: Any) -> bool:
