@@ -111,7 +111,10 @@ class RowEstimate(EstimateOut):
     reinitialised: bool = Field(False, description="present, true, only when the filter degenerated at this "
                                                    "row and started again (on_degenerate = reinitialise)")
     degenerate: bool = Field(False, description="present, true, only when the density is degenerate here "
-                                                "(the estimate repeats the last good one)")
+                                                "(the estimate repeats the last good one; on the row where a "
+                                                "following ball's mean left domain.region, or its move "
+                                                "failed, that row's own estimate, good on the ball, is the "
+                                                "last good one)")
     center: list[float] | None = Field(None, description="([domain] follow = true only) the centre of the "
                                                          "domain ball after this row")
     recentred: bool = Field(False, description="present, true, only when the ball that follows the state "

@@ -47,6 +47,14 @@ class CheckReport:
     trials: list[Trial] = field(default_factory=list)
     truth_rmse: float = float("nan")
     truth_degenerate: float = 0.0  # fraction of the reference's own degenerate steps (then nothing passes)
+    region: list[list[float]] | None = None  # [domain] region of a following ball
+    covered: list[list[float]] | None = None  # the simulated states' range along each variable
+
+    @property
+    def rate_bound(self) -> float:
+        """95% upper bound on the per-step rate of degenerate steps when none of the paths·steps
+        simulated had one (the rule of three, 3/n): a run longer than ~1/bound steps may still meet one."""
+        return 3.0 / (self.paths * self.steps)
 
     @property
     def requested(self) -> Trial:
@@ -61,7 +69,8 @@ class CheckReport:
     def to_dict(self) -> dict[str, Any]:
         return {"truth": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
                 "ok": self.requested.ok, "suggested_basis": self.suggested, "truth_rmse": self.truth_rmse,
-                "truth_degenerate": self.truth_degenerate, "trials": [t.__dict__ for t in self.trials]}
+                "truth_degenerate": self.truth_degenerate, "degenerate_rate_bound": self.rate_bound,
+                "region": self.region, "covered": self.covered, "trials": [t.__dict__ for t in self.trials]}
 
     def render(self) -> str:
         r = self.requested
@@ -70,6 +79,10 @@ class CheckReport:
                  f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} (truth {self.truth_rmse:.3g})"]
         if r.ok:
             lines.append(f"  OK: the mean gap is within the target {self.target:g}")
+            lines.append(f"  no degenerate step in {self.paths * self.steps}: the rate is below "
+                         f"{self.rate_bound:.2g} per step (95%); a longer run may still meet one "
+                         "(check it with --steps)")
+            lines += self._coverage()
             return "\n".join(lines)
         lines.append(f"  NOT RESOLVED: the target is a mean gap <= {self.target:g} with no degenerate step")
         if self.truth_degenerate:
@@ -82,7 +95,22 @@ class CheckReport:
         suggestion = self.suggested
         lines.append(f"  suggestion: discretization.basis = {suggestion}" if suggestion else
                      "  suggestion: none of the bases tried passes: shrink domain.radius or refine the mesh")
-        return "\n".join(lines)
+        return "\n".join(lines + self._coverage())
+
+    def _coverage(self) -> list[str]:
+        """Where a following ball has a region: how much of it the simulated paths crossed (the atlas's
+        other centres are not checked)."""
+        if self.region is None or self.covered is None:
+            return []
+        parts = [f"[{a:.3g}, {b:.3g}] of [{lo:g}, {hi:g}]"
+                 for (a, b), (lo, hi) in zip(self.covered, self.region, strict=True)]
+        share = min((min(b, hi) - max(a, lo)) / (hi - lo)
+                    for (a, b), (lo, hi) in zip(self.covered, self.region, strict=True))
+        line = f"  the paths crossed {', '.join(parts)} of domain.region"
+        if share < 0.9:
+            line += (f" ({max(share, 0.0):.0%}): the centres beyond are not checked (a longer --steps "
+                     "reaches them)")
+        return [line]
 
 
 def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
@@ -107,6 +135,11 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
     truth, name, wrong, finest = _truth(spec, model, data, 2 * spec.discretization.basis)
     report = CheckReport(truth=name, target=target, paths=paths, steps=steps,
                          truth_rmse=_rmse([t[0] for t in truth], data), truth_degenerate=wrong)
+    if spec.domain.follow and spec.domain.region is not None:
+        states = np.concatenate([d.states for d in data])
+        report.region = [[float(lo), float(hi)] for lo, hi in spec.domain.region]
+        report.covered = [[float(lo), float(hi)]
+                          for lo, hi in zip(states.min(axis=0), states.max(axis=0), strict=True)]
     report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline, wrong))
     if suggest and not report.requested.ok and not wrong:
         for scale in SCALES:

@@ -124,6 +124,11 @@ def test_leaving_the_region_is_a_degenerate_step_with_its_reason(sin):
     assert result.degenerate.any() and state.degenerate
     assert "left domain.region ([-5, 20])" in result.reason and "widen the region" in result.reason
     assert result.mean[first - 1, 0] > 19 and not result.degenerate[:first].any()
+    # the flagged row is the one whose mean left (its estimate, on the ball, is the last good one) and the
+    # rows after it repeat that estimate
+    assert result.mean[first, 0] > 20 >= result.mean[first - 1, 0]
+    assert np.all(result.mean[first:] == result.mean[first])
+    assert np.all(result.cov[first:] == result.cov[first])
     assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
 
 

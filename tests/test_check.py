@@ -114,3 +114,20 @@ def test_a_reference_that_degenerates_is_refined_or_judges_nothing():
     assert "basis 8" in coarse.truth and coarse.truth_degenerate > 0.1
     assert coarse.suggested is None and len(coarse.trials) == 1
     assert "the reference itself degenerates" in coarse.render()
+
+
+def test_the_report_bounds_the_degenerate_rate_and_says_how_much_of_the_region_the_paths_crossed():
+    """A pass on short paths is not a pass on a long run: with no degenerate step in n the report gives
+    the rule of three's bound 3/n; on an atlas it says which part of domain.region the paths crossed
+    (the drift 0.8 + 0.3 sin x carries x about 0.8·t: 200 steps of 0.02 cross ~3 of the region's 65)."""
+    doc = {**ATLAS, "discretization": {"dt": 0.02, "basis": 24}}
+    report = resolution_check(spec_from_dict(doc), paths=2, steps=200, suggest=False)
+    assert report.requested.ok and report.requested.degenerate == 0.0
+    assert report.rate_bound == pytest.approx(3.0 / 400)
+    (lo, hi), = report.covered
+    assert -5.0 < lo < 0.0 < hi < 12.0 and report.region == [[-5.0, 60.0]]
+    text = report.render()
+    assert "no degenerate step in 400: the rate is below 0.0075 per step" in text
+    assert f"the paths crossed [{lo:.3g}, {hi:.3g}] of [-5, 60] of domain.region" in text
+    assert "the centres beyond are not checked" in text
+    assert report.to_dict()["covered"] == report.covered
