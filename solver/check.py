@@ -102,10 +102,9 @@ class CheckReport:
         other centres are not checked)."""
         if self.region is None or self.covered is None:
             return []
-        parts = [f"[{a:.3g}, {b:.3g}] of [{lo:g}, {hi:g}]"
-                 for (a, b), (lo, hi) in zip(self.covered, self.region, strict=True)]
-        share = min((min(b, hi) - max(a, lo)) / (hi - lo)
-                    for (a, b), (lo, hi) in zip(self.covered, self.region, strict=True))
+        pairs = list(zip(self.covered, self.region, strict=True))
+        parts = [f"[{a:.3g}, {b:.3g}] of [{lo:g}, {hi:g}]" for (a, b), (lo, hi) in pairs]
+        share = min((min(b, hi) - max(a, lo)) / (hi - lo) for (a, b), (lo, hi) in pairs)
         line = f"  the paths crossed {', '.join(parts)} of domain.region"
         if share < 0.9:
             line += (f" ({max(share, 0.0):.0%}): the centres beyond are not checked (a longer --steps "
