@@ -45,7 +45,7 @@ class Diagnostics:
                  offline: Any, h_nodes: np.ndarray):
         self.dt = model.dt
         self.weights = weights
-        self._rim = rim_nodes(nodes, model.center, model.radius)
+        self._rim = rim_nodes(model.unshaped(nodes - model.center), 0.0, model.radius)
         # rows: ∫Πσ and ∫e^{dt L}Πσ as linear functionals of nodal σ (Π = basis · projector)
         kept = [np.asarray(m, dtype=float).T @ weights for m in (offline.basis, offline.propagator_fp)]
         self._kept = np.vstack([projector.T @ row for row in kept])
@@ -154,6 +154,7 @@ class Diagnostics:
 
 
 def rim_nodes(nodes: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
-    """Nodes within about one element of the boundary (twice the gap of the outermost node)."""
+    """Nodes within about one element of the boundary (twice the gap of the outermost node); on an
+    ellipsoid give the nodes in the ball's coordinates (Model.unshaped) and centre 0."""
     r = np.linalg.norm(nodes - center, axis=1)
     return np.flatnonzero(r >= radius - 2.0 * (radius - r.max()))

@@ -861,7 +861,7 @@ class YauYauFilter(ChunkedFilter):
         if key in cache:
             return cache[key]
         n = self.model.n
-        center, radius = self.model.center, self.model.radius
+        center, radius = self.model.center, self.model.half_widths
         basis = self.offline.evaluate_basis
         if n == 1:
             operator = basis(grid[:, None])

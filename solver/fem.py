@@ -234,10 +234,11 @@ def planned_nodes(spec) -> int:
 
 
 def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int,
-          lattice: bool = False) -> FESpace:
+          lattice: bool = False, shape: np.ndarray | None = None) -> FESpace:
     """Mesh B_R with ``resolution`` (cells across the radius / rings / refinements) for elements of
     ``order`` (the effective one, :func:`effective_order`); ``lattice``: the 2-D disk on a square
-    lattice (a ball that follows the state)."""
+    lattice (a ball that follows the state); ``shape`` L: the ball mapped by x = c + L(x − c) (an
+    ellipsoid, ``[domain] shape``: affine images of the elements, the same elements)."""
     if n == 1:
         mesh = interval_mesh(center, radius, resolution)
     elif n == 2:
@@ -246,6 +247,9 @@ def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int
         mesh = ball_mesh(center, radius, resolution)
     else:
         raise SpecError("state", f"dimension {n} is not supported (1, 2 or 3)")
+    if shape is not None:
+        c = np.asarray(center, dtype=float)[:, None]
+        mesh = type(mesh)(np.ascontiguousarray(c + np.asarray(shape, dtype=float) @ (mesh.p - c)), mesh.t)
     return _space(mesh, n, order)
 
 
@@ -268,7 +272,7 @@ def discretise(model, size: int | None = None) -> FESpace:
         raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} allowed; "
                                "use a smaller basis or mesh")
     disc = build(model.n, model.center, model.radius, resolution, order,
-                 lattice=bool(model.spec.domain.follow))
+                 lattice=bool(model.spec.domain.follow), shape=model.shape)
     if len(disc.interior) < size:
         raise SpecError("discretization.basis",
                         f"{size} basis functions need at least as many interior mesh nodes; "

@@ -132,8 +132,14 @@ class FollowingFilter(ChunkedFilter):
         self.stray = (float(domain.follow_distance) + STRAY) * self.radius
         self.mass_limit = float(domain.follow_mass)
         self.home_center = np.asarray(engine.model.center, dtype=float)
-        self._lattice = move_step(getattr(engine.offline, "mesh_points", None), engine.model.n,
-                                  engine.model.center, engine.model.radius)
+        # on an ellipsoid ([domain] shape, x = c + Lz) the lattice and every distance are the ball's, in z
+        self.shape, self.shape_inverse = engine.model.shape, engine.model.shape_inverse
+        if self.shape is not None and len(self.directions) < engine.model.n:
+            raise SpecError("domain.shape", "a following ellipsoid moves along every coordinate, but the "
+                                            "drift depends on some (neither shift-invariant nor affine): "
+                                            "leave shape out")
+        points = _unshaped_points(engine.model, getattr(engine.offline, "mesh_points", None))
+        self._lattice = move_step(points, engine.model.n, engine.model.center, engine.model.radius)
         self._engines: OrderedDict[tuple, Any] = OrderedDict()
         self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
         self.atlas = getattr(engine.offline, "atlas", None)  # solver/atlas.py: a propagator per centre
@@ -142,7 +148,7 @@ class FollowingFilter(ChunkedFilter):
         if self.atlas is None and needs_atlas(engine.model):
             raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
                                              "they were solved): precompute the spec again")
-        self._shell = np.linalg.norm(engine.nodes - self.home_center, axis=1) > SHELL * self.radius
+        self._shell = engine.model.ball_distance(engine.nodes - self.home_center) > SHELL * self.radius
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
@@ -200,6 +206,11 @@ class FollowingFilter(ChunkedFilter):
         axes = () if self.atlas is None else self.atlas.lattice.axes
         # whole steps from the home centre; in a moving frame (any centre) from the current one
         base = self.home_center if self.frame is None else new.copy()
+        if self.shape is not None:  # an ellipsoid: whole steps of its lattice, L·s·(integers)
+            offset = self.shape_inverse @ (np.asarray(target, dtype=float) - base)
+            if self._lattice:
+                offset = np.round(offset / self._lattice) * self._lattice
+            return base + self.shape @ offset
         for i in self.directions:
             offset = float(target[i]) - base[i]
             if self._lattice and i not in axes:
@@ -395,14 +406,15 @@ class FollowingFilter(ChunkedFilter):
 
     def watch_arrays(self, dtype: Any) -> tuple[np.ndarray, np.ndarray]:
         """For a loop that moves the ball (solver/recentring.py), in the loop's precision: the home
-        engine's projector with the trigger's rows w·(x − c)_i along the shift directions and w on the
+        engine's projector with the trigger's rows w·(x − c)_i along the shift directions (on an
+        ellipsoid w·(L⁻¹(x − c))_i: the loop reads the mean in the ball's coordinates) and w on the
         outer shell, and the basis with a zero column (it reads the carried vector [a, ∫σ, …])."""
         found = self._watch.get(dtype)
         if found is None:
             from .engine import _with_zero_column
 
             home = self.home
-            offsets = home.nodes - self.home_center
+            offsets = self.model.unshaped(home.nodes - self.home_center)
             rows = [home.weights * offsets[:, i] for i in self.directions] + [home.weights * self._shell]
             project = np.vstack([np.asarray(home._project, dtype=float), rows])
             found = self._watch[dtype] = (np.asfortranarray(project, dtype=dtype),
@@ -449,7 +461,7 @@ class FollowingFilter(ChunkedFilter):
         if not len(means):
             return None
         along = list(self.directions)
-        gap = np.abs(means[:, along] - np.asarray(center)[..., along]).max(axis=1)
+        gap = np.abs(self.model.unshaped(means - np.asarray(center))[:, along]).max(axis=1)
         far = np.flatnonzero(~(gap <= self.stray))
         return int(far[0]) if len(far) else None
 
@@ -464,7 +476,11 @@ class FollowingFilter(ChunkedFilter):
             return dataclasses.replace(state, degenerate=True, reason=outside)
         along = list(self.directions)
         offset = mean[along] - center[along]
-        far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
+        if self.shape is not None:  # (every direction: the ellipsoid's coordinates)
+            far = max(np.abs(self.model.unshaped(offset)).max(),
+                      np.abs(self.model.unshaped(offset + travel)).max()) > self.distance
+        else:
+            far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
         if not far:  # the basis and weights are the same on every ball: no engine at this centre needed
             sigma = np.clip(self.home.nodal_density(state), 0.0, None) * self.home.weights
             total = float(sigma.sum())
@@ -513,6 +529,7 @@ class FollowingFilter(ChunkedFilter):
         other length, or a mesh without steps: :func:`_carried` then works on the nodes themselves)."""
         if not self._lattice:
             return None
+        raw, offset = offset, self.model.unshaped(np.asarray(offset, dtype=float))  # (the ball's: the same)
         steps = np.round(offset / self._lattice)
         if not float(np.abs(offset - steps * self._lattice).max()) <= 1e-9 * self.radius:
             return None
@@ -521,7 +538,7 @@ class FollowingFilter(ChunkedFilter):
         if found is not None:
             return found
         return kept(self._carries, key,
-                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, offset,
+                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, raw,
                                          self.home.node_tree), CARRIES)
 
     def _carry_table(self) -> dict[tuple, "_Carry"]:
@@ -536,10 +553,14 @@ class FollowingFilter(ChunkedFilter):
         grid = grid[(np.linalg.norm(grid, axis=1) <= reach) & np.any(grid != 0, axis=1)]
         offsets = np.zeros((len(grid), self.model.n))
         offsets[:, list(self.directions)] = grid * self._lattice
-        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius, offsets,
+        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius, self._shaped(offsets),
                                     self.home.node_tree)
         return {tuple(int(k) for k in np.round(o / self._lattice)): c
                 for o, c in zip(offsets, carries, strict=True)}
+
+    def _shaped(self, offsets: np.ndarray) -> np.ndarray:
+        """Offsets in the ball's coordinates z as offsets x − c (the ellipsoid's L z; the ball's: z)."""
+        return offsets if self.shape is None else offsets @ self.shape.T
 
 
 @dataclasses.dataclass(frozen=True)
@@ -569,7 +590,7 @@ class _Carry:
         nodes = np.asarray(home.nodes, dtype=float)
         Q = len(nodes)
         points = (nodes[None, :, :] + offsets[:, None, :]).reshape(-1, nodes.shape[1])
-        nearest, matched, rest = _landing(tree, nodes, points, center, radius)
+        nearest, matched, rest = _landing(tree, nodes, points, center, radius, home.model)
         everywhere = np.flatnonzero(rest)
         rows = home.interpolation_matrix(points[everywhere]).tocsr() if len(everywhere) else None
         bounds = np.searchsorted(everywhere, np.arange(len(offsets) + 1) * Q)
@@ -604,15 +625,16 @@ def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball: read off
     where a point is an old node (a move by whole steps: 1-D elements, the 2-D lattice), interpolated
     in the old mesh elsewhere (the nodes near the boundary, or a mesh without a lattice)."""
-    nearest, matched, rest = _landing(old.node_tree, old.nodes, points, old.model.center, old.model.radius)
+    nearest, matched, rest = _landing(old.node_tree, old.nodes, points, old.model.center, old.model.radius,
+                                      old.model)
     out = np.where(matched, nodal[nearest], 0.0)
     if rest.any():
         out[rest] = old.offline.interpolate(nodal, points[rest])
     return out
 
 
-def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any,
-             radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any, radius: float,
+             model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: a
     node at each point (where one is: the rest get an arbitrary valid index), the points inside the ball
     that are nodes (read off), and those inside that are not (interpolated).  The sphere itself counts
@@ -623,10 +645,19 @@ def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any,
     else:  # only a node within the tolerance counts: the tree stops looking beyond it (~3× faster)
         gap, nearest = tree.query(points, distance_upper_bound=2.0 * tolerance)
         nearest = np.minimum(nearest, len(nodes) - 1)
-    inside = np.linalg.norm(points - center, axis=1) < radius * (1 - 1e-12)
+    inside = model.ball_distance(points - center) < radius * (1 - 1e-12)  # (an ellipsoid's, model.shape)
     matched = (gap <= tolerance) & inside
     return nearest, matched, inside & ~matched
 
+
+
+def _unshaped_points(model: Any, mesh_points: Any) -> Any:
+    """Mesh points (n, Np) of an ellipsoid in the ball's coordinates, c + L⁻¹(p − c) (where its lattice
+    is the ball's); the ball's as they are."""
+    if mesh_points is None or model.shape is None:
+        return mesh_points
+    c = np.asarray(model.center, dtype=float)[:, None]
+    return c + model.shape_inverse @ (np.asarray(mesh_points, dtype=float) - c)
 
 
 def _nearest_1d(nodes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -76,7 +76,10 @@ class Model:
         """The matrix ā of the basis's operator −½div(ā∇) (solver/basis.py): a itself where it is
         positive definite; where it is only semi-definite, a plus its largest eigenvalue on its null
         space (diag(0, 1) ↦ I), so the Dirichlet eigenbasis resolves every direction and stays
-        L²(B_R)-orthonormal."""
+        L²(B_R)-orthonormal.  On an ellipsoid (``[domain] shape`` = Σ): Σ, so the basis is that of the
+        ball in the coordinates z of x = c + Lz."""
+        if self.shape is not None:  # an ellipsoid: the basis resolves it as the ball resolves B_R
+            return self.shape @ self.shape.T
         lam, vectors = np.linalg.eigh(self.a)
         scale = max(1.0, float(np.abs(self.a).max()))
         null = vectors[:, lam <= 1e-12 * scale]
@@ -101,6 +104,32 @@ class Model:
     @cached_property
     def center(self) -> np.ndarray:
         return self.spec.center()
+
+    @cached_property
+    def shape(self) -> np.ndarray | None:
+        """L of the domain's shape Σ = LLᵀ (``[domain] shape``; lower triangular): the domain is the ball
+        B_R mapped by x = c + Lz; None: the ball itself."""
+        shape = self.spec.domain.shape
+        return None if shape is None else np.linalg.cholesky(np.asarray(shape, dtype=float))
+
+    @cached_property
+    def shape_inverse(self) -> np.ndarray | None:
+        return None if self.shape is None else np.linalg.inv(self.shape)
+
+    def unshaped(self, offsets: np.ndarray) -> np.ndarray:
+        """Offsets x − c (..., n) in the ball's coordinates z = L⁻¹(x − c) (themselves on a ball)."""
+        return offsets if self.shape is None else offsets @ self.shape_inverse.T
+
+    @cached_property
+    def half_widths(self) -> np.ndarray:
+        """Half the sides of the box around the domain (n,): R, or R·√Σ_ii on an ellipsoid."""
+        if self.shape is None:
+            return np.full(self.n, float(self.radius))
+        return float(self.radius) * np.linalg.norm(self.shape, axis=1)
+
+    def ball_distance(self, offsets: np.ndarray) -> np.ndarray:
+        """|L⁻¹(x − c)| of offsets x − c (P, n): below ``radius`` inside the domain."""
+        return np.linalg.norm(self.unshaped(offsets), axis=-1)
 
     def translated(self, center: Any) -> "Model":
         """The same model on the ball moved to ``center`` (the numpy functions shared)."""

@@ -327,7 +327,7 @@ class OfflineModel:
         column = np.full(self.mesh_points.shape[1] if linear else self.space.basis.N, -1)
         column[self.node_index] = np.arange(Q)
         # the interval mesh's element finder has no element for its right end point: the sphere is outside
-        distance = np.linalg.norm(X - self.model.center, axis=1)
+        distance = self.model.ball_distance(X - self.model.center)
         inside = np.flatnonzero(distance < self.model.radius * (1 - 1e-12))
         if not len(inside):
             return sps.csr_matrix((len(X), Q))

@@ -47,7 +47,8 @@ def check_policy(policy: Any, field: str = "on_degenerate") -> str:
 def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     """N(m, BROADEN²·P + s²I) around the last good estimate (m, P); s the node spacing of a mesh
     (the finest feature the engine resolves), else 1e-6 of the state's scale.  On a ball of radius R
-    each variance is at most (R/FIT)², unless P's own is larger."""
+    each variance is at most (R/FIT)², unless P's own is larger (on an ellipsoid, in its coordinates
+    z = L⁻¹(x − c))."""
     mean = np.asarray(estimate.mean, dtype=float)
     cov = np.asarray(estimate.cov, dtype=float)
     cov = 0.5 * (cov + cov.T)
@@ -55,14 +56,20 @@ def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     spacing = float(getattr(flt, "node_spacing", 0.0) or 0.0)
     resolved = math.isfinite(spacing) and spacing > 0
     floor = spacing ** 2 if resolved else 1e-12 * (1.0 + float(np.abs(mean).max()))
+    radius = getattr(getattr(flt, "model", None), "radius", None) if resolved else None
+    shape = getattr(flt.model, "shape", None) if radius else None
+    if shape is not None:  # an ellipsoid ([domain] shape, x = c + Lz): broadened and capped in z
+        inverse = np.linalg.inv(shape)
+        cov = inverse @ cov @ inverse.T
     lam, U = np.linalg.eigh(cov) if np.all(np.isfinite(cov)) else (np.zeros(n), np.eye(n))
     lam = np.clip(lam, 0.0, None)
     wide = BROADEN ** 2 * lam + floor
-    radius = getattr(getattr(flt, "model", None), "radius", None) if resolved else None
     if radius:  # on a ball: no wider than FIT standard deviations across the radius (else the
         # restarted density leaks through ∂B_R and degenerates again at once), nor narrower than before
         wide = np.minimum(wide, np.maximum((float(radius) / FIT) ** 2, lam + floor))
     cov = (U * wide) @ U.T
+    if shape is not None:
+        cov = shape @ cov @ shape.T
     return {"kind": "gaussian", "mean": mean.tolist(), "cov": (0.5 * (cov + cov.T)).tolist()}
 
 

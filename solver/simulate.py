@@ -78,13 +78,13 @@ def _sample_density_on_grid(model: Model, count: int, rng: np.random.Generator) 
     get probability zero).
     """
     n, cells = model.n, _GRID_CELLS[model.n]
-    width = 2.0 * model.radius / cells
-    axis = -model.radius + width * (np.arange(cells) + 0.5)
-    grids = np.meshgrid(*([axis] * n), indexing="ij")
+    half = model.half_widths  # the box around the domain (an ellipsoid's too)
+    width = 2.0 * half / cells
+    grids = np.meshgrid(*[-half[i] + width[i] * (np.arange(cells) + 0.5) for i in range(n)], indexing="ij")
     offsets = np.stack([g.ravel() for g in grids], axis=1)
     points = model.center + offsets
     log_p = model.log_prior(points)
-    log_p[np.linalg.norm(offsets, axis=1) > model.radius] = -np.inf
+    log_p[model.ball_distance(offsets) > model.radius] = -np.inf
     top = np.max(log_p)
     p = np.exp(log_p - top)
     cdf = np.cumsum(p)

@@ -154,7 +154,11 @@ class Domain(_Strict):
     """The ball B_R(c) the density lives on.  ``follow = true``: c moves with the posterior
     (solver/follow.py) — re-centred when the mean is more than ``follow_distance``·R from c, or when
     more than ``follow_mass`` of the mass lies in the ball's outer tenth; for an affine drift c also
-    rides the mean's ODE ċ = Ac + b between moves (solver/frame.py)."""
+    rides the mean's ODE ċ = Ac + b between moves (solver/frame.py).  ``shape`` = Σ (symmetric positive
+    definite): the domain is the ellipsoid (x − c)ᵀΣ⁻¹(x − c) < R² instead — R counts standard deviations
+    of Σ — meshed as the ball mapped by x = c + Lz (Σ = LLᵀ, Cholesky), with the basis of −½div(Σ∇): give
+    the shape of the posterior when it is long and thin (constant-velocity tracking,
+    docs/bench-cv-basis.md)."""
 
     radius: float = Field(gt=0, le=1e6)
     center: list[float] | None = None
@@ -162,6 +166,7 @@ class Domain(_Strict):
     follow_distance: float = Field(default=FOLLOW_DISTANCE, gt=0, le=0.75)
     follow_mass: float = Field(default=FOLLOW_MASS, gt=0, lt=1)
     region: list[list[float]] | None = None
+    shape: list[list[float]] | None = None
 
     @model_validator(mode="after")
     def _follow_options(self) -> "Domain":
@@ -185,6 +190,8 @@ class Domain(_Strict):
                 data.pop(key)
         if self.region is None:
             data.pop("region")
+        if self.shape is None:
+            data.pop("shape")
         return data
 
 
@@ -334,9 +341,22 @@ class ModelSpec(_Strict):
         if self.domain.region is not None and len(self.domain.region) != n:
             raise SpecError("domain.region", f"needs one [lo, hi] pair per state variable ({n}), "
                                              f"got {len(self.domain.region)}")
+        self._check_shape(n)
         _check_prior(self.initial, n)
         _check_prior_in_region(self.initial, self.domain.region)
         return self
+
+    def _check_shape(self, n: int) -> None:
+        if self.domain.shape is None:
+            return
+        try:
+            check_spd(self.domain.shape, n, "domain.shape")
+        except ValueError as exc:
+            raise SpecError("domain.shape", str(exc).removeprefix("domain.shape ") + " (the covariance whose "
+                            "ellipsoid, radius standard deviations wide, is the domain)") from None
+        if self.domain.region is not None:
+            raise SpecError("domain.shape", "an atlas (domain.region) runs on round balls only: leave shape "
+                                            "out or the region")
 
     def _check_scheme(self, n: int) -> None:
         if self.scheme() != "supg":
@@ -443,7 +463,10 @@ def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:
     direction = rng.normal(size=(256, n))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     radii = spec.domain.radius * rng.uniform(0, 1, size=(256, 1)) ** (1.0 / n)
-    X = np.vstack([spec.center() + direction * radii, spec.center()[None, :]])
+    offsets = direction * radii
+    if spec.domain.shape is not None:  # the ellipsoid: the ball mapped by its Cholesky factor
+        offsets = offsets @ np.linalg.cholesky(np.asarray(spec.domain.shape, float)).T
+    X = np.vstack([spec.center() + offsets, spec.center()[None, :]])
     for field_name, values in (("drift", f(X)), ("observation", h(X))):
         finite = np.isfinite(values)
         if not finite.all():

@@ -83,7 +83,7 @@ def support(flt: Any, state: Any, estimate: Any, variable: int) -> tuple[float, 
     """An interval holding the marginal of ``variable``: the engine's ball, else ±12 sd."""
     model = flt.model
     if getattr(flt, "method", None) == "yau-yau":
-        c, r = float(flt.ball_center(state)[variable]), float(model.radius)
+        c, r = float(flt.ball_center(state)[variable]), float(model.half_widths[variable])
         return c - r, c + r
     mean = float(estimate.mean[variable])
     sd = float(np.sqrt(max(float(estimate.cov[variable][variable]), 0.0)))
