@@ -158,9 +158,10 @@ def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tra
     """Over t = 0..50 the target travels 50 units (six radii).  f = (v, −0.2v) is affine, so the ball
     rides the frame of ċ = (c_v, −0.2c_v) and moves along p and v (solver/frame.py).  Measured: mean
     gap median 3.3e-3, max 2.0e-2, variance within 4.2% (with p alone moving, before the frame: 5.0e-3,
-    3.8e-2 where |v̂| = 3.5 put the tail at the ball's edge along v, 6.9%).  The issue's 1e-3 is missed
-    here; the gap halves as N doubles: basis 2000 gives a median of 1.7e-3, basis 4000 9.5e-4 (max
-    5.2e-3; docs/bench-cv-basis.md, too slow for a test)."""
+    3.8e-2 where |v̂| = 3.5 put the tail at the ball's edge along v, 6.9%).  On a round ball the gap
+    halves as N doubles: basis 2000 gives a median of 1.7e-3, basis 4000 9.5e-4 (max 5.2e-3;
+    docs/bench-cv-basis.md).  The issue's 1e-3 at every step is met on the posterior's ellipse
+    (``[domain] shape``, tests/test_shape.py)."""
     model, offline = tracking
     flt = build(model, offline)
     assert isinstance(flt, FollowingFilter) and flt.directions == (0, 1)
