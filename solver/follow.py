@@ -476,11 +476,9 @@ class FollowingFilter(ChunkedFilter):
             return dataclasses.replace(state, degenerate=True, reason=outside)
         along = list(self.directions)
         offset = mean[along] - center[along]
-        if self.shape is not None:  # (every direction: the ellipsoid's coordinates)
-            far = max(np.abs(self.model.unshaped(offset)).max(),
-                      np.abs(self.model.unshaped(offset + travel)).max()) > self.distance
-        else:
-            far = max(np.abs(offset).max(), np.abs(offset + travel).max()) > self.distance
+        # in the ball's coordinates (an ellipsoid follows along every direction, so along is all of them)
+        unshaped = self.model.unshaped
+        far = max(np.abs(unshaped(offset)).max(), np.abs(unshaped(offset + travel)).max()) > self.distance
         if not far:  # the basis and weights are the same on every ball: no engine at this centre needed
             sigma = np.clip(self.home.nodal_density(state), 0.0, None) * self.home.weights
             total = float(sigma.sum())

@@ -59,7 +59,7 @@ def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     radius = getattr(getattr(flt, "model", None), "radius", None) if resolved else None
     shape = getattr(flt.model, "shape", None) if radius else None
     if shape is not None:  # an ellipsoid ([domain] shape, x = c + Lz): broadened and capped in z
-        inverse = np.linalg.inv(shape)
+        inverse = flt.model.shape_inverse
         cov = inverse @ cov @ inverse.T
     lam, U = np.linalg.eigh(cov) if np.all(np.isfinite(cov)) else (np.zeros(n), np.eye(n))
     lam = np.clip(lam, 0.0, None)
