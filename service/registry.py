@@ -62,7 +62,8 @@ class LoadedModel:
         spec = self.model.spec
         return {"id": self.id, "name": spec.name, "state": list(spec.state), "n": spec.n, "m": spec.m,
                 "dt": spec.discretization.dt, "radius": spec.domain.radius, "basis": self.basis,
-                "follow": spec.domain.follow, "region": spec.domain.region, "method": self.method}
+                "follow": spec.domain.follow, "region": spec.domain.region, "shape": spec.domain.shape,
+                "method": self.method}
 
 
 def load_model(store: ModelStore, model_id: str) -> LoadedModel:
@@ -114,7 +115,7 @@ class Registry:
                 continue
             out.append({"id": summary.id, "name": summary.name, "state": summary.state, "n": summary.n,
                         "m": summary.m, "dt": summary.dt, "radius": summary.radius, "basis": summary.basis,
-                        "follow": summary.follow, "region": summary.region,
+                        "follow": summary.follow, "region": summary.region, "shape": summary.shape,
                         "method": summary.extra.get("method")})
         return out
 

@@ -262,6 +262,9 @@ class ModelSummary(BaseModel):
                                                   "posterior (a session's rows then carry its centre)")
     region: list[list[float]] | None = Field(None, description="[domain] region, one [lo, hi] per state "
                                                                "variable: where a following ball may go")
+    shape: list[list[float]] | str | None = Field(None, description="[domain] shape: the covariance Σ whose "
+                                                                    "ellipsoid (x − c)ᵀΣ⁻¹(x − c) < R² is "
+                                                                    "the domain, or \"posterior\"")
     method: str | None = Field(None, description="the filter a session runs by default (chosen at "
                                                  "precompute)")
     error: str | None = Field(None, description="set, and the rest left out, when the model file is "

@@ -110,7 +110,38 @@ class Model:
         """L of the domain's shape Σ = LLᵀ (``[domain] shape``; lower triangular): the domain is the ball
         B_R mapped by x = c + Lz; None: the ball itself."""
         shape = self.spec.domain.shape
+        if shape == "posterior":
+            shape = self.steady_posterior_covariance()
         return None if shape is None else np.linalg.cholesky(np.asarray(shape, dtype=float))
+
+    def steady_posterior_covariance(self) -> np.ndarray:
+        """Σ of ``shape = "posterior"``: the stabilising solution of the Kalman–Bucy Riccati equation
+        AΣ + ΣAᵀ + a − ΣHᵀR⁻¹HΣ = 0 (scipy), for f = Ax + b and h = Hx + h₀ (SymPy checks both)."""
+        import scipy.linalg as sla
+
+        from .errors import SpecError
+        from .reference.kalman import affine_coefficients
+
+        why = ("domain.shape = \"posterior\" is the steady-state Kalman-Bucy covariance of a linear model; "
+               "give the covariance you expect the posterior to have instead, e.g. shape = [[...], ...]")
+        drift = self.affine_drift
+        try:
+            H, _ = affine_coefficients(self.observation, self.symbols, "observation")
+        except SpecError:
+            H = None
+        if drift is None or H is None:
+            which = "drift" if drift is None else "observation"
+            raise SpecError("domain.shape", f"the {which} is not affine: {why}")
+        try:
+            sigma = sla.solve_continuous_are(drift[0].T, H.T, np.asarray(self.a, float),
+                                             np.asarray(self.R, float))
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise SpecError("domain.shape", f"the Riccati equation has no stabilising solution ({exc}): "
+                                            f"{why}") from None
+        sigma = 0.5 * (sigma + sigma.T)
+        if not np.all(np.isfinite(sigma)) or np.linalg.eigvalsh(sigma).min() <= 0:
+            raise SpecError("domain.shape", f"the steady-state covariance is not positive definite: {why}")
+        return sigma
 
     @cached_property
     def shape_inverse(self) -> np.ndarray | None:

@@ -158,7 +158,8 @@ class Domain(_Strict):
     definite): the domain is the ellipsoid (x − c)ᵀΣ⁻¹(x − c) < R² instead — R counts standard deviations
     of Σ — meshed as the ball mapped by x = c + Lz (Σ = LLᵀ, Cholesky), with the basis of −½div(Σ∇): give
     the shape of the posterior when it is long and thin (constant-velocity tracking,
-    docs/bench-cv-basis.md)."""
+    docs/bench-cv-basis.md).  ``shape = "posterior"``: Σ is the steady-state Kalman–Bucy covariance of a
+    linear model (solver/model.py ``Model.shape``)."""
 
     radius: float = Field(gt=0, le=1e6)
     center: list[float] | None = None
@@ -166,7 +167,20 @@ class Domain(_Strict):
     follow_distance: float = Field(default=FOLLOW_DISTANCE, gt=0, le=0.75)
     follow_mass: float = Field(default=FOLLOW_MASS, gt=0, lt=1)
     region: list[list[float]] | None = None
-    shape: list[list[float]] | None = None
+    shape: list[list[float]] | Literal["posterior"] | None = None
+
+    @field_validator("shape", mode="before")
+    @classmethod
+    def _shape_form(cls, shape: Any) -> Any:
+        """One clear message for both forms (pydantic's would name each member of the union)."""
+        if shape is None or shape == "posterior":
+            return shape
+        rows_ok = isinstance(shape, list) and shape and all(isinstance(r, list) for r in shape)
+        if not rows_ok or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                  for row in shape for v in row):
+            raise SpecError("domain.shape", f"must be a covariance matrix [[...], ...] (one row per state "
+                                            f"variable) or \"posterior\", got {shape!r}")
+        return shape
 
     @model_validator(mode="after")
     def _follow_options(self) -> "Domain":
@@ -349,14 +363,17 @@ class ModelSpec(_Strict):
     def _check_shape(self, n: int) -> None:
         if self.domain.shape is None:
             return
+        if self.domain.region is not None:
+            raise SpecError("domain.shape", "an atlas (domain.region) runs on round balls only: leave shape "
+                                            "out or the region")
+        if self.domain.shape == "posterior":  # solved from the model (Model.shape): needs it linear
+            return
         try:
             check_spd(self.domain.shape, n, "domain.shape")
         except ValueError as exc:
             raise SpecError("domain.shape", str(exc).removeprefix("domain.shape ") + " (the covariance whose "
-                            "ellipsoid, radius standard deviations wide, is the domain)") from None
-        if self.domain.region is not None:
-            raise SpecError("domain.shape", "an atlas (domain.region) runs on round balls only: leave shape "
-                                            "out or the region")
+                            "ellipsoid, radius standard deviations wide, is the domain), or "
+                            "\"posterior\"") from None
 
     def _check_scheme(self, n: int) -> None:
         if self.scheme() != "supg":
@@ -464,7 +481,7 @@ def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     radii = spec.domain.radius * rng.uniform(0, 1, size=(256, 1)) ** (1.0 / n)
     offsets = direction * radii
-    if spec.domain.shape is not None:  # the ellipsoid: the ball mapped by its Cholesky factor
+    if isinstance(spec.domain.shape, list):  # the ellipsoid: the ball mapped by its Cholesky factor
         offsets = offsets @ np.linalg.cholesky(np.asarray(spec.domain.shape, float)).T
     X = np.vstack([spec.center() + offsets, spec.center()[None, :]])
     for field_name, values in (("drift", f(X)), ("observation", h(X))):

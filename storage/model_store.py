@@ -108,6 +108,7 @@ class ModelSummary:
     basis: int | None = None
     follow: bool | None = None  # [domain] follow: the ball re-centres on the posterior
     region: list[list[float]] | None = None  # [domain] region: where a following ball may go (an atlas)
+    shape: list[list[float]] | str | None = None  # [domain] shape: the ellipsoid's covariance, or "posterior"
     created: str | None = None
     file_size: int = 0
     error: str | None = None
@@ -117,7 +118,7 @@ class ModelSummary:
         return {"id": self.id, "name": self.name, "state": self.state, "n": self.n, "m": self.m,
                 "dt": self.dt,
                 "radius": self.radius, "basis": self.basis, "follow": self.follow, "region": self.region,
-                "created": self.created,
+                "shape": self.shape, "created": self.created,
                 "file_size": self.file_size, "error": self.error, **self.extra}
 
 
@@ -495,7 +496,7 @@ def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shap
         n=len(state) if isinstance(state, list) else None,
         m=len(obs) if isinstance(obs, list) else None, dt=disc.get("dt"), radius=domain.get("radius"),
         basis=basis, follow=bool(domain.get("follow", False)), region=domain.get("region"),
-        created=created, file_size=size,
+        shape=domain.get("shape"), created=created, file_size=size,
         extra={key: (attrs or {})[key] for key in ("method", "method_reason") if key in (attrs or {})})
 
 

@@ -66,7 +66,7 @@ def test_models_describe_the_stored_specs(api):
     spec = load_spec(EXAMPLES / "cubic_sensor.toml")
     assert (cubic["name"], cubic["state"], cubic["n"], cubic["m"]) == ("cubic-sensor", ["x"], 1, 1)
     assert (cubic["dt"], cubic["radius"], cubic["basis"]) == (0.01, 7.0, 128)
-    assert (cubic["follow"], cubic["region"]) == (False, None)  # a fixed ball
+    assert (cubic["follow"], cubic["region"], cubic["shape"]) == (False, None, None)  # a fixed ball
     assert all(m["follow"] is False for m in listed.values())
     assert cubic["spec"]["observation"] == spec.observation
     _problem(api.get("/v1/models/0123456789abcdef0123"), 404, "model")

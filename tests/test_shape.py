@@ -91,6 +91,37 @@ def test_a_spec_without_shape_keeps_its_id():
     assert np.allclose(stored, SIGMA, rtol=0, atol=0)
 
 
+def test_shape_posterior_is_the_steady_state_kalman_bucy_covariance():
+    """``shape = "posterior"`` solves the Riccati equation of the model itself (checked by its residual,
+    with the model's R = 0.25 so that R⁻¹ enters)."""
+    H = np.array([[1.0, 0.0]])
+    doc = modified(CV, observation_noise=[[0.25]], domain={"shape": "posterior"})
+    model = compile_model(spec_from_dict(doc))
+    sigma = model.shape @ model.shape.T
+    residual = A @ sigma + sigma @ A.T + NOISE - sigma @ H.T @ H @ sigma / 0.25
+    assert np.abs(residual).max() < 1e-10 and np.all(np.linalg.eigvalsh(sigma) > 0)
+    assert json.loads(spec_from_dict(modified(CV, domain={"shape": "posterior"})).canonical_json())[
+        "domain"]["shape"] == "posterior"
+
+
+@pytest.mark.parametrize("changes, which", [({"observation": ["atan(p/5)"]}, "observation is not affine"),
+                                            ({"drift": ["v", "-0.2*v**3"]}, "drift is not affine")])
+def test_shape_posterior_of_a_nonlinear_model_is_refused_naming_the_fix(changes, which):
+    doc = modified(CV, domain={"shape": "posterior", "follow": False},
+                   discretization={"basis": 40, "element": "lagrange", "scheme": "supg"}, **changes)
+    with pytest.raises(SpecError) as caught:
+        precompute(compile_model(spec_from_dict(doc)))
+    assert caught.value.field == "domain.shape" and which in str(caught.value)
+    assert "shape = [[" in str(caught.value)
+
+
+@pytest.mark.parametrize("shape", ["post", [[1.0, "a"], [0.0, 1.0]], [1.0, 2.0]])
+def test_a_shape_of_the_wrong_form_gets_one_message(shape):
+    with pytest.raises(SpecError) as caught:
+        spec_from_dict(modified(CV, domain={"shape": shape}))
+    assert caught.value.field == "domain.shape" and 'or "posterior"' in str(caught.value)
+
+
 # -- the mesh and the basis --------------------------------------------------------------------------
 @pytest.mark.parametrize("element, follow", [("lagrange", False), ("bubble", True)])
 def test_the_mesh_fills_the_ellipse_and_the_basis_is_orthonormal_on_it(element, follow):
@@ -156,6 +187,23 @@ def test_constant_velocity_tracking_on_the_posterior_ellipse_matches_kalman_to_1
     assert not result.degenerate.any() and result.recentred.sum() > 20
     assert gap.max() < 1e-3 and var.max() < 0.01
     assert abs(result.loglik[-1] - exact.loglik[-1]) < 0.01
+
+
+def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_path, capsys):
+    """``yauyau precompute`` of the example spec (shape = "posterior"), then ``yauyau models --json``."""
+    from pathlib import Path
+
+    from yauyau.service.cli import main
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "constant_velocity.toml"
+    doc = modified(yauyau.load_spec(example).model_dump(mode="json"), discretization={"basis": 120})
+    spec_file = tmp_path / "cv.json"
+    spec_file.write_text(json.dumps(doc))
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "store"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["models", "--store", str(tmp_path / "store"), "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert (listed[0]["follow"], listed[0]["shape"]) == (True, "posterior")
 
 
 def test_a_shaped_model_is_stored_and_reopened(tmp_path):

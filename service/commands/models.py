@@ -2,7 +2,7 @@
 
 A table (id, name, n, m, dt, radius, follow, basis, size, created; follow is "yes" for a ball that
 re-centres on the posterior, "region" for one confined to ``[domain] region``) or, with --json, a JSON
-list of the same fields plus ``region`` and ``error`` (set for a file that cannot be read).
+list of the same fields plus ``region``, ``shape`` and ``error`` (set for a file that cannot be read).
 """
 
 from __future__ import annotations
