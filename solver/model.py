@@ -26,7 +26,7 @@ from .expressions import (
     vectorize_many,
 )
 from .gaussian import log_normal
-from .spec import DensityPrior, GaussianPrior, MixturePrior, ModelSpec
+from .spec import POSTERIOR_NEEDS_LINEAR, DensityPrior, GaussianPrior, MixturePrior, ModelSpec
 
 if TYPE_CHECKING:
     import sympy as sp
@@ -122,8 +122,7 @@ class Model:
         from .errors import SpecError
         from .reference.kalman import affine_coefficients
 
-        why = ("domain.shape = \"posterior\" is the steady-state Kalman-Bucy covariance of a linear model; "
-               "give the covariance you expect the posterior to have instead, e.g. shape = [[...], ...]")
+        why = POSTERIOR_NEEDS_LINEAR
         drift = self.affine_drift
         try:
             H, _ = affine_coefficients(self.observation, self.symbols, "observation")

@@ -469,7 +469,37 @@ def _numeric_functions(spec: ModelSpec) -> tuple[Any, Any, Any]:
     if isinstance(spec.initial, DensityPrior):
         prior = numeric_expression(spec.initial.expression, states, params, "initial.expression")
     _check_finite_on_ball(spec, f, h, prior)
+    if spec.domain.shape == "posterior":
+        _check_straight(spec, f, h)
     return f, h, prior
+
+
+POSTERIOR_NEEDS_LINEAR = ("domain.shape = \"posterior\" is the steady-state Kalman-Bucy covariance of a "
+                          "linear model; give the covariance you expect the posterior to have instead, e.g. "
+                          "shape = [[...], ...]")
+
+
+def _check_straight(spec: ModelSpec, f, h) -> None:
+    """``shape = "posterior"`` needs f and h affine.  SymPy decides it when the model is built
+    (Model.steady_posterior_covariance); this SymPy-free test refuses at once what is plainly curved,
+    so a service answers 422 instead of a failed job: at 64 points of the ball, the second difference
+    g(x + d) + g(x − d) − 2g(x) of an affine g is zero up to rounding, so one far above it (1e-8 of
+    the values) shows a curve.  A curve it misses is still refused by SymPy."""
+    rng = np.random.default_rng(1)
+    n, radius = spec.n, spec.domain.radius
+    X = spec.center() + radius * rng.uniform(-0.5, 0.5, size=(64, n))
+    step = 0.25 * radius * rng.normal(size=(64, n))
+    for which, g in (("drift", f), ("observation", h)):
+        with np.errstate(all="ignore"):
+            at, ahead, behind = (np.asarray(g(points), dtype=float) for points in (X, X + step, X - step))
+            curve = np.abs(ahead + behind - 2.0 * at)
+            scale = np.abs(ahead) + np.abs(behind) + 2.0 * np.abs(at) + 1.0
+        bent = np.isfinite(curve) & np.isfinite(scale) & (curve > 1e-8 * scale)
+        if bent.any():
+            row, column = np.argwhere(bent)[0]
+            where = ", ".join(f"{name} = {v:.3g}" for name, v in zip(spec.state, X[row], strict=True))
+            raise SpecError("domain.shape", f"the {which} is not affine ({which}[{column}] curves near "
+                                            f"{where}): {POSTERIOR_NEEDS_LINEAR}")
 
 
 def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:

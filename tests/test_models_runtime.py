@@ -80,6 +80,9 @@ def test_a_spec_posted_is_precomputed_in_the_background_and_served(api):
      "spec.domain.region"),
     ({"drift": ["__import__('os')"]}, 422, "spec.drift[0]"),
     ({"domain": {"radius": -1.0}}, 422, "spec.domain.radius"),
+    # the steady-state Kalman-Bucy covariance of a model that is not linear: refused now, not a failed job
+    ({"observation": ["atan(x/5)"], "domain": {"radius": 6.0, "shape": "posterior"}}, 422,
+     "spec.domain.shape"),
 ])
 def test_oversize_or_invalid_specs_are_refused_before_any_work(api, change, status, field, tmp_path):
     r = api.post("/v1/models", json={"spec": {**SPEC, **change}})
