@@ -202,7 +202,7 @@ def test_constant_velocity_tracking_on_the_posterior_ellipse_matches_kalman_to_1
 
 
 def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_path, capsys):
-    """``yauyau precompute`` of the example spec (shape = "posterior"), then ``yauyau models --json``."""
+    """``yauyau precompute`` of the example spec (shape = "posterior"), then ``yauyau models`` (--json)."""
     from pathlib import Path
 
     from yauyau.service.cli import main
@@ -216,6 +216,10 @@ def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_pat
     assert main(["models", "--store", str(tmp_path / "store"), "--json"]) == 0
     listed = json.loads(capsys.readouterr().out)
     assert (listed[0]["follow"], listed[0]["shape"]) == (True, "posterior")
+    assert main(["models", "--store", str(tmp_path / "store")]) == 0
+    header, row = capsys.readouterr().out.splitlines()
+    at = header.index("domain")  # (the name has a space: columns by position)
+    assert header[at:].split()[:2] == ["domain", "follow"] and row[at:].split()[:2] == ["posterior", "yes"]
 
 
 def test_a_shaped_model_is_stored_and_reopened(tmp_path):

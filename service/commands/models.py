@@ -1,8 +1,10 @@
 """`yauyau models --store DIR [--json]`: the stored models, from the HDF5 attributes only.
 
-A table (id, name, n, m, dt, radius, follow, basis, size, created; follow is "yes" for a ball that
-re-centres on the posterior, "region" for one confined to ``[domain] region``) or, with --json, a JSON
-list of the same fields plus ``region``, ``shape`` and ``error`` (set for a file that cannot be read).
+A table (id, name, n, m, dt, radius, domain, follow, basis, size, created; domain is "ball", or for
+``[domain] shape`` "ellipsoid" (a covariance given) or "posterior" (the steady-state Kalman–Bucy one);
+follow is "yes" for a domain that re-centres on the posterior, "region" for one confined to
+``[domain] region``) or, with --json, a JSON list of the same fields (``shape`` for domain) plus
+``region`` and ``error`` (set for a file that cannot be read).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import json
 
 from .precompute import store_argument
 
-_COLUMNS = ("id", "name", "n", "m", "dt", "radius", "follow", "basis", "size", "created")
+_COLUMNS = ("id", "name", "n", "m", "dt", "radius", "domain", "follow", "basis", "size", "created")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,7 +27,8 @@ def _row(summary) -> list[str]:
         return [summary.id, f"unreadable: {summary.error}"] + [""] * (len(_COLUMNS) - 2)
     size = f"{summary.file_size / 1e6:.2f} MB"
     follow = "region" if summary.region else "yes" if summary.follow else "no"
-    values = (summary.id, summary.name, summary.n, summary.m, summary.dt, summary.radius, follow,
+    domain = "ball" if summary.shape is None else "posterior" if summary.shape == "posterior" else "ellipsoid"
+    values = (summary.id, summary.name, summary.n, summary.m, summary.dt, summary.radius, domain, follow,
               summary.basis, size, summary.created)
     return ["" if v is None else str(v) for v in values]
 
