@@ -263,3 +263,36 @@ def test_precompute_stores_and_reopens_a_semi_definite_model(tmp_path):
     again = yauyau.open_filter(tmp_path, model_id)
     irregular = again.run(sim.increments[:20], times=times).estimates()
     assert np.all(np.isfinite(irregular[-1].mean)) and not irregular[-1].degenerate
+
+
+# -- the method chosen when the spec names none ----------------------------------------------------
+def test_the_analysis_of_a_semi_definite_diffusion_says_eta_is_not_defined():
+    """η = fᵀa⁻¹f + div f + hᵀR⁻¹h needs a⁻¹: with a = diag(0, 1) it is not defined, so (C3) fails and the
+    Yau–Hu filter is not offered.  The model is linear with a Gaussian prior, and the Kalman–Bucy filter
+    needs no a⁻¹ (its Riccati equation takes a as it is): it is recommended.  (Before, SymPy's a.inv()
+    raised, and a spec without `method` crashed precompute with a traceback.)"""
+    from yauyau.solver.analysis import analyze
+
+    doc = {k: v for k, v in CV.items() if k != "method"}
+    report = analyze(compile_model(spec_from_dict(doc)))
+    eta_quadratic = report.conditions["eta_quadratic"]
+    assert eta_quadratic.holds is False and "singular" in eta_quadratic.detail
+    assert report.conditions["linear"].holds is True and "singular" in report.eta
+    assert report.method == "kalman-bucy"
+    nonlinear = analyze(compile_model(spec_from_dict(modified(doc, observation=["atan(p/5)"]))))
+    assert nonlinear.conditions["eta_quadratic"].holds is False and nonlinear.method == "yau-yau"
+
+
+def test_a_semi_definite_spec_without_method_precomputes_from_the_cli(tmp_path, capsys):
+    """`yauyau precompute` on the constant-velocity spec with no `method`: the analysis chooses, exit 0."""
+    from yauyau.service.cli import main
+
+    doc = {k: v for k, v in CV.items() if k != "method"}
+    doc = modified(doc, observation=["atan(p/5)"], discretization={"basis": 60})
+    spec_file = tmp_path / "cv.json"
+    spec_file.write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert main(["precompute", str(spec_file), "--store", str(tmp_path / "store"), "--quiet"]) == 0
+    flt = yauyau.open_filter(tmp_path / "store", capsys.readouterr().out.strip())
+    result = flt.run(simulate(compile_model(spec_from_dict(doc)), 30, np.random.default_rng(0)).increments)
+    assert np.all(np.isfinite(result.mean)) and not result.degenerate.any()

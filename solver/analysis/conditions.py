@@ -44,6 +44,17 @@ def _entry(expr: sp.Expr, symbols) -> sp.Expr:
     return sp.Integer(0) if e != 0 and is_zero(e, symbols) else e
 
 
+SINGULAR_A = ("not defined: the diffusion a is singular (a coordinate without noise), and eta = "
+              "f^T a^-1 f + ... needs a^-1; the Yau filtering-system theory (C3, Theorem 3.1) assumes a "
+              "nondegenerate diffusion")
+
+
+def is_singular(a) -> bool:
+    """The diffusion a (positive semi-definite, as the spec checks) has a zero eigenvalue: noise-free
+    coordinates (constant-velocity tracking: a = diag(0, q))."""
+    return exact_matrix(a).det() == 0
+
+
 def eta(model: Model) -> sp.Expr:
     """η = fᵀa⁻¹f + div f + hᵀR⁻¹h   (seed 004 §II with a = R = I: |f|² + div f + |h|²)."""
     f = sp.Matrix(model.drift)
@@ -148,6 +159,7 @@ class Facts:
     omega: Any = None
     omega_a: Any = None
     eta: Any = None
+    eta_why: str = ""  # why η is not defined (a singular diffusion), shown instead of it
     c1: bool | None = None
     c2: bool | None = None
     c3: bool | None = None
@@ -182,19 +194,24 @@ def decide_conditions(model: Model) -> Facts:
     x = model.symbols
     a_is_identity = is_identity(model.a)
     facts = Facts(k=observed_coordinate(model))
+    # the cheap conditions first (second derivatives of f and h): decided even when the Wong matrix
+    # and η of a large model use up the time
+    facts.c2 = all_of(facts.decide(lambda hi=hi: polynomial_degree_at_most(hi, x, 1))
+                    for hi in model.observation)
+    affine_f = all_of(facts.decide(lambda fi=fi: polynomial_degree_at_most(fi, x, 1)) for fi in model.drift)
+    facts.linear = all_of([facts.c2, affine_f])
     facts.omega = facts.decide(lambda: wong_matrix(model))
     facts.omega_a = facts.omega if a_is_identity else facts.decide(lambda: whitened_wong_matrix(model))
-    facts.eta = facts.decide(lambda: eta(model))
+    if is_singular(model.a):  # η needs a⁻¹; (C3) and Theorem 3.1 a nondegenerate diffusion
+        facts.eta_why, facts.c3 = SINGULAR_A, False
+    else:
+        facts.eta = facts.decide(lambda: eta(model))
     if facts.omega_a is not None:
         facts.c1 = all_of(facts.decide(lambda w=w: is_constant(w, x)) for w in facts.omega_a)
     if facts.omega is not None:
         facts.wong_constant = all_of(facts.decide(lambda w=w: is_constant(w, x)) for w in facts.omega)
-    facts.c2 = all_of(facts.decide(lambda hi=hi: polynomial_degree_at_most(hi, x, 1))
-                    for hi in model.observation)
     if facts.eta is not None:
         facts.c3 = facts.decide(lambda: polynomial_degree_at_most(facts.eta, x, 2))
-    affine_f = all_of(facts.decide(lambda fi=fi: polynomial_degree_at_most(fi, x, 1)) for fi in model.drift)
-    facts.linear = all_of([facts.c2, affine_f])
     if facts.k is not None and a_is_identity:
         facts.structure = facts.decide(lambda: seed004_structure(model, facts.k) or False)
         facts.structure_holds = None if facts.structure is None else facts.structure is not False

@@ -198,7 +198,7 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
         "h_affine": Condition(facts.c2, "" if facts.c2 is not None else undecided,
                               f"(C2) the sensor h is affine in x ({cite('000', '(2.7)')}, needed by "
                               "Theorem 3.1)"),
-        "eta_quadratic": Condition(facts.c3, "" if facts.c3 is not None else undecided,
+        "eta_quadratic": Condition(facts.c3, facts.eta_why or ("" if facts.c3 is not None else undecided),
                                    "(C3) eta = f^T a^-1 f + div f + h^T R^-1 h is a polynomial of degree "
                                    "<= 2 "
                                    f"({cite('000', '(2.8)')}, needed by Theorem 3.1)"),
@@ -231,7 +231,8 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
         model=model.spec.name, state=list(model.spec.state),
         wong_matrix=[[show(facts.omega[i, j], model) if facts.omega is not None else shown
                       for j in range(n)] for i in range(n)],
-        wong_constant=facts.wong_constant, eta=show(facts.eta, model) if facts.eta is not None else shown,
+        wong_constant=facts.wong_constant,
+        eta=show(facts.eta, model) if facts.eta is not None else facts.eta_why or shown,
         notes=notes, conditions=conditions, seed004=facts.seed004, algebra=algebra, algebra_basis=basis,
         method=method, reason=reason, summary=plain_summary(model, method, facts, algebra, a_is_identity))
 
