@@ -133,8 +133,7 @@ class FollowingFilter(ChunkedFilter):
         self.mass_limit = float(domain.follow_mass)
         self.home_center = np.asarray(engine.model.center, dtype=float)
         # on an ellipsoid ([domain] shape, x = c + Lz) the lattice and every distance are the ball's, in z
-        self.shape, self.shape_inverse = engine.model.shape, engine.model.shape_inverse
-        if self.shape is not None and len(self.directions) < engine.model.n:
+        if engine.model.shape is not None and len(self.directions) < engine.model.n:
             raise SpecError("domain.shape", "a following ellipsoid moves along every coordinate, but the "
                                             "drift depends on some (neither shift-invariant nor affine): "
                                             "leave shape out")
@@ -206,11 +205,11 @@ class FollowingFilter(ChunkedFilter):
         axes = () if self.atlas is None else self.atlas.lattice.axes
         # whole steps from the home centre; in a moving frame (any centre) from the current one
         base = self.home_center if self.frame is None else new.copy()
-        if self.shape is not None:  # an ellipsoid: whole steps of its lattice, L·s·(integers)
-            offset = self.shape_inverse @ (np.asarray(target, dtype=float) - base)
+        if self.model.shape is not None:  # an ellipsoid: whole steps of its lattice, L·s·(integers)
+            offset = self.model.unshaped(np.asarray(target, dtype=float) - base)
             if self._lattice:
                 offset = np.round(offset / self._lattice) * self._lattice
-            return base + self.shape @ offset
+            return base + self.model.shaped(offset)
         for i in self.directions:
             offset = float(target[i]) - base[i]
             if self._lattice and i not in axes:
@@ -551,14 +550,10 @@ class FollowingFilter(ChunkedFilter):
         grid = grid[(np.linalg.norm(grid, axis=1) <= reach) & np.any(grid != 0, axis=1)]
         offsets = np.zeros((len(grid), self.model.n))
         offsets[:, list(self.directions)] = grid * self._lattice
-        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius, self._shaped(offsets),
-                                    self.home.node_tree)
+        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius,
+                                    self.model.shaped(offsets), self.home.node_tree)
         return {tuple(int(k) for k in np.round(o / self._lattice)): c
                 for o, c in zip(offsets, carries, strict=True)}
-
-    def _shaped(self, offsets: np.ndarray) -> np.ndarray:
-        """Offsets in the ball's coordinates z as offsets x − c (the ellipsoid's L z; the ball's: z)."""
-        return offsets if self.shape is None else offsets @ self.shape.T
 
 
 @dataclasses.dataclass(frozen=True)
@@ -655,7 +650,7 @@ def _unshaped_points(model: Any, mesh_points: Any) -> Any:
     if mesh_points is None or model.shape is None:
         return mesh_points
     c = np.asarray(model.center, dtype=float)[:, None]
-    return c + model.shape_inverse @ (np.asarray(mesh_points, dtype=float) - c)
+    return c + model.unshaped((np.asarray(mesh_points, dtype=float) - c).T).T
 
 
 def _nearest_1d(nodes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -150,6 +150,10 @@ class Model:
         """Offsets x − c (..., n) in the ball's coordinates z = L⁻¹(x − c) (themselves on a ball)."""
         return offsets if self.shape is None else offsets @ self.shape_inverse.T
 
+    def shaped(self, offsets: np.ndarray) -> np.ndarray:
+        """Offsets z (..., n) in the ball's coordinates as offsets x − c = Lz (:meth:`unshaped` undone)."""
+        return offsets if self.shape is None else offsets @ self.shape.T
+
     @cached_property
     def half_widths(self) -> np.ndarray:
         """Half the sides of the box around the domain (n,): R, or R·√Σ_ii on an ellipsoid."""

@@ -147,8 +147,8 @@ class Recentring:
         center = self.origin + self.shifts[k]  # row k's ball
         at = center.tolist()
         mean = [at[i] + carried.item(N1 + j) / mass for j, i in enumerate(self.along)]
-        if follower.shape is not None:  # the loop's rows read the mean in the ball's coordinates z (all)
-            mean = (center + follower.shape @ (np.array(mean) - center)).tolist()
+        if follower.model.shape is not None:  # the loop's rows read the mean in the ball's coordinates z
+            mean = (center + follower.model.shaped(np.array(mean) - center)).tolist()
         if follower.region is not None:
             point = center.copy()
             point[self.along] = mean
