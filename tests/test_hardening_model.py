@@ -61,7 +61,11 @@ def test_analysis_of_the_attack_spec_stays_within_its_limit(exponent):
     report = analyze(compile_model(spec_from_dict(dos_spec(exponent))), time_limit=5.0)
     assert report.elapsed < 5.0 + 1.0  # was 99.5 s against a 10 s limit
     assert report.method == "yau-yau"
-    assert "expression size" in " ".join(report.notes)
+    notes = " ".join(report.notes)
+    assert "not decided within" in notes
+    if exponent == 32:  # h's second derivative (x+y+z+1)**30 would have 5456 terms: refused by size at once
+        assert "expression size" in notes
+    # (at 24 it has 2300, under the cap: expanded, ~1 s, so on a slow machine the time bound may come first)
 
 
 # -- 2. abs, sign, min, max: supported end to end --------------------------------------------
