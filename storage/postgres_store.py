@@ -24,7 +24,7 @@ from psycopg.rows import dict_row
 from psycopg_pool import ConnectionPool, PoolTimeout
 
 from .errors import StoreError, Unavailable
-from .session_base import SessionStoreBase, schema
+from .session_base import ADDED_COLUMNS, SessionStoreBase, schema
 
 RETRY_S = 5
 _SCHEMA = schema("BIGINT", "DOUBLE PRECISION")
@@ -63,10 +63,10 @@ class PostgresSessionStore(SessionStoreBase):
     """Sessions in a PostgreSQL database, shared by every process that connects to it."""
 
     _db_errors = (psycopg.Error,)
-    _INSERT_CHUNK = ("INSERT INTO chunks (session_id, seq, response, digest, stored, size) "
-                     "VALUES (?,?,?,?,?,?) ON CONFLICT (session_id, seq) DO UPDATE SET "
+    _INSERT_CHUNK = ("INSERT INTO chunks (session_id, seq, response, digest, stored, size, checksum) "
+                     "VALUES (?,?,?,?,?,?,?) ON CONFLICT (session_id, seq) DO UPDATE SET "
                      "response = EXCLUDED.response, digest = EXCLUDED.digest, stored = EXCLUDED.stored, "
-                     "size = EXCLUDED.size")
+                     "size = EXCLUDED.size, checksum = EXCLUDED.checksum")
 
     def __init__(self, dsn: str, retention: int = 16, retention_bytes: int = 256 * 1024,
                  retention_seconds: float = 86_400.0, idle_expiry: float | None = None, pool_size: int = 8,
@@ -89,6 +89,8 @@ class PostgresSessionStore(SessionStoreBase):
                 db.execute(f"SELECT pg_advisory_xact_lock({_SCHEMA_LOCK})")
                 for statement in filter(str.strip, _SCHEMA.split(";")):
                     db.execute(statement)
+                for table, column, kind in ADDED_COLUMNS:  # a database made by an older release
+                    db.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {column} {kind}")
         except StoreError:
             self.pool.close()
             raise

@@ -33,6 +33,8 @@ of storage/session_store.py's schema.  Storage knows files and rows, not math.
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import logging
 import math
 import secrets
 import time
@@ -41,13 +43,18 @@ from typing import Any, Callable
 
 import orjson
 
-from .errors import Conflict, NotFound, StoreError
+from .errors import Conflict, NotFound, StoreError, Unavailable
 
 Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]]
 # compute_many([(index, state)]) -> per pair (new state, response) or the exception that is its answer
 ComputeMany = Callable[[list[tuple[int, dict[str, Any]]]], list[Any]]
 SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next_seq", "step", "t", "loglik",
-                  "created", "updated", "version", "options")
+                  "created", "updated", "version", "options", "checksum")
+# columns added after a store's first release: (table, column, SQL type), added when a store opens a
+# database written before them (a row written before has NULL there: it cannot be verified)
+ADDED_COLUMNS = (("chunks", "digest", "TEXT"), ("chunks", "stored", "REAL"), ("chunks", "size", "INTEGER"),
+                 ("chunks", "checksum", "TEXT"), ("sessions", "options", "TEXT NOT NULL DEFAULT '{}'"),
+                 ("sessions", "checksum", "TEXT"))
 MAX_ATTEMPTS = 100
 
 
@@ -69,7 +76,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     created TEXT NOT NULL,
     updated TEXT NOT NULL,
     version {integer} NOT NULL,
-    options TEXT NOT NULL DEFAULT '{{}}'
+    options TEXT NOT NULL DEFAULT '{{}}',
+    checksum TEXT
 );
 CREATE TABLE IF NOT EXISTS chunks (
     session_id TEXT NOT NULL,
@@ -77,6 +85,7 @@ CREATE TABLE IF NOT EXISTS chunks (
     size INTEGER,
     digest TEXT,
     stored {real},
+    checksum TEXT,
     response TEXT NOT NULL,
     PRIMARY KEY (session_id, seq)
 ){chunks_suffix};
@@ -153,6 +162,31 @@ def _progress(new_state: dict[str, Any], response: dict[str, Any], default: tupl
     return tuple(pick(k, c, d) for k, c, d in zip(keys, casts, default, strict=True))
 
 
+def checksum(*texts: str) -> str:
+    """The checksum a row is stored with (BLAKE2b, 128 bits, of its texts in order): a row changed
+    outside the store (an edit, a bad restore, a flipped byte) no longer matches it."""
+    h = hashlib.blake2b(digest_size=16)
+    for text in texts:
+        h.update(text.encode())
+        h.update(b"\x00")
+    return h.hexdigest()
+
+
+def session_checksum(session_id: str, model_id: str, method: str, next_seq: int, state_text: str,
+                     options_text: str) -> str:
+    """A session row's checksum: its state bound to the session, its model, method and options and to
+    the seq it is at (an older state written back, or another session's, fails it too)."""
+    return checksum(session_id, model_id, method, str(int(next_seq)), state_text, options_text)
+
+
+def _damaged(what: str) -> Unavailable:
+    """A row that fails its checksum or is not JSON: 503 (no retry: an operator must restore it) and
+    the store's critical log; the other sessions go on."""
+    logging.getLogger("yauyau.storage").critical("SESSION STORE DAMAGED: %s", what)
+    return Unavailable("sessions", f"{what}; it is not used (restore the database from a backup, or delete "
+                                   "the session and start a new one)")
+
+
 class SessionStoreBase:
     """The exactly-once semantics over any SQL store (module docstring)."""
 
@@ -195,10 +229,11 @@ class SessionStoreBase:
         now = _utc_now()
         step, t, loglik = _progress(state, initial_response or {}, (0, 0.0, None))
         columns = ", ".join(SESSION_FIELDS)
+        sealed = session_checksum(session_id, str(model_id), str(method), 0, state_text, options_text)
         with self._transaction() as db:
             db.execute(f"INSERT INTO sessions ({columns}) VALUES ({', '.join('?' * len(SESSION_FIELDS))})",
                        (session_id, str(model_id), str(method), state_text, initial_text, 0, step, t,
-                        loglik, now, now, 0, options_text))
+                        loglik, now, now, 0, options_text, sealed))
         return session_id
 
     def get(self, session_id: str) -> SessionRecord:
@@ -215,12 +250,21 @@ class SessionStoreBase:
             raise self._error(exc, "cannot read session") from None
         if row is None:
             return None
-        return SessionRecord(
-            id=row["id"], model_id=row["model_id"], method=row["method"], state=orjson.loads(row["state"]),
-            initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
-            step=row["step"],
-            t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
-            version=row["version"], options=orjson.loads(row["options"] or "{}"))
+        options_text = row["options"] or "{}"
+        sealed = row["checksum"]
+        sid = row["id"]
+        if sealed is not None and sealed != session_checksum(sid, row["model_id"], row["method"],
+                                                             row["next_seq"], row["state"], options_text):
+            raise _damaged(f"session {sid} was changed outside the service (its row fails its checksum)")
+        try:
+            return SessionRecord(
+                id=sid, model_id=row["model_id"], method=row["method"], state=orjson.loads(row["state"]),
+                initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
+                step=row["step"],
+                t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
+                version=row["version"], options=orjson.loads(options_text))
+        except orjson.JSONDecodeError:
+            raise _damaged(f"session {sid} is damaged in the store (its row is not valid JSON)") from None
 
     def delete(self, session_id: str) -> None:
         with self._transaction() as db:
@@ -295,7 +339,7 @@ class SessionStoreBase:
         return orjson.loads(self._stored_text(session_id, seq))
 
     def _stored_text(self, session_id: str, seq: int, digest: str | None = None) -> str:
-        query = "SELECT response, digest FROM chunks WHERE session_id = ? AND seq = ?"
+        query = "SELECT response, digest, checksum FROM chunks WHERE session_id = ? AND seq = ?"
         try:
             row = self._query(query, (str(session_id), seq)).fetchone()
         except self._db_errors as exc:
@@ -314,6 +358,10 @@ class SessionStoreBase:
                                   f"(replays are kept for the last {self.retention} chunks, at most "
                                   f"{self.retention_bytes} bytes and {self.retention_seconds:g} s; "
                                   f"oldest kept: {oldest})")
+        sealed = row["checksum"]
+        if sealed is not None and sealed != checksum(str(session_id), str(seq), row["response"]):
+            raise _damaged(f"the stored response of chunk {seq} of session {session_id} was changed outside "
+                           "the service (it fails its checksum)")
         return row["response"]
 
     def apply_chunk(self, session_id: str, seq: int, compute: Compute,
@@ -438,15 +486,18 @@ class SessionStoreBase:
                digest: str | None) -> bool:
         """Store a chunk's row in the open transaction; False when another writer moved the session on."""
         state_text, response_text, step, t, loglik = row
+        sealed = session_checksum(old.id, old.model_id, old.method, seq + 1, state_text,
+                                  _dumps(old.options, "options"))
         changed = db.execute(
             "UPDATE sessions SET state = ?, next_seq = ?, step = ?, t = ?, loglik = ?, updated = ?, "
-            "version = version + 1 WHERE id = ? AND version = ?",
-            (state_text, seq + 1, step, t, loglik, _utc_now(), old.id, old.version),
+            "version = version + 1, checksum = ? WHERE id = ? AND version = ?",
+            (state_text, seq + 1, step, t, loglik, _utc_now(), sealed, old.id, old.version),
         ).rowcount
         if not changed:
             return False
         now = time.time()
-        db.execute(self._INSERT_CHUNK, (old.id, seq, response_text, digest, now, len(response_text)))
+        db.execute(self._INSERT_CHUNK, (old.id, seq, response_text, digest, now, len(response_text),
+                                        checksum(old.id, str(seq), response_text)))
         self._trim(db, old.id, seq, now)
         return True
 

@@ -10,11 +10,16 @@ connection.
 Faults (docs/reliability.md).  A full disk makes the transaction fail and roll back: nothing is
 stored, :class:`Unavailable` (with retry_after) is raised and the next attempt succeeds once there
 is space.  The file removed, replaced, truncated or its write-ahead log overwritten under a running
-server is detected (the file's identity, the header's page count against the file size and the
-WAL header's checksum after every commit; a generation counter that must never go back at the
-start of every write; SQLite's corruption errors): the store then refuses every operation
+server is detected (the file's and the log's identity, the header's page count against the file size and
+the WAL header's checksum after every commit, read through descriptors kept open so that no lock
+of SQLite's is ever dropped (storage/sqlite_files.py); a generation counter that must never go back
+at the start of every write; SQLite's corruption errors): the store then refuses every operation
 (:class:`Unavailable` without retry_after) and :meth:`health` reports why, so that no chunk is
-acknowledged that a restart would lose.
+acknowledged that a restart would lose.  A look that a checkpoint in flight can explain is looked at
+again and, for a short file, judged by SQLite's quick_check before anything is declared: a healthy
+database under load never fails (a doubt SQLite cannot settle at once costs a 503 with Retry-After).
+The store holds one connection for its whole life, so another process closing its own connection
+never takes itself for the last one and deletes the log; a log that vanishes anyway is damage.
 ``apply_chunk(..., encoded=True)`` returns the response as the JSON text stored, so that a server
 can send it as is (one encoding per chunk, not two); ``compute`` may also return the response
 already encoded (a ``str`` of a JSON object with finite numbers, stored as given).
@@ -29,15 +34,16 @@ Storage knows files, not math: it never imports solver or service.
 
 from __future__ import annotations
 
+import logging
 import os
 import sqlite3
-import struct
 import threading
 import time
 from pathlib import Path
 
 from .errors import StoreError, Unavailable
 from .session_base import (  # noqa: F401 - re-exported: what callers imported from here before
+    ADDED_COLUMNS,
     SESSION_FIELDS,
     Compute,
     ComputeMany,
@@ -45,6 +51,7 @@ from .session_base import (  # noqa: F401 - re-exported: what callers imported f
     SessionStoreBase,
     schema,
 )
+from .sqlite_files import FileWatch, Finding
 
 _SCHEMA = schema("INTEGER", "REAL", " WITHOUT ROWID") + """;
 CREATE TABLE IF NOT EXISTS meta (
@@ -53,11 +60,7 @@ CREATE TABLE IF NOT EXISTS meta (
 );
 INSERT OR IGNORE INTO meta VALUES ('generation', 0);
 """
-# added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
-_CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL", "size": "INTEGER"}
-_SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'"}  # older sessions: no options (the defaults)
-_SQLITE_MAGIC = b"SQLite format 3\x00"
-_WAL_MAGIC = (0x377F0682, 0x377F0683)  # little- / big-endian checksums
+_DOUBT_PAUSES = (0.01, 0.05, 0.25)  # seconds between looks at a doubt before it is taken as real
 DISK_FULL_RETRY_S = 10
 _SYNCHRONOUS = ("normal", "full")
 
@@ -66,8 +69,8 @@ class SqliteSessionStore(SessionStoreBase):
     """Sessions in one SQLite file; safe to share between threads and processes."""
 
     _db_errors = (sqlite3.Error,)
-    _INSERT_CHUNK = ("INSERT OR REPLACE INTO chunks (session_id, seq, response, digest, stored, size) "
-                     "VALUES (?,?,?,?,?,?)")
+    _INSERT_CHUNK = ("INSERT OR REPLACE INTO chunks (session_id, seq, response, digest, stored, size, "
+                     "checksum) VALUES (?,?,?,?,?,?,?)")
 
     def __init__(self, path: str | os.PathLike, retention: int = 16, busy_timeout_ms: int = 30_000,
                  synchronous: str = "normal", retention_bytes: int = 256 * 1024,
@@ -81,9 +84,12 @@ class SqliteSessionStore(SessionStoreBase):
         self._local = threading.local()
         self._failure: str | None = None  # why the store refuses everything (removed, damaged)
         self._generation = 0  # the highest generation this process has seen committed
-        self._identity: tuple[int, int] | None = None
+        self._watch: FileWatch | None = None
         self._create_schema()
-        self._identity = self._file_identity()
+        # One connection held for the store's life: while it is open, no other process can be "the last
+        # connection" that checkpoints and deletes the write-ahead log under this one.
+        self._anchor: sqlite3.Connection | None = self._connect()
+        self._watch = FileWatch(self.path)
         self._generation = self._read_generation(self._connection())
 
     def _create_schema(self) -> None:
@@ -97,11 +103,11 @@ class SqliteSessionStore(SessionStoreBase):
         with self._transaction(write=False) as db:
             for statement in filter(str.strip, _SCHEMA.split(";")):
                 db.execute(statement)
-            for table, columns in (("chunks", _CHUNK_COLUMNS), ("sessions", _SESSION_COLUMNS)):
+            # columns added since a file was written (ALTER TABLE ... ADD COLUMN, in this transaction)
+            for table, column, kind in ADDED_COLUMNS:
                 present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
-                for column, kind in columns.items():
-                    if column not in present:
-                        db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
+                if column not in present:
+                    db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
 
     # -- connections ----------------------------------------------------------------
     def _connection(self) -> sqlite3.Connection:
@@ -125,10 +131,18 @@ class SqliteSessionStore(SessionStoreBase):
         return db
 
     def close(self) -> None:
+        """Close this thread's connection, the anchor and (when no other store of this process watches
+        the file) the watch's descriptors."""
         db = getattr(self._local, "db", None)
         if db is not None and getattr(self._local, "pid", None) == os.getpid():
             db.close()
         self._local = threading.local()
+        if self._anchor is not None:
+            self._anchor.close()
+            self._anchor = None
+        if self._watch is not None:
+            self._watch.release()
+            self._watch = None
 
     def _query(self, sql: str, args: tuple = ()) -> sqlite3.Cursor:
         return self._connection().execute(sql, args)
@@ -143,9 +157,11 @@ class SqliteSessionStore(SessionStoreBase):
         return _Transaction(self, self._connection(), write)
 
     # -- integrity ------------------------------------------------------------------
-    def _file_identity(self) -> tuple[int, int]:
-        st = os.stat(self.path)
-        return st.st_dev, st.st_ino
+    def _watched(self) -> FileWatch:
+        """The watch of the database file and its log (opened again after :meth:`close`)."""
+        if self._watch is None:
+            self._watch = FileWatch(self.path)
+        return self._watch
 
     @staticmethod
     def _read_generation(db: sqlite3.Connection) -> int:
@@ -153,53 +169,59 @@ class SqliteSessionStore(SessionStoreBase):
         return int(row[0]) if row is not None else 0
 
     def fail(self, reason: str) -> Unavailable:
-        """Refuse every operation from now on (the file cannot be trusted); the error to raise."""
+        """Refuse every operation from now on (the file cannot be trusted); the error to raise.  The
+        message a client sees names no server path; the critical log line does."""
         if self._failure is None:
-            self._failure = (f"the session database {self.path} {reason}; no chunk is acknowledged until it "
-                             "is restored and the server restarted")
-            _log_critical(self._failure)
+            self._failure = (f"the session database {reason}; no chunk is acknowledged until it is restored "
+                             "and the server restarted")
+            _log_critical(f"{self.path}: {self._failure}")
         return Unavailable("sessions", self._failure)
 
     def verify_file(self) -> None:
-        """Cheap checks of the file after a commit (µs): still the file we opened, not truncated below
-        the page count its header states, the write-ahead log's header intact.  Raises Unavailable."""
+        """Cheap checks of the files after a commit (a few µs, no descriptor opened or closed): still
+        the files we opened, the database not shorter than its header's page count, the write-ahead
+        log's header intact.  A certain finding fails the store; a doubt is confirmed first
+        (:meth:`_settle`).  Raises Unavailable."""
         if self._failure is not None:
             raise Unavailable("sessions", self._failure)
-        problem = self._file_problem()
-        if problem is not None:
-            time.sleep(0.05)  # a checkpoint of another process may be half-way: look again once
-            problem = self._file_problem()
-        if problem is not None:
-            raise self.fail(problem)
+        finding = self._settle(self._watched().look())
+        if finding is not None:
+            raise self.fail(finding.text)
 
-    def _file_problem(self) -> str | None:
-        try:
-            st = os.stat(self.path)
-            with open(self.path, "rb") as fh:
-                header = fh.read(100)
-        except FileNotFoundError:
-            return "was removed"
-        except OSError as exc:
-            return f"cannot be read ({exc})"
-        if (st.st_dev, st.st_ino) != self._identity:
-            return "was replaced by another file"
-        if len(header) < 100 or not header.startswith(_SQLITE_MAGIC):
-            return "was truncated or overwritten (no SQLite header)"
-        page_size = struct.unpack(">H", header[16:18])[0]
-        page_size = 65536 if page_size == 1 else page_size
-        pages = struct.unpack(">I", header[28:32])[0]
-        if st.st_size < pages * page_size:
-            return f"was truncated ({st.st_size} bytes, its header says {pages * page_size})"
-        return _wal_problem(Path(f"{self.path}-wal"))
+    def _settle(self, finding: Finding | None) -> Finding | None:
+        """A doubt looked at again: a checkpoint of another thread or process writes the header's new
+        page count before it grows the file, and rewrites the log's header when it restarts it, so
+        the same doubt must last ~0.3 s; a short file is then judged by SQLite's quick_check on a
+        consistent snapshot (it reads every page).  None: healthy after all; else a certain
+        finding.  Unavailable with retry_after when even SQLite cannot tell now (busy)."""
+        for pause in _DOUBT_PAUSES:
+            if finding is None or finding.certain:
+                return finding
+            time.sleep(pause)
+            finding = self._watched().look()
+        if finding is None or finding.certain or not finding.sqlite_decides:
+            return None if finding is None else Finding(finding.text, True)
+        verdict = self._quick_check()
+        if verdict is None:
+            _log.warning("%s: the file looked short (%s) for %.2f s but SQLite's quick_check passes: a long "
+                         "checkpoint, not damage", self.path, finding.text, sum(_DOUBT_PAUSES))
+            return None
+        return Finding(verdict, True)
 
     def health(self, deep: bool = False) -> str | None:
         """None when the store is usable, else why not.  ``deep`` adds SQLite's quick_check on a
         connection of its own (reads every page: for /readyz, not per request)."""
         if self._failure is not None:
             return self._failure
-        problem = self._file_problem() or (self._quick_check() if deep else None)
-        if problem is not None:
-            self.fail(problem)
+        try:
+            finding = self._settle(self._watched().look())
+            if finding is None and deep:
+                verdict = self._quick_check()
+                finding = None if verdict is None else Finding(verdict, True)
+        except Unavailable as exc:  # SQLite could not tell now: not ready for a moment, not failed
+            return exc.message
+        if finding is not None:
+            self.fail(finding.text)
             return self._failure
         try:
             self._check_generation(self._connection())  # a read: the generation must not have gone back
@@ -210,6 +232,9 @@ class SqliteSessionStore(SessionStoreBase):
         return self._failure
 
     def _quick_check(self) -> str | None:
+        """None when SQLite's quick_check passes, else what it found.  Through SQLite only (the close of
+        its connection keeps this process's locks: SQLite defers it).  Unavailable with retry_after
+        when the database is busy or locked: that says nothing about damage."""
         try:
             db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, timeout=self.busy_timeout_ms / 1000)
             try:
@@ -217,6 +242,10 @@ class SqliteSessionStore(SessionStoreBase):
             finally:
                 db.close()
         except sqlite3.Error as exc:
+            code = getattr(exc, "sqlite_errorcode", None)
+            if code in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED) or "locked" in str(exc):
+                raise Unavailable("sessions", "the session database is busy being checked; retry",
+                                  retry_after=1) from None
             return f"fails SQLite's integrity check ({exc})"
         return None if result == ["ok"] else f"fails SQLite's integrity check ({'; '.join(result[:3])})"
 
@@ -244,10 +273,11 @@ class SqliteSessionStore(SessionStoreBase):
             return self.fail(f"is damaged ({exc})")
         return error
 
-def _log_critical(message: str) -> None:
-    import logging
+_log = logging.getLogger("yauyau.storage")
 
-    logging.getLogger("yauyau.storage").critical("SESSION STORE UNUSABLE: %s", message)
+
+def _log_critical(message: str) -> None:
+    _log.critical("SESSION STORE UNUSABLE: %s", message)
 
 
 def _as_store_error(exc: sqlite3.Error, what: str) -> StoreError:
@@ -265,33 +295,6 @@ def _as_store_error(exc: sqlite3.Error, what: str) -> StoreError:
         return Unavailable("sessions", f"{what}: input/output error ({text}); nothing was stored",
                            retry_after=DISK_FULL_RETRY_S)
     return StoreError("sessions", f"{what}: {text}")
-
-
-def _wal_problem(wal: Path) -> str | None:
-    """The write-ahead log's 32-byte header: magic, and its checksum (SQLite's wal.c algorithm)."""
-    try:
-        with open(wal, "rb") as fh:
-            header = fh.read(32)
-    except FileNotFoundError:
-        return None
-    except OSError as exc:
-        return f"has an unreadable write-ahead log ({exc})"
-    if len(header) == 0:
-        return None  # reset after a checkpoint
-    if len(header) < 32:
-        return "has a truncated write-ahead log header"
-    magic = struct.unpack(">I", header[:4])[0]
-    if magic not in _WAL_MAGIC:
-        return "has an overwritten write-ahead log (bad magic number)"
-    order = ">" if magic & 1 else "<"
-    words = struct.unpack(f"{order}6I", header[:24])
-    s0 = s1 = 0
-    for i in range(0, 6, 2):
-        s0 = (s0 + words[i] + s1) & 0xFFFFFFFF
-        s1 = (s1 + words[i + 1] + s0) & 0xFFFFFFFF
-    if (s0, s1) != struct.unpack(">2I", header[24:32]):
-        return "has an overwritten write-ahead log (header checksum)"
-    return None
 
 
 class _Transaction:

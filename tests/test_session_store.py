@@ -186,10 +186,13 @@ def test_version_clash_on_a_moved_session_recomputes(store: SqliteSessionStore):
 
     def compute(state):
         seen.append(list(state["values"]))
-        if len(seen) == 1:  # sneak in a concurrent writer that bumps the version only
+        if len(seen) == 1:  # sneak in a concurrent writer that bumps the version only (as a store would:
+            from yauyau.storage.session_base import session_checksum  # with the row's checksum)
+
+            text = '{"values":["other"]}'
             with _reopen(store)._transaction() as db:
-                db.execute("UPDATE sessions SET version = version + 1, state = ? WHERE id = ?",
-                           ('{"values":["other"]}', sid))
+                db.execute("UPDATE sessions SET version = version + 1, state = ?, checksum = ? WHERE id = ?",
+                           (text, session_checksum(sid, "m", "yau-yau", 0, text, "{}"), sid))
         return append_seq(0)(state)
     response, replayed = store.apply_chunk(sid, 0, compute)
     assert not replayed and seen == [[], ["other"]] and response["before"] == ["other"]
@@ -507,3 +510,87 @@ def test_an_id_with_a_nul_byte_is_no_session_in_either_store(store):
     with pytest.raises(NotFound):
         store.apply_chunk("abc\x00def", 0, append_seq(0))
     assert store.list_sessions(10, model_id="m\x00") == []
+
+
+# -- a row changed outside the service (issue "Trust", item 6) ----------------------------------
+def _outside_sql(store, sql: str, args: tuple = ()) -> None:
+    """What an operator's edit, a bad restore or a flipped byte does: the row changed by another client."""
+    if isinstance(store, SqliteSessionStore):
+        db = sqlite3.connect(store.path, isolation_level=None)
+        try:
+            db.execute(sql, args)
+        finally:
+            db.close()
+        return
+    import psycopg
+
+    with psycopg.connect(store.dsn, autocommit=True) as db:
+        db.execute(sql.replace("?", "%s"), args)
+
+
+@pytest.mark.parametrize("edit", ["other valid JSON", "broken JSON", "an older state", "another session's"])
+def test_a_state_changed_outside_the_service_is_refused_not_used(store, edit, caplog):
+    from yauyau.storage.errors import Unavailable
+
+    sid = store.create("m", "yau-yau", {"values": []})
+    other = store.create("m", "yau-yau", {"values": []})
+    for seq in range(3):
+        store.apply_chunk(sid, seq, append_seq(seq))
+    store.apply_chunk(other, 0, append_seq(0))
+    before = store.get(sid)
+    older = '{"values":[0,1],"step":2,"t":1.0,"loglik":-1.0}'
+    new_text = {"other valid JSON": '{"values":[0,1,7],"step":3,"t":1.5,"loglik":-2.0}',
+                "broken JSON": '{"values":[0,1,',
+                "an older state": older}.get(edit)
+    if new_text is not None:
+        _outside_sql(store, "UPDATE sessions SET state = ? WHERE id = ?", (new_text, sid))
+    else:  # another session's state and seq copied over this one
+        _outside_sql(store, "UPDATE sessions SET state = (SELECT state FROM sessions WHERE id = ?), "
+                            "next_seq = 1 WHERE id = ?", (other, sid))
+    with caplog.at_level("CRITICAL", logger="yauyau.storage"):
+        for attempt in (lambda: store.get(sid), lambda: store.apply_chunk(sid, 3, append_seq(3))):
+            with pytest.raises(Unavailable) as err:
+                attempt()
+            assert err.value.retry_after is None and sid in err.value.message
+            assert "outside the service" in err.value.message or "not valid JSON" in err.value.message
+    assert any("SESSION STORE DAMAGED" in r.getMessage() for r in caplog.records)
+    assert before.state["values"] == [0, 1, 2]
+    assert store.get(other).state["values"] == [0]  # the other sessions go on
+    store.apply_chunk(other, 1, append_seq(1))
+    assert store.get(other).state["values"] == [0, 1]
+
+
+def test_a_stored_response_changed_outside_the_service_is_not_replayed(store):
+    from yauyau.storage.errors import Unavailable
+
+    sid = store.create("m", "yau-yau", {"values": []})
+    store.apply_chunk(sid, 0, append_seq(0))
+    store.apply_chunk(sid, 1, append_seq(1))
+    assert store.apply_chunk(sid, 0, append_seq(0))[1] is True  # a replay, as stored
+    _outside_sql(store, "UPDATE chunks SET response = ? WHERE session_id = ? AND seq = 0",
+                 ('{"seq":0,"before":[5]}', sid))
+    with pytest.raises(Unavailable, match="chunk 0"):
+        store.apply_chunk(sid, 0, append_seq(0))
+    assert store.apply_chunk(sid, 1, append_seq(1))[0] == {"seq": 1, "before": [0]}
+
+
+def test_rows_written_before_checksums_are_read_and_sealed_at_their_next_write(tmp_path):
+    """A file of the previous release (no checksum columns) opens, its rows are used as they are
+    (nothing to verify them against) and carry a checksum from their next chunk on."""
+    path = tmp_path / "old.sqlite3"
+    old = SqliteSessionStore(path)
+    sid = old.create("m", "yau-yau", {"values": []})
+    old.apply_chunk(sid, 0, append_seq(0))
+    old.close()
+    db = sqlite3.connect(path, isolation_level=None)
+    for table in ("sessions", "chunks"):  # as the previous release wrote the file
+        db.execute(f"ALTER TABLE {table} DROP COLUMN checksum")
+    db.close()
+    store = SqliteSessionStore(path)
+    assert store.get(sid).state["values"] == [0]
+    store.apply_chunk(sid, 1, append_seq(1))
+    _outside_sql(store, "UPDATE sessions SET state = ? WHERE id = ?", ('{"values":[9,9]}', sid))
+    from yauyau.storage.errors import Unavailable
+
+    with pytest.raises(Unavailable):
+        store.get(sid)
