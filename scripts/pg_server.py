@@ -50,11 +50,40 @@ class PostgresServer:
             self._as = ["runuser", "-u", "postgres", "--"]
         self._run(_binary("initdb"), "-D", str(self.data), "-A", "trust", "-U", "yauyau", "--no-sync",
                   "-E", "UTF8", "--locale", "C")
+        self.start()
+        self.dsn = f"postgresql://yauyau@127.0.0.1:{self.port}/postgres"
+
+    def start(self) -> None:
+        """Start the server (again, after :meth:`crash`: it recovers from its write-ahead log).  Commits
+        are asynchronous by default here, as on a server tuned for throughput: a client that needs a
+        commit durable asks for it (the session store does, per transaction)."""
         options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c fsync=off "
                    "-c synchronous_commit=off -c full_page_writes=off -c max_connections=200")
         self._run(_binary("pg_ctl"), "-D", str(self.data), "-o", options, "-l", str(self.root / "log"),
                   "-w", "-t", "60", "start")
-        self.dsn = f"postgresql://yauyau@127.0.0.1:{self.port}/postgres"
+
+    def crash(self) -> None:
+        """SIGKILL every process of the server at once, the WAL writer first (a power cut of the database
+        host, as far as the server's memory is concerned): what it had not written is lost."""
+        import signal
+
+        postmaster = int((self.data / "postmaster.pid").read_text().split()[0])
+        children = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == postmaster:
+                children.append(int(stat.parent.name))
+        for pid in [*children, postmaster]:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in children):
+            time.sleep(0.05)
 
     def _run(self, *command: str) -> None:
         done = subprocess.run([*self._as, *command], capture_output=True, text=True, cwd=self.root)

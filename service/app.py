@@ -62,7 +62,8 @@ def open_session_store(settings: Settings) -> Any:
     if settings.session_postgres() is not None:
         from yauyau.storage.postgres_store import PostgresSessionStore
 
-        return PostgresSessionStore(settings.session_postgres(), idle_expiry=idle)
+        return PostgresSessionStore(settings.session_postgres(), idle_expiry=idle,
+                                    timeout=settings.session_db_timeout)
     from yauyau.storage.session_store import SqliteSessionStore
 
     path = settings.session_path()

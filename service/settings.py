@@ -24,6 +24,10 @@ class Settings(BaseSettings):
     session_synchronous: Literal["normal", "full"] = Field(
         "normal", description="SQLite durability of a chunk: 'normal' survives a killed process (WAL, no "
                               "fsync per chunk), 'full' also an OS crash or power loss (one fsync per chunk)")
+    session_db_timeout: float = Field(
+        5.0, gt=0, le=300, description="seconds a request waits for a connection to a PostgreSQL session "
+                                       "database before it is answered 503 with Retry-After (the database "
+                                       "is down or every connection busy)")
     session_idle_expiry: float = Field(
         7 * 86_400.0, ge=0, description="seconds without a chunk after which a session is deleted with its "
                                         "stored responses (default one week; 0: never)")

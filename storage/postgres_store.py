@@ -9,9 +9,12 @@ on the new state; never a lost update), a replay returns the stored bytes.  psyc
 connection pool per process; each operation borrows a connection for one transaction.  The
 schema is created on first use (an advisory lock serialises the processes that start together).
 
-Faults: a connection that cannot be made or is lost, a server that is shutting down or out of
-disk gives :class:`Unavailable` with ``retry_after`` (nothing was stored; the same chunk can be
-re-sent), other database errors a StoreError naming the sessions.  Storage knows rows, not math.
+Faults: a connection that cannot be made within ``timeout`` (default 5 s) or is lost, a server
+that is shutting down or out of disk gives :class:`Unavailable` with ``retry_after`` (nothing was
+stored; the same chunk can be re-sent), other database errors a StoreError naming the sessions.
+Durability: every write transaction commits synchronously (``SET LOCAL synchronous_commit TO on``),
+whatever the server's default: a chunk is acknowledged only once its commit is on the database's
+disk (as far as the server's own fsync setting makes it so).  Storage knows rows, not math.
 """
 
 from __future__ import annotations
@@ -70,14 +73,19 @@ class PostgresSessionStore(SessionStoreBase):
 
     def __init__(self, dsn: str, retention: int = 16, retention_bytes: int = 256 * 1024,
                  retention_seconds: float = 86_400.0, idle_expiry: float | None = None, pool_size: int = 8,
-                 connect_timeout: float = 30.0):
+                 connect_timeout: float = 30.0, timeout: float = 5.0):
         if not is_postgres_dsn(dsn):
             raise StoreError("session_db", "a PostgreSQL store needs a postgresql://user@host:port/db URL")
+        if not timeout > 0:
+            raise StoreError("timeout", "must be positive seconds")
         self._configure(retention, retention_bytes, retention_seconds, idle_expiry)
         self.dsn = dsn
-        options = {"row_factory": dict_row, "connect_timeout": int(connect_timeout)}
+        # a request waits at most ``timeout`` for a connection (the pool's own default is 30 s): a
+        # database that is down is a 503 with Retry-After in seconds, and each new connection's
+        # attempt is bounded the same way
+        options = {"row_factory": dict_row, "connect_timeout": max(1, round(min(connect_timeout, timeout)))}
         self.pool = ConnectionPool(dsn, min_size=1, max_size=int(pool_size), open=False,
-                                   name="yauyau-sessions", kwargs=options)
+                                   timeout=float(timeout), name="yauyau-sessions", kwargs=options)
         try:
             self.pool.open(wait=True, timeout=connect_timeout)
         except (PoolTimeout, psycopg.Error) as exc:
@@ -100,10 +108,16 @@ class PostgresSessionStore(SessionStoreBase):
 
     # -- what the base class needs ------------------------------------------------------
     @contextmanager
-    def _transaction(self) -> Iterator[_Executor]:
+    def _transaction(self, write: bool = True) -> Iterator[_Executor]:
+        """One transaction on a pooled connection.  A write commits synchronously whatever the server's
+        default (``synchronous_commit = off`` loses the last commits when the database host crashes:
+        an acknowledged chunk must not be among them); set per transaction, so that a pooler in
+        transaction mode (pgbouncer) keeps it too."""
         try:
             with self.pool.connection() as conn:
                 with conn.transaction():
+                    if write:
+                        conn.execute("SET LOCAL synchronous_commit TO on")
                     yield _Executor(conn)
         except PoolTimeout as exc:
             raise Unavailable("sessions", f"no connection to the session database: {exc}",
@@ -114,7 +128,7 @@ class PostgresSessionStore(SessionStoreBase):
     def _query(self, sql: str, args: tuple = ()) -> _Rows:
         if any(isinstance(a, str) and "\x00" in a for a in args):
             return _Rows([])  # PostgreSQL text cannot hold NUL: no row has it (SQLite finds none either)
-        with self._transaction() as db:
+        with self._transaction(write=False) as db:
             return _Rows(db.execute(sql, args).fetchall())
 
     def _error(self, exc: Exception, what: str) -> StoreError:

@@ -22,6 +22,9 @@ def add_arguments(parser):
     parser.add_argument("--session-synchronous", choices=["normal", "full"],
                         help="durability of each chunk: normal (default) survives a killed server, full also "
                              "an OS crash or power loss (an fsync per chunk; env YAUYAU_SESSION_SYNCHRONOUS)")
+    parser.add_argument("--session-db-timeout", type=float,
+                        help="seconds a request waits for a PostgreSQL session database before its 503 "
+                             "with Retry-After (env YAUYAU_SESSION_DB_TIMEOUT; default 5)")
     parser.add_argument("--blas-threads", type=int,
                         help="BLAS threads per worker for the online products "
                              "(env YAUYAU_BLAS_THREADS; default 1)")
@@ -45,6 +48,7 @@ def _settings(args):
     overrides = {k: v for k, v in {"store": args.store, "host": args.host, "port": args.port,
                                    "workers": args.workers, "session_db": args.session_db,
                                    "session_synchronous": args.session_synchronous,
+                                   "session_db_timeout": args.session_db_timeout,
                                    "blas_threads": args.blas_threads, "model_cache": args.model_cache,
                                    "session_idle_expiry": args.session_idle_expiry,
                                    "batch_window": args.batch_window,
