@@ -38,6 +38,7 @@ TOPICS = [
     ("load_2d", "bench-load-2d.md"),
     ("load_stores", "bench-load-stores.md"),
     ("load_windows", "bench-load-windows.md"),
+    ("trust_cost", "bench-trust.md"),
     ("follow", "bench-follow.md"),
     ("psd", "bench-psd.md"),
     ("cv_basis", "bench-cv-basis.md"),

@@ -58,6 +58,19 @@ MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the serv
 STREAMS = (1, 8, 64)
 TARGET_RATE, TARGET_P99_MS = 100_000, 50.0  # 64 streams, one worker
 TARGET_SINGLE, TARGET_2D = 2.0, 2.5  # one stream against --baseline; 2-D batched against unbatched
+# every client sends a bearer token: a server with --tenants checks it, the others ignore the header
+TOKEN = "bench-load-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def _tenants_file(directory: Path) -> Path:
+    """A tenants file (issue "Trust") with one tenant whose token the clients send."""
+    import hashlib
+
+    path = directory / "tenants.toml"
+    digest = hashlib.sha256(TOKEN.encode()).hexdigest()
+    path.write_text(f'[[tenant]]\nname = "bench"\ntoken_sha256 = "{digest}"\n')
+    return path
 
 
 def _free_port() -> int:
@@ -161,7 +174,7 @@ def _group_cpu_seconds(pgid: int) -> float:
 def _lean_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float],
                  resent: list[int]) -> None:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
-    headers = {"Content-Type": "application/json"}
+    headers = {"Content-Type": "application/json", **AUTH}
     conn.request("POST", "/v1/sessions", json.dumps({"model": model_id}), headers)
     sid = json.loads(conn.getresponse().read())["id"]
     path = f"/v1/sessions/{sid}/observations"
@@ -224,7 +237,7 @@ async def _drive_httpx(port, model_id, chunks, streams, stop_at, resent) -> list
     url = f"http://127.0.0.1:{port}"
     outs: list[list[float]] = [[] for _ in range(streams)]
     limits = httpx.Limits(max_connections=streams, max_keepalive_connections=streams)
-    async with httpx.AsyncClient(limits=limits, timeout=120) as client:
+    async with httpx.AsyncClient(limits=limits, timeout=120, headers=AUTH) as client:
         await asyncio.gather(*(_httpx_stream(client, url, model_id, chunks, stop_at, out, resent)
                                for out in outs))
     return outs
@@ -383,6 +396,9 @@ def _parse(argv):
     parser.add_argument("--windows", default="",
                         help="comma-separated batch windows in ms to compare instead (e.g. 0,1,2,5): the "
                              "working tree served once per window (YAUYAU_BATCH_WINDOW)")
+    parser.add_argument("--tenants", action="store_true",
+                        help="also serve the working tree with a tenants file (every request authenticated "
+                             "and its session's owner checked)")
     parser.add_argument("--unbatched", action="store_true",
                         help="also serve the working tree with micro-batching off (YAUYAU_MAX_BATCH=1)")
     parser.add_argument("--streams-list", default=",".join(map(str, STREAMS)),
@@ -401,12 +417,11 @@ def _parse(argv):
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _parse(argv)
-    if args.drive:
-        _drive(args)
-        return 0
+def measure(args) -> tuple[list[dict], float, dict, dict, float]:
+    """Serve every configuration the arguments name and drive it: (rows, engine ms per chunk, store
+    round, the model, the load average before)."""
     load = os.getloadavg()[0]
+    clients = [c for c in args.clients.split(",") if c]
     clients = [c for c in args.clients.split(",") if c]
     with tempfile.TemporaryDirectory(prefix="yauyau-load-") as tmp:
         tmp = Path(tmp)
@@ -421,6 +436,9 @@ def main(argv: list[str] | None = None) -> int:
         trees = {"working tree": (ROOT, {}, None, args.workers)}
         if args.unbatched:
             trees["unbatched"] = (ROOT, {"YAUYAU_MAX_BATCH": "1"}, None, args.workers)
+        if args.tenants:
+            env = {"YAUYAU_TENANTS_FILE": str(_tenants_file(tmp))}
+            trees["working tree, tenants"] = (ROOT, env, None, args.workers)
         if args.baseline:
             baseline = _baseline_tree(args.baseline, tmp / "baseline")
             trees = {f"baseline {args.baseline}": (baseline, {}, None, args.workers), **trees}
@@ -454,6 +472,16 @@ def main(argv: list[str] | None = None) -> int:
             for (name, kind, streams), r in runs.items()]
     order = {name: k for k, name in enumerate(servers)}
     rows.sort(key=lambda r: (r["client"] != "lean", r["streams"], order[r["server"]]))
+    return rows, engine_ms, commits, model, load
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse(argv)
+    if args.drive:
+        _drive(args)
+        return 0
+    clients = [c for c in args.clients.split(",") if c]
+    rows, engine_ms, commits, model, load = measure(args)
     for r in rows:
         print(f"{r['server'][:22]:>22} {r['client']:>5} {r['streams']:>3} streams: {r['rate']:>9,.0f} obs/s  "
               f"p50 {r['p50']:7.2f} ms  p99 {r['p99']:7.2f} ms  server {r['server_ms']:.2f} ms CPU/chunk  "
@@ -465,6 +493,7 @@ def main(argv: list[str] | None = None) -> int:
                                     (f"--baseline {args.baseline}", bool(args.baseline)),
                                     (f"--example {args.example}", args.example != "1d"),
                                     ("--unbatched", args.unbatched), ("--stores", args.stores),
+                                    ("--tenants", args.tenants),
                                     (f"--windows {args.windows}", bool(args.windows)),
                                     (f"--streams-list {args.streams_list}",
                                      args.streams_list != ",".join(map(str, STREAMS))),
