@@ -27,7 +27,9 @@ from .errors import StoreError, Unavailable
 from .session_base import SessionStoreBase, schema
 
 RETRY_S = 5
-_SCHEMA = schema("BIGINT", "DOUBLE PRECISION")
+_SCHEMA = schema("BIGINT", "DOUBLE PRECISION") + """;
+ALTER TABLE sessions ADD COLUMN IF NOT EXISTS owner TEXT
+"""  # databases made before tenants: their sessions are owned by no tenant
 _SCHEMA_LOCK = 0x79617579  # pg_advisory_xact_lock key: the processes that create the schema at once
 
 

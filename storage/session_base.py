@@ -47,7 +47,7 @@ Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]
 # compute_many([(index, state)]) -> per pair (new state, response) or the exception that is its answer
 ComputeMany = Callable[[list[tuple[int, dict[str, Any]]]], list[Any]]
 SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next_seq", "step", "t", "loglik",
-                  "created", "updated", "version", "options")
+                  "created", "updated", "version", "options", "owner")
 MAX_ATTEMPTS = 100
 
 
@@ -69,7 +69,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     created TEXT NOT NULL,
     updated TEXT NOT NULL,
     version {integer} NOT NULL,
-    options TEXT NOT NULL DEFAULT '{{}}'
+    options TEXT NOT NULL DEFAULT '{{}}',
+    owner TEXT
 );
 CREATE TABLE IF NOT EXISTS chunks (
     session_id TEXT NOT NULL,
@@ -99,6 +100,7 @@ class SessionRecord:
     updated: str
     version: int
     options: dict[str, Any] = field(default_factory=dict)  # per-session settings, as the service stored them
+    owner: str | None = None  # the tenant that created it (None: no tenant, e.g. made before tenants)
 
 
 def _utc_now() -> str:
@@ -185,9 +187,13 @@ class SessionStoreBase:
 
     # -- records --------------------------------------------------------------------
     def create(self, model_id: str, method: str, state: dict[str, Any],
-               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> str:
+               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None,
+               owner: str | None = None) -> str:
         """A new session at seq 0; returns its random url-safe id.  ``options``: the session's own
-        settings (a JSON object with finite numbers), kept with it and returned by :meth:`get`."""
+        settings (a JSON object with finite numbers), kept with it and returned by :meth:`get`;
+        ``owner``: the tenant it belongs to (None: no tenant)."""
+        if owner is not None and not isinstance(owner, str):
+            raise StoreError("owner", f"must be a tenant's name (text) or None, got {type(owner).__name__}")
         state_text = _dumps(state, "state")
         initial_text = _dumps(initial_response or {}, "initial_response")
         options_text = _dumps(options or {}, "options")
@@ -198,7 +204,7 @@ class SessionStoreBase:
         with self._transaction() as db:
             db.execute(f"INSERT INTO sessions ({columns}) VALUES ({', '.join('?' * len(SESSION_FIELDS))})",
                        (session_id, str(model_id), str(method), state_text, initial_text, 0, step, t,
-                        loglik, now, now, 0, options_text))
+                        loglik, now, now, 0, options_text, owner))
         return session_id
 
     def get(self, session_id: str) -> SessionRecord:
@@ -220,7 +226,7 @@ class SessionStoreBase:
             initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
             step=row["step"],
             t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
-            version=row["version"], options=orjson.loads(row["options"] or "{}"))
+            version=row["version"], options=orjson.loads(row["options"] or "{}"), owner=row["owner"])
 
     def delete(self, session_id: str) -> None:
         with self._transaction() as db:
@@ -238,15 +244,17 @@ class SessionStoreBase:
 
     # -- lifecycle ------------------------------------------------------------------
     def list_sessions(self, limit: int = 100, after: str | None = None,
-                      model_id: str | None = None) -> list[dict[str, Any]]:
+                      model_id: str | None = None, owner: str | None = None) -> list[dict[str, Any]]:
         """A page of sessions (no states), by id: those after ``after`` (the last id of the previous
-        page), of ``model_id`` if given."""
+        page), of ``model_id`` if given, of the tenant ``owner`` if given (None: every session's)."""
         if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= 10_000:
             raise StoreError("limit", f"must be an integer in [1, 10000], got {limit!r}")
-        which = " AND model_id = ?" if model_id is not None else ""
-        query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated FROM sessions "
-                 f"WHERE id > ?{which} ORDER BY id LIMIT ?")
-        args = (after or "", *([str(model_id)] if model_id is not None else []), limit)
+        filters = [(column, str(value)) for column, value in (("model_id", model_id), ("owner", owner))
+                   if value is not None]
+        which = "".join(f" AND {column} = ?" for column, _ in filters)
+        query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated, owner "
+                 f"FROM sessions WHERE id > ?{which} ORDER BY id LIMIT ?")
+        args = (after or "", *(value for _, value in filters), limit)
         try:
             rows = self._query(query, args).fetchall()
         except self._db_errors as exc:

@@ -55,7 +55,8 @@ INSERT OR IGNORE INTO meta VALUES ('generation', 0);
 """
 # added to files written before they existed (ALTER TABLE ... ADD COLUMN, in one transaction)
 _CHUNK_COLUMNS = {"digest": "TEXT", "stored": "REAL", "size": "INTEGER"}
-_SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'"}  # older sessions: no options (the defaults)
+_SESSION_COLUMNS = {"options": "TEXT NOT NULL DEFAULT '{}'",  # older sessions: no options (the defaults)
+                    "owner": "TEXT"}  # older sessions: owned by no tenant
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _WAL_MAGIC = (0x377F0682, 0x377F0683)  # little- / big-endian checksums
 DISK_FULL_RETRY_S = 10
@@ -155,9 +156,9 @@ class SqliteSessionStore(SessionStoreBase):
     def fail(self, reason: str) -> Unavailable:
         """Refuse every operation from now on (the file cannot be trusted); the error to raise."""
         if self._failure is None:
-            self._failure = (f"the session database {self.path} {reason}; no chunk is acknowledged until it "
-                             "is restored and the server restarted")
-            _log_critical(self._failure)
+            self._failure = (f"the session database {reason}; no chunk is acknowledged until it "
+                             "is restored and the server restarted")  # no path: clients see this (503)
+            _log_critical(f"{self._failure} (file {self.path})")
         return Unavailable("sessions", self._failure)
 
     def verify_file(self) -> None:
