@@ -252,8 +252,8 @@ class SessionStoreBase:
         filters = [(column, str(value)) for column, value in (("model_id", model_id), ("owner", owner))
                    if value is not None]
         which = "".join(f" AND {column} = ?" for column, _ in filters)
-        query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated, owner "
-                 f"FROM sessions WHERE id > ?{which} ORDER BY id LIMIT ?")
+        query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated FROM sessions "
+                 f"WHERE id > ?{which} ORDER BY id LIMIT ?")
         args = (after or "", *(value for _, value in filters), limit)
         try:
             rows = self._query(query, args).fetchall()
