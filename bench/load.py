@@ -63,13 +63,16 @@ TOKEN = "bench-load-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
-def _tenants_file(directory: Path) -> Path:
-    """A tenants file (issue "Trust") with one tenant whose token the clients send."""
+def _tenants_file(directory: Path, count: int = 100) -> Path:
+    """A tenants file (issue "Trust") of ``count`` tenants, the last one's token the clients' (a token
+    is compared with every tenant's hash, in constant time)."""
     import hashlib
 
     path = directory / "tenants.toml"
-    digest = hashlib.sha256(TOKEN.encode()).hexdigest()
-    path.write_text(f'[[tenant]]\nname = "bench"\ntoken_sha256 = "{digest}"\n')
+    tokens = [f"other-token-{k}" for k in range(count - 1)] + [TOKEN]
+    path.write_text("".join(f'[[tenant]]\nname = "tenant-{k}"\n'
+                            f'token_sha256 = "{hashlib.sha256(t.encode()).hexdigest()}"\n\n'
+                            for k, t in enumerate(tokens)))
     return path
 
 

@@ -25,12 +25,13 @@ from yauyau import __version__
 from . import metrics
 from .jobs import Jobs
 from .middleware import BodyLimit, JsonBodies
-from .problems import install_handlers
+from .problems import hide_paths, install_handlers
 from .registry import Registry
 from .routes import ERRORS, routers
 from .schemas import ProblemOut
 from .sessions import Sessions
 from .settings import Settings
+from .tenants import TenantGuard, allowed_hosts, load_tenants
 
 log = logging.getLogger("yauyau.service")
 
@@ -154,12 +155,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               "degenerate sessions reset or re-initialised.")
     app.state.ready = False
     app.state.settings = settings
+    app.state.tenants = load_tenants(settings.tenants_file)  # None: no tenants file, no authentication
+    hide_paths(store=settings.store, session_database=None if settings.session_postgres() else
+               settings.session_path())  # never in a 5xx detail (service/problems.py)
     install_handlers(app)
     app.openapi = lambda: _problem_openapi(app)
     for router in routers:
         app.include_router(router)
     app.add_middleware(JsonBodies)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(TenantGuard, tenants=app.state.tenants, hosts=allowed_hosts(settings))
     app.add_middleware(metrics.RequestMetrics)
     return app
 

@@ -39,7 +39,27 @@ async def get_jobs(request: Request) -> Jobs:
     return request.app.state.jobs
 
 
+async def get_tenant(request: Request) -> str | None:
+    """The tenant the request authenticated as (service/tenants.py stores it in the scope's state);
+    None when the server has no tenants file (every session is then everyone's)."""
+    tenant = request.scope.get("state", {}).get("tenant")
+    if tenant is None and getattr(request.app.state, "tenants", None) is not None:  # never without the guard
+        raise Problem(401, "this server needs a tenant's token: send Authorization: Bearer TOKEN",
+                      "Authorization", headers={"WWW-Authenticate": 'Bearer realm="yauyau"'})
+    return tenant
+
+
+async def require_admin(request: Request, tenant: Annotated[str | None, Depends(get_tenant)]) -> None:
+    """403 unless the tenant is an admin (admin = true in the tenants file); anyone without tenants."""
+    tenants = getattr(request.app.state, "tenants", None)
+    if tenants is not None and not tenants.is_admin(tenant):
+        raise Problem(403, f"tenant {tenant!r} may not do this: precomputing models and reading their jobs "
+                           "needs an admin tenant (admin = true in the tenants file)", "Authorization")
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 JobsDep = Annotated[Jobs, Depends(get_jobs)]
 SessionsDep = Annotated[Sessions, Depends(get_sessions)]
 RegistryDep = Annotated[Registry, Depends(get_registry)]
+TenantDep = Annotated[str | None, Depends(get_tenant)]
+AdminOnly = [Depends(require_admin)]

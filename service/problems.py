@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import re
+import tempfile
+from functools import cache
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -20,7 +25,8 @@ from yauyau.storage.errors import Conflict, NotFound, StoreError, Unavailable
 PROBLEM_TYPE = "application/problem+json"
 log = logging.getLogger("yauyau.service")
 
-_TITLES = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
+_TITLES = {400: "Bad request", 401: "Unauthorized", 403: "Forbidden", 404: "Not found",
+           405: "Method not allowed", 409: "Conflict",
            413: "Request body too large", 415: "Unsupported media type", 422: "Invalid input",
            500: "Internal error", 503: "Service unavailable"}
 
@@ -43,8 +49,48 @@ class Problem(Exception):
         self.title = title or _TITLES.get(status, "Error")
 
 
+# Server paths never leave in a 5xx detail (the log keeps them): the directories and files the
+# service is configured with (hide_paths), the temporary and home directories, and any absolute path.
+_PRIVATE: dict[str, str] = {}
+_ABSOLUTE = re.compile(r"(?<![\w/:.~-])/(?!v1/)[^\s'\"()\[\]{},;:]+/[^\s'\"()\[\]{},;:]*")
+
+
+def hide_paths(**paths: Any) -> None:
+    """Name the server's own paths (``store=...``, ``session_database=...``) that a 5xx problem must
+    not show; the temporary and home directories are always hidden."""
+    for label, path in paths.items():
+        if path is not None:
+            _hide(str(path), label.replace("_", " "))
+    _private_pattern.cache_clear()
+
+
+def _hide(path: str, label: str) -> None:
+    for text in {path, os.path.realpath(path), os.path.abspath(path)}:
+        if len(Path(text).parts) > 1 or not Path(text).is_absolute():  # never "/" itself
+            _PRIVATE.setdefault(text, f"<{label}>")
+
+
+@cache
+def _private_pattern() -> re.Pattern:
+    """One pattern of every private path, the longest (the innermost) first, with what follows it."""
+    alternatives = sorted(_PRIVATE, key=len, reverse=True)
+    return re.compile("(" + "|".join(map(re.escape, alternatives)) + r")(?:/[^\s'\"(),;:]*)?(?![\w.-])")
+
+
+def without_paths(detail: str) -> str:
+    """``detail`` with every server path replaced by what it is (``<session database>``, ``<path>``)."""
+    detail = _private_pattern().sub(lambda m: _PRIVATE[m.group(1)], detail)
+    return _ABSOLUTE.sub("<path>", detail)
+
+
+_hide(tempfile.gettempdir(), "temp")
+_hide(os.path.expanduser("~"), "home")
+
+
 def problem_response(status: int, detail: str, field: str | None = None, title: str | None = None,
                      instance: str | None = None, headers: dict[str, str] | None = None) -> Response:
+    if status >= 500:
+        detail = without_paths(detail)
     body: dict[str, Any] = {"type": "about:blank", "title": title or _TITLES.get(status, "Error"),
                             "status": status, "detail": detail}
     if field is not None:

@@ -19,9 +19,9 @@ from yauyau.storage.errors import NotFound
 
 from . import metrics
 from .density import parse_points
-from .deps import JobsDep, RegistryDep, SessionsDep, SettingsDep
+from .deps import AdminOnly, JobsDep, RegistryDep, SessionsDep, SettingsDep, TenantDep
 from .jobs import PrecomputeLimit
-from .live import live_page
+from .live import live_response
 from .problems import Problem
 from .schemas import (
     AnalyzeReport,
@@ -46,7 +46,10 @@ from .sessions import ChunkRequest, Extras
 SessionId = Annotated[str, Path(min_length=1, max_length=100, description="session id")]
 ModelId = Annotated[str, Path(min_length=1, max_length=100, description="model id")]
 
-ERRORS = {400: "malformed request (e.g. invalid JSON)", 404: "unknown model, session or route",
+ERRORS = {400: "malformed request (e.g. invalid JSON) or a Host that is not this server's",
+          401: "no tenant's bearer token (a server with a tenants file)",
+          403: "the tenant is not an admin (admin = true in the tenants file)",
+          404: "unknown model, session or route (or another tenant's session)",
           409: "seq gap or concurrent update", 413: "request body too large",
           415: "the body is not JSON (send Content-Type: application/json)",
           422: "invalid input (the field is named)", 431: "request line and headers too large",
@@ -62,10 +65,10 @@ def _json(content: Any, status: int = 200) -> Response:
 
 
 health = APIRouter(tags=["health"])
-models = APIRouter(prefix="/v1/models", tags=["models"])
-sessions = APIRouter(prefix="/v1/sessions", tags=["sessions"])
-analysis = APIRouter(prefix="/v1/analyze", tags=["analysis"])
-jobs_router = APIRouter(prefix="/v1/jobs", tags=["models"])
+models = APIRouter(prefix="/v1/models", tags=["models"], responses=_errors(401))
+sessions = APIRouter(prefix="/v1/sessions", tags=["sessions"], responses=_errors(401))
+analysis = APIRouter(prefix="/v1/analyze", tags=["analysis"], responses=_errors(401))
+jobs_router = APIRouter(prefix="/v1/jobs", tags=["models"], responses=_errors(401))
 
 
 @health.get("/livez", response_model=Health)
@@ -99,7 +102,8 @@ def list_models(registry: RegistryDep) -> Response:
 
 
 @models.post("", status_code=202, response_model=Job,
-             responses={200: {"description": "the model is already stored"}, **_errors(413, 422)})
+             responses={200: {"description": "the model is already stored"}, **_errors(403, 413, 422)},
+             dependencies=AdminOnly)
 def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
     """Precompute a spec in the background: 202 with the job to poll (``GET /v1/jobs/{id}``); the
     model appears in ``GET /v1/models`` when it is done.  The id is the spec's content hash: the same
@@ -117,7 +121,7 @@ def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
     return response
 
 
-@jobs_router.get("/{job_id}", response_model=Job, responses=_errors(404))
+@jobs_router.get("/{job_id}", response_model=Job, responses=_errors(403, 404), dependencies=AdminOnly)
 def get_job(jobs: JobsDep, job_id: Annotated[str, Path(min_length=1, max_length=100)]) -> Response:
     """A precompute job: running (with its progress), done (the model is in /v1/models) or failed (why)."""
     try:
@@ -135,44 +139,48 @@ def get_model(registry: RegistryDep, model_id: ModelId) -> Response:
 
 
 @sessions.post("", status_code=201, response_model=SessionCreated, responses=_errors(400, 404, 413, 422))
-def create_session(service: SessionsDep, body: SessionCreate) -> Response:
+def create_session(service: SessionsDep, tenant: TenantDep, body: SessionCreate) -> Response:
     """A filtering session of a stored model: its prior (at time ``t0``), method, outlier ``gate`` and
-    what it does when the density degenerates (``on_degenerate``), all kept with the session."""
-    return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate),
-                 201)
+    what it does when the density degenerates (``on_degenerate``), all kept with the session, which
+    belongs to the tenant creating it."""
+    return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate,
+                                owner=tenant), 201)
 
 
 @sessions.get("", response_model=SessionPage, responses=_errors(422))
-def list_sessions(service: SessionsDep,
+def list_sessions(service: SessionsDep, tenant: TenantDep,
                   limit: Annotated[int, Query(ge=1, le=1000, description="sessions per page")] = 100,
                   after: Annotated[str | None, Query(max_length=100, description=(
                       "the `next` of the previous page"))] = None,
                   model: Annotated[str | None, Query(max_length=100, description="only this model's")] = None
                   ) -> Response:
-    """The sessions, a page at a time (by id; no states); idle ones are deleted after ``idle_expiry``."""
-    return _json(service.page(limit, after, model))
+    """The tenant's sessions, a page at a time (by id; no states); idle ones are deleted after
+    ``idle_expiry``."""
+    return _json(service.page(limit, after, model, tenant))
 
 
 @sessions.post("/{session_id}/observations", response_model=ChunkResult,
                responses=_errors(400, 404, 409, 413, 422))
-async def observe(service: SessionsDep, session_id: SessionId, body: Observations) -> Response:
+async def observe(service: SessionsDep, tenant: TenantDep, session_id: SessionId, body: Observations
+                  ) -> Response:
     """Apply chunk ``seq`` exactly once: ``increments`` (continuous models) or ``observations``
     (discrete models), optionally at ``times``; null marks a missing row or component.  A re-sent
     seq returns the stored answer (the same bytes); other data under a used seq, or a gap, is 409."""
     # The JSON text the store keeps for replays is sent as is (encoded once, finite numbers only).
     request = ChunkRequest(session_id, body.seq, body.increments, Extras(body.quantiles, body.mode),
-                           observations=body.observations, times=body.times)
+                           observations=body.observations, times=body.times, tenant=tenant)
     text = await asyncio.wrap_future(service.chunk_executor.submit_chunk(request))  # applied in a batch
     return Response(text, media_type="application/json")
 
 
 @sessions.post("/{session_id}/reset", response_model=ResetResult, responses=_errors(400, 404, 409, 413, 422))
-async def reset(service: SessionsDep, session_id: SessionId, body: Reset) -> Response:
+async def reset(service: SessionsDep, tenant: TenantDep, session_id: SessionId, body: Reset) -> Response:
     """Start the session again at its step and time (the log-likelihood goes on) from ``prior`` or
     ``from`` "last" (a prior broadened around the last good estimate: a degenerate session recovers)
     or "model".  Numbered like a chunk: it takes seq, a replay returns the stored answer."""
     text = await asyncio.get_running_loop().run_in_executor(
-        service.chunk_executor, lambda: service.reset(session_id, body.seq, body.prior, body.from_, True))
+        service.chunk_executor,
+        lambda: service.reset(session_id, body.seq, body.prior, body.from_, True, tenant))
     return Response(text, media_type="application/json")
 
 
@@ -182,39 +190,41 @@ Quantiles = Annotated[str | None, Query(max_length=2000, description=(
 
 
 @sessions.get("/{session_id}", response_model=SessionInfo, responses=_errors(404, 422))
-def get_session(service: SessionsDep, session_id: SessionId, quantiles: Quantiles = None,
+def get_session(service: SessionsDep, tenant: TenantDep, session_id: SessionId, quantiles: Quantiles = None,
                 mode: Annotated[bool, Query(description="add the mode (MAP point) to the estimate")] = False
                 ) -> Response:
-    return _json(service.info(session_id, Extras(quantiles, mode)))
+    return _json(service.info(session_id, Extras(quantiles, mode), tenant))
 
 
 @sessions.get("/{session_id}/forecast", response_model=Forecast, responses=_errors(404, 422))
-def forecast(service: SessionsDep, session_id: SessionId,
+def forecast(service: SessionsDep, tenant: TenantDep, session_id: SessionId,
              t: Annotated[float, Query(allow_inf_nan=False, description=(
                  "the time to forecast to: at or after the session's time"))],
              quantiles: Quantiles = None,
              mode: Annotated[bool, Query(description="add the mode (MAP point) to the estimate")] = False
              ) -> Response:
     """The estimate at time ``t`` without an observation (the prediction); the session is unchanged."""
-    return _json(service.forecast(session_id, t, Extras(quantiles, mode)))
+    return _json(service.forecast(session_id, t, Extras(quantiles, mode), tenant))
 
 
 @sessions.get("/{session_id}/view", response_class=HTMLResponse, responses=_errors(404))
-def view(service: SessionsDep, session_id: SessionId) -> Response:
+def view(service: SessionsDep, tenant: TenantDep, session_id: SessionId) -> Response:
     """A live page of the session: the density now (curve in 1-D, heat map in 2-D, marginals in 3-D)
-    with the mean, the covariance ellipse and the step, redrawn as chunks arrive (from /events)."""
-    service.version(session_id)  # 404 for an unknown session
-    return HTMLResponse(live_page())
+    with the mean, the covariance ellipse and the step, redrawn as chunks arrive (from /events).  With
+    tenants a browser gets the page with 401 and the page asks for the token (service/live.py)."""
+    service.version(session_id, tenant)  # 404 for an unknown session
+    return live_response()
 
 
-def _known_session(service: SessionsDep, session_id: SessionId) -> int:
+def _known_session(service: SessionsDep, tenant: TenantDep, session_id: SessionId) -> int:
     """The session's version; 404 (before any event is streamed) when there is no such session."""
-    return service.version(session_id)
+    return service.version(session_id, tenant)
 
 
 @sessions.get("/{session_id}/events", response_class=EventSourceResponse, responses=_errors(404))
-async def events(service: SessionsDep, settings: SettingsDep, request: Request, session_id: SessionId,
-                 seen: Annotated[int, Depends(_known_session)]) -> AsyncIterator[ServerSentEvent]:
+async def events(service: SessionsDep, settings: SettingsDep, tenant: TenantDep, request: Request,
+                 session_id: SessionId, seen: Annotated[int, Depends(_known_session)]
+                 ) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: one ``frame`` event now and one after every applied chunk (the estimate
     and the density on a grid, as /view draws them); ``gone`` when the session is deleted.  The
     session store is polled (every ``YAUYAU_EVENTS_POLL`` s), so a chunk applied by any worker or
@@ -223,31 +233,31 @@ async def events(service: SessionsDep, settings: SettingsDep, request: Request, 
     first = True
     while not await request.is_disconnected():
         try:
-            version = await loop.run_in_executor(None, service.version, session_id)
+            version = await loop.run_in_executor(None, service.version, session_id, tenant)
         except NotFound:
             yield ServerSentEvent(event="gone", data={"id": session_id})
             return
         if first or version != seen:
             first, seen = False, version
-            frame = await loop.run_in_executor(None, service.frame, session_id)
+            frame = await loop.run_in_executor(None, service.frame, session_id, 161, tenant)
             yield ServerSentEvent(event="frame", id=str(version), data=frame)
         await asyncio.sleep(settings.events_poll)
 
 
 @sessions.get("/{session_id}/density", response_model=DensityOut, responses=_errors(404, 422))
-def density(service: SessionsDep, session_id: SessionId,
+def density(service: SessionsDep, tenant: TenantDep, session_id: SessionId,
             points: Annotated[str | None, Query(max_length=100_000, description=(
                 "points separated by ';', coordinates by ',' (e.g. '0.1;0.5' or '0,1;1,0')"))] = None,
             grid: Annotated[str | None, Query(max_length=1000, description=(
                 "a product grid, one 'lo:hi:count' per coordinate, separated by ','"))] = None,
             ) -> Response:
     pts = parse_points(points, grid, service.max_density_points)
-    return _json(service.density(session_id, np.asarray(pts, dtype=float)))
+    return _json(service.density(session_id, np.asarray(pts, dtype=float), tenant))
 
 
 @sessions.delete("/{session_id}", status_code=204, response_class=Response, responses=_errors(404))
-def delete_session(service: SessionsDep, session_id: SessionId) -> Response:
-    service.delete(session_id)
+def delete_session(service: SessionsDep, tenant: TenantDep, session_id: SessionId) -> Response:
+    service.delete(session_id, tenant)
     return Response(status_code=204)
 
 

@@ -11,6 +11,11 @@ A chunk's rows are the model's kind of data ([measurement] kind): ``increments``
 model or ``observations`` z of a discrete one, optionally at ``times``; null marks a missing row or
 component.  The session's options (stored with it): ``on_degenerate`` (solver/recovery.py), ``t0``
 (the prior's time) and ``gate`` (the outlier gate; None: the spec's).
+
+Ownership: a session belongs to the tenant that created it (service/tenants.py).  Every operation
+takes the caller's ``tenant``; another tenant's session is NotFound, exactly as an unknown id (so
+its existence does not leak).  ``tenant`` None means the server has no tenants: every session is
+visible; a session without owner (made before tenants) is then visible only that way.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import orjson
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import ChunkResult, Estimate, at_time, check_t0
 from yauyau.solver.measurement import resolve_times
+from yauyau.storage.errors import NotFound
 from yauyau.storage.protocols import SessionStore
 
 from . import metrics
@@ -243,6 +249,16 @@ def _record(rec: Any, name: str) -> Any:
     return rec[name] if isinstance(rec, dict) else getattr(rec, name)
 
 
+def visible(rec: Any, session_id: str, tenant: str | None) -> Any:
+    """``rec`` when the caller may see it (no tenants, or the tenant owns it), else NotFound as for an
+    unknown id."""
+    if tenant is not None:
+        owner = rec.get("owner") if isinstance(rec, dict) else getattr(rec, "owner", None)
+        if owner != tenant:
+            raise NotFound("session", f"no session {session_id!r}")
+    return rec
+
+
 def _options(rec: Any) -> dict[str, Any]:
     """A session's stored options, the defaults filled in (a session stored before options: all)."""
     stored = rec.get("options") if isinstance(rec, dict) else getattr(rec, "options", None)
@@ -316,9 +332,9 @@ class Sessions:
         return health(deep=deep)
 
     def create(self, model_id: str, prior: Any | None, method: str | None, on_degenerate: str = "stop",
-               t0: float = 0.0, gate: float | None = None) -> dict[str, Any]:
-        """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``) are stored
-        with it."""
+               t0: float = 0.0, gate: float | None = None, owner: str | None = None) -> dict[str, Any]:
+        """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``) and its
+        ``owner`` (the tenant creating it, or None) are stored with it."""
         from yauyau.solver.measurement import check_gate
         from yauyau.solver.recovery import check_policy
 
@@ -334,12 +350,12 @@ class Sessions:
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
                     "estimate": estimate, "options": _shown_options(options, filt)}
-        session_id = self.store.create(model_id, filt.method, state.to_dict(), response, options)
+        session_id = self.store.create(model_id, filt.method, state.to_dict(), response, options, owner=owner)
         metrics.SESSIONS.labels(filt.method).inc()
         return {"id": session_id, **response}
 
-    def _session(self, session_id: str) -> tuple[Any, LoadedModel, Any]:
-        rec = self.store.get(session_id)
+    def _session(self, session_id: str, tenant: str | None = None) -> tuple[Any, LoadedModel, Any]:
+        rec = visible(self.store.get(session_id), session_id, tenant)
         loaded = self.registry.get(_record(rec, "model_id"), "session.model")
         return rec, loaded, loaded.filter(_record(rec, "method"), _options(rec)["gate"])
 
@@ -398,7 +414,7 @@ class Sessions:
         for name, value in given.items():
             if len(value) > self.max_chunk_rows:
                 raise InputError(name, f"at most {self.max_chunk_rows} rows per chunk, got {len(value)}")
-        rec, loaded, filt = self._session(request.session_id)
+        rec, loaded, filt = self._session(request.session_id, request.tenant)
         field, data = _chunk_rows(loaded, given)
         array = rows_array(data, loaded.model.m, field)
         times = checked_times(request.times, len(data))
@@ -407,7 +423,7 @@ class Sessions:
                          _options(rec)["on_degenerate"], request.extras, rec)
 
     def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
-              encoded: bool = False) -> Any:
+              encoded: bool = False, tenant: str | None = None) -> Any:
         """Start the session again at its step and time, exactly once under ``seq`` (like a chunk): from
         ``prior`` (a spec prior), or ``source`` "last" (a prior broadened around the last good estimate:
         a degenerate session recovers) or "model" (the model's prior).  The log-likelihood goes on."""
@@ -417,7 +433,7 @@ class Sessions:
             raise InputError("prior" if prior is None else "from",
                              'send exactly one of "prior" (a spec prior) and "from" ("last": around the last '
                              'good estimate; "model": the model\'s prior)')
-        rec, loaded, filt = self._session(session_id)
+        rec, loaded, filt = self._session(session_id, tenant)
         checked = _checked_prior(prior, loaded) if prior is not None else None
         digest = _digest(["reset", source if prior is None else prior.model_dump(mode="json")])
 
@@ -441,10 +457,11 @@ class Sessions:
             metrics.RESETS.inc()
         return response
 
-    def forecast(self, session_id: str, t: float, extras: Extras | None = None) -> dict[str, Any]:
+    def forecast(self, session_id: str, t: float, extras: Extras | None = None,
+                 tenant: str | None = None) -> dict[str, Any]:
         """The estimate at time ``t`` (not before the session's time) without an observation; the session
         is unchanged."""
-        rec, loaded, filt = self._session(session_id)
+        rec, loaded, filt = self._session(session_id, tenant)
         state = filt.state_from_dict(_record(rec, "state"))
         if not math.isfinite(t):
             raise InputError("t", "must be a finite number (the time to forecast to)")
@@ -464,8 +481,9 @@ class Sessions:
             out.update(summaries_of(filt, ahead, estimate, extras))
         return {"id": session_id, "step": int(state.step), "t": float(t), "estimate": out}
 
-    def info(self, session_id: str, extras: Extras | None = None) -> dict[str, Any]:
-        rec, loaded, filt = self._session(session_id)
+    def info(self, session_id: str, extras: Extras | None = None,
+             tenant: str | None = None) -> dict[str, Any]:
+        rec, loaded, filt = self._session(session_id, tenant)
         state = filt.state_from_dict(_record(rec, "state"))
         estimate = filt.estimate(state)
         out = estimate_full(estimate)
@@ -478,16 +496,16 @@ class Sessions:
             info["center"] = np.asarray(filt.ball_center(state), dtype=float).tolist()
         return info
 
-    def version(self, session_id: str) -> int:
+    def version(self, session_id: str, tenant: str | None = None) -> int:
         """The seq the next chunk must carry (changes when a chunk is applied): what /events polls."""
-        return int(_record(self.store.get(session_id), "next_seq"))
+        return int(_record(visible(self.store.get(session_id), session_id, tenant), "next_seq"))
 
-    def frame(self, session_id: str, points: int = 161) -> dict[str, Any]:
+    def frame(self, session_id: str, points: int = 161, tenant: str | None = None) -> dict[str, Any]:
         """What the live page draws: the estimate and the density on a grid around its mass (a curve
         in 1-D, a heat map in 2-D, the marginals in 3-D)."""
         from yauyau.solver import summaries
 
-        rec, loaded, filt = self._session(session_id)
+        rec, loaded, filt = self._session(session_id, tenant)
         state = filt.state_from_dict(_record(rec, "state"))
         estimate = filt.estimate(state)
         out = estimate_full(estimate)
@@ -508,8 +526,8 @@ class Sessions:
         frame["plot"] = plot
         return frame
 
-    def density(self, session_id: str, points: np.ndarray) -> dict[str, Any]:
-        rec, loaded, filt = self._session(session_id)
+    def density(self, session_id: str, points: np.ndarray, tenant: str | None = None) -> dict[str, Any]:
+        rec, loaded, filt = self._session(session_id, tenant)
         n = loaded.model.n
         if points.shape[1] != n:
             raise InputError("points", f"each point needs {n} coordinate(s), got {points.shape[1]}")
@@ -521,12 +539,16 @@ class Sessions:
         return {"step": int(state.step), "t": float(state.t), "points": points.tolist(),
                 "density": values.tolist()}
 
-    def delete(self, session_id: str) -> None:
+    def delete(self, session_id: str, tenant: str | None = None) -> None:
+        if tenant is not None:
+            visible(self.store.get(session_id), session_id, tenant)
         self.store.delete(session_id)
 
-    def page(self, limit: int = 100, after: str | None = None, model: str | None = None) -> dict[str, Any]:
-        """A page of sessions by id (``after``: the previous page's ``next``)."""
-        rows = self.store.list_sessions(limit + 1, after, model)
+    def page(self, limit: int = 100, after: str | None = None, model: str | None = None,
+             tenant: str | None = None) -> dict[str, Any]:
+        """A page of sessions by id (``after``: the previous page's ``next``): the tenant's only, all
+        of them without tenants."""
+        rows = self.store.list_sessions(limit + 1, after, model, owner=tenant)
         more = len(rows) > limit
         rows = rows[:limit]
         return {"sessions": [{"id": r["id"], "model": r["model_id"], "method": r["method"], "step": r["step"],
@@ -595,6 +617,7 @@ class ChunkRequest:
     extras: Extras | None = None
     observations: list | None = None
     times: list[float] | None = None
+    tenant: str | None = None  # the caller (None: no tenants): another tenant's session is NotFound
 
 
 @dataclass(slots=True)

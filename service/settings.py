@@ -70,6 +70,15 @@ class Settings(BaseSettings):
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
     metrics_dir: Path | None = Field(
         None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")
+    tenants_file: Path | None = Field(
+        None, description="a TOML file of [[tenant]] tables (name, token_sha256, admin): every /v1 "
+                          "request then needs Authorization: Bearer TOKEN and a session belongs to the "
+                          "tenant that made it (service/tenants.py); unset: no authentication, loopback only")
+    insecure_bind: bool = Field(
+        False, description="allow a non-loopback host without a tenants file (authentication done in front)")
+    allowed_hosts: str | None = Field(
+        None, description="comma-separated names the Host header may carry ('*': any), against DNS "
+                          "rebinding; default: localhost, 127.0.0.1, ::1 and the bind address")
 
     @field_validator("session_db", mode="before")
     @classmethod

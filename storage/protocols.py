@@ -18,8 +18,10 @@ Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], "dict[str, Any] | str
 @runtime_checkable
 class SessionStore(Protocol):
     def create(self, model_id: str, method: str, state: dict[str, Any],
-               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> str:
-        """A new session at seq 0 with its ``options`` (a JSON object kept as given); returns its id."""
+               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None,
+               owner: str | None = None) -> str:
+        """A new session at seq 0 with its ``options`` (a JSON object kept as given) and ``owner`` (the
+        tenant it belongs to, or None); returns its id."""
 
     def get(self, session_id: str) -> Any:
         """The session's record (id, model_id, method, state, next_seq, options, ...; ``options`` is

@@ -49,12 +49,12 @@ Compute = Callable[[dict[str, Any]], tuple[dict[str, Any], dict[str, Any] | str]
 # compute_many([(index, state)]) -> per pair (new state, response) or the exception that is its answer
 ComputeMany = Callable[[list[tuple[int, dict[str, Any]]]], list[Any]]
 SESSION_FIELDS = ("id", "model_id", "method", "state", "initial_response", "next_seq", "step", "t", "loglik",
-                  "created", "updated", "version", "options", "checksum")
+                  "created", "updated", "version", "options", "owner", "checksum")
 # columns added after a store's first release: (table, column, SQL type), added when a store opens a
 # database written before them (a row written before has NULL there: it cannot be verified)
 ADDED_COLUMNS = (("chunks", "digest", "TEXT"), ("chunks", "stored", "REAL"), ("chunks", "size", "INTEGER"),
                  ("chunks", "checksum", "TEXT"), ("sessions", "options", "TEXT NOT NULL DEFAULT '{}'"),
-                 ("sessions", "checksum", "TEXT"))
+                 ("sessions", "owner", "TEXT"), ("sessions", "checksum", "TEXT"))
 MAX_ATTEMPTS = 100
 
 
@@ -77,6 +77,7 @@ CREATE TABLE IF NOT EXISTS sessions (
     updated TEXT NOT NULL,
     version {integer} NOT NULL,
     options TEXT NOT NULL DEFAULT '{{}}',
+    owner TEXT,
     checksum TEXT
 );
 CREATE TABLE IF NOT EXISTS chunks (
@@ -108,6 +109,7 @@ class SessionRecord:
     updated: str
     version: int
     options: dict[str, Any] = field(default_factory=dict)  # per-session settings, as the service stored them
+    owner: str | None = None  # the tenant that created it (None: no tenant, e.g. made before tenants)
 
 
 def _utc_now() -> str:
@@ -173,10 +175,12 @@ def checksum(*texts: str) -> str:
 
 
 def session_checksum(session_id: str, model_id: str, method: str, next_seq: int, state_text: str,
-                     options_text: str) -> str:
-    """A session row's checksum: its state bound to the session, its model, method and options and to
-    the seq it is at (an older state written back, or another session's, fails it too)."""
-    return checksum(session_id, model_id, method, str(int(next_seq)), state_text, options_text)
+                     options_text: str, owner: str | None) -> str:
+    """A session row's checksum: its state bound to the session, its model, method, options and owner
+    and to the seq it is at (an older state written back, another session's, or the session handed to
+    another tenant fails it too)."""
+    return checksum(session_id, model_id, method, str(int(next_seq)), state_text, options_text,
+                    "no owner" if owner is None else f"owner {owner}")
 
 
 def _damaged(what: str) -> Unavailable:
@@ -219,9 +223,13 @@ class SessionStoreBase:
 
     # -- records --------------------------------------------------------------------
     def create(self, model_id: str, method: str, state: dict[str, Any],
-               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> str:
+               initial_response: dict[str, Any] | None = None, options: dict[str, Any] | None = None,
+               owner: str | None = None) -> str:
         """A new session at seq 0; returns its random url-safe id.  ``options``: the session's own
-        settings (a JSON object with finite numbers), kept with it and returned by :meth:`get`."""
+        settings (a JSON object with finite numbers), kept with it and returned by :meth:`get`;
+        ``owner``: the tenant it belongs to (None: no tenant)."""
+        if owner is not None and not isinstance(owner, str):
+            raise StoreError("owner", f"must be a tenant's name (text) or None, got {type(owner).__name__}")
         state_text = _dumps(state, "state")
         initial_text = _dumps(initial_response or {}, "initial_response")
         options_text = _dumps(options or {}, "options")
@@ -229,11 +237,11 @@ class SessionStoreBase:
         now = _utc_now()
         step, t, loglik = _progress(state, initial_response or {}, (0, 0.0, None))
         columns = ", ".join(SESSION_FIELDS)
-        sealed = session_checksum(session_id, str(model_id), str(method), 0, state_text, options_text)
+        sealed = session_checksum(session_id, str(model_id), str(method), 0, state_text, options_text, owner)
         with self._transaction() as db:
             db.execute(f"INSERT INTO sessions ({columns}) VALUES ({', '.join('?' * len(SESSION_FIELDS))})",
                        (session_id, str(model_id), str(method), state_text, initial_text, 0, step, t,
-                        loglik, now, now, 0, options_text, sealed))
+                        loglik, now, now, 0, options_text, owner, sealed))
         return session_id
 
     def get(self, session_id: str) -> SessionRecord:
@@ -253,8 +261,9 @@ class SessionStoreBase:
         options_text = row["options"] or "{}"
         sealed = row["checksum"]
         sid = row["id"]
-        if sealed is not None and sealed != session_checksum(sid, row["model_id"], row["method"],
-                                                             row["next_seq"], row["state"], options_text):
+        expected = session_checksum(sid, row["model_id"], row["method"], row["next_seq"], row["state"],
+                                    options_text, row["owner"])
+        if sealed is not None and sealed != expected:
             raise _damaged(f"session {sid} was changed outside the service (its row fails its checksum)")
         try:
             return SessionRecord(
@@ -262,7 +271,7 @@ class SessionStoreBase:
                 initial_response=orjson.loads(row["initial_response"]), next_seq=row["next_seq"],
                 step=row["step"],
                 t=row["t"], loglik=row["loglik"], created=row["created"], updated=row["updated"],
-                version=row["version"], options=orjson.loads(options_text))
+                version=row["version"], options=orjson.loads(options_text), owner=row["owner"])
         except orjson.JSONDecodeError:
             raise _damaged(f"session {sid} is damaged in the store (its row is not valid JSON)") from None
 
@@ -282,15 +291,17 @@ class SessionStoreBase:
 
     # -- lifecycle ------------------------------------------------------------------
     def list_sessions(self, limit: int = 100, after: str | None = None,
-                      model_id: str | None = None) -> list[dict[str, Any]]:
+                      model_id: str | None = None, owner: str | None = None) -> list[dict[str, Any]]:
         """A page of sessions (no states), by id: those after ``after`` (the last id of the previous
-        page), of ``model_id`` if given."""
+        page), of ``model_id`` if given, of the tenant ``owner`` if given (None: every session's)."""
         if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= 10_000:
             raise StoreError("limit", f"must be an integer in [1, 10000], got {limit!r}")
-        which = " AND model_id = ?" if model_id is not None else ""
+        filters = [(column, str(value)) for column, value in (("model_id", model_id), ("owner", owner))
+                   if value is not None]
+        which = "".join(f" AND {column} = ?" for column, _ in filters)
         query = ("SELECT id, model_id, method, next_seq, step, t, loglik, created, updated FROM sessions "
                  f"WHERE id > ?{which} ORDER BY id LIMIT ?")
-        args = (after or "", *([str(model_id)] if model_id is not None else []), limit)
+        args = (after or "", *(value for _, value in filters), limit)
         try:
             rows = self._query(query, args).fetchall()
         except self._db_errors as exc:
@@ -487,7 +498,7 @@ class SessionStoreBase:
         """Store a chunk's row in the open transaction; False when another writer moved the session on."""
         state_text, response_text, step, t, loglik = row
         sealed = session_checksum(old.id, old.model_id, old.method, seq + 1, state_text,
-                                  _dumps(old.options, "options"))
+                                  _dumps(old.options, "options"), old.owner)
         changed = db.execute(
             "UPDATE sessions SET state = ?, next_seq = ?, step = ?, t = ?, loglik = ?, updated = ?, "
             "version = version + 1, checksum = ? WHERE id = ? AND version = ?",

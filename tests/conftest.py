@@ -19,6 +19,16 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.path not in slow)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _testclient_host():
+    """Starlette's TestClient sends ``Host: testserver``: the in-process apps of the tests accept that
+    name besides the loopback ones (the Host check, service/tenants.py; servers the tests start
+    inherit the list, and tests of the check set their own)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("YAUYAU_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")
+        yield
+
+
 def precompute_into(store: Path, spec_path: Path) -> str:
     """Solve the offline stage of an example spec and save it (method chosen once); returns the id."""
     import yauyau

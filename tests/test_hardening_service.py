@@ -332,14 +332,14 @@ def test_strict_requests(tmp_path, example_store):
         points = ";".join(["0.5"] * 25_000)[:100_000].rstrip(";")  # percent-encoded: ~150 KB of head
         from urllib.parse import quote
 
-        head = (f"GET /v1/sessions/{sid}/density?points={quote(points)} HTTP/1.1\r\nHost: x\r\n"
+        head = (f"GET /v1/sessions/{sid}/density?points={quote(points)} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                 "Connection: close\r\n\r\n").encode()
         accepted = _raw(server.port, head)
         assert accepted.startswith(b"HTTP/1.1 200"), accepted[:300]
         assert json.loads(accepted.split(b"\r\n\r\n", 1)[1])["density"].__len__() == points.count(";") + 1
         big = _raw(server.port, b"GET /livez HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 600_000 + b"\r\n\r\n")
         assert big.startswith(b"HTTP/1.1 431") and b"application/problem+json" in big
-        bad_length = _raw(server.port, b"POST /v1/sessions HTTP/1.1\r\nHost: x\r\n"
+        bad_length = _raw(server.port, b"POST /v1/sessions HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                                        b"Content-Type: application/json\r\nContent-Length: ten\r\n\r\n{}")
         assert bad_length.startswith(b"HTTP/1.1 400") and b"Content-Length" in bad_length
         assert b"application/problem+json" in bad_length

@@ -48,6 +48,7 @@ def browser(tmp_path_factory):
                  "--disable-dev-shm-usage", "--window-size=900,800",
                  f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
         options.add_argument(flag)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})  # console, network
     try:
         driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
     except WebDriverException as exc:
@@ -163,3 +164,104 @@ def test_view_and_events_of_an_unknown_session_are_404(server):
     for path in ("view", "events"):
         r = httpx.get(f"{srv.url}/v1/sessions/nope/{path}", timeout=10)
         assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+
+
+# -- with tenants: the token is typed once, sent in a header, never in a URL --------------------------
+@pytest.fixture(scope="module")
+def tenant_server(tmp_path_factory, example_store):
+    """A server with tenants alice and bob (tokens random, the file holds their SHA-256)."""
+    import hashlib
+    import secrets
+
+    store, ids = example_store
+    tokens = {name: secrets.token_urlsafe(24) for name in ("alice", "bob")}
+    path = tmp_path_factory.mktemp("tenants") / "tenants.toml"
+    path.write_text("".join(f'[[tenant]]\nname = "{name}"\n'
+                            f'token_sha256 = "{hashlib.sha256(t.encode()).hexdigest()}"\n'
+                            for name, t in tokens.items()))
+    srv = Server(store, tmp_path_factory.mktemp("tenant-db") / "sessions.sqlite3",
+                 env={"YAUYAU_TENANTS_FILE": str(path)})
+    yield srv, ids, tokens
+    srv.kill()
+
+
+def _requests(driver) -> list[dict]:
+    """Every request the browser sent since the last call (Chrome's performance log)."""
+    import json
+
+    out = []
+    for entry in driver.get_log("performance"):
+        message = json.loads(entry["message"])["message"]
+        if message["method"] == "Network.requestWillBeSent":
+            out.append(message["params"]["request"])
+    return out
+
+
+def _token_field(driver):
+    field = driver.find_element("id", "token")
+    return field if field.is_displayed() else None
+
+
+def _csp_violations(driver) -> list[str]:
+    return [e["message"] for e in driver.get_log("browser") if "Content Security Policy" in e["message"]]
+
+
+def test_page_with_tenants_asks_the_token_once_and_keeps_it_out_of_urls(browser, tenant_server, tmp_path):
+    srv, ids, tokens = tenant_server
+    alice = {"Authorization": f"Bearer {tokens['alice']}"}
+    client = httpx.Client(base_url=srv.url, timeout=30, headers=alice)
+    sid = client.post("/v1/sessions", json={"model": ids["cubic_sensor"]}).json()["id"]
+    shell = httpx.get(f"{srv.url}/v1/sessions/{sid}/view", headers={"Accept": "text/html"}, timeout=10)
+    assert shell.status_code == 401
+    csp = shell.headers["content-security-policy"]
+    for directive in ("default-src 'none'", "connect-src 'self'", "frame-ancestors 'none'", "base-uri 'none'",
+                      "form-action 'none'", "script-src 'sha256-", "style-src 'sha256-"):
+        assert directive in csp, (directive, csp)
+    assert "unsafe-inline" not in csp
+    assert shell.headers["x-content-type-options"] == "nosniff"
+    assert shell.headers["referrer-policy"] == "no-referrer"
+    browser.get_log("performance"), browser.get_log("browser")  # start the logs here
+
+    browser.get(f"{srv.url}/v1/sessions/{sid}/view")
+    field = _wait(browser, _token_field, "the token field")
+    status = browser.execute_script("return performance.getEntriesByType('navigation')[0].responseStatus")
+    assert status == 401
+    field.send_keys(tokens["alice"])
+    browser.find_element("css selector", "#auth button").click()
+    _wait(browser, _at_step(0), "step 0")
+    rows = _increments("cubic_sensor", 200, seed=5)
+    for seq in range(2):
+        last = client.post(f"/v1/sessions/{sid}/observations",
+                           json={"seq": seq, "increments": rows[seq * 100:(seq + 1) * 100]}).json()
+        _wait(browser, _at_step(last["step"]), f"step {last['step']}")
+    shown = _numbers(browser.find_element("id", "mean").text)
+    assert shown[0] == pytest.approx(last["estimates"][-1]["mean"][0], rel=1e-4, abs=1e-5)
+    # reloaded, the page goes on with the token of this tab: not asked again
+    browser.refresh()
+    _wait(browser, _at_step(200), "step 200 after a reload")
+    assert not browser.find_element("id", "token").is_displayed()
+    browser.save_screenshot(str((_shots() or tmp_path) / "live-tenant.png"))
+
+    sent = _requests(browser)
+    events = [r for r in sent if r["url"].endswith(f"/v1/sessions/{sid}/events")]
+    assert len(events) >= 2 and all(r["headers"].get("Authorization") == alice["Authorization"]
+                                    for r in events[-2:])  # after the token was typed, and after the reload
+    urls = [r["url"] for r in sent] + browser.execute_script(
+        "return performance.getEntries().map((e) => e.name).concat([location.href, document.referrer])")
+    assert not [u for u in urls if tokens["alice"] in u], urls
+    assert browser.execute_script("return sessionStorage.getItem('yauyau-token')") == tokens["alice"]
+    assert browser.execute_script("return localStorage.length + document.cookie.length") == 0
+    assert _csp_violations(browser) == []
+    # the console does report violations (so the empty list above means something): an image is not allowed
+    injected = "document.body.append(Object.assign(document.createElement('img'), {src: '/x.png'}))"
+    browser.execute_script(injected)
+    _wait(browser, lambda d: bool(_csp_violations(d)), "a CSP violation for an injected image")
+
+    # another tenant's token: the session does not exist for it
+    browser.execute_script("sessionStorage.clear()")
+    browser.refresh()
+    field = _wait(browser, _token_field, "the token field")
+    field.send_keys(tokens["bob"])
+    browser.find_element("css selector", "#auth button").click()
+    _wait(browser, lambda d: d.find_element("id", "status").text == "no such session", "no such session")
+    browser.execute_script("sessionStorage.clear()")

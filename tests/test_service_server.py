@@ -38,8 +38,9 @@ class Server:
         cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
                "--session-db", str(db), "--port", str(self.port), "--workers", str(workers),
                "--log-level", "warning"]
+        env = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}  # None: unset
         self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, env={**os.environ, **(env or {})})
+                                     stderr=subprocess.PIPE, env=env)
         self._wait_ready()
 
     def _wait_ready(self, timeout=90.0):

@@ -192,7 +192,7 @@ def test_version_clash_on_a_moved_session_recomputes(store: SqliteSessionStore):
             text = '{"values":["other"]}'
             with _reopen(store)._transaction() as db:
                 db.execute("UPDATE sessions SET version = version + 1, state = ?, checksum = ? WHERE id = ?",
-                           (text, session_checksum(sid, "m", "yau-yau", 0, text, "{}"), sid))
+                           (text, session_checksum(sid, "m", "yau-yau", 0, text, "{}", None), sid))
         return append_seq(0)(state)
     response, replayed = store.apply_chunk(sid, 0, compute)
     assert not replayed and seen == [[], ["other"]] and response["before"] == ["other"]

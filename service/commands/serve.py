@@ -7,6 +7,7 @@ environment so that every worker process (spawned by uvicorn) builds the same ap
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 
 
@@ -38,6 +39,15 @@ def add_arguments(parser):
                         help="seconds a worker waits for more chunks before stepping those it has together "
                              "(env YAUYAU_BATCH_WINDOW; default 0: the chunks already waiting)")
     parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    parser.add_argument("--tenants", metavar="FILE",
+                        help="TOML file of [[tenant]] tables (name, token_sha256, admin): every /v1 request "
+                             "then needs Authorization: Bearer TOKEN (env YAUYAU_TENANTS_FILE)")
+    parser.add_argument("--insecure-bind", action="store_true", default=None,
+                        help="listen on a non-loopback --host without a tenants file, when something in "
+                             "front authenticates (env YAUYAU_INSECURE_BIND)")
+    parser.add_argument("--allowed-hosts", metavar="NAMES",
+                        help="comma-separated names the Host header may carry, * for any (env "
+                             "YAUYAU_ALLOWED_HOSTS; default localhost, 127.0.0.1, ::1 and --host)")
 
 
 def _settings(args):
@@ -52,7 +62,9 @@ def _settings(args):
                                    "blas_threads": args.blas_threads, "model_cache": args.model_cache,
                                    "session_idle_expiry": args.session_idle_expiry,
                                    "batch_window": args.batch_window,
-                                   "log_level": args.log_level}.items() if v is not None}
+                                   "log_level": args.log_level, "tenants_file": args.tenants,
+                                   "insecure_bind": args.insecure_bind,
+                                   "allowed_hosts": args.allowed_hosts}.items() if v is not None}
     try:
         return Settings(**overrides)
     except ValidationError as exc:
@@ -91,9 +103,11 @@ def _check_session_db(settings) -> None:
 def run(args):
     import uvicorn
     from yauyau.service.protocol import MAX_HEAD_BYTES, ServiceProtocol
+    from yauyau.service.tenants import serve_notes
     from yauyau.storage.errors import StoreError
 
     settings = _settings(args)
+    notes = serve_notes(settings)  # the tenants file loads; loopback only without one (else exit 2)
     if not settings.store.is_dir():
         raise StoreError("store", f"no model store {settings.store} (run `yauyau precompute` first)")
     _check_session_db(settings)
@@ -101,6 +115,8 @@ def run(args):
         # prometheus multiprocess mode: must be set before any worker imports prometheus_client
         settings.metrics_dir = tempfile.mkdtemp(prefix="yauyau-metrics-")
     os.environ.update(settings.to_env())
+    for note in notes:
+        print(note, file=sys.stderr, flush=True)
     if settings.metrics_dir is not None:
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(settings.metrics_dir)
     uvicorn.run("yauyau.service.app:create_app", factory=True, host=settings.host, port=settings.port,
