@@ -661,11 +661,24 @@ def parse_spec_text(text: str, fmt: str) -> ModelSpec:
 
 
 def load_spec(path: str | Path) -> ModelSpec:
-    """Read a spec file (.toml or .json)."""
+    """Read a spec file (.toml or .json; anything else is read as TOML)."""
     path = Path(path)
     fmt = "json" if path.suffix.lower() == ".json" else "toml"
+    return parse_spec_text(read_spec_text(path), fmt)
+
+
+def read_spec_text(path: str | Path) -> str:
+    """The text of a spec file, reading at most MAX_SPEC_BYTES + 1 bytes: a larger file, or an endless
+    stream (/dev/zero, a pipe), is refused after that many bytes instead of being read whole."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_SPEC_BYTES + 1)
+    except OSError as exc:
         raise SpecError("spec", f"cannot read {path}: {exc}") from None
-    return parse_spec_text(text, fmt)
+    if len(data) > MAX_SPEC_BYTES:
+        raise SpecError("spec", f"{path} is larger than {MAX_SPEC_BYTES} bytes, the most a spec may hold "
+                                "(a spec is a short TOML or JSON file)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecError("spec", f"cannot read {path}: {exc}") from None
