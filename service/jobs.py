@@ -61,6 +61,7 @@ class Jobs:
     def submit(self, spec_doc: dict[str, Any]) -> tuple[dict[str, Any], bool]:
         """Check ``spec_doc`` and start its precompute unless it is stored or running: (the job, whether
         this call started it).  SpecError names a bad field; PrecomputeLimit an oversize one."""
+        from yauyau.solver.computable import check_computable
         from yauyau.solver.fem import planned_nodes
         from yauyau.solver.model import compile_model
         from yauyau.solver.spec import spec_from_dict
@@ -76,6 +77,7 @@ class Jobs:
             raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
                                   f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES)")
         model = compile_model(spec)  # the expressions parse and are finite: a 4xx now, not a failed job
+        check_computable(model)  # a radius, diffusion or drift beyond a double's precision: 422 now
         centres = _atlas_centres(model)
         if centres > self.max_centres:
             raise PrecomputeLimit("spec.domain.region", f"an atlas of about {centres} centres: this service "

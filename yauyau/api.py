@@ -93,6 +93,9 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
         from .solver.follow import check_follow
 
         check_follow(model)
+    from .solver.computable import check_computable
+
+    check_computable(model)  # a radius, diffusion or drift beyond a double's precision: before solving
     offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler,
                             atlas_sink=atlas_sink)
     seconds = time.perf_counter() - started
@@ -105,10 +108,9 @@ def mesh_free_only(model: Any) -> bool:
     engine's finite elements go up to 3), or a method named in the spec that needs none (kalman-bucy,
     yau-jia: nothing to precompute).  A mesh-free method filters it.  (A diffusion that is only
     positive semi-definite is the engine's too, with the stabilised scheme: Discretization.scheme.)"""
-    from .solver.registry import REGISTRY
+    from .solver.registry import mesh_free
 
-    method = REGISTRY.get(model.spec.method)
-    return model.n > 3 or (method is not None and not method.needs_offline)
+    return mesh_free(model.spec)
 
 
 def _mesh_free_method(model: Any, time_limit: float | None, grace: float | None) -> tuple[str, str]:
