@@ -119,7 +119,7 @@ def test_a_posted_model_job_keeps_the_analysis_time_limit(tmp_path):
 
 def test_the_library_precompute_keeps_its_time_limit_in_a_script_without_a_main_guard(tmp_path):
     """yauyau.precompute from a plain script (no ``if __name__ == "__main__"``): the analysis process
-    does not run the script again (it is not a multiprocessing child of the script)."""
+    (a fork of the script, or a fresh Python) does not run the script again, as a spawned one would."""
     script = tmp_path / "plain.py"
     marker = tmp_path / "runs.txt"
     script.write_text(

@@ -12,12 +12,14 @@ other one undecided within the time limit, the recommendation from those (the ge
 yau-yau, which is always valid, when nothing was decided), and a note saying that the process was
 stopped.
 
-Two ways to start the child:
+How the child starts (``start``):
 
-* ``"subprocess"`` (the default, for one-shot callers and library users): ``python -m
-  yauyau.solver.analysis.isolated FD``, which never re-imports the caller's ``__main__`` (a script
-  without an ``if __name__ == "__main__"`` guard stays safe).  Its start-up (Python and SymPy, ~1 s) is
-  not counted in the limit; it is bounded by :data:`STARTUP_LIMIT`.
+* ``"auto"`` (the default, for the CLI and library users): a fork of the caller when it runs no other
+  thread (a fork of a threaded process can deadlock in the child), else ``"subprocess"``;
+* ``"subprocess"``: ``python -m yauyau.solver.analysis.isolated FD``.  Neither re-imports the caller's
+  ``__main__`` (a script without an ``if __name__ == "__main__"`` guard stays safe).  Their start-up
+  (imports: SymPy, ~1 s for a fresh Python) is not counted in the limit; it is bounded by
+  :data:`STARTUP_LIMIT`;
 * ``"forkserver"`` (a server): a fork of a process that has SymPy and the analysis loaded (~20 ms).
 
 The child also caps its own CPU time (limit + grace + start-up), so that it dies even if its parent is
@@ -112,10 +114,14 @@ def _cap_cpu(seconds: float) -> None:
         pass  # a platform without these limits: the parent's kill still holds
 
 
-def _forkserver_child(conn: Connection, spec_doc: dict[str, Any], time_limit: float, bounds: dict[str, Any],
-                      grace: float) -> None:
+def _child(conn: Connection, spec_doc: dict[str, Any], time_limit: float, bounds: dict[str, Any],
+           grace: float) -> None:
+    """A forked child (``"auto"`` or ``"forkserver"``): the imports (none left after a forkserver's
+    preload), "ready", then the analysis."""
     _cap_cpu(time_limit + grace + STARTUP_LIMIT)
     try:
+        import yauyau.solver.analysis  # noqa: F401 - the start-up, not counted in the limit
+
         conn.send(["ready"])
         work(spec_doc, time_limit, bounds, conn.send)
     finally:
@@ -147,11 +153,11 @@ class AnalysisRunner:
     time_limit, bounds, grace)`` replaces the child's work (tests: a child that never answers)."""
 
     def __init__(self, concurrency: int | None = None, grace: float = DEFAULT_GRACE,
-                 start: str = "subprocess", target: Callable | None = None):
-        if start not in ("subprocess", "forkserver"):
-            raise ValueError(f"start must be 'subprocess' or 'forkserver', got {start!r}")
+                 start: str = "auto", target: Callable | None = None):
+        if start not in ("auto", "subprocess", "forkserver"):
+            raise ValueError(f"start must be 'auto', 'subprocess' or 'forkserver', got {start!r}")
         self.grace, self.start = grace, start
-        self._target = target or _forkserver_child
+        self._target = target or _child
         self._slots = None if concurrency is None else threading.BoundedSemaphore(concurrency)
         if start == "forkserver":
             self._context = multiprocessing.get_context("forkserver")
@@ -173,18 +179,23 @@ class AnalysisRunner:
         """The child's messages up to its final one, and why it ended without one (None if it did not)."""
         receive, send = multiprocessing.Pipe(duplex=False)
         child = None
+        start = self.start
+        if start == "auto":
+            start = "fork" if threading.active_count() == 1 else "subprocess"
         try:
-            if self.start == "forkserver":
-                child = _ForkedChild(self._context, self._target, send, spec_doc, time_limit, bounds,
-                                     self.grace)
-            else:
+            if start == "subprocess":
                 child = _SubprocessChild(send, spec_doc, time_limit, bounds, self.grace)
+            else:
+                context = self._context if start == "forkserver" else multiprocessing.get_context("fork")
+                child = _ForkedChild(context, self._target, send, spec_doc, time_limit, bounds, self.grace)
             send.close()  # the child holds the other end: its death is an EOF here
-            if self.start == "subprocess":
+            if start != "forkserver":  # a forkserver's child is ready when it starts: its imports are done
                 first, why = _receive(receive, time.monotonic() + STARTUP_LIMIT)
                 if first is None:
                     why = why if why != "timeout" else f"did not start within {STARTUP_LIMIT:g} s"
                     return [], why
+                if first[0] != "ready":  # a final answer already (nothing else comes before "ready")
+                    return [first], None
             return _collect(receive, time.monotonic() + time_limit + self.grace, time_limit, self.grace)
         finally:
             receive.close()
@@ -243,6 +254,11 @@ def _collect(conn: Connection, deadline: float, time_limit: float,
 class _ForkedChild:
     def __init__(self, context, target: Callable, send: Connection, spec_doc: dict[str, Any],
                  time_limit: float, bounds: dict[str, Any], grace: float):
+        for stream in (sys.stdout, sys.stderr):  # a fork copies unwritten output, and the child flushes it
+            try:
+                stream.flush()
+            except (AttributeError, OSError, ValueError):
+                pass
         self.process = context.Process(target=target, args=(send, spec_doc, time_limit, bounds, grace),
                                        daemon=True, name="yauyau-analysis")
         self.process.start()
