@@ -46,7 +46,7 @@ from typing import Any, Callable
 from ..errors import SpecError
 
 DEFAULT_GRACE = 2.0  # seconds past the time limit before the analysis process is killed
-STARTUP_LIMIT = 60.0  # seconds a "subprocess" child may take to start (import SymPy) before it is killed
+STARTUP_LIMIT = 60.0  # seconds a child may take to start (its imports: SymPy) before it is killed
 _PRELOAD = ["yauyau.solver.analysis", "yauyau.solver.model", "yauyau.solver.spec"]
 
 
@@ -71,13 +71,6 @@ class Analysis:
     @property
     def reason(self) -> str:
         return self.report["recommendation"]["reason"]
-
-
-def bounds_of(max_depth: int | None = None, max_dimension: int | None = None,
-              max_size: int | None = None) -> dict[str, int]:
-    """The analysis' structural bounds as keyword arguments (the defaults of :func:`analyze` left out)."""
-    given = {"max_depth": max_depth, "max_dimension": max_dimension, "max_size": max_size}
-    return {k: v for k, v in given.items() if v is not None}
 
 
 # -- the child ------------------------------------------------------------------------------------------
