@@ -129,7 +129,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.registry = registry
         app.state.sessions = sessions
         app.state.jobs = Jobs(settings.store, settings.max_precompute_basis, settings.max_precompute_nodes,
-                              settings.max_precompute_centres)
+                              settings.max_precompute_centres, settings.precompute_time_limit,
+                              settings.analyze_grace)
         app.state.ready = True
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,

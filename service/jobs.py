@@ -51,14 +51,17 @@ def _atlas_centres(model: Any) -> int:
 class Jobs:
     """The precompute jobs of one model store directory."""
 
-    def __init__(self, store: Path, max_basis: int, max_nodes: int, max_centres: int = 256):
+    def __init__(self, store: Path, max_basis: int, max_nodes: int, max_centres: int = 256,
+                 analysis_time_limit: float = 60.0, analysis_grace: float = 2.0):
         self.store = Path(store)
         self.directory = self.store / "jobs"
         self.max_basis, self.max_nodes, self.max_centres = max_basis, max_nodes, max_centres
+        self.analysis_time_limit, self.analysis_grace = analysis_time_limit, analysis_grace
 
     def submit(self, spec_doc: dict[str, Any]) -> tuple[dict[str, Any], bool]:
         """Check ``spec_doc`` and start its precompute unless it is stored or running: (the job, whether
         this call started it).  SpecError names a bad field; PrecomputeLimit an oversize one."""
+        from yauyau.solver.computable import check_computable
         from yauyau.solver.fem import planned_nodes
         from yauyau.solver.model import compile_model
         from yauyau.solver.spec import spec_from_dict
@@ -74,6 +77,7 @@ class Jobs:
             raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
                                   f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES)")
         model = compile_model(spec)  # the expressions parse and are finite: a 4xx now, not a failed job
+        check_computable(model)  # a radius, diffusion or drift beyond a double's precision: 422 now
         centres = _atlas_centres(model)
         if centres > self.max_centres:
             raise PrecomputeLimit("spec.domain.region", f"an atlas of about {centres} centres: this service "
@@ -90,7 +94,8 @@ class Jobs:
         if not self._claim(mid, job):
             return self.status(mid), False
         _write_text(self.directory / f"{mid}.spec.json", spec_json)  # only the claimer writes it
-        subprocess.Popen([sys.executable, "-m", "yauyau.service.jobs", str(self.store), mid],
+        subprocess.Popen([sys.executable, "-m", "yauyau.service.jobs", str(self.store), mid,
+                          repr(self.analysis_time_limit), repr(self.analysis_grace)],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                          start_new_session=True)  # it writes its pid and its progress itself
         return self.status(mid), True
@@ -176,8 +181,10 @@ def _locked(path: Path) -> bool:
         return False
 
 
-def run(store: Path, mid: str) -> int:
-    """The job's process: precompute the spec saved for ``mid`` into ``store``, reporting progress."""
+def run(store: Path, mid: str, time_limit: float = 60.0, grace: float = 2.0) -> int:
+    """The job's process: precompute the spec saved for ``mid`` into ``store``, reporting progress; the
+    method analysis (method auto) is killed ``grace`` seconds after ``time_limit`` (the job then goes on
+    with the bounded report's choice)."""
     import threading
 
     from yauyau.solver.spec import spec_from_dict
@@ -206,7 +213,7 @@ def run(store: Path, mid: str) -> int:
 
     try:
         spec = spec_from_dict(json.loads((Path(store) / "jobs" / f"{mid}.spec.json").read_text()))
-        saved = precompute(spec, store, progress=progress)
+        saved = precompute(spec, store, progress=progress, time_limit=time_limit, analysis_grace=grace)
         if saved != mid:
             raise RuntimeError(f"the stored id {saved} is not the job's {mid}")
     except Exception as exc:  # noqa: BLE001 - the job's answer, read by GET /v1/jobs/{id}
@@ -219,4 +226,4 @@ def run(store: Path, mid: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run(Path(sys.argv[1]), sys.argv[2]))
+    sys.exit(run(Path(sys.argv[1]), sys.argv[2], *map(float, sys.argv[3:5])))

@@ -55,6 +55,11 @@ class Settings(BaseSettings):
                                          "which bound stopped the analysis)")
     analyze_grace: float = Field(
         2.0, gt=0, le=60, description="seconds past analyze_time_limit before the analysis process is killed")
+    precompute_time_limit: float = Field(
+        60.0, gt=0, le=3600, description="seconds the analysis of a POST /v1/models job may take to choose "
+                                         "the method (method auto); its process is killed analyze_grace "
+                                         "later and the job goes on with what it decided (the general "
+                                         "engine, yau-yau, when nothing)")
     analyze_concurrency: int = Field(
         1, ge=1, le=64, description="analyses one worker runs at once, each in a process of its own that is "
                                     "killed at analyze_time_limit + analyze_grace")

@@ -226,7 +226,12 @@ def default_resolution(n: int, order: int, size: int) -> int:
 
 def planned_nodes(spec) -> int:
     """How many interior nodes the spec's discretisation will have (no mesh is built): what a service
-    checks against its limit before it accepts a precompute."""
+    checks against its limit before it accepts a precompute.  A mesh-free spec (more than three state
+    variables, or a method without offline arrays) plans none."""
+    from .registry import mesh_free
+
+    if mesh_free(spec):
+        return 0
     n = len(spec.state)
     order = effective_order(n, spec.discretization.order, spec.discretization.element)
     resolution = spec.discretization.mesh or default_resolution(n, order, spec.discretization.basis)

@@ -32,17 +32,18 @@ def _checked(method: str) -> str:
 
 
 def choose_method(model: "Model", method: str | None = None, *, offline: Any | None = None,
-                  time_limit: float | None = 60.0) -> tuple[str, str]:
+                  time_limit: float | None = 60.0, grace: float | None = None) -> tuple[str, str]:
     """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
-    estimation-algebra analysis (bounded by ``time_limit`` seconds).  With ``offline`` (the
-    precomputed arrays) an exact method the analysis recommends is built once to check that it
-    applies; if it does not, the general engine is chosen and the reason says why."""
+    estimation-algebra analysis in a process of its own, killed ``grace`` seconds (default 2) after
+    ``time_limit`` (solver/analysis/isolated.py: what it had not decided by then is undecided, and the
+    general engine is chosen unless the conditions it decided name an exact filter); ``time_limit``
+    None runs it here, unbounded.  With ``offline`` (the precomputed arrays) an exact method the
+    analysis recommends is built once to check that it applies; if it does not, the general engine is
+    chosen and the reason says why."""
     requested = _checked(model.spec.method if method is None else method)
     if requested != AUTO:
         return requested, (f"method = {requested!r} in the spec" if method is None else "asked for")
-    from . import analysis
-
-    chosen, reason = analysis.recommend_method(analysis.analyze(model, time_limit=time_limit))
+    chosen, reason = _analysed_method(model, time_limit, grace)
     if chosen not in REGISTRY:
         return "yau-yau", f"the analysis recommends {chosen}, not in this installation: the general engine"
     if chosen != "yau-yau":
@@ -53,6 +54,19 @@ def choose_method(model: "Model", method: str | None = None, *, offline: Any | N
                 return "yau-yau", (f"the analysis recommends {chosen} ({reason}), but it does not apply: "
                                    f"{exc.message}")
     return chosen, reason
+
+
+def _analysed_method(model: "Model", time_limit: float | None, grace: float | None) -> tuple[str, str]:
+    from . import analysis
+
+    if time_limit is None:
+        return analysis.recommend_method(analysis.analyze(model, time_limit=None))
+    from .analysis.isolated import DEFAULT_GRACE, analyze_isolated
+
+    done = analyze_isolated(model, time_limit, grace=DEFAULT_GRACE if grace is None else grace)
+    if done.stopped:
+        return done.method, f"{done.reason}; {done.report['notes'][-1]}"
+    return done.method, done.reason
 
 
 def resolve_method(model: "Model", method: str | None = None) -> str:

@@ -37,6 +37,17 @@ AUTO = "auto"  # resolved once, at precompute, by the estimation-algebra analysi
 METHODS: tuple[str, ...] = (AUTO, *REGISTRY)
 
 
+MAX_MESH_DIMENSION = 3  # the general engine's finite elements: intervals, disks, balls
+
+
+def mesh_free(spec) -> bool:
+    """True when the spec gets no offline stage (no mesh, no basis): more than three state variables,
+    or a method named in the spec that needs no precomputed arrays (kalman-bucy, yau-hu, yau-jia).
+    A mesh-free method filters it."""
+    method = REGISTRY.get(spec.method)
+    return len(spec.state) > MAX_MESH_DIMENSION or (method is not None and not method.needs_offline)
+
+
 def check_method(name: object) -> str:
     """``name`` if it is a registered method or ``auto``; else ValueError naming the choices."""
     if not isinstance(name, str) or not (name == AUTO or name in REGISTRY):

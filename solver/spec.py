@@ -522,11 +522,31 @@ def _check_finite_on_ball(spec: ModelSpec, f, h, prior) -> None:
             raise SpecError(f"{field_name}[{column}]",
                             f"is not finite at {where} in the domain ball (a singularity such as log(x) at "
                             "0, or a value beyond the floating-point range of about 1e308)")
+    _check_energy_on_ball(spec, h(X), X)
     if prior is not None:
         values = prior(X)
         if not np.all(np.isfinite(values)) or np.any(values < 0) or not np.any(values > 0):
             raise SpecError("initial.expression",
                             "prior density must be finite, non-negative and not identically zero on the ball")
+
+
+def _check_energy_on_ball(spec: ModelSpec, values: np.ndarray, X: np.ndarray) -> None:
+    """h^T R^-1 h, which every update of every filter uses (exp(h^T R^-1 dy - h^T R^-1 h dt / 2)), must be
+    finite where h is: exp(exp(x)) on radius 6 is 3.7e175, its square overflows (the offline stage then
+    failed with "Factor is exactly singular")."""
+    values = np.asarray(values, dtype=float).reshape(len(X), -1)
+    with np.errstate(all="ignore"):
+        energy = np.einsum("pi,ij,pj->p", values, np.linalg.inv(spec.noise_matrix()), values)
+    bad = ~np.isfinite(energy)
+    if bad.any():
+        row = int(np.argmax(bad))
+        column = int(np.argmax(np.abs(values[row])))
+        where = ", ".join(f"{name} = {v:.3g}" for name, v in zip(spec.state, X[row], strict=True))
+        raise SpecError(f"observation[{column}]",
+                        f"is {values[row, column]:.3g} at {where} in the domain ball: h^T R^-1 h, which "
+                        "every update uses, overflows the floating-point range (about 1e308); shrink "
+                        "domain.radius to where the sensor stays below about 1e154, or rescale the "
+                        "observation")
 
 
 def _finite_or_raise(values: Any, field: str) -> None:
@@ -661,11 +681,24 @@ def parse_spec_text(text: str, fmt: str) -> ModelSpec:
 
 
 def load_spec(path: str | Path) -> ModelSpec:
-    """Read a spec file (.toml or .json)."""
+    """Read a spec file (.toml or .json; anything else is read as TOML)."""
     path = Path(path)
     fmt = "json" if path.suffix.lower() == ".json" else "toml"
+    return parse_spec_text(read_spec_text(path), fmt)
+
+
+def read_spec_text(path: str | Path) -> str:
+    """The text of a spec file, reading at most MAX_SPEC_BYTES + 1 bytes: a larger file, or an endless
+    stream (/dev/zero, a pipe), is refused after that many bytes instead of being read whole."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_SPEC_BYTES + 1)
+    except OSError as exc:
         raise SpecError("spec", f"cannot read {path}: {exc}") from None
-    return parse_spec_text(text, fmt)
+    if len(data) > MAX_SPEC_BYTES:
+        raise SpecError("spec", f"{path} is larger than {MAX_SPEC_BYTES} bytes, the most a spec may hold "
+                                "(a spec is a short TOML or JSON file)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecError("spec", f"cannot read {path}: {exc}") from None

@@ -70,9 +70,11 @@ class Solved:
 
 def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
           time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None,
-          scheduler: str | None = None, atlas_sink: Any | None = None) -> Solved:
-    """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis,
-    bounded by ``time_limit``), without storing anything.  The propagators' independent solves run
+          scheduler: str | None = None, atlas_sink: Any | None = None,
+          analysis_grace: float | None = None) -> Solved:
+    """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis, in a
+    process of its own killed ``analysis_grace`` seconds (default 2) after ``time_limit``: a wall-clock
+    bound), without storing anything.  The propagators' independent solves run
     as Dask tasks on ``workers`` local processes, or on the cluster at ``scheduler``
     ("tcp://HOST:PORT"); the arrays are bit-identical either way.  ``atlas_sink(k, K, rows)``: an
     atlas's centres go there as they are solved instead of being kept (a ``ModelWriter.rows``)."""
@@ -85,16 +87,19 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
     model = compile_model(spec)
     started = time.perf_counter()
     if mesh_free_only(model):
-        method, reason = _mesh_free_method(model, time_limit)
+        method, reason = _mesh_free_method(model, time_limit, analysis_grace)
         return Solved(spec, model, None, method, reason, time.perf_counter() - started, workers)
     if spec.domain.follow:  # one stored propagator must serve every centre: say so before solving
         from .solver.follow import check_follow
 
         check_follow(model)
+    from .solver.computable import check_computable
+
+    check_computable(model)  # a radius, diffusion or drift beyond a double's precision: before solving
     offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler,
                             atlas_sink=atlas_sink)
     seconds = time.perf_counter() - started
-    method, reason = choose_method(model, offline=offline, time_limit=time_limit)
+    method, reason = choose_method(model, offline=offline, time_limit=time_limit, grace=analysis_grace)
     return Solved(spec, model, offline, method, reason, seconds, workers, scheduler)
 
 
@@ -103,17 +108,16 @@ def mesh_free_only(model: Any) -> bool:
     engine's finite elements go up to 3), or a method named in the spec that needs none (kalman-bucy,
     yau-jia: nothing to precompute).  A mesh-free method filters it.  (A diffusion that is only
     positive semi-definite is the engine's too, with the stabilised scheme: Discretization.scheme.)"""
-    from .solver.registry import REGISTRY
+    from .solver.registry import mesh_free
 
-    method = REGISTRY.get(model.spec.method)
-    return model.n > 3 or (method is not None and not method.needs_offline)
+    return mesh_free(model.spec)
 
 
-def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
+def _mesh_free_method(model: Any, time_limit: float | None, grace: float | None) -> tuple[str, str]:
     from .solver.methods import make_filter
     from .solver.registry import REGISTRY
 
-    method, reason = choose_method(model, offline=None, time_limit=time_limit)
+    method, reason = choose_method(model, offline=None, time_limit=time_limit, grace=grace)
     if REGISTRY[method].needs_offline:
         why = f"{model.n} state variables (the engine's finite elements go up to 3)"
         raise SpecError("state", f"{why}: the general engine cannot filter this model and no mesh-free exact "
@@ -126,12 +130,15 @@ def _mesh_free_method(model: Any, time_limit: float | None) -> tuple[str, str]:
 
 def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
                workers: int = 1, time_limit: float | None = DEFAULT_TIME_LIMIT, force: bool = False,
-               progress: Any | None = None, scheduler: str | None = None) -> str:
+               progress: Any | None = None, scheduler: str | None = None,
+               analysis_grace: float | None = None) -> str:
     """Solve the offline stage of ``spec`` (a :class:`ModelSpec` or a spec file) and save it in
     ``store`` (a directory or a :class:`ModelStore`); returns the model id (a content hash).
 
     The filter method is chosen here, once (``auto`` asks the estimation-algebra analysis within
-    ``time_limit`` seconds), and stored with its reason; :func:`open_filter` reads it back.  A model
+    ``time_limit`` seconds, wall clock: its process is killed ``analysis_grace`` seconds (default 2)
+    later and the general engine is chosen unless what it had decided names an exact filter), and
+    stored with its reason; :func:`open_filter` reads it back.  A model
     already in the store is verified and kept unless ``force``.
     """
     from .storage.errors import StoreError
@@ -148,7 +155,7 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
         except StoreError:
             pass  # unusable file: compute it again
     return save_solved(store, spec, workers=workers, time_limit=time_limit, progress=progress,
-                       scheduler=scheduler)[0]
+                       scheduler=scheduler, analysis_grace=analysis_grace)[0]
 
 
 def save_solved(store: ModelStore, spec: ModelSpec, **solve_args: Any) -> tuple[str, Solved]:

@@ -3,8 +3,9 @@
 Solves the Fokker–Planck / Kolmogorov propagators of the spec's model over dt for every basis
 function (solver.offline.precompute, seed 002 §5) and saves them in the model store under the
 content hash of the spec.  The filter method is chosen here, once: ``auto`` asks the
-estimation-algebra analysis (bounded by --time-limit) and the choice and its reason are stored in the
-file, so `yauyau filter` and `yauyau serve` never analyse again.  The model id is the LAST line of
+estimation-algebra analysis (in a process of its own, killed 2 s after --time-limit: a wall-clock
+bound) and the choice and its reason are stored in the file, so `yauyau filter` and `yauyau serve`
+never analyse again.  The model id is the LAST line of
 stdout (the only one); messages and the progress bar go to stderr.  The bar is shown only when
 stderr is a terminal and --quiet is not given.  An id already in the store is not recomputed (its
 file is verified) unless --force.
@@ -37,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="recompute even if the model is stored")
     parser.add_argument("--time-limit", type=float, default=60.0, metavar="T",
                         help="seconds the estimation-algebra analysis may take to choose the method when the "
-                             "spec says method = auto (default %(default)g; past it: the general engine)")
+                             "spec says method = auto (default %(default)g; past it: the general engine). A "
+                             "wall-clock limit: the analysis runs in a process of its own, killed 2 s later")
     parser.add_argument("--compress", action="store_true",
                         help="gzip the float arrays too (about 1/3 smaller in 2-D, loads much slower)")
 

@@ -183,6 +183,24 @@ class Facts:
                 self.stopped_by.append(str(bound))
             return None
 
+    def decided(self) -> dict[str, Any]:
+        """What was decided, JSON-safe (the expressions left out): what an analysis process sends its
+        parent before it builds the estimation algebra, so that a process killed later still leaves
+        these (solver/analysis/isolated.py)."""
+        data = {name: getattr(self, name) for name in _DECIDED}
+        data["seed004"] = {key: c.to_dict() for key, c in self.seed004.items()}
+        return data
+
+    @classmethod
+    def from_decided(cls, data: dict[str, Any]) -> "Facts":
+        """The facts :meth:`decided` sent (the Wong matrix, η and the seed 004 structure not computed)."""
+        seed004 = {key: Condition(c["holds"], c["detail"], c["title"]) for key, c in data["seed004"].items()}
+        return cls(**{name: data[name] for name in _DECIDED}, seed004=seed004)
+
+
+_DECIDED = ("eta_why", "c1", "c2", "c3", "linear", "wong_constant", "k", "structure_holds", "yau_jia",
+            "yau_jia_detail", "stopped_by", "numeric")
+
 
 def all_of(values) -> bool | None:
     """Three-valued and: False if any is False, None if any is undecided, else True."""

@@ -18,14 +18,14 @@ import dataclasses
 import textwrap
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 from ..expressions import nonsmooth_functions
 from ..model import Model
 from ..papers import cite, cite_full, reference
 from .algebra import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, EstimationAlgebra, bounded_algebra
 from .budget import DEFAULT_MAX_SIZE, DEFAULT_TIME_LIMIT, Budget, bounded
-from .conditions import Condition, Facts, all_of, decide_conditions
+from .conditions import Condition, Facts, all_of, decide_conditions, observed_coordinate
 from .operators import _DIGITS, _ZERO_POINTS, is_identity, show, show_operator
 
 # the papers every report rests on: (C1)-(C3) from seed 000, E and its algorithm from seed 002, the
@@ -120,13 +120,17 @@ def _mark(holds: bool | None, yes: str = "x", no: str = " ", undecided: str = "?
 
 def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int = DEFAULT_MAX_DIMENSION,
             time_limit: float | None = DEFAULT_TIME_LIMIT,
-            max_size: int | None = DEFAULT_MAX_SIZE) -> AnalysisReport:
+            max_size: int | None = DEFAULT_MAX_SIZE,
+            on_conditions: Callable[[Facts], None] | None = None) -> AnalysisReport:
     """Wong matrix, η, conditions, estimation algebra and the recommended exact/general method.
 
     Bounded: the conditions get at most half of `time_limit` (they usually take milliseconds), the
     algebra the rest; an item that reaches a bound is reported undecided (holds None) and the
     algebra as not closing within that bound.  A single SymPy call cannot be interrupted, so the
-    size cap keeps each one small; the report may come back a little after the deadline.
+    size cap keeps each one small; the report may come back after the deadline (minutes, for a
+    ``sp.simplify`` of nested trigonometric functions): a caller that needs the deadline to hold runs
+    it in a process of its own (:mod:`.isolated`).  ``on_conditions(facts)`` is called once the
+    conditions are decided, before the algebra (the isolated process sends them to its parent).
     """
     start = time.monotonic()
     rough = nonsmooth_functions([*model.drift, *model.observation])
@@ -139,6 +143,8 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int
     with bounded(Budget(half, max_size, start, name)) as budget:
         facts = decide_conditions(model)
         facts.numeric = budget.numeric_zero_tests
+    if on_conditions is not None:
+        on_conditions(facts)
     with bounded(Budget(time_limit, max_size, start)) as budget:
         algebra = bounded_algebra(model, max_depth, max_dimension)
         basis = [show_operator(op, model, label)
@@ -146,6 +152,34 @@ def analyze(model: Model, max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int
         facts.numeric += budget.numeric_zero_tests
         report = _report(model, facts, algebra, basis)  # simplifies for display only while time is left
     report.elapsed = time.monotonic() - start
+    return report
+
+
+def stopped_report(model: Model, facts: Facts | None, time_limit: float, note: str,
+                   max_depth: int = DEFAULT_MAX_DEPTH, max_dimension: int = DEFAULT_MAX_DIMENSION,
+                   max_size: int | None = DEFAULT_MAX_SIZE) -> AnalysisReport:
+    """The report of an analysis stopped from outside at its time limit (its process was killed):
+    what the analysis itself reports when its deadline stops it, built from the conditions it had
+    decided (``facts``, None when it was stopped before them): every other condition undecided
+    within ``time {time_limit} s``, the algebra not closing within it, the Wong matrix and η not
+    computed, ``note`` added (how it was stopped).  Without decided facts the recommendation is the
+    general engine (method yau-yau), which is always valid."""
+    bound = f"time {time_limit:g} s"
+    if facts is None:
+        k = observed_coordinate(model)
+        facts = Facts(k=k, structure_holds=None if k is not None and is_identity(model.a) else False)
+    if None in (facts.c1, facts.c2, facts.c3, facts.linear, facts.structure_holds, facts.yau_jia):
+        if bound not in facts.stopped_by:
+            facts.stopped_by.append(bound)
+    algebra = EstimationAlgebra(closed=False, dimension=None, basis=[], labels=[], linear_rank=None,
+                                maximal_rank=None, rounds=0, max_depth=max_depth, max_dimension=max_dimension,
+                                exact=False, stopped_by=bound, time_limit=time_limit, max_size=max_size)
+    report = _report(model, facts, algebra, [])
+    shown = f"not computed within {bound}"
+    report.wong_matrix = [[shown] * model.n for _ in range(model.n)]
+    if not facts.eta_why:
+        report.eta = shown
+    report.notes.append(note)
     return report
 
 

@@ -57,7 +57,7 @@ from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
 from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
-from ..model import Model
+from ..model import Model, mixture_weights
 from ..reference.kalman import affine_coefficients
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .prior_fit import fit_mixture_grid, weighted_em
@@ -694,9 +694,9 @@ def _mixture_terms(prior):
         weights, means, covs = [1.0], [prior.mean], [prior.cov]
     else:
         weights, means, covs = prior.weights, prior.means, prior.covs
-    total = float(np.sum(weights))
-    terms = [gaussian_to_terms(mu, P, w / total)
-             for w, mu, P in zip(weights, means, covs, strict=True) if w > 0]
+    scaled = mixture_weights(weights)  # the largest first: [1e308, 1e308] -> [0.5, 0.5], as the engine
+    terms = [gaussian_to_terms(mu, P, w)
+             for w, mu, P in zip(scaled, means, covs, strict=True) if w > 0]
     return (np.stack([t.A for t in terms]), np.stack([t.B for t in terms]), np.array([t.C for t in terms]))
 
 
