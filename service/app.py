@@ -129,7 +129,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.registry = registry
         app.state.sessions = sessions
         app.state.jobs = Jobs(settings.store, settings.max_precompute_basis, settings.max_precompute_nodes,
-                              settings.max_precompute_centres)
+                              settings.max_precompute_centres, max_jobs=settings.max_jobs,
+                              max_queued=settings.max_queued_jobs)
         app.state.ready = True
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,

@@ -20,7 +20,7 @@ from yauyau.storage.errors import NotFound
 from . import metrics
 from .density import parse_points
 from .deps import AdminOnly, JobsDep, RegistryDep, SessionsDep, SettingsDep, TenantDep
-from .jobs import PrecomputeLimit
+from .jobs import QUEUE_RETRY_S, PrecomputeLimit, QueueFull
 from .live import live_response
 from .problems import Problem
 from .schemas import (
@@ -102,19 +102,23 @@ def list_models(registry: RegistryDep) -> Response:
 
 
 @models.post("", status_code=202, response_model=Job,
-             responses={200: {"description": "the model is already stored"}, **_errors(403, 413, 422)},
+             responses={200: {"description": "the model is already stored"}, **_errors(403, 413, 422, 503)},
              dependencies=AdminOnly)
 def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
     """Precompute a spec in the background: 202 with the job to poll (``GET /v1/jobs/{id}``); the
     model appears in ``GET /v1/models`` when it is done.  The id is the spec's content hash: the same
     spec again is the same job (computed once), or 200 when the model is already stored.  Oversize
-    specs (basis, mesh nodes) are refused with 413 before any work."""
+    specs (basis, mesh nodes) are refused with 413 before any work.  At most ``YAUYAU_MAX_JOBS`` jobs run
+    at once (all workers and hosts of the store), the others are ``queued``; beyond
+    ``YAUYAU_MAX_QUEUED_JOBS`` waiting, 503 with Retry-After."""
     try:
         job, _ = jobs.submit(body.spec)
     except SpecError as exc:
         raise SpecError(f"spec.{exc.field}", exc.message) from None
     except PrecomputeLimit as exc:
         raise Problem(413, exc.message, exc.field) from None
+    except QueueFull as exc:
+        raise Problem(503, str(exc), "spec", retry_after=QUEUE_RETRY_S) from None
     out = {**job, "job": f"/v1/jobs/{job['id']}", "model": f"/v1/models/{job['id']}"}
     response = _json(out, 200 if job["status"] == "done" else 202)
     response.headers["Location"] = out["job"]
@@ -123,7 +127,8 @@ def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
 
 @jobs_router.get("/{job_id}", response_model=Job, responses=_errors(403, 404), dependencies=AdminOnly)
 def get_job(jobs: JobsDep, job_id: Annotated[str, Path(min_length=1, max_length=100)]) -> Response:
-    """A precompute job: running (with its progress), done (the model is in /v1/models) or failed (why)."""
+    """A precompute job: queued (with its position, 1: next), running (with its progress), done (the model
+    is in /v1/models) or failed (why)."""
     try:
         job = jobs.status(job_id)
     except KeyError:

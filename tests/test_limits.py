@@ -141,3 +141,191 @@ def test_half_open_connections_leave_the_server_answering(tmp_path, example_stor
         stderr = server.kill()
     lines = stderr.splitlines()
     assert len(lines) < 50, "\n".join(lines[:20])
+
+
+def _closed_within(sock: socket.socket, seconds: float) -> bool:
+    """Whether the server closes ``sock`` within ``seconds`` (what it sends before is read and dropped)."""
+    sock.settimeout(seconds)
+    deadline = time.monotonic() + seconds
+    try:
+        while time.monotonic() < deadline:
+            if sock.recv(65536) == b"":
+                return True
+    except (TimeoutError, socket.timeout):
+        return False
+    except OSError:
+        return True
+    return False
+
+
+@pytest.mark.slow
+def test_a_request_head_that_stalls_is_closed_at_the_header_timeout(tmp_path, example_store):
+    """A connection that sends nothing, one that sends half a head, and a kept-alive one that starts its
+    next head and stalls are all closed about header_timeout later; a whole request is still served."""
+    store, _ = example_store
+    header_timeout = 2.0
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_HEADER_TIMEOUT": str(header_timeout)})
+    try:
+        silent = socket.create_connection(("127.0.0.1", server.port))
+        half = socket.create_connection(("127.0.0.1", server.port))
+        half.sendall(HALF_HEAD)
+        kept = socket.create_connection(("127.0.0.1", server.port))
+        kept.sendall(b"GET /livez HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        kept.settimeout(30)
+        assert kept.recv(65536).startswith(b"HTTP/1.1 200")
+        kept.sendall(HALF_HEAD)  # the next request on the same connection: its head stalls
+        for sock in (silent, half, kept):
+            assert _closed_within(sock, header_timeout + 20)
+            sock.close()
+        assert httpx.get(server.url + "/livez", timeout=30).status_code == 200
+    finally:
+        stderr = server.kill()
+    assert len(stderr.splitlines()) <= 2, stderr
+
+
+@pytest.mark.slow
+def test_at_the_cap_with_every_connection_busy_a_newcomer_gets_503(tmp_path, example_store):
+    """max_connections = 3 held by three /events listeners (requests that last): a fourth connection is
+    answered 503 problem+json with Retry-After; once a listener leaves, requests are served again."""
+    store, ids = example_store
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_MAX_CONNECTIONS": "3"})
+    created = httpx.post(server.url + "/v1/sessions", json={"model": ids["cubic_sensor"]}, timeout=30)
+    sid = created.json()["id"]
+    clients, streams = [], []
+    try:
+        for _ in range(3):
+            client = httpx.Client(timeout=30)
+            stream = client.stream("GET", f"{server.url}/v1/sessions/{sid}/events")
+            response = stream.__enter__()
+            assert response.status_code == 200
+            lines = response.iter_lines()  # kept: a line iterator dropped closes its response
+            assert next(lines) == "event: frame"  # the first frame: the listener is in
+            clients.append((client, lines))
+            streams.append(stream)
+        refused = httpx.get(server.url + "/livez", timeout=30)
+        assert refused.status_code == 503, refused.text
+        assert refused.headers["content-type"].startswith(PROBLEM)
+        assert refused.json()["field"] == "connections" and int(refused.headers["retry-after"]) >= 1
+        streams.pop().__exit__(None, None, None)
+        clients.pop()[0].close()
+        deadline, status = time.monotonic() + 30, None
+        while time.monotonic() < deadline and status != 200:
+            time.sleep(0.2)
+            status = httpx.get(server.url + "/livez", timeout=30).status_code
+        assert status == 200
+    finally:
+        for stream in streams:
+            stream.__exit__(None, None, None)
+        for client, _ in clients:
+            client.close()
+        server.kill()
+
+
+# -- 2. precompute jobs: a bounded queue shared through the model store -------------------------------
+def _ou_spec(k: int) -> dict:
+    """A small linear spec, distinct for each k (a job of a few seconds)."""
+    return {"name": f"ou-queue-{k}", "state": ["x"], "drift": [f"-{0.3 + 0.01 * k:.2f}*x"],
+            "observation": ["x"], "initial": {"kind": "gaussian", "mean": [0.5], "cov": [[0.5]]},
+            "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 48}, "method": "yau-yau"}
+
+
+def _job_processes(store) -> list[int]:
+    """The pids of the precompute processes working on ``store`` (from /proc: what really runs)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as handle:
+                    argv = handle.read().split(b"\0")
+                with open(f"/proc/{entry}/stat") as handle:
+                    state = handle.read().rsplit(")", 1)[1].split()[0]
+            except OSError:
+                continue
+            if b"yauyau.service.jobs" in argv and str(store).encode() in argv and state != "Z":
+                pids.append(int(entry))
+    return pids
+
+
+class _Watch:
+    """The most job processes seen at once, sampled from /proc every 20 ms in a thread."""
+
+    def __init__(self, store):
+        import threading
+
+        self.store, self.most, self._stop = store, 0, threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.wait(0.02):
+            pids = _job_processes(self.store)
+            self.most = max(self.most, len(pids))
+
+    def stop(self) -> int:
+        self._stop.set()
+        self._thread.join()
+        return self.most
+
+
+@pytest.mark.slow
+def test_precompute_jobs_wait_in_a_bounded_queue(tmp_path):
+    """max_jobs = 2, max_queued_jobs = 3, seven distinct specs posted at once: two processes run (never
+    more, counted in /proc), three wait with positions 1, 2, 3, two are refused 503 with Retry-After;
+    every accepted job then finishes and its model is served."""
+    from yauyau.solver.spec import spec_from_dict
+    from yauyau.storage.model_store import model_id
+
+    store = tmp_path / "store"
+    store.mkdir()
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_MAX_JOBS": "2",
+                                                               "YAUYAU_MAX_QUEUED_JOBS": "3"})
+    watch = _Watch(store)
+    stopped: list[int] = []
+    try:
+        answers = []
+        for k in range(7):
+            answers.append(httpx.post(server.url + "/v1/models", json={"spec": _ou_spec(k)}, timeout=60))
+            if k == 1:  # the two running jobs are held still while the others are posted (no race)
+                deadline = time.monotonic() + 60
+                while len(stopped) < 2 and time.monotonic() < deadline:
+                    stopped = _job_processes(store)
+                    time.sleep(0.01)
+                for pid in stopped:
+                    os.kill(pid, signal.SIGSTOP)
+        statuses = [(a.status_code, a.json().get("status")) for a in answers]
+        assert statuses[:5] == [(202, "running")] * 2 + [(202, "queued")] * 3, statuses
+        assert [a.json()["position"] for a in answers[2:5]] == [1, 2, 3]
+        for refused in answers[5:]:
+            assert refused.status_code == 503 and refused.headers["content-type"].startswith(PROBLEM)
+            assert int(refused.headers["retry-after"]) >= 1
+            assert "YAUYAU_MAX_QUEUED_JOBS" in refused.json()["detail"]
+        accepted = [a.json()["id"] for a in answers[:5]]
+        assert accepted == [model_id(spec_from_dict(_ou_spec(k)).canonical_json()) for k in range(5)]
+        assert httpx.get(f"{server.url}/v1/jobs/{accepted[2]}", timeout=30).json()["position"] == 1
+        assert len(_job_processes(store)) == 2  # the queued ones have no process
+        for pid in stopped:
+            os.kill(pid, signal.SIGCONT)
+        deadline, pending = time.monotonic() + 300, set(accepted)
+        while pending and time.monotonic() < deadline:
+            for mid in sorted(pending):
+                job = httpx.get(f"{server.url}/v1/jobs/{mid}", timeout=30).json()
+                assert job["status"] in ("queued", "running", "done"), job
+                if job["status"] == "done":
+                    pending.discard(mid)
+            time.sleep(0.2)
+        assert not pending, f"jobs not done: {pending}"
+        stored = {m["id"] for m in httpx.get(server.url + "/v1/models", timeout=30).json()}
+        assert set(accepted) <= stored
+        refused_id = model_id(spec_from_dict(_ou_spec(5)).canonical_json())
+        assert httpx.get(f"{server.url}/v1/jobs/{refused_id}", timeout=30).status_code == 404
+    finally:
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        most = watch.stop()
+        server.kill()
+        for pid in _job_processes(store):
+            os.kill(pid, signal.SIGKILL)
+    assert most == 2, most
