@@ -329,3 +329,90 @@ def test_precompute_jobs_wait_in_a_bounded_queue(tmp_path):
         for pid in _job_processes(store):
             os.kill(pid, signal.SIGKILL)
     assert most == 2, most
+
+
+# -- 3. /events listeners: capped per session and per worker, fed by one poll a session --------------
+class _Listener:
+    """A GET /events stream read line by line (its own connection)."""
+
+    def __init__(self, url: str):
+        self.client = httpx.Client(timeout=60)
+        self._stream = self.client.stream("GET", url)
+        self.response = self._stream.__enter__()
+        self._lines = self.response.iter_lines() if self.response.status_code == 200 else None
+        if self._lines is None:
+            self.response.read()  # a refusal: its problem+json body
+
+    def frame(self) -> dict:
+        """The next frame event: {'id': ..., 'data': ...}."""
+        event: dict = {}
+        for line in self._lines:
+            if not line:
+                if event.get("event") == "frame":
+                    return event
+                event = {}
+            else:
+                name, _, value = line.partition(": ")
+                event[name] = value
+        raise AssertionError("the stream ended")
+
+    def close(self):
+        self._stream.__exit__(None, None, None)
+        self.client.close()
+
+
+@pytest.mark.slow
+def test_events_listeners_are_capped_per_session_and_per_worker(tmp_path, example_store):
+    """max_session_listeners = 2, max_listeners = 3: a third listener of a session gets 429, a fourth
+    of the worker 503 (problem+json, Retry-After); the listeners get every chunk's frame and the chunks
+    are served; a listener that leaves frees its slot."""
+    import json
+
+    store, ids = example_store
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={
+        "YAUYAU_MAX_SESSION_LISTENERS": "2", "YAUYAU_MAX_LISTENERS": "3", "YAUYAU_EVENTS_POLL": "0.05"})
+    listeners: list[_Listener] = []
+    try:
+        a, b = (httpx.post(server.url + "/v1/sessions", json={"model": ids["cubic_sensor"]},
+                           timeout=30).json()["id"] for _ in range(2))
+        events = f"{server.url}/v1/sessions/{{}}/events"
+        for sid in (a, a, b):
+            listeners.append(_Listener(events.format(sid)))
+            assert listeners[-1].response.status_code == 200
+            assert listeners[-1].frame()["id"] == "0"
+        for sid, status, cap in ((a, 429, "YAUYAU_MAX_SESSION_LISTENERS"), (b, 503, "YAUYAU_MAX_LISTENERS")):
+            listener = _Listener(events.format(sid))
+            listeners.append(listener)  # closed at the end, whatever it is
+            refused = listener.response
+            assert refused.status_code == status, refused.status_code
+            assert refused.headers["content-type"].startswith(PROBLEM) and cap in refused.json()["detail"]
+            assert int(refused.headers["retry-after"]) >= 1
+            listeners.pop().close()
+        rows = [[0.01 * ((i * 7) % 5 - 2)] for i in range(50)]
+        for seq in range(3):
+            chunk = httpx.post(f"{server.url}/v1/sessions/{a}/observations",
+                               json={"seq": seq, "increments": rows}, timeout=60)
+            assert chunk.status_code == 200, chunk.text
+            mean = chunk.json()["estimates"][-1]["mean"][0]
+            for listener in listeners[:2]:  # each listener of a: a frame of this version, this estimate
+                frame = listener.frame()
+                while frame["id"] != str(seq + 1):
+                    frame = listener.frame()
+                data = json.loads(frame["data"])
+                assert data["next_seq"] == seq + 1 and data["mean"][0] == pytest.approx(mean, abs=1e-9)
+        listeners.pop(0).close()
+        deadline, status = time.monotonic() + 30, None
+        while status != 200 and time.monotonic() < deadline:
+            again = _Listener(events.format(a))
+            status = again.response.status_code
+            if status == 200:
+                listeners.append(again)
+            else:  # the slot is given back once the server has seen the disconnect
+                again.close()
+                time.sleep(0.1)
+        assert status == 200 and listeners[-1].frame()["id"] == "3"
+    finally:
+        for listener in listeners:
+            listener.close()
+        server.kill()
+
