@@ -24,6 +24,7 @@ from yauyau import __version__
 
 from . import metrics
 from .jobs import Jobs
+from .limits import RateLimits, rate_limits
 from .listeners import Feeds, ListenerSlots
 from .middleware import BodyLimit, JsonBodies
 from .problems import hide_paths, install_handlers
@@ -168,6 +169,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     app.add_middleware(JsonBodies)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(RateLimits, **rate_limits(settings))  # inside the tenants' middleware: per tenant
     app.add_middleware(TenantGuard, tenants=app.state.tenants, hosts=allowed_hosts(settings))
     app.add_middleware(metrics.RequestMetrics)
     return app

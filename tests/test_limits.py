@@ -7,6 +7,7 @@ revision before these limits; docs/reliability.md ("Limits") lists what each one
 from __future__ import annotations
 
 import errno
+import math
 import os
 import resource
 import selectors
@@ -416,3 +417,95 @@ def test_events_listeners_are_capped_per_session_and_per_worker(tmp_path, exampl
             listener.close()
         server.kill()
 
+
+# -- 4. rates per client: token buckets, 429 with Retry-After ----------------------------------------
+def _until_refused(call, most: int = 40) -> tuple[int, httpx.Response]:
+    """Call until a 429: (how many succeeded before, the 429)."""
+    for done in range(most):
+        response = call()
+        if response.status_code == 429:
+            return done, response
+    raise AssertionError(f"no 429 in {most} calls")
+
+
+def _is_rate_problem(response: httpx.Response, setting: str, period: float) -> int:
+    assert response.headers["content-type"].startswith(PROBLEM)
+    assert setting in response.json()["detail"]
+    retry = int(response.headers["retry-after"])
+    assert 1 <= retry <= math.ceil(period)  # at most the time one token takes to come back
+    return retry
+
+
+@pytest.mark.slow
+def test_session_creation_past_its_burst_is_429_until_retry_after(tmp_path, example_store):
+    """rate_sessions = 0.2/s with a burst of 3: three creations (after refused ones, which cost no
+    token) and then 429 with Retry-After; the rest of the API, /livez, /readyz and /metrics still
+    answer; after Retry-After seconds a session is created again."""
+    store, ids = example_store
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_RATE_SESSIONS": "0.2",
+                                                               "YAUYAU_RATE_SESSIONS_BURST": "3"})
+    try:
+        def create(model=ids["cubic_sensor"]):
+            return httpx.post(server.url + "/v1/sessions", json={"model": model}, timeout=30)
+
+        assert all(create("no-such-model").status_code == 404 for _ in range(5))  # no session: no token
+        created, refused = _until_refused(create)
+        assert created >= 3
+        retry = _is_rate_problem(refused, "YAUYAU_RATE_SESSIONS", 1 / 0.2)
+        assert httpx.get(server.url + "/v1/models", timeout=30).status_code == 200
+        for path in ("/livez", "/readyz", "/metrics"):
+            assert httpx.get(server.url + path, timeout=30).status_code == 200
+        time.sleep(retry)
+        assert create().status_code == 201
+    finally:
+        server.kill()
+
+
+@pytest.mark.slow
+def test_requests_past_their_burst_are_429_until_retry_after(tmp_path, example_store):
+    """rate_requests = 0.5/s with a burst of 6: /v1 requests beyond are 429 with Retry-After while the
+    health routes and /metrics never are; after Retry-After seconds requests are served again."""
+    store, _ = example_store
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_RATE_REQUESTS": "0.5",
+                                                               "YAUYAU_RATE_REQUESTS_BURST": "6"})
+    try:
+        served, refused = _until_refused(lambda: httpx.get(server.url + "/v1/models", timeout=30))
+        assert served >= 6
+        retry = _is_rate_problem(refused, "YAUYAU_RATE_REQUESTS", 1 / 0.5)
+        for path in ("/livez", "/readyz", "/metrics") * 10:
+            assert httpx.get(server.url + path, timeout=30).status_code == 200
+        time.sleep(retry)
+        assert httpx.get(server.url + "/v1/models", timeout=30).status_code == 200
+    finally:
+        server.kill()
+
+
+def test_rates_are_kept_per_tenant_when_one_authenticated(tmp_path, example_store):
+    """The tenants' middleware (issue "Trust", item 4) runs first and names the tenant in the scope's
+    state: each tenant then has its buckets, whatever address it comes from; without a tenant the
+    address is the key.  (Here an outer middleware names the tenant from a header, as that one does
+    from the bearer token.)"""
+    from fastapi.testclient import TestClient
+    from yauyau.service.app import create_app
+    from yauyau.service.settings import Settings
+
+    store, ids = example_store
+    app = create_app(Settings(store=store, session_db=tmp_path / "s.sqlite3", rate_sessions=0.01,
+                              rate_sessions_burst=2))
+
+    async def tenants(scope, receive, send):
+        name = dict(scope.get("headers") or ()).get(b"x-tenant")
+        if scope["type"] == "http" and name:
+            scope.setdefault("state", {})["tenant"] = name.decode()
+        await app(scope, receive, send)
+
+    with TestClient(tenants) as client:
+        def create(tenant=None):
+            headers = {"x-tenant": tenant} if tenant else {}
+            body = {"model": ids["cubic_sensor"]}
+            return client.post("/v1/sessions", json=body, headers=headers).status_code
+
+        assert [create("a") for _ in range(3)] == [201, 201, 429]
+        assert [create("b") for _ in range(3)] == [201, 201, 429]
+        assert [create() for _ in range(3)] == [201, 201, 429]  # the address (the test client's)
+        assert create("a") == 429
