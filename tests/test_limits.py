@@ -480,32 +480,29 @@ def test_requests_past_their_burst_are_429_until_retry_after(tmp_path, example_s
         server.kill()
 
 
-def test_rates_are_kept_per_tenant_when_one_authenticated(tmp_path, example_store):
-    """The tenants' middleware (issue "Trust", item 4) runs first and names the tenant in the scope's
-    state: each tenant then has its buckets, whatever address it comes from; without a tenant the
-    address is the key.  (Here an outer middleware names the tenant from a header, as that one does
-    from the bearer token.)"""
-    from fastapi.testclient import TestClient
-    from yauyau.service.app import create_app
-    from yauyau.service.settings import Settings
+@pytest.mark.slow
+def test_rates_are_kept_per_tenant(tmp_path, example_store):
+    """With a tenants file each tenant has its own buckets, though all come from one address:
+    rate_sessions_burst = 2 lets each tenant create two sessions at once, then 429 for that tenant
+    only."""
+    import hashlib
 
     store, ids = example_store
-    app = create_app(Settings(store=store, session_db=tmp_path / "s.sqlite3", rate_sessions=0.01,
-                              rate_sessions_burst=2))
+    tokens = {"alice": "alice-token-" + "a" * 20, "bob": "bob-token-" + "b" * 20}
+    tenants = tmp_path / "tenants.toml"
+    tenants.write_text("".join(f'[[tenant]]\nname = "{name}"\n'
+                               f'token_sha256 = "{hashlib.sha256(token.encode()).hexdigest()}"\n'
+                               for name, token in tokens.items()))
+    server = LimitedServer(store, tmp_path / "s.sqlite3", env={"YAUYAU_TENANTS_FILE": str(tenants),
+                                                               "YAUYAU_RATE_SESSIONS": "0.01",
+                                                               "YAUYAU_RATE_SESSIONS_BURST": "2"})
+    try:
+        def create(tenant):
+            return httpx.post(server.url + "/v1/sessions", json={"model": ids["cubic_sensor"]}, timeout=30,
+                              headers={"Authorization": f"Bearer {tokens[tenant]}"}).status_code
 
-    async def tenants(scope, receive, send):
-        name = dict(scope.get("headers") or ()).get(b"x-tenant")
-        if scope["type"] == "http" and name:
-            scope.setdefault("state", {})["tenant"] = name.decode()
-        await app(scope, receive, send)
-
-    with TestClient(tenants) as client:
-        def create(tenant=None):
-            headers = {"x-tenant": tenant} if tenant else {}
-            body = {"model": ids["cubic_sensor"]}
-            return client.post("/v1/sessions", json=body, headers=headers).status_code
-
-        assert [create("a") for _ in range(3)] == [201, 201, 429]
-        assert [create("b") for _ in range(3)] == [201, 201, 429]
-        assert [create() for _ in range(3)] == [201, 201, 429]  # the address (the test client's)
-        assert create("a") == 429
+        assert [create("alice") for _ in range(3)] == [201, 201, 429]
+        assert [create("bob") for _ in range(3)] == [201, 201, 429]
+        assert create("alice") == 429
+    finally:
+        server.kill()
