@@ -7,7 +7,10 @@ Serves revision ``--against`` (its solver/, service/, storage/) and this tree si
 worker, and posts ``--chunks`` chunks of 100 increments of the 1-D cubic sensor over one keep-alive
 connection (``http.client``, bodies encoded beforehand), to each server in turn, ``--rounds`` times.
 Prints each round's median latency and the server's CPU per chunk (from /proc), then the medians over
-rounds.  Prints only: nothing is written.
+rounds.  On a shared machine these vary by more than what is measured, so the added work is also timed
+alone, in-process: the RateLimits middleware around an application that does nothing (a client's two
+buckets, a session creation's give-back), and one request's connection bookkeeping (a deadline armed
+and cancelled, the waiting list entered and left).  Prints only: nothing is written.
 """
 
 from __future__ import annotations
@@ -43,6 +46,68 @@ def _one_stream(port: int, model_id: str, bodies: list[bytes]) -> list[float]:
     return out
 
 
+def _per_call_us(call, count: int = 20_000) -> float:
+    start = time.perf_counter()
+    for _ in range(count):
+        call()
+    return (time.perf_counter() - start) / count * 1e6
+
+
+def _micro() -> dict[str, float]:
+    """Microseconds per request of what the limits add, each timed alone (medians of 5)."""
+    import asyncio
+
+    from yauyau.service.connections import ConnectionGuard
+    from yauyau.service.limits import RateLimits, TokenBuckets
+
+    async def nothing(scope, receive, send):
+        await send({"type": "http.response.start", "status": 201, "headers": []})
+
+    async def sink(message):
+        pass
+
+    limited = RateLimits(nothing, TokenBuckets(1e9, 1e9), TokenBuckets(1e9, 1e9))
+    scope = {"type": "http", "method": "POST", "path": "/v1/sessions/abc/observations", "state": {},
+             "client": ("127.0.0.1", 1)}
+    create = {**scope, "path": "/v1/sessions"}
+    loop = asyncio.new_event_loop()
+
+    def requests(app, scope):
+        async def many(count):
+            for _ in range(count):
+                await app(scope, None, sink)
+
+        return lambda: loop.run_until_complete(many(1000))
+
+    class Conn:
+        def evict(self):
+            pass
+
+    guard = ConnectionGuard(loop, 10_000, 10.0)
+    conns = [Conn() for _ in range(1000)]
+    for conn in conns:
+        guard.opened(conn)
+
+    def kept_alive():  # 1000 requests on kept-alive connections: each head arrives, each response completes
+        for conn in conns:
+            guard.head_received(conn)
+            guard.wait_for_head(conn)
+
+    def connections():  # 1000 connections opened (a head deadline armed), served and closed
+        for conn in conns:
+            guard.closed(conn)
+            guard.opened(conn)
+            loop.call_later(10.0, print).cancel()
+
+    runs = {"app alone": requests(nothing, scope), "rate limits, a chunk": requests(limited, scope),
+            "rate limits, a creation": requests(limited, create), "bookkeeping, a request": kept_alive,
+            "bookkeeping, a connection": connections}
+    out = {name: statistics.median(_per_call_us(run, 20) / 1000 for _ in range(5))
+           for name, run in runs.items()}
+    loop.close()
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.limits_cost", description=__doc__.splitlines()[0])
     parser.add_argument("--against", default="main")
@@ -71,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             for server in servers.values():
                 server.stop()
+    micro = _micro()
+    print("in-process, µs per request: " + ", ".join(f"{name} {us:.2f}" for name, us in micro.items()))
     print(f"medians over {args.rounds} rounds of {args.chunks} chunks:")
     for name, rounds in results.items():
         print(f"{name:>16}: p50 {statistics.median(r[0] for r in rounds):.3f} ms, "
