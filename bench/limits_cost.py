@@ -5,7 +5,8 @@ connection bookkeeping are on every request's path.
 
 Serves revision ``--against`` (its solver/, service/, storage/) and this tree side by side, each with one
 worker, and posts ``--chunks`` chunks of 100 increments of the 1-D cubic sensor over one keep-alive
-connection (``http.client``, bodies encoded beforehand), to each server in turn, ``--rounds`` times.
+connection (``http.client``, bodies encoded beforehand), to each server in turn (the first of a round
+alternating), ``--rounds`` times.
 Prints each round's median latency and the server's CPU per chunk (from /proc), then the medians over
 rounds.  On a shared machine these vary by more than what is measured, so the added work is also timed
 alone, in-process: the RateLimits middleware around an application that does nothing (a client's two
@@ -125,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         results: dict[str, list[tuple[float, float]]] = {name: [] for name in servers}
         try:
             for round_ in range(args.rounds):
-                for name, server in servers.items():
+                order = list(servers.items())
+                for name, server in order if round_ % 2 == 0 else order[::-1]:  # who goes first alternates
                     cpu = _group_cpu_seconds(server.proc.pid)
                     latencies = _one_stream(server.port, model_id, bodies)
                     cpu_ms = (_group_cpu_seconds(server.proc.pid) - cpu) * 1000 / len(bodies)
