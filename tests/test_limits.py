@@ -181,7 +181,8 @@ def test_a_request_head_that_stalls_is_closed_at_the_header_timeout(tmp_path, ex
         assert httpx.get(server.url + "/livez", timeout=30).status_code == 200
     finally:
         stderr = server.kill()
-    assert len(stderr.splitlines()) <= 2, stderr
+    warnings = [line for line in stderr.splitlines() if "connections closed" in line]
+    assert len(warnings) <= 2 and "Traceback" not in stderr, stderr  # a line every 10 s, not a connection
 
 
 @pytest.mark.slow
