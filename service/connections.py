@@ -17,9 +17,10 @@ timed out.  Here, per worker process:
   many were closed, evicted or refused (asyncio's accept errors are counted there too).
 
 The cap's default comes from the process's descriptor limit (RLIMIT_NOFILE): the limit less a
-reserve for the session store, models, logs and child processes (``FD_RESERVE``; an idle worker holds
-about 16 descriptors, one with 40 busy threads about 130) and less the listen backlog, because asyncio
-accepts up to a backlog's worth of connections in one go before any of them can be looked at.
+reserve for the session store, models, logs and child processes (``FD_RESERVE``; a worker that has
+served sessions of two models holds 16 descriptors, measured) and less the listen backlog, because
+asyncio accepts up to a backlog's worth of connections in one go before any of them can be looked at.
+A half-open connection costs about 5.5 kB of memory (measured with 2 000 and 8 000), hence the ceiling.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ log = logging.getLogger("yauyau.service")
 
 FD_RESERVE = 256  # descriptors kept for the store, the models, logs, pipes to analysis and job processes
 UVICORN_BACKLOG = 2048  # uvicorn's default listen backlog, lowered when the descriptor limit is small
-MAX_CONNECTIONS_CEILING = 4096  # the default cap however high the limit (about 8 KiB of memory each)
+MAX_CONNECTIONS_CEILING = 4096  # the default cap however high the limit (about 22 MB of connections)
 WARN_EVERY = 10.0  # seconds between two warnings about closed or refused connections
 
 CLOSED = PromCounter("yauyau_connections_closed_total", "connections the server closed or refused to "
