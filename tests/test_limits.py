@@ -507,3 +507,19 @@ def test_rates_are_kept_per_tenant(tmp_path, example_store):
         assert create("alice") == 429
     finally:
         server.kill()
+
+
+@pytest.mark.parametrize("flag, value, field", [
+    ("--header-timeout", "0", "header_timeout"), ("--max-connections", "0", "max_connections"),
+    ("--max-jobs", "0", "max_jobs"), ("--max-queued-jobs", "-1", "max_queued_jobs"),
+    ("--max-listeners", "0", "max_listeners"), ("--max-session-listeners", "0", "max_session_listeners"),
+    ("--rate-requests", "-1", "rate_requests"), ("--rate-sessions", "-1", "rate_sessions"),
+])
+def test_a_limit_flag_out_of_range_is_one_line_naming_it(tmp_path, flag, value, field):
+    """Each limit's `yauyau serve` flag reaches its setting: a value out of range exits 2 naming it."""
+    (tmp_path / "store").mkdir()
+    store = tmp_path / "store"
+    cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store), flag, value]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and out.stderr.startswith(f"yauyau serve: error: {field}:"), out.stderr
+    assert len(out.stderr.splitlines()) == 1
