@@ -24,6 +24,8 @@ from yauyau import __version__
 
 from . import metrics
 from .jobs import Jobs
+from .limits import RateLimits, rate_limits
+from .listeners import Feeds, ListenerSlots
 from .middleware import BodyLimit, JsonBodies
 from .problems import hide_paths, install_handlers
 from .registry import Registry
@@ -48,7 +50,7 @@ def _problem_openapi(app: FastAPI) -> dict[str, Any]:
         problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
         for operation in (op for item in schema["paths"].values() for op in item.values()):
             responses = operation["responses"]
-            for code in (400, 404, 413, 415, 422, 431, 503):  # limits, routing, validation, store: everywhere
+            for code in (400, 404, 413, 415, 422, 429, 431, 503):  # limits, routing, validation, store
                 responses.setdefault(str(code), {"description": ERRORS[code]})
             for code, response in responses.items():
                 if code[0] in "45":
@@ -130,7 +132,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.sessions = sessions
         app.state.jobs = Jobs(settings.store, settings.max_precompute_basis, settings.max_precompute_nodes,
                               settings.max_precompute_centres, settings.precompute_time_limit,
-                              settings.analyze_grace)
+                              settings.analyze_grace, max_jobs=settings.max_jobs,
+                              max_queued=settings.max_queued_jobs)
         app.state.ready = True
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,
@@ -159,12 +162,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.tenants = load_tenants(settings.tenants_file)  # None: no tenants file, no authentication
     hide_paths(store=settings.store, session_database=None if settings.session_postgres() else
                settings.session_path())  # never in a 5xx detail (service/problems.py)
+    app.state.listener_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners)
+    app.state.feeds = Feeds()
     install_handlers(app)
     app.openapi = lambda: _problem_openapi(app)
     for router in routers:
         app.include_router(router)
     app.add_middleware(JsonBodies)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(RateLimits, **rate_limits(settings))  # inside the tenants' middleware: per tenant
     app.add_middleware(TenantGuard, tenants=app.state.tenants, hosts=allowed_hosts(settings))
     app.add_middleware(metrics.RequestMetrics)
     return app

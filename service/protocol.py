@@ -1,4 +1,4 @@
-"""The HTTP/1.1 protocol of `yauyau serve`: uvicorn's h11 protocol with two changes.
+"""The HTTP/1.1 protocol of `yauyau serve`: uvicorn's h11 protocol with three changes.
 
 * TCP_NODELAY on every accepted connection.  With several workers uvicorn hands each worker the
   listening socket through a file descriptor (socket.fromfd), whose ``proto`` is 0, so asyncio does
@@ -8,15 +8,22 @@
 * Errors that h11 finds before the application sees the request (a request head over the limit,
   an invalid Content-Length, bad framing) are answered with problem+json like every other error,
   not uvicorn's plain-text 400.
+* What a client can make a worker hold in connections is bounded (service/connections.py): a request
+  head must be complete within ``header_timeout`` seconds, and at most ``max_connections`` are open
+  (a newcomer at the cap closes the one waiting longest for its head, or is answered 503).
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import socket
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from .connections import QuietLogger, connection_guard
+from .problems import problem_response
 
 MAX_HEAD_BYTES = 512 * 1024  # request line + headers: the documented 100 000-character points, encoded
 
@@ -36,19 +43,33 @@ def _head_size(request: h11.Request) -> int:
     return size + sum(len(name) + len(value) + 4 for name, value in request.headers)
 
 
+async def at_capacity(scope, receive, send) -> None:
+    """The answer to a connection that found every other one busy with a request (the cap reached)."""
+    response = problem_response(503, "this worker has as many connections as it serves at once, all busy; "
+                                "retry (max_connections)", "connections", instance=scope.get("path"),
+                                headers={"Retry-After": "1", "Connection": "close"})
+    await response(scope, receive, send)
+
+
 class ServiceProtocol(H11Protocol):
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self._protocol_error: h11.RemoteProtocolError | None = None
+        self._guard = connection_guard(self.loop)
+        self.logger = QuietLogger(self.logger, self._guard)
+        self._head_deadline: asyncio.TimerHandle | None = None
+        self._awaiting_head = False
         next_event = self.conn.next_event
 
         def remember_error():
             try:
                 event = next_event()
-                if isinstance(event, h11.Request) and _head_size(event) > MAX_HEAD_BYTES:
-                    # h11 bounds only a head still incomplete in its buffer; one that arrives whole
-                    # in a single read would pass, so the size is checked here as well
-                    raise h11.RemoteProtocolError("request head buffer too long", error_status_hint=431)
+                if isinstance(event, h11.Request):
+                    self._head_arrived()
+                    if _head_size(event) > MAX_HEAD_BYTES:
+                        # h11 bounds only a head still incomplete in its buffer; one that arrives whole
+                        # in a single read would pass, so the size is checked here as well
+                        raise h11.RemoteProtocolError("request head buffer too long", error_status_hint=431)
                 return event
             except h11.RemoteProtocolError as exc:
                 self._protocol_error = exc
@@ -59,6 +80,59 @@ class ServiceProtocol(H11Protocol):
     def connection_made(self, transport) -> None:  # type: ignore[override]
         set_nodelay(transport)
         super().connection_made(transport)
+        self._awaiting_head = True
+        self._arm_head_deadline()
+        if not self._guard.opened(self):
+            self.app = at_capacity  # answered 503 when its head arrives (unless evicted first)
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self._awaiting_head and self._head_deadline is None and not self.transport.is_closing():
+            self._arm_head_deadline()  # a kept-alive connection's next head began and is incomplete
+
+    def on_response_complete(self) -> None:
+        if not self.transport.is_closing():  # kept alive: waiting for the next head (uvicorn's
+            self._awaiting_head = True       # keep-alive timer closes it if none starts)
+            self._guard.wait_for_head(self)
+        super().on_response_complete()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._guard.closed(self)
+        self._awaiting_head = False
+        self._cancel_head_deadline()
+        super().connection_lost(exc)
+
+    def handle_websocket_upgrade(self, event: h11.Request) -> None:
+        self._guard.closed(self)  # the connection is the WebSocket protocol's now (the app has no such route)
+        super().handle_websocket_upgrade(event)
+
+    def evict(self) -> None:
+        """Close this connection, which waited longest for its request head, to make room for a newcomer."""
+        self._awaiting_head = False
+        self._cancel_head_deadline()
+        if not self.transport.is_closing():
+            self.transport.close()
+
+    def _head_arrived(self) -> None:
+        self._awaiting_head = False
+        self._cancel_head_deadline()
+        self._guard.head_received(self)
+
+    def _arm_head_deadline(self) -> None:
+        self._head_deadline = self.loop.call_later(self._guard.header_timeout, self._head_overdue)
+
+    def _cancel_head_deadline(self) -> None:
+        if self._head_deadline is not None:
+            self._head_deadline.cancel()
+            self._head_deadline = None
+
+    def _head_overdue(self) -> None:
+        self._head_deadline = None
+        if self._awaiting_head and not self.transport.is_closing():
+            self._guard.closed(self)
+            self._guard.note("header_timeout")
+            self._awaiting_head = False
+            self.transport.close()
 
     def send_400_response(self, msg: str) -> None:
         error = self._protocol_error

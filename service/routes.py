@@ -15,12 +15,11 @@ from fastapi import APIRouter, Body, Depends, Path, Query, Request
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from starlette.responses import HTMLResponse, JSONResponse, Response
 from yauyau.solver.errors import SpecError
-from yauyau.storage.errors import NotFound
 
 from . import metrics
 from .density import parse_points
 from .deps import AdminOnly, JobsDep, RegistryDep, SessionsDep, SettingsDep, TenantDep
-from .jobs import PrecomputeLimit
+from .jobs import QUEUE_RETRY_S, PrecomputeLimit, QueueFull
 from .live import live_response
 from .problems import Problem
 from .schemas import (
@@ -53,7 +52,10 @@ ERRORS = {400: "malformed request (e.g. invalid JSON) or a Host that is not this
           409: "seq gap or concurrent update", 413: "request body too large",
           415: "the body is not JSON (send Content-Type: application/json)",
           422: "invalid input (the field is named)", 431: "request line and headers too large",
-          503: "not ready, store unavailable (disk full, database damaged) or analysis busy: see Retry-After"}
+          429: "too many requests: a client's request or session rate, or a session's listeners (see "
+               "Retry-After)",
+          503: "not ready, store unavailable (disk full, database damaged), analysis busy, or a worker's "
+               "connection, listener or job queue limit reached: see Retry-After"}
 
 
 def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
@@ -102,19 +104,23 @@ def list_models(registry: RegistryDep) -> Response:
 
 
 @models.post("", status_code=202, response_model=Job,
-             responses={200: {"description": "the model is already stored"}, **_errors(403, 413, 422)},
+             responses={200: {"description": "the model is already stored"}, **_errors(403, 413, 422, 503)},
              dependencies=AdminOnly)
 def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
     """Precompute a spec in the background: 202 with the job to poll (``GET /v1/jobs/{id}``); the
     model appears in ``GET /v1/models`` when it is done.  The id is the spec's content hash: the same
     spec again is the same job (computed once), or 200 when the model is already stored.  Oversize
-    specs (basis, mesh nodes) are refused with 413 before any work."""
+    specs (basis, mesh nodes) are refused with 413 before any work.  At most ``YAUYAU_MAX_JOBS`` jobs run
+    at once (all workers and hosts of the store), the others are ``queued``; beyond
+    ``YAUYAU_MAX_QUEUED_JOBS`` waiting, 503 with Retry-After."""
     try:
         job, _ = jobs.submit(body.spec)
     except SpecError as exc:
         raise SpecError(f"spec.{exc.field}", exc.message) from None
     except PrecomputeLimit as exc:
         raise Problem(413, exc.message, exc.field) from None
+    except QueueFull as exc:
+        raise Problem(503, str(exc), "spec", retry_after=QUEUE_RETRY_S) from None
     out = {**job, "job": f"/v1/jobs/{job['id']}", "model": f"/v1/models/{job['id']}"}
     response = _json(out, 200 if job["status"] == "done" else 202)
     response.headers["Location"] = out["job"]
@@ -123,7 +129,8 @@ def create_model(jobs: JobsDep, body: ModelCreate) -> Response:
 
 @jobs_router.get("/{job_id}", response_model=Job, responses=_errors(403, 404), dependencies=AdminOnly)
 def get_job(jobs: JobsDep, job_id: Annotated[str, Path(min_length=1, max_length=100)]) -> Response:
-    """A precompute job: running (with its progress), done (the model is in /v1/models) or failed (why)."""
+    """A precompute job: queued (with its position, 1: next), running (with its progress), done (the model
+    is in /v1/models) or failed (why)."""
     try:
         job = jobs.status(job_id)
     except KeyError:
@@ -221,27 +228,35 @@ def _known_session(service: SessionsDep, tenant: TenantDep, session_id: SessionI
     return service.version(session_id, tenant)
 
 
-@sessions.get("/{session_id}/events", response_class=EventSourceResponse, responses=_errors(404))
+async def _listener_slot(request: Request, session_id: SessionId) -> AsyncIterator[None]:
+    """A listener's slot on this worker (429 or 503 at the caps), given back when its response ends."""
+    slots = request.app.state.listener_slots
+    slots.take(session_id)
+    try:
+        yield
+    finally:
+        slots.give_back(session_id)
+
+
+@sessions.get("/{session_id}/events", response_class=EventSourceResponse, responses=_errors(404, 429, 503))
 async def events(service: SessionsDep, settings: SettingsDep, tenant: TenantDep, request: Request,
-                 session_id: SessionId, seen: Annotated[int, Depends(_known_session)]
+                 session_id: SessionId, seen: Annotated[int, Depends(_known_session)],
+                 slot: Annotated[None, Depends(_listener_slot)]
                  ) -> AsyncIterator[ServerSentEvent]:
     """Server-Sent Events: one ``frame`` event now and one after every applied chunk (the estimate
     and the density on a grid, as /view draws them); ``gone`` when the session is deleted.  The
     session store is polled (every ``YAUYAU_EVENTS_POLL`` s), so a chunk applied by any worker or
-    host shows."""
-    loop = asyncio.get_running_loop()
-    first = True
-    while not await request.is_disconnected():
-        try:
-            version = await loop.run_in_executor(None, service.version, session_id, tenant)
-        except NotFound:
+    host shows; the listeners of a session on one worker share that poll and each frame
+    (service/listeners.py).  At most ``YAUYAU_MAX_SESSION_LISTENERS`` per session (429 beyond) and
+    ``YAUYAU_MAX_LISTENERS`` in all (503 beyond) on one worker."""
+    frames = request.app.state.feeds.listen((session_id, tenant), lambda: service.version(session_id, tenant),
+                                            lambda: service.frame(session_id, 161, tenant),
+                                            settings.events_poll)
+    async for frame in frames:
+        if frame is None:
             yield ServerSentEvent(event="gone", data={"id": session_id})
             return
-        if first or version != seen:
-            first, seen = False, version
-            frame = await loop.run_in_executor(None, service.frame, session_id, 161, tenant)
-            yield ServerSentEvent(event="frame", id=str(version), data=frame)
-        await asyncio.sleep(settings.events_poll)
+        yield ServerSentEvent(event="frame", id=str(frame.version), raw_data=frame.text)
 
 
 @sessions.get("/{session_id}/density", response_model=DensityOut, responses=_errors(404, 422))

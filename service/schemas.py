@@ -209,8 +209,9 @@ class ModelCreate(_Body):
 
 class Job(BaseModel):
     id: str = Field(description="the model id (the content hash of the spec): the same spec, the same job")
-    status: str = Field(description="running, done or failed")
+    status: str = Field(description="queued, running, done or failed")
     progress: float | None = Field(None, description="share of the propagators solved (0 to 1)")
+    position: int | None = Field(None, description="a queued job's place in the queue (1: next to start)")
     error: str | None = Field(None, description="why the job failed")
     name: str | None = None
     job: str = Field(description="this job's URL (poll it)")

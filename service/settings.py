@@ -72,6 +72,35 @@ class Settings(BaseSettings):
     model_cache: int = Field(
         8, ge=1, le=100_000, description="models each worker keeps loaded (least recently used dropped "
                                          "first); models load on first use")
+    header_timeout: float = Field(
+        10.0, gt=0, le=3600, description="seconds a connection may take to send a complete request head "
+                                         "(from its opening, or from the first byte of a kept-alive "
+                                         "connection's next head); it is closed then")
+    max_connections: int | None = Field(
+        None, ge=1, le=1_000_000, description="connections one worker keeps open; a newcomer beyond closes "
+                                              "the one waiting longest for its request head, or is answered "
+                                              "503 (default: what the descriptor limit allows, less a "
+                                              "reserve and the listen backlog, at most 4096)")
+    max_jobs: int = Field(
+        2, ge=1, le=256, description="precompute jobs (processes) running at once for one model store, all "
+                                     "workers and hosts together; the others wait in a queue")
+    max_queued_jobs: int = Field(
+        16, ge=0, le=100_000, description="precompute jobs waiting for a slot; POST /v1/models answers 503 "
+                                          "beyond")
+    max_session_listeners: int = Field(
+        8, ge=1, le=100_000, description="/events listeners of one session on one worker (429 beyond)")
+    max_listeners: int = Field(
+        64, ge=1, le=100_000, description="/events listeners on one worker, all sessions (503 beyond)")
+    rate_requests: float = Field(
+        2000.0, ge=0, description="/v1 requests per second per client (its tenant, else its IP address), "
+                                  "each worker allowing its share (rate / workers); 429 beyond; 0: no limit")
+    rate_requests_burst: int = Field(
+        2000, ge=1, description="/v1 requests a client may send at once above rate_requests")
+    rate_sessions: float = Field(
+        50.0, ge=0, description="sessions created per second per client (its tenant, else its IP address), "
+                                "each worker allowing its share (rate / workers); 429 beyond; 0: no limit")
+    rate_sessions_burst: int = Field(
+        100, ge=1, description="sessions a client may create at once above rate_sessions")
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
     metrics_dir: Path | None = Field(
         None, description="prometheus multiprocess directory (set by `serve` when workers > 1)")

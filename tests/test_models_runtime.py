@@ -113,6 +113,9 @@ def test_a_job_whose_process_died_is_reported_and_started_again(tmp_path, monkey
 class _Fake:
     pid = 12345
 
+    def wait(self):  # the dispatcher waits for its job processes to end (no process here)
+        return 0
+
 
 def test_a_silent_job_whose_process_holds_its_lock_is_alive(tmp_path, monkeypatch):
     """The eigensolve holds the GIL for minutes: no heartbeat, but the job's lock says it runs."""

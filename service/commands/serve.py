@@ -10,6 +10,28 @@ import os
 import sys
 import tempfile
 
+_LIMIT_FLAGS = [
+    ("--header-timeout", float, "seconds a connection may take to send a complete request head, then it is "
+                                "closed (env YAUYAU_HEADER_TIMEOUT; default 10)"),
+    ("--max-connections", int, "connections per worker; a newcomer beyond closes the one waiting longest for "
+                               "its request head, or gets 503 (env YAUYAU_MAX_CONNECTIONS; default from the "
+                               "descriptor limit, at most 4096)"),
+    ("--max-jobs", int, "precompute jobs running at once for the model store, the rest queued "
+                        "(env YAUYAU_MAX_JOBS; default 2)"),
+    ("--max-queued-jobs", int, "precompute jobs waiting; POST /v1/models answers 503 beyond "
+                               "(env YAUYAU_MAX_QUEUED_JOBS; default 16)"),
+    ("--max-listeners", int, "/events listeners per worker, all sessions; 503 beyond "
+                             "(env YAUYAU_MAX_LISTENERS; default 64)"),
+    ("--max-session-listeners", int, "/events listeners of one session per worker; 429 beyond "
+                                     "(env YAUYAU_MAX_SESSION_LISTENERS; default 8)"),
+    ("--rate-requests", float, "/v1 requests per second per client (tenant, else IP address); 429 beyond; "
+                               "0: off (env YAUYAU_RATE_REQUESTS; default 2000; burst "
+                               "YAUYAU_RATE_REQUESTS_BURST, default 2000)"),
+    ("--rate-sessions", float, "sessions created per second per client (tenant, else IP address); 429 "
+                               "beyond; 0: off (env YAUYAU_RATE_SESSIONS; default 50; burst "
+                               "YAUYAU_RATE_SESSIONS_BURST, default 100)"),
+]
+
 
 def add_arguments(parser):
     parser.add_argument("--store", help="model store directory (env YAUYAU_STORE; default var/store)")
@@ -38,6 +60,9 @@ def add_arguments(parser):
     parser.add_argument("--batch-window", type=float,
                         help="seconds a worker waits for more chunks before stepping those it has together "
                              "(env YAUYAU_BATCH_WINDOW; default 0: the chunks already waiting)")
+    limits = parser.add_argument_group("limits on what clients make the server hold (docs/reliability.md)")
+    for flag, kind, text in _LIMIT_FLAGS:
+        limits.add_argument(flag, type=kind, help=text)
     parser.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
     parser.add_argument("--tenants", metavar="FILE",
                         help="TOML file of [[tenant]] tables (name, token_sha256, admin): every /v1 request "
@@ -62,6 +87,8 @@ def _settings(args):
                                    "blas_threads": args.blas_threads, "model_cache": args.model_cache,
                                    "session_idle_expiry": args.session_idle_expiry,
                                    "batch_window": args.batch_window,
+                                   **{flag[2:].replace("-", "_"): getattr(args, flag[2:].replace("-", "_"))
+                                      for flag, _, _ in _LIMIT_FLAGS},
                                    "log_level": args.log_level, "tenants_file": args.tenants,
                                    "insecure_bind": args.insecure_bind,
                                    "allowed_hosts": args.allowed_hosts}.items() if v is not None}
@@ -102,6 +129,7 @@ def _check_session_db(settings) -> None:
 
 def run(args):
     import uvicorn
+    from yauyau.service.connections import FD_RESERVE, descriptor_limit, plan
     from yauyau.service.protocol import MAX_HEAD_BYTES, ServiceProtocol
     from yauyau.service.tenants import serve_notes
     from yauyau.storage.errors import StoreError
@@ -119,7 +147,12 @@ def run(args):
         print(note, file=sys.stderr, flush=True)
     if settings.metrics_dir is not None:
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(settings.metrics_dir)
+    cap, backlog = plan(settings.max_connections)
+    if cap + backlog + FD_RESERVE > descriptor_limit():
+        print(f"yauyau serve: warning: --max-connections {cap} with a listen backlog of {backlog} does not "
+              f"fit the descriptor limit ({descriptor_limit()}, ulimit -n) with {FD_RESERVE} to spare: raise "
+              "the limit or lower the cap", file=sys.stderr)
     uvicorn.run("yauyau.service.app:create_app", factory=True, host=settings.host, port=settings.port,
                 workers=settings.workers, log_level=settings.log_level, access_log=False,
-                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES)
+                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES, backlog=backlog)
     return 0
