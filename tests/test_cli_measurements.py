@@ -179,7 +179,9 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     for got, expected in ((result.t, table[:, 1]), (result.mean[:, 0], table[:, 2]),
                           (result.cov[:, 0, 0], table[:, 3]), (result.loglik, table[:, 4]),
                           (result.predictive_loglik, table[:, 7])):
-        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+        # the CLI runs one BLAS thread, a test worker may run more: the products' sums in another order
+        # (seen once under a loaded parallel run: 1.4e-12 on a predictive log-likelihood of 0.15)
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
     np.testing.assert_array_equal(result.gated, table[:, 6].astype(bool))
 
 
