@@ -36,6 +36,14 @@ def _binary(name: str) -> str:
     return found
 
 
+def _alive(pid: int) -> bool:
+    """Whether the process runs (a zombie, killed but not reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
 class PostgresServer:
     """``PostgresServer()`` starts a cluster; ``dsn`` to connect; ``stop()`` removes it."""
 
@@ -68,6 +76,7 @@ class PostgresServer:
         import signal
 
         postmaster = int((self.data / "postmaster.pid").read_text().split()[0])
+        os.kill(postmaster, signal.SIGSTOP)  # it must not restart what dies first
         children = []
         for stat in Path("/proc").glob("[0-9]*/stat"):
             try:
@@ -82,8 +91,14 @@ class PostgresServer:
             except ProcessLookupError:
                 pass
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in children):
+        while time.monotonic() < deadline and any(_alive(pid) for pid in [*children, postmaster]):
             time.sleep(0.05)
+        # Where nothing reaps orphans (a container whose first process is not an init), the killed
+        # postmaster stays a zombie, which a new postmaster takes for a live one ("lock file already
+        # exists"); every process of this server is dead, so its lock files are stale.
+        for stale in (self.data / "postmaster.pid", self.root / f".s.PGSQL.{self.port}.lock",
+                      self.root / f".s.PGSQL.{self.port}"):
+            stale.unlink(missing_ok=True)
 
     def _run(self, *command: str) -> None:
         done = subprocess.run([*self._as, *command], capture_output=True, text=True, cwd=self.root)
@@ -101,7 +116,8 @@ class PostgresServer:
 
     def stop(self) -> None:
         try:
-            self._run(_binary("pg_ctl"), "-D", str(self.data), "-m", "immediate", "-w", "stop")
+            if (self.data / "postmaster.pid").exists():  # not after a crash() with no start()
+                self._run(_binary("pg_ctl"), "-D", str(self.data), "-m", "immediate", "-w", "stop")
         finally:
             time.sleep(0.1)
             shutil.rmtree(self.root, ignore_errors=True)
