@@ -60,6 +60,12 @@ LOST_WINDOW = 100  # ... within this many rows
 CHARTS = (0.5, 0.1, 0.025)  # CUSUM reference values (standard deviations of the innovation's score)
 MONITOR_RANGE = (1e3, 1e15)
 BLOCK = 4096  # rows of the charts computed at once
+SCORE_CLIP = 1000.0  # scores beyond are taken as ±1000 (an alarm either way)
+QUANTUM_BITS = 20  # scores in multiples of 2^-20: the charts' sums (< 2^33) are exact
+# methods whose monitor is off unless a session or the spec sets it: their Gaussian mixtures follow
+# posteriors that one moment match misplaces (the ring of a range-only sensor: E[h] inside the ring;
+# measured on examples/range_only_4d.toml, docs/reliability.md)
+MONITOR_OFF_BY_DEFAULT = frozenset({"yau-jia"})
 MAX_GAP = 64  # rows after a longer gap (in dt) are not scored: the moment prediction is Euler's
 _SIEGMUND = 1.166  # Siegmund's correction of the CUSUM threshold (ρ = −ζ(1/2)/√(2π) · 2)
 
@@ -136,10 +142,14 @@ class WatchSettings:
 
 def settings_for(flt: Any, lost_track: Any = None, monitor: Any = None) -> WatchSettings:
     """The settings of a filter: ``lost_track`` (None: the defaults) and ``monitor`` (None: the spec's
-    ``[measurement] monitor``)."""
+    ``[measurement] monitor``; off for the methods of MONITOR_OFF_BY_DEFAULT unless the spec sets it)."""
     chosen = check_monitor(monitor)
     if chosen is None:
-        chosen = float(getattr(flt.model.spec.measurement, "monitor", MONITOR_DEFAULT))
+        measurement = flt.model.spec.measurement
+        chosen = float(getattr(measurement, "monitor", MONITOR_DEFAULT))
+        chosen_in_spec = "monitor" in measurement.model_fields_set
+        if getattr(flt, "method", None) in MONITOR_OFF_BY_DEFAULT and not chosen_in_spec:
+            chosen = 0.0
     return WatchSettings(lost=check_lost_track(lost_track), monitor=chosen)
 
 
@@ -378,36 +388,43 @@ def hold(flt: Any, state: Any, rows: Any, times: Any | None, reason: str) -> tup
 # -- the innovation monitor ---------------------------------------------------------------------------
 def innovation_scores(flt: Any, before: Any, result: ChunkResult, rows: np.ndarray) -> np.ndarray:
     """The normal scores z (K, m) of the rows' innovations (module docstring); NaN where a row or
-    component is not scored."""
+    component is not scored.  Written for few array operations: a chunk costs about as much as two
+    evaluations of f and h at 3K points."""
     model = flt.model
-    K, m = len(result), model.m
-    z = np.full((K, m), np.nan)
-    scored = ~(result.gated | result.degenerate | result.reinitialised) & ~np.isnan(rows).all(axis=1)
+    K = len(result)
+    scored = ~(result.gated | result.degenerate | result.reinitialised)
+    scored &= ~np.isnan(rows).all(axis=1)
     if not scored.any():
-        return z
-    first = flt.estimate(before)
-    means = np.concatenate([np.asarray(first.mean, dtype=float)[None], result.mean[:-1]])
-    covs = np.concatenate([np.asarray(first.cov, dtype=float)[None], result.cov[:-1]])
+        return np.full((K, model.m), np.nan)
     taus = np.diff(result.t, prepend=float(before.t))
-    dt = float(model.dt)
-    scored &= (taus <= MAX_GAP * dt) & (taus >= 0) & np.isfinite(means).all(axis=1)
-    if not scored.all():
+    first = flt.estimate(before)
+    every = bool(scored.all()) and 0.0 <= taus.min() and taus.max() <= MAX_GAP * float(model.dt)
+    if not every:
+        scored &= (taus <= MAX_GAP * float(model.dt)) & (taus >= 0)
         index = np.flatnonzero(scored)
         if not len(index):
-            return z
-        means, covs, taus, rows = means[index], covs[index], taus[index], rows[index]
+            return np.full((K, model.m), np.nan)
     with np.errstate(all="ignore"):
-        if model.n == 1:  # the usual case, without the matrix square roots
-            h_mean, h_var = _predicted_h_1d(model, means[:, 0], covs[:, 0, 0], taus)
+        if model.n == 1:  # the usual case: no matrix square roots
+            mean = np.concatenate([np.asarray(first.mean, dtype=float), result.mean[:-1, 0]])
+            var = np.concatenate([np.asarray(first.cov, dtype=float)[0], result.cov[:-1, 0, 0]])
+            if not every:
+                mean, var, taus, rows = mean[index], var[index], taus[index], rows[index]
+            h_mean, h_var = _predicted_h_1d(model, mean, var, taus)
         else:
-            mean, cov = predicted_moments(model, means, covs, taus)
-            h_mean, h_var = _predicted_h(model, mean, cov)
+            means = np.concatenate([np.asarray(first.mean, dtype=float)[None], result.mean[:-1]])
+            covs = np.concatenate([np.asarray(first.cov, dtype=float)[None], result.cov[:-1]])
+            if not every:
+                means, covs, taus, rows = means[index], covs[index], taus[index], rows[index]
+            h_mean, h_var = _predicted_h(model, *predicted_moments(model, means, covs, taus))
         scores = _standardised(model, h_mean, h_var, rows, taus)
-    if scored.all():
-        z = scores
-    else:
+    if not every:
+        z = np.full((K, model.m), np.nan)
         z[index] = scores
-    z[~np.isfinite(z)] = np.nan
+    else:
+        z = scores
+    if not np.isfinite(z).all():
+        z[~np.isfinite(z)] = np.nan
     return z
 
 
@@ -415,11 +432,11 @@ def _predicted_h_1d(model: Any, mean: np.ndarray, var: np.ndarray,
                     taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """E[h] and the diagonal of Cov[h] (K, m) at each row's time for a 1-D state: :func:`predicted_moments`
     and :func:`_predicted_h` with the three points m, m ± √(3P) (weights 2/3, 1/6, 1/6)."""
-    dt, a = float(model.dt), float(np.asarray(model.a, dtype=float)[0, 0])
-    count = np.maximum(np.ceil(taus / dt - 1e-9), 1)
-    if count.max() == 1:
+    dt, a = float(model.dt), float(model.a[0, 0])
+    if taus.max() <= dt * (1.0 + 1e-9):  # regular rows: one step
         mean, var = _euler_1d(model, mean, var, taus, a)
     else:
+        count = np.maximum(np.ceil(taus / dt - 1e-9), 1)
         mean, var = mean.copy(), var.copy()
         for s in range(int(count.max())):
             active = np.flatnonzero(count > s)
@@ -428,21 +445,20 @@ def _predicted_h_1d(model: Any, mean: np.ndarray, var: np.ndarray,
     K = len(mean)
     root = np.sqrt(3.0 * np.maximum(var, 0.0))
     h = np.asarray(model.h(np.concatenate([mean, mean + root, mean - root])[:, None]), dtype=float)
-    h = h.reshape(3, K, -1)
+    h = h.reshape(3, -1)  # (3, K·m); elementwise sums (not BLAS): the same bits however the rows are chunked
     h_mean = (4.0 * h[0] + h[1] + h[2]) / 6.0
     spread = h - h_mean
-    return h_mean, (4.0 * spread[0] ** 2 + spread[1] ** 2 + spread[2] ** 2) / 6.0
+    h_var = (4.0 * spread[0] * spread[0] + spread[1] * spread[1] + spread[2] * spread[2]) / 6.0
+    return h_mean.reshape(K, -1), h_var.reshape(K, -1)
 
 
 def _euler_1d(model: Any, mean: np.ndarray, var: np.ndarray, h: np.ndarray, a: float):
     """One Euler step of length h (K,) of the 1-D moment equations (three unscented points)."""
-    K = len(mean)
     root = np.sqrt(3.0 * np.maximum(var, 0.0))
-    points = np.concatenate([mean, mean + root, mean - root])[:, None]
-    f = np.asarray(model.f(points), dtype=float).reshape(3, K)
-    f_mean = (4.0 * f[0] + f[1] + f[2]) / 6.0
-    cross = root * (f[1] - f[2]) / 6.0
-    return mean + h * f_mean, var + h * (2.0 * cross + a)
+    f = np.asarray(model.f(np.concatenate([mean, mean + root, mean - root])[:, None]), dtype=float)
+    f = f.reshape(3, -1)
+    cross = root * (f[1] - f[2])  # 6 E[(x − m)(f − E f)]
+    return mean + h * ((4.0 * f[0] + f[1] + f[2]) / 6.0), var + h * (cross / 3.0 + a)
 
 
 def sigma_points(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -534,14 +550,18 @@ def run_charts(charts: tuple[float, ...], z: np.ndarray,
     (the charts after, ordered (side, component, chart); the signed statistic after each row (K,);
     the alarm rows (K,) bool).  A chart S ← max(0, S ± z − k) runs as the cumulative sum minus its
     running minimum (Lindley), so a chunk costs a few array operations; after an alarm every chart
-    starts again from 0."""
+    starts again from 0.  The scores are clipped to ±SCORE_CLIP and rounded to multiples of
+    2^-QUANTUM_BITS, so every sum is exact in double precision: the charts, the statistic and the
+    alarms do not depend on how the rows were split into chunks (bit for bit)."""
     K, m = z.shape
-    ks = np.asarray(CHARTS)
+    scale = float(1 << QUANTUM_BITS)
+    ks = np.rint(np.asarray(CHARTS) * scale)
     C = len(ks)
-    limits = np.tile(np.asarray(thresholds(float(monitor), m)), 2 * m)
-    start = np.zeros(2 * m * C) if not charts else np.asarray(charts, dtype=float)
-    signed = np.concatenate([z, -z], axis=1)[:, :, None] - ks  # (K, 2m, C): side-major
-    steps = np.nan_to_num(signed.reshape(K, 2 * m * C), nan=0.0)
+    limits = np.tile(np.asarray(thresholds(float(monitor), m)), 2 * m) * scale
+    start = np.zeros(2 * m * C) if not charts else np.asarray(charts, dtype=float) * scale
+    q = np.rint(np.clip(z, -SCORE_CLIP, SCORE_CLIP) * scale)
+    steps = (np.concatenate([q, -q], axis=1)[:, :, None] - ks).reshape(K, 2 * m * C)  # side-major
+    np.copyto(steps, 0.0, where=np.isnan(steps))  # not scored: the charts hold
     statistic = np.zeros(K)
     alarm = np.zeros(K, dtype=bool)
     half = m * C
@@ -554,15 +574,14 @@ def run_charts(charts: tuple[float, ...], z: np.ndarray,
         ratio = now / limits
         up, down = ratio[:, :half].max(axis=1), ratio[:, half:].max(axis=1)
         value = np.where(up >= down, up, -down)
-        over = np.flatnonzero(np.abs(value) >= 1.0)
-        if not len(over):
+        if max(up.max(), down.max()) < 1.0:  # the usual block: no alarm in it
             statistic[row:row + len(block)] = value
             start = now[-1]
             row += len(block)
             continue
-        a = int(over[0])
+        a = int(np.argmax(np.maximum(up, down) >= 1.0))
         statistic[row:row + a + 1] = value[:a + 1]
         alarm[row + a] = True
         start = np.zeros_like(start)
         row += a + 1
-    return tuple(start.tolist()), statistic, alarm
+    return tuple((start / scale).tolist()), statistic, alarm

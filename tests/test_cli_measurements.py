@@ -159,7 +159,7 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     assert run.returncode == 0, run.stderr
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate", "gated", "predictive_loglik",
-                       "reinitialised"]
+                       "reinitialised", "alarm", "monitor"]
     np.testing.assert_array_equal(table[:, 0], np.arange(1, 401))
     np.testing.assert_array_equal(table[:, 1], times)
     mean, var, pll, _ = kalman(times, z, t0=0.0, R=1.0)
