@@ -68,7 +68,8 @@ def healthy(path: str, rows: int, seed: int = 1) -> dict:
     started = time.perf_counter()
     mid = yauyau.precompute(spec, STORE)
     precompute_s = time.perf_counter() - started
-    flt = yauyau.open_filter(STORE, mid, on_degenerate="reinitialise", lost_track={"gated": 0, "restarts": 0})
+    flt = yauyau.open_filter(STORE, mid, on_degenerate="reinitialise", lost_track={"gated": 0, "restarts": 0},
+                             monitor=1e9)  # on for every method (yau-jia too: its default is off)
     sim = yauyau.simulate(spec, rows, seed=seed)
     data = sim.rows
     gated, restarts, alarms, run, longest, worst = 0, [], 0, 0, 0, 0.0

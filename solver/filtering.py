@@ -315,9 +315,10 @@ def one_row(row: Any | None, m: int, field: str) -> np.ndarray:
         raise InputError(field, f"must be {m} number(s) (NaN: missing), or None") from None
 
 
-def check_t0(t0: Any, field: str = "t0", dt: float | None = None) -> float:
+def check_t0(t0: Any, field: str = "t0", dt: float | None = None, what: str = "t0") -> float:
     """The time of a prior: a finite real number, else InputError naming ``field``; with the model's
-    ``dt``, one where a step of dt keeps its precision (:func:`solver.measurement.check_spacing`)."""
+    ``dt``, one where a step of dt keeps its precision (:func:`solver.measurement.check_spacing`; the
+    message calls it ``what``)."""
     import math
     import numbers
 
@@ -326,7 +327,7 @@ def check_t0(t0: Any, field: str = "t0", dt: float | None = None) -> float:
     if isinstance(t0, bool) or not isinstance(t0, numbers.Real) or not math.isfinite(t0):
         raise InputError(field, "must be a finite number (the time of the prior)")
     if dt is not None:
-        check_spacing(float(t0), float(dt), field, "t0")
+        check_spacing(float(t0), float(dt), field, what)
     return float(t0)
 
 

@@ -203,7 +203,8 @@ def test_times_below_the_float_spacing_over_the_command_line(store, tmp_path):
     for t0 in ("1e16", "1e308"):
         run = cli("filter", ids["ou7"], "--store", directory, "--increments", source, "--out", out,
                   "--t0", t0)
-        assert run.returncode == 2 and "--t0: " in run.stderr and "Traceback" not in run.stderr, run.stderr
+        assert run.returncode == 2 and "error: t0: --t0 = " in run.stderr and "Traceback" not in run.stderr, \
+            run.stderr
     timed = tmp_path / "timed.csv"
     timed.write_text("t,z\n1e16,0.1\n10000000000000016,0.2\n")
     run = cli("filter", ids["sensor"], "--store", directory, "--observations", timed, "--out", out, "--t0", 0)

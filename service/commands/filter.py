@@ -212,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     if args.chunk < 1:
         raise InputError("chunk", "must be a positive integer")
     if args.t0 is not None and not math.isfinite(args.t0):
-        raise InputError("--t0", "must be a finite number (the time at which the model's prior holds)")
+        raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
     lost_track = None if args.lost_track is None else parse_lost_track(args.lost_track)
     monitor = check_monitor(args.monitor, "--monitor")
@@ -230,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
                                            'kind = "discrete"): give them with their times, --observations '
                                            "IN.csv (a header t,<one column per component>)")
         if args.t0 is not None:  # regular rows step by dt from t0: that must still be a step
-            check_t0(float(args.t0), "--t0", float(model.dt))
+            check_t0(float(args.t0), "t0", float(model.dt), "--t0")
         numbers: list[int] = []
         source = Source(read_increments(args.increments, model.m, numbers), None,
                         0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
