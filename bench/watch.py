@@ -177,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-bias", action="store_true")
     parser.add_argument("--no-healthy", action="store_true")
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--cases", default="ou-discrete +0.33,power-meter -0.33,ou +0.33",
+                        help="comma-separated bias cases (default: all three)")
     parser.add_argument("--jobs", type=int, default=1)
     args = parser.parse_args(argv)
     paths = sorted(str(p) for p in (ROOT / "examples").glob("*.toml"))
@@ -187,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         jobs = [] if args.no_healthy else [pool.submit(healthy, p, args.rows) for p in paths]
         cases = [] if args.no_bias else [pool.submit(bias_case, c, args.seeds, 40_000)
-                                         for c in ("ou-discrete +0.33", "power-meter -0.33", "ou +0.33")]
+                                         for c in args.cases.split(",") if c]
         for job in jobs:
             row = job.result()
             out["healthy"].append(row)
