@@ -122,7 +122,7 @@ def bias_case(name: str, seeds: int, rows: int) -> dict:
     for seed in range(seeds):
         sim = yauyau.simulate(spec, rows, seed=100 + seed)
         data = sim.rows + offset * (1.0 if discrete else spec.discretization.dt)
-        flt = yauyau.open_filter(STORE, mid, method=method)
+        flt = yauyau.open_filter(STORE, mid, method=method, monitor=1e9)
         found = None
         for start in range(0, rows, CHUNK):
             result = flt.run(data[start:start + CHUNK])

@@ -51,15 +51,16 @@ class SessionCreate(_Body):
                           "degenerate with a reason naming the domain and the fix, until a reset); default: "
                           "20 consecutive gated rows, or 3 restarts within 100 rows")
     monitor: Number | None = Field(
-        None, description="the innovation monitor (a sustained bias of the observations against their "
-                          "predictions raises `alarm` on a row): the mean number of healthy rows per false "
-                          "alarm, from 1e3 to 1e15, or 0 (off); default: the model spec's [measurement] "
-                          "monitor (1e9)")
+        None, ge=0, le=1e15,
+        description="the innovation monitor (a sustained bias of the observations against their predictions "
+                    "raises `alarm` on a row): the mean number of healthy rows per false alarm, from 1e3 to "
+                    "1e15 (1e9 is a good choice), or 0 (off); default: the model spec's [measurement] "
+                    "monitor (off unless set)")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
         {"model": "3f9c2a...", "on_degenerate": "reinitialise", "t0": 12.5, "gate": 4.0},
-        {"model": "3f9c2a...", "lost_track": {"gated": 50, "restarts": 5, "window": 500}, "monitor": 0}]})
+        {"model": "3f9c2a...", "lost_track": {"gated": 50, "restarts": 5, "window": 500}, "monitor": 1e9}]})
 
 
 class Observations(_Body):
@@ -179,7 +180,7 @@ class SessionCreated(BaseModel):
         "estimate": {"step": 0, "t": 0.0, "mean": [0.5], "cov": [[1.0]], "loglik": 0.0,
                      "degenerate": False, "reason": None},
         "options": {"on_degenerate": "stop", "t0": 0.0, "gate": 6.0,
-                    "lost_track": {"gated": 20, "restarts": 3, "window": 100}, "monitor": 1e9}}]})
+                    "lost_track": {"gated": 20, "restarts": 3, "window": 100}, "monitor": 0.0}}]})
 
 
 class ChunkResult(BaseModel):

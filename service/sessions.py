@@ -267,14 +267,19 @@ def _options(rec: Any) -> dict[str, Any]:
 
 
 def _shown_options(options: dict[str, Any], filt: Any) -> dict[str, Any]:
-    """The options as GET shows them: the gate, the lost-track rule and the monitor in force (the
-    session's, else the spec's and the defaults)."""
+    """The options as GET shows them: the gate in force (the session's, else the spec's); the
+    lost-track rule when the session set one, the monitor when it is on (the session's, else the
+    spec's); absent, they are the defaults (solver/watch.py)."""
     gate = _gate_of(filt)
     if gate is None:
         gate = float(filt.model.spec.measurement.gate)
+    shown = {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate}
     settings = _watch_settings(options, filt)
-    return {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate,
-            "lost_track": settings.lost.to_dict(), "monitor": settings.monitor}
+    if options.get("lost_track") is not None:
+        shown["lost_track"] = settings.lost.to_dict()
+    if settings.monitor > 0:
+        shown["monitor"] = settings.monitor
+    return shown
 
 
 def _watch_settings(options: dict[str, Any], filt: Any) -> WatchSettings:
@@ -511,7 +516,7 @@ class Sessions:
         info = {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
                 "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out,
                 "options": options, "lost": watch.lost,
-                "monitor": {"statistic": watch.statistic if options["monitor"] > 0 else None,
+                "monitor": {"statistic": watch.statistic if options.get("monitor", 0.0) > 0 else None,
                             "alarms": watch.alarms}}
         if getattr(state, "center", None) is not None:  # a ball that follows the state
             info["center"] = np.asarray(filt.ball_center(state), dtype=float).tolist()

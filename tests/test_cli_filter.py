@@ -67,7 +67,7 @@ def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
     assert code == 0
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate", "gated", "predictive_loglik",
-                       "reinitialised", "alarm", "monitor"]
+                       "reinitialised"]
     assert np.array_equal(table[:, 0], np.arange(1, 121)) and np.allclose(table[:, 1], 0.01 * table[:, 0])
     kalman = DiscreteKalmanFilter(model)
     _, ref = kalman.run(kalman.initial_state(), dy)
@@ -103,8 +103,8 @@ def test_filter_two_dimensional_layout(store, tmp_path):
     assert code in (0, 3)  # basis 30 is coarse: it may degenerate (exit 3), the layout is the point
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_p", "mean_q", "cov_p_p", "cov_p_q", "cov_q_q", "loglik",
-                       "degenerate", "gated", "predictive_loglik", "reinitialised", "alarm", "monitor"]
-    assert table.shape == (31, 14) and np.all(np.isfinite(table[:, :10]))
+                       "degenerate", "gated", "predictive_loglik", "reinitialised"]
+    assert table.shape == (31, 12) and np.all(np.isfinite(table[:, :10]))
     assert np.isnan(table[-1, 10]) and np.isfinite(table[:30, 10][table[:30, 8] == 0]).all()
     assert table[-1, 7] == pytest.approx(table[-2, 7], abs=1e-3)  # last row missing (coarse basis)
 
@@ -224,7 +224,7 @@ def test_partly_missing_2d_rows_and_missing_model(store, tmp_path, capsys):
     code, out = _filter(store, "2d", tmp_path, source, "--method", "yau-yau")
     assert code == 0, capsys.readouterr().err
     _, table = _read(out)
-    assert table.shape == (2, 14) and np.isfinite(table[1, 10])  # the observed component counts
+    assert table.shape == (2, 12) and np.isfinite(table[1, 10])  # the observed component counts
     out.unlink()
     directory, _, _ = store
     code = main(["filter", "0" * 20, "--store", str(directory), "--increments", str(source),
@@ -315,4 +315,4 @@ def test_the_fast_csv_paths_read_and_write_the_same_numbers():
         fa, fb = a.split(","), b.split(",")
         assert [float(x) if x else None for x in fa] == [float(x) if x else None for x in fb]
     inf = ChunkResult(**{**result.__dict__, "predictive_loglik": np.full(K, -np.inf)})
-    assert cli.csv_lines(inf)[0].split(",")[-4] == "-inf"  # an impossible row keeps its -inf
+    assert cli.csv_lines(inf)[0].split(",")[-2] == "-inf"  # an impossible row keeps its -inf

@@ -159,7 +159,7 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     assert run.returncode == 0, run.stderr
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_x", "cov_x_x", "loglik", "degenerate", "gated", "predictive_loglik",
-                       "reinitialised", "alarm", "monitor"]
+                       "reinitialised"]
     np.testing.assert_array_equal(table[:, 0], np.arange(1, 401))
     np.testing.assert_array_equal(table[:, 1], times)
     mean, var, pll, _ = kalman(times, z, t0=0.0, R=1.0)
@@ -179,7 +179,9 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     for got, expected in ((result.t, table[:, 1]), (result.mean[:, 0], table[:, 2]),
                           (result.cov[:, 0, 0], table[:, 3]), (result.loglik, table[:, 4]),
                           (result.predictive_loglik, table[:, 7])):
-        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+        # the CLI runs one BLAS thread, a test worker may run more: the products' sums in another order
+        # (seen once under a loaded parallel run: 1.4e-12 on a predictive log-likelihood of 0.15)
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10)
     np.testing.assert_array_equal(result.gated, table[:, 6].astype(bool))
 
 
@@ -375,8 +377,7 @@ def test_reinitialise_gives_the_same_rows_in_any_chunking(store, tmp_path):
         columns, table = _read(out)
         tables[name] = table[:, [i for i, c in enumerate(columns) if not c.startswith("q")]]
     np.testing.assert_array_equal(tables["one"][:, 0], np.arange(1, 61))
-    kept = [c for c in columns if not c.startswith("q")]
-    assert tables["one"][:, kept.index("reinitialised")].sum() == 1
+    assert tables["one"][:, -1].sum() == 1
     for name in ("five", "rows"):
         np.testing.assert_array_equal(tables[name][:, 0], np.arange(1, 61), err_msg=name)
         np.testing.assert_allclose(tables[name], tables["one"], rtol=1e-12, atol=1e-12, err_msg=name)

@@ -121,8 +121,7 @@ def test_quantile_and_mode_columns_against_the_normal_posterior(store, tmp_path)
     _, kb = _read(exact)
     columns, table = _read(out)
     assert columns == ["step", "t", "mean_x", "cov_x_x", "mode_x", "q0.05_x", "q0.5_x", "q0.95_x",
-                       "loglik", "degenerate", "gated", "predictive_loglik", "reinitialised", "alarm",
-                       "monitor"]
+                       "loglik", "degenerate", "gated", "predictive_loglik", "reinitialised"]
     truth = norm.ppf([0.05, 0.5, 0.95], loc=kb[:, 2:3], scale=np.sqrt(kb[:, 3:4]))
     assert np.abs(table[:, 5:8] - truth).max() < 1e-3
     assert np.abs(table[:, 4] - kb[:, 2]).max() < 1e-3  # the mode of a normal is its mean

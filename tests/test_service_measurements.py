@@ -31,8 +31,6 @@ import yauyau
 PROBLEM = "application/problem+json"
 THETA, A, M0, P0 = 0.5, 1.0, 1.0, 0.5  # examples/ou.toml
 R_TWO = np.array([[1.0, 0.3], [0.3, 0.5]])  # two correlated sensors of the same x
-# the watch's options, shown with every session (solver/watch.py)
-WATCH_DEFAULTS = {"lost_track": {"gated": 20, "restarts": 3, "window": 100}, "monitor": 1e9}
 
 
 def _ou_variant(name: str, **changes) -> dict:
@@ -145,7 +143,7 @@ def test_discrete_measurements_at_random_times_match_the_engine_and_the_exact_ka
     rows[[7, 20, 41]] = np.nan  # times without an observation: prediction only
     created = _session(api, "ou_discrete")
     assert created["method"] == "yau-yau" and created["options"] == {"on_degenerate": "stop", "t0": 0.0,
-                                                                     "gate": 6.0, **WATCH_DEFAULTS}
+                                                                     "gate": 6.0}
     got = _stream(api, created["id"], rows, times)
     assert [e["step"] for e in got] == list(range(1, K + 1))
     assert [e["t"] for e in got] == times.tolist()  # each estimate at its row's time, exactly
@@ -293,7 +291,7 @@ def test_a_resent_seq_must_carry_the_same_rows_times_and_kind(api):
 # -- 3. options, reset, re-initialisation -----------------------------------------------------------
 def test_session_options_are_checked_and_shown(api):
     created = _session(api, "ou_discrete", on_degenerate="reinitialise", t0=2.5, gate=3.0)
-    assert created["options"] == {"on_degenerate": "reinitialise", "t0": 2.5, "gate": 3.0, **WATCH_DEFAULTS}
+    assert created["options"] == {"on_degenerate": "reinitialise", "t0": 2.5, "gate": 3.0}
     assert created["t"] == 2.5 and created["estimate"]["t"] == 2.5
     info = api.get(f"/v1/sessions/{created['id']}").json()
     assert info["options"] == created["options"] and info["t"] == 2.5
@@ -477,7 +475,7 @@ def test_options_survive_a_restart_of_a_real_server(models, tmp_path):
             a = client.post(f"{server.url}/v1/sessions", json={"model": ids["ou_discrete"], **options}).json()
             b = client.post(f"{server.url}/v1/sessions", json={"model": ids["cubic_sensor"], "gate": 0,
                                                                "on_degenerate": "reinitialise"}).json()
-            assert a["options"] == {**options, **WATCH_DEFAULTS} and a["t"] == 3.5
+            assert a["options"] == options and a["t"] == 3.5
             r = client.post(f"{server.url}/v1/sessions/{a['id']}/observations",
                             json={"seq": 0, "observations": _rows(rows[:k]), "times": times[:k].tolist()})
             assert r.status_code == 200, r.text
@@ -486,7 +484,7 @@ def test_options_survive_a_restart_of_a_real_server(models, tmp_path):
         server = Server(store, db, workers=2)
         with httpx.Client(timeout=60) as client:
             info = client.get(f"{server.url}/v1/sessions/{a['id']}").json()
-            assert info["options"] == {**options, **WATCH_DEFAULTS} and info["t"] == times[k - 1]
+            assert info["options"] == options and info["t"] == times[k - 1]
             m, P, _ = kalman(times[:k + 1] - 3.5, np.vstack([rows[:k], [[np.nan]]]), [1.0], [[1.0]])[-1]
             rows[k, 0] = m + 4.0 * math.sqrt(P + 1.0)  # 4 predictive sd: gated at 2.5, not at 6
             r = client.post(f"{server.url}/v1/sessions/{a['id']}/observations",

@@ -16,7 +16,6 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -40,6 +39,7 @@ OU_SENSOR = {"name": "ou-discrete-sensor", "state": ["x"], "drift": ["-0.5*x"], 
 # The 0.33 bias case (docs/reliability.md): the power meter (z = x² + v, sd 0.5) reading 0.33 low; x² cannot
 # follow readings below 0, so its innovations stay mostly on one side
 BIAS = -0.33
+MONITOR = 1e9  # healthy rows per false alarm: the setting docs/reliability.md measures
 BIAS_BOUND = 3000  # rows: generous over the measured delays (docs/reliability.md: median 507, longest 732)
 
 
@@ -222,7 +222,8 @@ def test_monitor_raises_the_alarm_on_a_biased_sensor(store):
     passes every row); now the alarm comes within the bound, on the side of the bias."""
     directory, ids = store
     sim = yauyau.simulate(EXAMPLES / "power_meter.toml", BIAS_BOUND, seed=5)
-    flt = yauyau.open_filter(directory, ids["power"])
+    assert yauyau.open_filter(directory, ids["power"]).watch_settings.monitor == 0  # off unless asked for
+    flt = yauyau.open_filter(directory, ids["power"], monitor=MONITOR)
     result = flt.run(sim.observations + BIAS)
     assert not result.gated.any() and not result.degenerate.any()  # nothing else says so
     assert result.alarm.any(), f"no alarm in {BIAS_BOUND} rows"
@@ -232,7 +233,7 @@ def test_monitor_raises_the_alarm_on_a_biased_sensor(store):
     # a bias the filter can take for the state is slower to show (docs/reliability.md): the OU sensor
     # reading 0.33 high, whose mean ends 0.33 off, within 40 000 rows (measured: median 12 851)
     sim = yauyau.simulate(spec_from_dict(OU_SENSOR), 40_000, seed=5)
-    result = yauyau.open_filter(directory, ids["sensor"]).run(sim.observations + 0.33)
+    result = yauyau.open_filter(directory, ids["sensor"], monitor=MONITOR).run(sim.observations + 0.33)
     first = int(np.argmax(result.alarm))
     assert result.alarm.any() and result.monitor[first] >= 1.0
     assert np.mean(result.mean[:first, 0] - sim.states[1:first + 1, 0]) > 0.2  # the wrong answer it flags
@@ -240,14 +241,15 @@ def test_monitor_raises_the_alarm_on_a_biased_sensor(store):
 
 def test_monitor_stays_quiet_on_healthy_streams(store):
     """Rows simulated from the model itself: 10 000 of the power meter, 20 000 of the OU sensor, 5 000 of
-    the engine on the OU ball: no alarm.  At the default of 1e9 healthy rows per false alarm the chance of
+    the engine on the OU ball: no alarm.  At 1e9 healthy rows per false alarm the chance of
     one in these 35 000 rows is about 3.5e-5 (Siegmund's approximation, conservative by a third as
     measured below); the seeds are fixed, so the test is deterministic."""
     directory, ids = store
     for key, spec, rows, seed in (("power", yauyau.load_spec(EXAMPLES / "power_meter.toml"), 10_000, 6),
                                   ("sensor", spec_from_dict(OU_SENSOR), 20_000, 6),
                                   ("ou7", spec_from_dict(OU7), 5000, 7)):
-        flt = yauyau.open_filter(directory, ids[key], method="yau-yau" if key == "ou7" else None)
+        flt = yauyau.open_filter(directory, ids[key], method="yau-yau" if key == "ou7" else None,
+                                 monitor=MONITOR)
         result = flt.run(yauyau.simulate(spec, rows, seed=seed).rows)
         assert not result.alarm.any() and np.abs(result.monitor).max() < 1.0, key
     off = yauyau.open_filter(directory, ids["sensor"], monitor=0)
@@ -272,15 +274,15 @@ def test_monitor_state_round_trips_and_continues(store):
     statistic as one uninterrupted run, bit for bit (the charts' sums are exact)."""
     directory, ids = store
     rows = yauyau.simulate(EXAMPLES / "power_meter.toml", 3000, seed=5).observations + BIAS
-    whole = yauyau.open_filter(directory, ids["power"])
+    whole = yauyau.open_filter(directory, ids["power"], monitor=MONITOR)
     expected = whole.run(rows)
     assert expected.alarm.any()
-    first = yauyau.open_filter(directory, ids["power"])
+    first = yauyau.open_filter(directory, ids["power"], monitor=MONITOR)
     part = first.run(rows[:250])
     saved = json.loads(json.dumps(first.state_dict()))
     assert saved["watch"]["charts"] and saved["watch"]["statistic"] == part.monitor[-1]
     assert abs(part.monitor[-1]) > 0.1  # the charts had climbed: the restored ones must carry on
-    second = yauyau.open_filter(directory, ids["power"])
+    second = yauyau.open_filter(directory, ids["power"], monitor=MONITOR)
     second.restore(saved)
     rest = second.run(rows[250:])
     assert np.array_equal(np.concatenate([part.monitor, rest.monitor]), expected.monitor)
@@ -321,7 +323,7 @@ def test_silent_wrong_answers_over_http(store, tmp_path):
         url = server.url
         # lost track
         created = _session(url, ids["ou7"], method="yau-yau", on_degenerate="reinitialise")
-        assert created["options"]["lost_track"] == {"gated": 20, "restarts": 3, "window": 100}
+        assert "lost_track" not in created["options"]  # the default rule (20, 3, 100): not listed
         sid, rows, flagged = created["id"], held_at(12.0, 1000), []
         for seq in range(10):
             r = _chunk(url, sid, seq, increments=rows[100 * seq:100 * seq + 100].tolist())
@@ -356,8 +358,9 @@ def test_silent_wrong_answers_over_http(store, tmp_path):
             t += [row["t"] for row in r.json()["estimates"]]
         assert np.all(np.diff(t) > 0) and t[0] > 1e6
         # the monitor
-        biased = _session(url, ids["power"])
-        assert biased["options"]["monitor"] == 1e9
+        assert "monitor" not in _session(url, ids["power"])["options"]  # off unless asked for
+        biased = _session(url, ids["power"], monitor=MONITOR)
+        assert biased["options"]["monitor"] == MONITOR
         observations = yauyau.simulate(EXAMPLES / "power_meter.toml", BIAS_BOUND, seed=5).observations + BIAS
         alarms, seq, bodies = [], 0, []
         while not alarms and seq < BIAS_BOUND // 250:
@@ -383,7 +386,8 @@ def test_silent_wrong_answers_over_http(store, tmp_path):
         assert replay.status_code == 200 and replay.content == bodies[-1]
         # a session that asks for no monitor gets none
         quiet = _session(url, ids["power"], monitor=0, lost_track={"gated": 0, "restarts": 0})
-        assert quiet["options"]["monitor"] == 0 and quiet["options"]["lost_track"]["gated"] == 0
+        assert "monitor" not in quiet["options"]
+        assert quiet["options"]["lost_track"] == {"gated": 0, "restarts": 0, "window": 100}
         r = _chunk(url, quiet["id"], 0, observations=(observations[:2000] - 0.5).tolist())
         assert r.status_code == 200 and r.json()["alarms"] == [] and r.json()["monitor"] is None
         is_problem(httpx.post(f"{url}/v1/sessions", json={"model": ids["sensor"], "monitor": 5}, timeout=30),
@@ -392,8 +396,9 @@ def test_silent_wrong_answers_over_http(store, tmp_path):
         server.kill()
 
 
-def test_bundled_examples_keep_their_model_ids():
-    """The new [measurement] monitor is left out of a spec's id where it has its default."""
+def test_bundled_examples_keep_their_model_ids(tmp_path):
+    """The new [measurement] monitor is left out of a spec's id where it has its default (off); a spec
+    that sets it gets its monitor in every filter opened on it."""
     from yauyau.storage.model_store import model_id
 
     spec = yauyau.load_spec(EXAMPLES / "power_meter.toml")
@@ -403,4 +408,6 @@ def test_bundled_examples_keep_their_model_ids():
     assert model_id(spec_from_dict(doc).canonical_json()) != model_id(spec.canonical_json())
     with pytest.raises(Exception, match="measurement.monitor"):
         spec_from_dict({**doc, "measurement": {**doc["measurement"], "monitor": 10}})
-    assert Path(EXAMPLES / "power_meter.toml").exists()
+    flt = yauyau.open_filter(tmp_path, yauyau.precompute(spec_from_dict(doc), tmp_path))
+    assert flt.watch_settings.monitor == 1e6 and yauyau.open_filter(tmp_path, model_id(
+        spec_from_dict(doc).canonical_json()), monitor=0).watch_settings.monitor == 0

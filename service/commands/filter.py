@@ -75,8 +75,8 @@ lost track (--lost-track GATED,RESTARTS,WINDOW, default 20,3,100; 0 turns a rule
 
 innovation monitor (--monitor N): a sustained bias of the observations against their predictions
   (a drifting sensor) raises alarm = 1 on a row; N is the mean number of healthy rows per false
-  alarm (default: the spec's [measurement] monitor, 1e9 unless set; 0 turns it off). stderr says
-  how many alarms were raised and where the first was.
+  alarm (1e9 is a good choice; default: the spec's [measurement] monitor, off unless set; 0 turns
+  it off). stderr says how many alarms were raised and where the first was.
 
 output (--out OUT.csv), one row per input row:
   step, t                 step k (1, 2, ...) and its time t_k
@@ -91,9 +91,9 @@ output (--out OUT.csv), one row per input row:
   predictive_loglik       log p(this row | the rows before) (-inf: impossible under the model);
                           empty when the row has no observation (or the method does not compute it)
   reinitialised           1 when the filter started again at this row (--on-degenerate), else 0
-  alarm                   1 when the innovation monitor raised its alarm at this row, else 0
-  monitor                 the monitor's statistic after this row (+-1: an alarm; + observations
-                          above their predictions); empty when the monitor is off
+  alarm                   (--monitor) 1 when the innovation monitor raised its alarm at this row
+  monitor                 (--monitor) its statistic after this row (+-1: an alarm; +: the
+                          observations above their predictions)
   center_<var>            ([domain] follow = true) the centre of the ball after this row
   recentred               ([domain] follow = true) 1 when the ball moved after this row, else 0
 
@@ -155,8 +155,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="lost track after GATED consecutive gated rows or RESTARTS restarts within "
                              "WINDOW rows (default 20,3,100; 0 turns a rule off)")
     parser.add_argument("--monitor", type=float, default=None, metavar="N",
-                        help="innovation monitor: mean healthy rows per false alarm (default: the spec's "
-                             "[measurement] monitor; 0: off)")
+                        help="innovation monitor: mean healthy rows per false alarm, e.g. 1e9 (default: the "
+                             "spec's [measurement] monitor, off unless set; 0: off)")
     parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
                         help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
@@ -251,7 +251,8 @@ def run(args: argparse.Namespace) -> int:
             lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
                                         times=source.times, state=state, policy=args.on_degenerate,
                                         watch=watch)
-        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions")), lines)
+        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions"),
+                                     monitor=watch.monitor > 0), lines)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -628,6 +629,7 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
     outputs = outputs or Outputs()
     state = flt.initial_state() if state is None else state
     settings = settings_for(flt) if watch is None else watch
+    monitored = settings.monitor > 0  # its two columns only when it is on
     seen = Watch()
     gate = getattr(flt, "gate", None)
     lines: list[str] = []
@@ -641,42 +643,44 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
                 state, seen, result = watched_run(flt, state, seen, increments[k:k + 1],
                                                   None if times is None else times[k:k + 1], policy, settings)
                 extra = summary_columns(flt, state, result.estimates(gate)[0], outputs, writer)
-                lines += csv_lines(result, [extra])
+                lines += csv_lines(result, [extra], monitored)
                 report.add(result, gate)
         else:
             state, seen, result = watched_run(flt, state, seen, increments[start:stop],
                                               None if times is None else times[start:stop], policy, settings)
-            lines += csv_lines(result)
+            lines += csv_lines(result, monitor=monitored)
             report.add(result, gate)
         if bar is not None:
             bar.update(stop - start)
     return lines, report
 
 
-def csv_lines(result, extras: list[list] | None = None) -> list[str]:
+def csv_lines(result, extras: list[list] | None = None, monitor: bool = False) -> list[str]:
     """The CSV lines of a chunk's result, column by column from its arrays (``extras``: the mode and
-    quantile fields of each row, between the covariances and loglik)."""
+    quantile fields of each row, between the covariances and loglik; ``monitor``: with the innovation
+    monitor's alarm and statistic after reinitialised)."""
     import numpy as np
 
     n = result.mean.shape[1]
     i, j = np.triu_indices(n)
     if extras is None and not np.isinf(result.predictive_loglik).any() and not np.isinf(result.loglik).any():
-        return _fast_lines(result, i, j)  # (orjson would write an infinity as an empty field)
+        return _fast_lines(result, i, j, monitor)  # (orjson would write an infinity as an empty field)
     head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
                *result.cov[:, i, j].T.tolist(), strict=True)
     pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
     follow = ([] if result.center is None
               else [*result.center.T.tolist(), result.recentred.astype(int).tolist()])
-    monitor = ["" if v != v else repr(v) for v in result.monitor.tolist()]
+    watched = ([result.alarm.astype(int).tolist(), ["" if v != v else repr(v) for v in result.monitor.tolist()]]
+               if monitor else [])
     tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
-               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(),
-               result.alarm.astype(int).tolist(), monitor, *follow, strict=True)
+               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *watched,
+               *follow, strict=True)
     if extras is None:
         return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
     return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
 
 
-def _fast_lines(result, i, j) -> list[str]:
+def _fast_lines(result, i, j, monitor: bool = False) -> list[str]:
     """:func:`csv_lines` without extras, formatted by orjson in one call (shortest round-trip floats,
     as repr gives them; NaN, i.e. not known, as an empty field)."""
     import numpy as np
@@ -687,8 +691,11 @@ def _fast_lines(result, i, j) -> list[str]:
         return []
     columns = [result.step.astype(float), result.t, *result.mean.T, *result.cov[:, i, j].T, result.loglik,
                result.degenerate.astype(float), result.gated.astype(float), result.predictive_loglik,
-               result.reinitialised.astype(float), result.alarm.astype(float), result.monitor]
-    flags = [0, len(columns) - 6, len(columns) - 5, len(columns) - 3, len(columns) - 2]  # step and the flags
+               result.reinitialised.astype(float)]
+    flags = [0, len(columns) - 4, len(columns) - 3, len(columns) - 1]  # integers: step and the flags
+    if monitor:  # the innovation monitor's alarm (an integer) and statistic
+        columns += [result.alarm.astype(float), result.monitor]
+        flags.append(len(columns) - 2)
     if result.center is not None:  # a following ball: its centre after the row, and whether it moved
         columns += [*result.center.T, result.recentred.astype(float)]
         flags.append(len(columns) - 1)
@@ -736,7 +743,7 @@ def snapshot(flt, state, estimate, outputs: Outputs, writer) -> None:
     writer.append(int(estimate.step), float(estimate.t), marginals, joint)
 
 
-def header(model, outputs: Outputs | None = None, follow: bool = False) -> list[str]:
+def header(model, outputs: Outputs | None = None, follow: bool = False, monitor: bool = False) -> list[str]:
     """The CSV columns; ``follow`` (a ball that follows the state): center_<var> and recentred last."""
     outputs = outputs or Outputs()
     names = model.spec.state
@@ -746,8 +753,9 @@ def header(model, outputs: Outputs | None = None, follow: bool = False) -> list[
     if outputs.probs is not None:
         extra += [f"q{p}_{v}" for v in names for p in outputs.probs_text]
     tail = [*[f"center_{v}" for v in names], "recentred"] if follow else []
+    watched = ["alarm", "monitor"] if monitor else []
     return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate", "gated",
-            "predictive_loglik", "reinitialised", "alarm", "monitor", *tail]
+            "predictive_loglik", "reinitialised", *watched, *tail]
 
 
 def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
