@@ -323,7 +323,7 @@ def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple
     from yauyau.solver.methods import make_filter
 
     filt = make_filter(model, offline, None)
-    state, response = chunk_response(0, filt.initial_state(), increments[:CHUNK], filt)
+    state, _, response = chunk_response(0, filt.initial_state(), increments[:CHUNK], filt)
     return _commit_ms(directory, state.to_dict(), response)
 
 

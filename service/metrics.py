@@ -35,6 +35,12 @@ BATCH_SIZE = Histogram("yauyau_chunk_batch_size", "chunks applied together in on
                        buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
 EXPIRED = Counter("yauyau_sessions_expired_total", "sessions deleted after their idle expiry")
 RESETS = Counter("yauyau_resets_total", "sessions reset over HTTP (POST /v1/sessions/{id}/reset)")
+ALARMS = Counter("yauyau_monitor_alarms_total",
+                 "rows where the innovation monitor raised its alarm (a sustained bias of the observations "
+                 "against their predictions: solver/watch.py)")
+LOST = Counter("yauyau_lost_track_chunks_total",
+               "chunks answered degenerate because the filter lost track (it kept gating or restarting: "
+               "solver/watch.py)")
 
 
 def render() -> tuple[bytes, str]:

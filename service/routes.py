@@ -147,11 +147,13 @@ def get_model(registry: RegistryDep, model_id: ModelId) -> Response:
 
 @sessions.post("", status_code=201, response_model=SessionCreated, responses=_errors(400, 404, 413, 422))
 def create_session(service: SessionsDep, tenant: TenantDep, body: SessionCreate) -> Response:
-    """A filtering session of a stored model: its prior (at time ``t0``), method, outlier ``gate`` and
-    what it does when the density degenerates (``on_degenerate``), all kept with the session, which
-    belongs to the tenant creating it."""
+    """A filtering session of a stored model: its prior (at time ``t0``), method, outlier ``gate``,
+    what it does when the density degenerates (``on_degenerate``), when it has lost track
+    (``lost_track``) and its innovation ``monitor``, all kept with the session, which belongs to the
+    tenant creating it."""
     return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate,
-                                owner=tenant), 201)
+                                lost_track=None if body.lost_track is None else body.lost_track.model_dump(),
+                                monitor=body.monitor, owner=tenant), 201)
 
 
 @sessions.get("", response_model=SessionPage, responses=_errors(422))

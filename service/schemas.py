@@ -27,6 +27,12 @@ ROWS_DOC = ("one row of m numbers per time; null for a whole row: no observation
             "predicts); null for one component: that component is missing (the others are used)")
 
 
+class LostTrackIn(_Body):
+    gated: int = Field(20, ge=0, le=10**9, description="consecutive gated rows (0: this rule off)")
+    restarts: int = Field(3, ge=0, le=10**9, description="restarts within `window` rows (0: this rule off)")
+    window: int = Field(100, ge=1, le=10**9, description="rows")
+
+
 class SessionCreate(_Body):
     model: str = Field(min_length=1, max_length=200, description="id of a stored model (GET /v1/models)")
     prior: Prior | None = Field(None, description="prior density at t0 (default: the model's)")
@@ -40,10 +46,21 @@ class SessionCreate(_Body):
     gate: Number | None = Field(
         None, ge=0, le=37, description="outlier gate in predictive standard deviations (0: off; at most 37); "
                                        "default: the model spec's [measurement] gate (6)")
+    lost_track: LostTrackIn | None = Field(
+        None, description="when a filter that keeps gating or restarting has lost track (then its rows are "
+                          "degenerate with a reason naming the domain and the fix, until a reset); default: "
+                          "20 consecutive gated rows, or 3 restarts within 100 rows")
+    monitor: Number | None = Field(
+        None, ge=0, le=1e15,
+        description="the innovation monitor (a sustained bias of the observations against their predictions "
+                    "raises `alarm` on a row): the mean number of healthy rows per false alarm, from 1e3 to "
+                    "1e15 (1e9 is a good choice), or 0 (off); default: the model spec's [measurement] "
+                    "monitor (off unless set)")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
-        {"model": "3f9c2a...", "on_degenerate": "reinitialise", "t0": 12.5, "gate": 4.0}]})
+        {"model": "3f9c2a...", "on_degenerate": "reinitialise", "t0": 12.5, "gate": 4.0},
+        {"model": "3f9c2a...", "lost_track": {"gated": 50, "restarts": 5, "window": 500}, "monitor": 1e9}]})
 
 
 class Observations(_Body):
@@ -119,6 +136,11 @@ class RowEstimate(EstimateOut):
                                                          "domain ball after this row")
     recentred: bool = Field(False, description="present, true, only when the ball that follows the state "
                                                "moved after this row ([domain] follow = true)")
+    alarm: bool = Field(False, description="present, true, only on the row where the innovation monitor "
+                                           "raised its alarm: the observations have drifted to one side of "
+                                           "their predictions (a sensor bias?)")
+    monitor: float | None = Field(None, description="with `alarm`: the monitor's statistic (±1 and beyond; "
+                                                    "+: observations above their predictions)")
     reason: str | None = Field(None, description="why the row is gated, re-initialised or degenerate (only "
                                                  "then)")
 
@@ -129,10 +151,19 @@ class EstimateFull(EstimateOut):
     reason: str | None = None
 
 
+class LostTrackOut(BaseModel):
+    gated: int
+    restarts: int
+    window: int
+
+
 class SessionOptions(BaseModel):
     on_degenerate: Policy
     t0: float = Field(description="time of the prior")
     gate: float = Field(description="the outlier gate in force, in predictive standard deviations (0: off)")
+    lost_track: LostTrackOut | None = Field(None, description="the lost-track rule in force")
+    monitor: float | None = Field(None, description="the innovation monitor in force: healthy rows per false "
+                                                    "alarm (0: off)")
 
 
 class SessionCreated(BaseModel):
@@ -148,7 +179,8 @@ class SessionCreated(BaseModel):
         "id": "b1c2...", "model": "3f9c2a...", "method": "yau-yau", "step": 0, "t": 0.0,
         "estimate": {"step": 0, "t": 0.0, "mean": [0.5], "cov": [[1.0]], "loglik": 0.0,
                      "degenerate": False, "reason": None},
-        "options": {"on_degenerate": "stop", "t0": 0.0, "gate": 6.0}}]})
+        "options": {"on_degenerate": "stop", "t0": 0.0, "gate": 6.0,
+                    "lost_track": {"gated": 20, "restarts": 3, "window": 100}, "monitor": 0.0}}]})
 
 
 class ChunkResult(BaseModel):
@@ -164,6 +196,10 @@ class ChunkResult(BaseModel):
                                                                "outlier gate rejected")
     reinitialised: list[int] = Field(default_factory=list, description="rows of this chunk (0-based) where "
                                                                        "the filter started again")
+    alarms: list[int] = Field(default_factory=list, description="rows of this chunk (0-based) where the "
+                                                                "innovation monitor raised its alarm")
+    monitor: float | None = Field(None, description="the innovation monitor's statistic after the chunk (±1: "
+                                                    "an alarm; null: the monitor is off)")
 
     model_config = ConfigDict(json_schema_extra={"examples": [{
         "seq": 0, "step": 3, "t": 1.4, "loglik": -2.71, "degenerate": False, "reason": None,
@@ -184,6 +220,11 @@ class ResetResult(BaseModel):
     note: str = Field(description="what was done")
 
 
+class MonitorOut(BaseModel):
+    statistic: float | None = Field(description="after the last row (±1: an alarm; null: off)")
+    alarms: int = Field(description="alarms raised since the session started or was reset")
+
+
 class SessionInfo(BaseModel):
     id: str
     model: str
@@ -195,6 +236,9 @@ class SessionInfo(BaseModel):
     options: SessionOptions
     center: list[float] | None = Field(None, description="([domain] follow = true only) the centre of the "
                                                          "domain ball now")
+    lost: str | None = Field(None, description="why the filter lost track (it stays degenerate until a "
+                                               "reset); null: on track")
+    monitor: MonitorOut | None = Field(None, description="the innovation monitor now")
 
 
 class ModelCreate(_Body):

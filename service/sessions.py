@@ -10,7 +10,10 @@ same way.
 A chunk's rows are the model's kind of data ([measurement] kind): ``increments`` Δy of a continuous
 model or ``observations`` z of a discrete one, optionally at ``times``; null marks a missing row or
 component.  The session's options (stored with it): ``on_degenerate`` (solver/recovery.py), ``t0``
-(the prior's time) and ``gate`` (the outlier gate; None: the spec's).
+(the prior's time), ``gate`` (the outlier gate; None: the spec's), ``lost_track`` and ``monitor``
+(solver/watch.py: when a filter that keeps gating or restarting has lost track, and the innovation
+monitor's healthy rows per false alarm; None: the defaults, the spec's).  The watch's own state (the
+counts, the monitor's charts) is stored in the session's state under ``watch``.
 
 Ownership: a session belongs to the tenant that created it (service/tenants.py).  Every operation
 takes the caller's ``tenant``; another tenant's session is NotFound, exactly as an unknown id (so
@@ -32,6 +35,7 @@ import orjson
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import ChunkResult, Estimate, at_time, check_t0
 from yauyau.solver.measurement import resolve_times
+from yauyau.solver.watch import Watch, WatchSettings, join_state, settings_for, split_state
 from yauyau.storage.errors import NotFound
 from yauyau.storage.protocols import SessionStore
 
@@ -40,7 +44,7 @@ from .batching import ChunkBatcher
 from .registry import LoadedModel, Registry
 
 ROW_FIELDS = {"continuous": "increments", "discrete": "observations"}
-DEFAULT_OPTIONS = {"on_degenerate": "stop", "t0": 0.0, "gate": None}
+DEFAULT_OPTIONS = {"on_degenerate": "stop", "t0": 0.0, "gate": None, "lost_track": None, "monitor": None}
 
 
 def estimate_rows(steps, times, mean: np.ndarray, cov: np.ndarray) -> list[dict[str, Any]]:
@@ -74,6 +78,8 @@ def result_rows(result: ChunkResult,
     rows = estimate_rows(result.step, result.t, result.mean, result.cov)
     for row, value in zip(rows, result.predictive_loglik.tolist(), strict=True):
         row["predictive_loglik"] = value if math.isfinite(value) else None
+    for k in np.flatnonzero(result.alarm).tolist():  # the innovation monitor (solver/watch.py)
+        rows[k]["alarm"], rows[k]["monitor"] = True, float(result.monitor[k])
     degenerate = np.asarray(result.degenerate, dtype=bool)
     flagged = degenerate | result.gated | result.reinitialised
     first_reason = None
@@ -108,15 +114,16 @@ def _gate_of(filt: Any) -> float | None:
 
 
 def run_chunk(filt: Any, state: Any, rows: np.ndarray, times: list[float] | None = None,
-              policy: str = "stop") -> tuple[Any, list[dict], list[int], list[int], str | None]:
-    """Advance the filter over a chunk under the session's policy (solver/recovery.py):
-    (new state, estimate rows, gated rows, re-initialised rows, first degenerate reason).  The
-    estimates come as arrays (``run_arrays``): no per-row objects on the hot path."""
-    from yauyau.solver.recovery import run_with_policy
+              policy: str = "stop", watch: Watch | None = None, settings: WatchSettings | None = None):
+    """Advance the filter over a chunk under the session's policy (solver/recovery.py) and its watch
+    (solver/watch.py): (new state, new watch, estimate rows, gated rows, re-initialised rows, first
+    degenerate reason, alarm rows).  The estimates come as arrays (``run_arrays``): no per-row objects
+    on the hot path."""
+    from yauyau.solver.watch import watched_run
 
-    state, result = run_with_policy(filt, state, rows, times, policy)
+    state, watch, result = watched_run(filt, state, watch or Watch(), rows, times, policy, settings)
     out, gated, again, reason = result_rows(result, _gate_of(filt))
-    return state, out, gated, again, reason
+    return state, watch, out, gated, again, reason, np.flatnonzero(result.alarm).tolist()
 
 
 def summaries_of(filt: Any, state: Any, estimate: Estimate, extras: "Extras") -> dict[str, Any]:
@@ -150,40 +157,48 @@ class Extras:
 
 
 def run_chunk_with_summaries(filt: Any, state: Any, rows: np.ndarray, extras: Extras,
-                             times: list[float] | None = None, policy: str = "stop"):
+                             times: list[float] | None = None, policy: str = "stop",
+                             watch: Watch | None = None, settings: WatchSettings | None = None):
     """Like :func:`run_chunk`, stepping row by row to summarise the density after each step."""
-    from yauyau.solver.recovery import run_with_policy
+    from yauyau.solver.watch import watched_run
 
-    out, gated, again, reason = [], [], [], None
+    out, gated, again, reason, alarms = [], [], [], None, []
     gate = _gate_of(filt)
+    watch = watch or Watch()
     for k in range(len(rows)):
-        state, result = run_with_policy(filt, state, rows[k:k + 1], None if times is None else times[k:k + 1],
-                                        policy)
+        state, watch, result = watched_run(filt, state, watch, rows[k:k + 1],
+                                           None if times is None else times[k:k + 1], policy, settings)
         row_out, row_gated, row_again, row_reason = result_rows(result, gate)
         estimate = result.estimates(gate)[0]
         out.append(row_out[0] | summaries_of(filt, state, estimate, extras))
         gated += [k] * len(row_gated)
         again += [k] * len(row_again)
+        alarms += [k] * int(result.alarm.sum())
         reason = reason or row_reason
-    return state, out, gated, again, reason
+    return state, watch, out, gated, again, reason, alarms
 
 
 def chunk_response(seq: int, state: Any, rows: np.ndarray, filt: Any, extras: Extras | None = None,
-                   times: list[float] | None = None, policy: str = "stop") -> tuple[Any, dict[str, Any]]:
-    if extras:
-        state, out, gated, again, reason = run_chunk_with_summaries(filt, state, rows, extras, times, policy)
-    else:
-        state, out, gated, again, reason = run_chunk(filt, state, rows, times, policy)
-    return state, _response(seq, state, out, gated, again, reason)
+                   times: list[float] | None = None, policy: str = "stop", watch: Watch | None = None,
+                   settings: WatchSettings | None = None) -> tuple[Any, Watch, dict[str, Any]]:
+    """(new state, new watch, response) of a chunk run from ``state``."""
+    run = run_chunk_with_summaries if extras else run_chunk
+    args = (extras,) if extras else ()
+    state, watch, out, gated, again, reason, alarms = run(filt, state, rows, *args, times=times,
+                                                          policy=policy, watch=watch, settings=settings)
+    return state, watch, _response(seq, state, out, gated, again, reason, alarms, watch, settings)
 
 
-def result_response(seq: int, state: Any, result: ChunkResult, filt: Any) -> dict[str, Any]:
+def result_response(seq: int, state: Any, result: ChunkResult, filt: Any, watch: Watch | None = None,
+                    settings: WatchSettings | None = None) -> dict[str, Any]:
     """The response of a chunk already run (``state`` after it, ``result`` its arrays)."""
-    return _response(seq, state, *result_rows(result, _gate_of(filt)))
+    return _response(seq, state, *result_rows(result, _gate_of(filt)), np.flatnonzero(result.alarm).tolist(),
+                     watch, settings)
 
 
 def _response(seq: int, state: Any, out: list[dict], gated: list[int], again: list[int],
-              reason: str | None) -> dict[str, Any]:
+              reason: str | None, alarms: list[int] | None = None, watch: Watch | None = None,
+              settings: WatchSettings | None = None) -> dict[str, Any]:
     flagged = reason is not None
     loglik = float(state.loglik)
     if not math.isfinite(loglik):
@@ -191,9 +206,11 @@ def _response(seq: int, state: Any, out: list[dict], gated: list[int], again: li
     degenerate = flagged or bool(state.degenerate)
     if degenerate and reason is None:
         reason = getattr(state, "reason", None) or "degenerate density"
+    monitoring = watch is not None and settings is not None and settings.monitor > 0
     return {"seq": seq, "step": int(state.step), "t": float(state.t), "estimates": out,
             "loglik": loglik if math.isfinite(loglik) else None, "degenerate": degenerate,
-            "reason": reason, "gated": gated, "reinitialised": again}
+            "reason": reason, "gated": gated, "reinitialised": again, "alarms": alarms or [],
+            "monitor": watch.statistic if monitoring else None}
 
 
 def encode_response(response: dict[str, Any]) -> str:
@@ -266,11 +283,29 @@ def _options(rec: Any) -> dict[str, Any]:
 
 
 def _shown_options(options: dict[str, Any], filt: Any) -> dict[str, Any]:
-    """The options as GET shows them: the gate in force (the session's, else the spec's)."""
+    """The options as GET shows them: the gate in force (the session's, else the spec's); the
+    lost-track rule when the session set one, the monitor when it is on (the session's, else the
+    spec's); absent, they are the defaults (solver/watch.py)."""
     gate = _gate_of(filt)
     if gate is None:
         gate = float(filt.model.spec.measurement.gate)
-    return {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate}
+    shown = {"on_degenerate": options["on_degenerate"], "t0": float(options["t0"]), "gate": gate}
+    settings = _watch_settings(options, filt)
+    if options.get("lost_track") is not None:
+        shown["lost_track"] = settings.lost.to_dict()
+    if settings.monitor > 0:
+        shown["monitor"] = settings.monitor
+    return shown
+
+
+def _watch_settings(options: dict[str, Any], filt: Any) -> WatchSettings:
+    return settings_for(filt, options.get("lost_track"), options.get("monitor"))
+
+
+def _load(filt: Any, data: Any) -> tuple[Any, Watch]:
+    """(filter state, watch) of a stored session state."""
+    data, watch = split_state(data)
+    return filt.state_from_dict(data), watch
 
 
 def _chunk_rows(loaded: LoadedModel, given: dict[str, Any]) -> tuple[str, list]:
@@ -332,15 +367,21 @@ class Sessions:
         return health(deep=deep)
 
     def create(self, model_id: str, prior: Any | None, method: str | None, on_degenerate: str = "stop",
-               t0: float = 0.0, gate: float | None = None, owner: str | None = None) -> dict[str, Any]:
-        """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``) and its
-        ``owner`` (the tenant creating it, or None) are stored with it."""
+               t0: float = 0.0, gate: float | None = None, lost_track: Any | None = None,
+               monitor: float | None = None, owner: str | None = None) -> dict[str, Any]:
+        """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``,
+        ``lost_track``, ``monitor``) and its ``owner`` (the tenant creating it, or None) are stored
+        with it."""
         from yauyau.solver.measurement import check_gate
         from yauyau.solver.recovery import check_policy
+        from yauyau.solver.watch import check_lost_track, check_monitor
 
         options = {"on_degenerate": check_policy(on_degenerate), "t0": check_t0(t0),
-                   "gate": check_gate(gate)}
+                   "gate": check_gate(gate),
+                   "lost_track": None if lost_track is None else check_lost_track(lost_track).to_dict(),
+                   "monitor": check_monitor(monitor)}
         loaded = self.registry.get(model_id)
+        check_t0(t0, "t0", float(loaded.model.dt))  # a step of dt must still be a step at t0
         filt = loaded.filter(method, options["gate"])
         try:
             state = filt.initial_state(_checked_prior(prior, loaded) if prior is not None else None)
@@ -350,7 +391,8 @@ class Sessions:
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
                     "estimate": estimate, "options": _shown_options(options, filt)}
-        session_id = self.store.create(model_id, filt.method, state.to_dict(), response, options, owner=owner)
+        session_id = self.store.create(model_id, filt.method, join_state(state, Watch()), response, options,
+                                       owner=owner)
         metrics.SESSIONS.labels(filt.method).inc()
         return {"id": session_id, **response}
 
@@ -419,8 +461,9 @@ class Sessions:
         array = rows_array(data, loaded.model.m, field)
         times = checked_times(request.times, len(data))
         digest = request_digest(data, request.extras, field, times)
+        options = _options(rec)
         return _ChunkJob(request.session_id, request.seq, digest, filt, array, times,
-                         _options(rec)["on_degenerate"], request.extras, rec)
+                         options["on_degenerate"], request.extras, rec, _watch_settings(options, filt))
 
     def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
               encoded: bool = False, tenant: str | None = None) -> Any:
@@ -438,7 +481,7 @@ class Sessions:
         digest = _digest(["reset", source if prior is None else prior.model_dump(mode="json")])
 
         def compute(state_dict: dict[str, Any]) -> tuple[dict[str, Any], str]:
-            state = filt.state_from_dict(state_dict)
+            state, _ = _load(filt, state_dict)  # a reset starts the watch again (a lost track recovers)
             if source == "last":
                 new, note = restart_from_last(filt, state)
             else:
@@ -450,7 +493,7 @@ class Sessions:
             note += f" at step {int(new.step)}, t = {float(new.t):g}"
             response = {"seq": seq, "step": int(new.step), "t": float(new.t),
                         "estimate": estimate_full(filt.estimate(new)), "note": note}
-            return new.to_dict(), encode_response(response)
+            return join_state(new, Watch()), encode_response(response)
 
         response, replayed = self._apply(session_id, seq, compute, encoded, digest)
         if not replayed:
@@ -462,7 +505,7 @@ class Sessions:
         """The estimate at time ``t`` (not before the session's time) without an observation; the session
         is unchanged."""
         rec, loaded, filt = self._session(session_id, tenant)
-        state = filt.state_from_dict(_record(rec, "state"))
+        state, _ = _load(filt, _record(rec, "state"))
         if not math.isfinite(t):
             raise InputError("t", "must be a finite number (the time to forecast to)")
         if t < state.t:
@@ -484,14 +527,17 @@ class Sessions:
     def info(self, session_id: str, extras: Extras | None = None,
              tenant: str | None = None) -> dict[str, Any]:
         rec, loaded, filt = self._session(session_id, tenant)
-        state = filt.state_from_dict(_record(rec, "state"))
+        state, watch = _load(filt, _record(rec, "state"))
         estimate = filt.estimate(state)
         out = estimate_full(estimate)
         if extras:
             out.update(summaries_of(filt, state, estimate, extras))
+        options = _shown_options(_options(rec), filt)
         info = {"id": session_id, "model": loaded.id, "method": filt.method, "step": int(state.step),
                 "t": float(state.t), "next_seq": int(_record(rec, "next_seq")), "estimate": out,
-                "options": _shown_options(_options(rec), filt)}
+                "options": options, "lost": watch.lost,
+                "monitor": {"statistic": watch.statistic if options.get("monitor", 0.0) > 0 else None,
+                            "alarms": watch.alarms}}
         if getattr(state, "center", None) is not None:  # a ball that follows the state
             info["center"] = np.asarray(filt.ball_center(state), dtype=float).tolist()
         return info
@@ -506,7 +552,7 @@ class Sessions:
         from yauyau.solver import summaries
 
         rec, loaded, filt = self._session(session_id, tenant)
-        state = filt.state_from_dict(_record(rec, "state"))
+        state, _ = _load(filt, _record(rec, "state"))
         estimate = filt.estimate(state)
         out = estimate_full(estimate)
         frame = {"id": session_id, "model": loaded.id, "name": loaded.model.spec.name,
@@ -533,7 +579,7 @@ class Sessions:
             raise InputError("points", f"each point needs {n} coordinate(s), got {points.shape[1]}")
         if len(points) > self.max_density_points:
             raise InputError("points", f"at most {self.max_density_points} points, got {len(points)}")
-        state = filt.state_from_dict(_record(rec, "state"))
+        state, _ = _load(filt, _record(rec, "state"))
         values = np.asarray(filt.density(state, points), dtype=float)
         values = np.where(np.isfinite(values), np.maximum(values, 0.0), 0.0)
         return {"step": int(state.step), "t": float(state.t), "points": points.tolist(),
@@ -633,20 +679,26 @@ class _ChunkJob:
     policy: str
     extras: Extras | None
     record: Any = None  # the session as read to check the chunk (the store may use it)
+    settings: WatchSettings | None = None  # the session's watch (solver/watch.py)
     applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
 
 
 def _compute_many(jobs: list[_ChunkJob], pairs: list[tuple[int, dict[str, Any]]]) -> list[Any]:
     """The store's ``compute_many``: the states of ``pairs`` (index into ``jobs``, stored state)
     advanced over their chunks, together where they can be: [(new state, response text) or error]."""
+    from yauyau.solver.watch import settle
+
     out: list[Any] = [None] * len(pairs)
     states: list[Any] = [None] * len(pairs)
+    watches: list[Watch] = [Watch()] * len(pairs)
     for p, (i, state_dict) in enumerate(pairs):
         try:
-            states[p] = jobs[i].filt.state_from_dict(state_dict)
+            states[p], watches[p] = _load(jobs[i].filt, state_dict)
         except Exception as exc:  # noqa: BLE001 - that chunk's answer
             out[p] = exc
-    together = [p for p in range(len(pairs)) if out[p] is None and not jobs[pairs[p][0]].extras]
+    # a filter that lost track computes nothing (it answers held rows): alone, with its reason
+    together = [p for p in range(len(pairs))
+                if out[p] is None and not jobs[pairs[p][0]].extras and watches[p].lost is None]
     if together:
         members = [jobs[pairs[p][0]] for p in together]
         try:
@@ -660,26 +712,31 @@ def _compute_many(jobs: list[_ChunkJob], pairs: list[tuple[int, dict[str, Any]]]
                     raise result
                 if isinstance(result, BaseException) or (job.policy != "stop" and (
                         states[p].degenerate or result[1].degenerate.any())):
-                    out[p] = _alone(job, states[p])  # the policy restarts it: alone, from its state
+                    out[p] = _alone(job, states[p], watches[p])  # the policy restarts it: alone, from its
+                    # state
                 else:
-                    response = result_response(job.seq, result[0], result[1], job.filt)
+                    settings = job.settings or WatchSettings()
+                    new, watch, rows = settle(job.filt, states[p], result[0], watches[p], result[1],
+                                              job.array, settings)
+                    response = result_response(job.seq, new, rows, job.filt, watch, settings)
                     job.applied = response
-                    out[p] = (result[0].to_dict(), encode_response(response))
+                    out[p] = (join_state(new, watch), encode_response(response))
             except Exception as exc:  # noqa: BLE001 - that chunk's answer
                 out[p] = exc
     for p in range(len(pairs)):
         if out[p] is None:
             try:
-                out[p] = _alone(jobs[pairs[p][0]], states[p])
+                out[p] = _alone(jobs[pairs[p][0]], states[p], watches[p])
             except Exception as exc:  # noqa: BLE001 - that chunk's answer
                 out[p] = exc
     return out
 
 
-def _alone(job: _ChunkJob, state: Any) -> tuple[dict[str, Any], str]:
-    state, response = chunk_response(job.seq, state, job.array, job.filt, job.extras, job.times, job.policy)
+def _alone(job: _ChunkJob, state: Any, watch: Watch) -> tuple[dict[str, Any], str]:
+    state, watch, response = chunk_response(job.seq, state, job.array, job.filt, job.extras, job.times,
+                                            job.policy, watch, job.settings or WatchSettings())
     job.applied = response
-    return state.to_dict(), encode_response(response)
+    return join_state(state, watch), encode_response(response)
 
 
 def _count(job: _ChunkJob) -> None:
@@ -694,3 +751,7 @@ def _count(job: _ChunkJob) -> None:
         metrics.GATED.inc(len(done["gated"]))
     if done["reinitialised"]:
         metrics.REINITIALISED.inc(len(done["reinitialised"]))
+    if done.get("alarms"):
+        metrics.ALARMS.inc(len(done["alarms"]))
+    if done["degenerate"] and (done["reason"] or "").startswith("lost track"):
+        metrics.LOST.inc()

@@ -11,6 +11,11 @@ largest gap, the fraction of degenerate steps, a verdict against ``target`` (on 
 degenerate step allowed) and, when it fails, the smallest basis of N·(1.5, 2, 3) that passes.  The
 paths are simulated from the model itself, so the posterior they make is the one the data will make
 when the model is right.
+
+It also reports the fraction of the simulated paths whose state leaves the domain — the fixed ball
+(or ellipsoid), or ``[domain] region`` for a ball that follows the state — and fails when any does:
+a filter on a fixed ball cannot follow a state outside it and loses track (solver/watch.py), so the
+report names the fix (``domain.follow = true``, a larger ``domain.radius``; a wider region).
 """
 
 from __future__ import annotations
@@ -49,6 +54,14 @@ class CheckReport:
     truth_degenerate: float = 0.0  # fraction of the reference's own degenerate steps (then nothing passes)
     region: list[list[float]] | None = None  # [domain] region of a following ball
     covered: list[list[float]] | None = None  # the simulated states' range along each variable
+    left: float = 0.0  # fraction of the simulated paths whose state leaves the domain (ball or region)
+    domain: str = ""  # that domain, in words (with the fix when some path leaves it)
+    left_at: int | None = None  # the first step where a path left it
+
+    @property
+    def ok(self) -> bool:
+        """Resolved, and no simulated path left the domain."""
+        return self.requested.ok and not self.left
 
     @property
     def rate_bound(self) -> float:
@@ -68,7 +81,9 @@ class CheckReport:
 
     def to_dict(self) -> dict[str, Any]:
         return {"truth": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
-                "ok": self.requested.ok, "suggested_basis": self.suggested, "truth_rmse": self.truth_rmse,
+                "ok": self.ok, "resolved": self.requested.ok, "left_domain": self.left,
+                "domain": self.domain, "left_at_step": self.left_at, "suggested_basis": self.suggested,
+                "truth_rmse": self.truth_rmse,
                 "truth_degenerate": self.truth_degenerate, "degenerate_rate_bound": self.rate_bound,
                 "region": self.region, "covered": self.covered, "trials": [t.__dict__ for t in self.trials]}
 
@@ -77,8 +92,10 @@ class CheckReport:
         lines = [f"resolution check: {self.paths} simulated paths of {self.steps} steps, truth: {self.truth}",
                  f"  basis {r.basis} ({r.nodes} nodes): mean gap {r.mean_gap:.3g}, largest {r.max_gap:.3g}, "
                  f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} (truth {self.truth_rmse:.3g})"]
+        lines += self._left()
         if r.ok:
-            lines.append(f"  OK: the mean gap is within the target {self.target:g}")
+            lines.append(f"  {'OK' if self.ok else 'resolved'}: the mean gap is within the target "
+                         f"{self.target:g}")
             lines.append(f"  no degenerate step in {self.paths * self.steps}: the rate is below "
                          f"{self.rate_bound:.2g} per step (95%); a longer run may still meet one "
                          "(check it with --steps)")
@@ -93,9 +110,21 @@ class CheckReport:
             lines.append(f"  basis {t.basis} ({t.nodes} nodes): mean gap {t.mean_gap:.3g}, degenerate "
                          f"{t.degenerate:.1%}{versus}{'  <- passes' if t.ok else ''}")
         suggestion = self.suggested
-        lines.append(f"  suggestion: discretization.basis = {suggestion}" if suggestion else
-                     "  suggestion: none of the bases tried passes: shrink domain.radius or refine the mesh")
+        if self.left and not suggestion:
+            lines.append("  suggestion: the domain first (above): no basis helps while the state leaves it")
+        else:
+            lines.append(f"  suggestion: discretization.basis = {suggestion}" if suggestion else
+                         "  suggestion: none of the bases tried passes: shrink domain.radius or refine the "
+                         "mesh")
         return "\n".join(lines + self._coverage())
+
+    def _left(self) -> list[str]:
+        """The paths that left the domain (nothing when none did)."""
+        if not self.left:
+            return []
+        count = int(round(self.left * self.paths))
+        return [f"  NOT OK: {count} of {self.paths} simulated paths ({self.left:.0%}) leave {self.domain} "
+                f"(the first at step {self.left_at})"]
 
     def _coverage(self) -> list[str]:
         """Where a following ball has a region: how much of it the simulated paths crossed (the atlas's
@@ -139,8 +168,9 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
         report.region = [[float(lo), float(hi)] for lo, hi in spec.domain.region]
         report.covered = [[float(lo), float(hi)]
                           for lo, hi in zip(states.min(axis=0), states.max(axis=0), strict=True)]
+    report.left, report.left_at, report.domain = _leaving(model, data)
     report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline, wrong))
-    if suggest and not report.requested.ok and not wrong:
+    if suggest and not report.requested.ok and not wrong and not report.left:  # the domain first
         for scale in SCALES:
             basis = int(round(spec.discretization.basis * scale))
             against = ""
@@ -155,6 +185,31 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
             if trial.ok or wrong:
                 break
     return report
+
+
+def _leaving(model: Any, data: list) -> tuple[float, int | None, str]:
+    """(fraction of the paths whose state leaves the domain, the first step where one does, the domain in
+    words with the fix): the fixed ball (or ellipsoid), or the region of a following ball (none without
+    a region: the ball goes where the state goes)."""
+    domain = model.spec.domain
+    if domain.follow:
+        if domain.region is None:
+            return 0.0, None, "nothing (the ball follows the state)"
+        box = np.asarray(domain.region, dtype=float)
+        outside = [((d.states < box[:, 0]) | (d.states > box[:, 1])).any(axis=1) for d in data]
+        where = ("domain.region " + ", ".join(f"[{lo:g}, {hi:g}]" for lo, hi in box)
+                 + ", where the filter cannot follow the state: widen domain.region")
+    else:
+        center = np.asarray(model.center, dtype=float)
+        outside = [model.ball_distance(d.states - center) >= float(model.radius) for d in data]
+        shape = "ellipsoid" if model.shape is not None else "ball"
+        around = ", ".join(f"{c:g}" for c in center)
+        where = (f"the domain {shape} (radius {model.radius:g} around [{around}]), where a filter on a fixed "
+                 "ball cannot follow the state (it loses track): set domain.follow = true (the ball follows "
+                 "the state) or a larger domain.radius")
+    left = [bool(o.any()) for o in outside]
+    first = min((int(np.argmax(o)) for o in outside if o.any()), default=None)
+    return float(np.mean(left)), first, where
 
 
 def _engine_spec(spec: Any, basis: int) -> Any:

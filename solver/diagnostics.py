@@ -100,7 +100,8 @@ class Diagnostics:
             return bad, (f"probability mass leaks through the boundary of the domain ball ({leak[bad]:.2g} "
                          f"of it per step of dt = {self.dt:g}, limit {self.leak_limit:.2g}): the "
                          "Dirichlet condition on ∂B_R now biases the estimates; enlarge domain.radius "
-                         "or re-centre domain.center on the state's path")
+                         "or re-centre domain.center on the state's path (domain.follow = true: the ball "
+                         "follows it)")
         if rim[bad]:
             return bad, ("the conditional density is pushed against the boundary of the domain ball: the "
                          "data are incompatible with the model on this ball (enlarge domain.radius?)")

@@ -53,6 +53,7 @@ class Estimate:
     gated: bool = False  # the observation was rejected by the gate: the step only predicted
     predictive_loglik: float | None = None  # log p(row | rows before); None without an observation
     reinitialised: bool = False  # the filter degenerated here and started again (on_degenerate)
+    alarm: bool = False  # the innovation monitor raised its alarm at this row (solver/watch.py)
 
     def to_dict(self) -> dict[str, Any]:
         out = {"step": self.step, "t": self.t, "mean": self.mean.tolist(), "cov": self.cov.tolist(),
@@ -89,13 +90,15 @@ class ChunkResult:
     gate: float | None = None  # the gate the rows were checked against (predictive sd; 0: off)
     center: np.ndarray | None = None  # (K, n) the ball's centre after each row ([domain] follow; else None)
     recentred: np.ndarray | None = None  # (K,) bool: the ball moved onto ``center`` after this row
+    alarm: np.ndarray | None = None  # (K,) bool: the innovation monitor's alarm (solver/watch.py)
+    monitor: np.ndarray | None = None  # (K,) the monitor's signed statistic after each row (±1: alarm)
 
     def __post_init__(self):
         K = len(self.step)
-        for name, fill in (("predictive_loglik", np.nan), ("gate_score", np.nan)):
+        for name, fill in (("predictive_loglik", np.nan), ("gate_score", np.nan), ("monitor", np.nan)):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(K, fill))
-        for name in ("gated", "reinitialised", "recentred"):
+        for name in ("gated", "reinitialised", "recentred", "alarm"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.zeros(K, dtype=bool))
 
@@ -123,15 +126,16 @@ class ChunkResult:
         pll = [v if v == v else None for v in self.predictive_loglik.tolist()]  # NaN -> None
         columns = zip(self.step.tolist(), self.t.tolist(), self.mean, self.cov, self.loglik.tolist(),
                       self.loglik_increment.tolist(), self.degenerate.tolist(), modes, self.gated.tolist(),
-                      pll, self.reinitialised.tolist(), flagged, strict=True)
+                      pll, self.reinitialised.tolist(), flagged, self.alarm.tolist(), strict=True)
         return [Estimate(step=s, t=t, mean=m, cov=P, loglik=ll, loglik_increment=i, degenerate=bad,
                          reason=self.row_reason(k, gate) if flag else None, mode=mode, gated=gated,
-                         predictive_loglik=p, reinitialised=again)
-                for k, (s, t, m, P, ll, i, bad, mode, gated, p, again, flag) in enumerate(columns)]
+                         predictive_loglik=p, reinitialised=again, alarm=alarm)
+                for k, (s, t, m, P, ll, i, bad, mode, gated, p, again, flag, alarm) in enumerate(columns)]
 
 
 _ROW_FIELDS = ("step", "t", "mean", "cov", "mode", "loglik", "loglik_increment", "degenerate",
-               "predictive_loglik", "gated", "gate_score", "reinitialised", "center", "recentred")
+               "predictive_loglik", "gated", "gate_score", "reinitialised", "center", "recentred", "alarm",
+               "monitor")
 
 
 def slice_result(result: ChunkResult, rows: slice) -> ChunkResult:
@@ -311,13 +315,19 @@ def one_row(row: Any | None, m: int, field: str) -> np.ndarray:
         raise InputError(field, f"must be {m} number(s) (NaN: missing), or None") from None
 
 
-def check_t0(t0: Any, field: str = "t0") -> float:
-    """The time of a prior: a finite real number, else InputError naming ``field``."""
+def check_t0(t0: Any, field: str = "t0", dt: float | None = None, what: str = "t0") -> float:
+    """The time of a prior: a finite real number, else InputError naming ``field``; with the model's
+    ``dt``, one where a step of dt keeps its precision (:func:`solver.measurement.check_spacing`; the
+    message calls it ``what``)."""
     import math
     import numbers
 
+    from .measurement import check_spacing
+
     if isinstance(t0, bool) or not isinstance(t0, numbers.Real) or not math.isfinite(t0):
         raise InputError(field, "must be a finite number (the time of the prior)")
+    if dt is not None:
+        check_spacing(float(t0), float(dt), field, what)
     return float(t0)
 
 
@@ -335,9 +345,13 @@ def at_time(state: Any, t0: float) -> Any:
 def chunk_clock(state: Any, K: int, dt: float, times: Any, taus: np.ndarray | None):
     """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
     while the state is on it, as the regular filters always were)."""
+    from .measurement import check_spacing
+
     steps = state.step + 1 + np.arange(K)
     if taus is not None:
         return steps, np.asarray(times, dtype=float).reshape(-1)
+    if K:  # regular rows step by dt: at the chunk's last time that must still be a step
+        check_spacing(float(state.t) + K * dt, dt, "t0", "the filter's time")
     if state.t == state.step * dt:
         return steps, steps * dt
     return steps, state.t + dt * np.arange(1, K + 1)

@@ -359,6 +359,26 @@ def check_first_gap(taus: np.ndarray | None, discrete: bool, method: str | None 
                                         "earlier t0")
 
 
+SPACING_BITS = 10  # a step must span at least 2^10 float spacings of its time: ~3 of its digits survive
+
+
+def min_step(t: float) -> float:
+    """The shortest step that keeps its precision at time ``t``: 2^SPACING_BITS float spacings there."""
+    return math.ulp(abs(t)) * (1 << SPACING_BITS)
+
+
+def check_spacing(t: float, step: float, field: str, what: str = "t") -> None:
+    """InputError naming ``field`` when a step of ``step`` at time ``t`` is shorter than :func:`min_step`:
+    t + step would round to t, or keep fewer than about three significant digits of the step, and rows
+    would report the same (or a wrong) time."""
+    if not step >= min_step(t):
+        raise InputError(field, f"{what} = {t:.17g} is too large for steps of {step:g}: floats there "
+                                f"are {math.ulp(abs(t)):.3g} apart, and a step must span at least "
+                                f"2^{SPACING_BITS} of those ({min_step(t):.3g}) to keep its precision "
+                                "(else every row reports the same t); count time from a nearer origin "
+                                "(subtract a fixed offset from t0 and from every time)")
+
+
 def resolve_times(t_now: float, started: bool, K: int, dt: float, times: Any,
                   field: str = "times") -> np.ndarray | None:
     """The gaps τ_k (K,) of a chunk that carries ``times`` (absolute t_k, strictly increasing, after
@@ -390,4 +410,23 @@ def resolve_times(t_now: float, started: bool, K: int, dt: float, times: Any,
         raise InputError(f"{field}[{row}]", f"t = {float(t[row]):.17g} is not after t = "
                                             f"{float(t[row - 1]):.17g} (row {row - 1}): times must increase "
                                             "strictly")
+    _check_gaps(t, taus, t_now, field)
     return taus
+
+
+def _check_gaps(t: np.ndarray, taus: np.ndarray, t_now: float, field: str) -> None:
+    """Each gap τ_k at least :func:`min_step` of its two ends (a first row at the prior's time, τ = 0,
+    is allowed where resolve_times allows it); InputError naming the first row at fault."""
+    before = np.concatenate([[t_now], t[:-1]]) if math.isfinite(t_now) else np.concatenate([t[:1], t[:-1]])
+    size = np.maximum(np.abs(t), np.abs(before))
+    short = taus < np.spacing(size) * float(1 << SPACING_BITS)
+    short[0] &= taus[0] > 0 and math.isfinite(t_now)
+    if short.any():
+        row = int(np.argmax(short))
+        at = float(size[row])
+        raise InputError(f"{field}[{row}]", f"t = {float(t[row]):.17g} is {float(taus[row]):.3g} after "
+                                            f"the time before it: at {at:.3g} floats are {math.ulp(at):.3g} "
+                                            f"apart, and a gap must span at least 2^{SPACING_BITS} of those "
+                                            f"({min_step(at):.3g}) to keep its precision; count time from a "
+                                            "nearer origin (subtract a fixed offset from t0 and from every "
+                                            "time)")

@@ -131,8 +131,10 @@ def _follows(flt: Any) -> bool:
 
 
 def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = None,
-                    policy: str = DEFAULT_POLICY) -> tuple[Any, ChunkResult]:
-    """``flt.run_arrays`` under an ``on_degenerate`` policy (module docstring)."""
+                    policy: str = DEFAULT_POLICY, tracker: Any | None = None) -> tuple[Any, ChunkResult]:
+    """``flt.run_arrays`` under an ``on_degenerate`` policy (module docstring).  ``tracker``
+    (solver/watch.py) is told of each restart before it happens; when it answers a reason (the filter
+    has lost track), the filter does not restart: it stays degenerate from that row with the reason."""
     check_policy(policy)
     if policy == "stop" or not getattr(flt, "restartable", True):  # wei-norman cannot start mid-stream
         return flt.run_arrays(state, rows, times)
@@ -142,6 +144,9 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
     offset, K = 0, len(rows)
     restarted_before = None
     if state.degenerate and K:
+        lost = tracker.restarted(int(state.step) + 1) if tracker is not None else None
+        if lost is not None:  # lost track: stays degenerate, and says so
+            return flt.run_arrays(dataclasses.replace(state, reason=lost), rows, times)
         try:
             state, restarted_before = _restart_note(flt, state, state.reason, before=True)
         except NoRestart:
@@ -160,6 +165,12 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
         if k:
             parts.append(slice_result(result, slice(0, k)))
         at = dataclasses.replace(_degenerate_at(new_state, result, k), degenerate=True)
+        lost = tracker.restarted(int(result.step[k])) if tracker is not None else None
+        if lost is not None:  # lost track: the rest of the chunk stays degenerate with that reason
+            rest = slice_result(result, slice(k, None))
+            parts.append(dataclasses.replace(rest, reason=lost))
+            state = dataclasses.replace(new_state, reason=lost) if hasattr(new_state, "reason") else new_state
+            break
         try:
             state, note = _restart_note(flt, at, result.reason)
         except NoRestart as exc:  # stays degenerate, as under "stop", and says why it did not restart

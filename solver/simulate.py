@@ -155,6 +155,9 @@ def _gaps(times, steps: int) -> np.ndarray:
     if np.any(gaps <= 0):
         row = int(np.argmax(gaps <= 0))
         raise InputError(f"times[{row}]", "times must start after 0 and increase strictly")
+    from .measurement import resolve_times
+
+    resolve_times(0.0, True, steps, 0.0, t)  # each gap keeps its precision (the filters refuse others)
     return gaps
 
 

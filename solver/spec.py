@@ -113,6 +113,7 @@ class DensityPrior(_Strict):
 Prior = Annotated[Union[GaussianPrior, MixturePrior, DensityPrior], Field(discriminator="kind")]
 
 
+MONITOR_DEFAULT = 0.0  # the innovation monitor (solver/watch.py): off unless set (rows per false alarm)
 GATE_DEFAULT = 6.0  # predictive standard deviations (docs/measurements.md): 2e-9 of healthy Gaussian data
 
 
@@ -125,16 +126,22 @@ class Measurement(_Strict):
     ``dof`` degrees of freedom and scale matrix R (``likelihood = "student-t"``, heavy-tailed sensors).
     ``gate = K``: an observation whose predictive standard score exceeds K (for m components: whose
     predictive probability is below that of K standard deviations) only predicts and is flagged;
-    ``gate = 0`` turns the gate off.
+    ``gate = 0`` turns the gate off.  ``monitor = N``: the innovation monitor (solver/watch.py) flags a
+    sustained sensor bias, with a false alarm about once in N healthy rows (1e9 is a good choice);
+    ``monitor = 0``, the default, leaves it off (it costs a few array operations per chunk).
     """
 
     kind: Literal["continuous", "discrete"] = "continuous"
     likelihood: Literal["gaussian", "student-t"] = "gaussian"
     dof: float | None = Field(default=None, gt=0, le=1e6)
     gate: float = Field(default=GATE_DEFAULT, ge=0, le=37)  # beyond 37 sd the tail probability underflows
+    monitor: float = Field(default=MONITOR_DEFAULT, ge=0, le=1e15)  # healthy rows per false alarm (0: off)
 
     @model_validator(mode="after")
     def _consistent(self) -> "Measurement":
+        if 0 < self.monitor < 1e3:
+            raise SpecError("measurement.monitor", "is the mean number of healthy rows per false alarm of "
+                                                   "the innovation monitor: 0 (off) or from 1e3 to 1e15")
         if self.likelihood == "student-t":
             if self.kind != "discrete":
                 raise SpecError("measurement.likelihood", 'student-t needs kind = "discrete" (continuous '
@@ -449,6 +456,8 @@ class ModelSpec(_Strict):
         data = self.model_dump(mode="json")
         if self.measurement == Measurement():
             del data["measurement"]
+        elif self.measurement.monitor == MONITOR_DEFAULT:  # added later: ids of specs from before it stay
+            del data["measurement"]["monitor"]
         data["domain"] = self.domain.stored()
         if self.discretization.element == "lagrange":  # the default: ids of specs from before it stay
             del data["discretization"]["element"]

@@ -206,7 +206,8 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
 
 def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: str | None = None, *,
                 prior: Any | None = None, form: str = "stable", precision: str | None = None,
-                gate: float | None = None, on_degenerate: str = "stop", t0: float = 0.0) -> "OnlineFilter":
+                gate: float | None = None, on_degenerate: str = "stop", t0: float = 0.0,
+                lost_track: Any | None = None, monitor: float | None = None) -> "OnlineFilter":
     """A ready-to-step filter of a stored model.
 
     ``method`` overrides the one chosen at precompute (``yau-yau``, ``kalman-bucy``, ...; an exact
@@ -214,7 +215,10 @@ def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: st
     ``{"kind": "gaussian", "mean": [0], "cov": [[1]]}``) overrides the model's and holds at time
     ``t0``; ``gate`` overrides the spec's ``[measurement] gate`` (0: off); ``on_degenerate`` is
     "stop" (the state stays degenerate until ``reinitialise``) or "reinitialise" (start again from a
-    broadened prior around the last good estimate, yauyau.solver.recovery).
+    broadened prior around the last good estimate, yauyau.solver.recovery).  ``lost_track`` (a dict of
+    ``gated``, ``restarts``, ``window``; None: the defaults) says when a filter that keeps gating or
+    restarting has lost track, and ``monitor`` sets the innovation monitor (healthy rows per false
+    alarm; 0: off; None: the spec's ``[measurement] monitor``): yauyau.solver.watch.
     """
     from .solver.methods import make_filter
 
@@ -225,7 +229,8 @@ def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: st
         raise SpecError("method", "auto is resolved at precompute; name a method or leave it out")
     flt = make_filter(loaded.model, loaded.offline, method or loaded.method, form=form, precision=precision,
                       gate=gate)
-    return OnlineFilter(flt, prior=prior, on_degenerate=on_degenerate, t0=t0)
+    return OnlineFilter(flt, prior=prior, on_degenerate=on_degenerate, t0=t0, lost_track=lost_track,
+                        monitor=monitor)
 
 
 def simulate(spec: ModelSpec | str | os.PathLike | Any, steps: int, seed: int | None = 0,
@@ -252,18 +257,25 @@ class OnlineFilter:
     ``filter`` is the underlying :class:`yauyau.solver.filtering.Filter` (a pure function of state
     and data); ``state`` is its JSON-safe state (``state_dict()``/``restore`` move it between
     processes, exactly).  ``on_degenerate``: "stop" or "reinitialise" (yauyau.solver.recovery).
+    ``watch`` (yauyau.solver.watch) is what the rows said so far: whether the filter lost track (then
+    it stays degenerate until ``reset`` or ``reinitialise``) and the innovation monitor's charts
+    (``alarm`` on the rows where it is raised); it is part of ``state_dict()``.
     """
 
     def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None, *,
-                 on_degenerate: str = "stop", t0: float = 0.0):
+                 on_degenerate: str = "stop", t0: float = 0.0, lost_track: Any | None = None,
+                 monitor: float | None = None, watch: Any | None = None):
         from .solver.filtering import check_t0
         from .solver.recovery import check_policy
+        from .solver.watch import Watch, settings_for
 
         self.filter = flt
         self.model = flt.model
         self.method: str = flt.method
         self.on_degenerate = check_policy(on_degenerate)
-        self.t0 = check_t0(t0)
+        self.t0 = check_t0(t0, "t0", float(flt.model.dt))
+        self.watch_settings = settings_for(flt, lost_track, monitor)
+        self.watch = Watch() if watch is None else watch
         self.state = self._initial(prior) if state is None else state
 
     def _initial(self, prior: Any | None) -> Any:
@@ -288,9 +300,10 @@ class OnlineFilter:
         one dt apart; returns the chunk's estimates as arrays (``step``, ``t``, ``mean`` (K, n), ``cov``
         (K, n, n), ``mode``, ``loglik``, ``predictive_loglik``, ``gated``, ``degenerate``,
         ``reinitialised``, ``reason``; ``.estimates()`` gives Estimate objects)."""
-        from .solver.recovery import run_with_policy
+        from .solver.watch import watched_run
 
-        self.state, result = run_with_policy(self.filter, self.state, rows, times, self.on_degenerate)
+        self.state, self.watch, result = watched_run(self.filter, self.state, self.watch, rows, times,
+                                                     self.on_degenerate, self.watch_settings)
         return result
 
     def iterate(self, rows: Any, times: Any | None = None):
@@ -308,7 +321,9 @@ class OnlineFilter:
         """The forecast at time ``t`` (after now) with no observation: an OnlineFilter of its own (its
         ``mean``, ``cov``, ``density(points)``, ``quantiles()``, ...); this one is unchanged."""
         state, _ = self.filter.predict(self.state, t)
-        return OnlineFilter(self.filter, state=state, on_degenerate=self.on_degenerate, t0=self.t0)
+        return OnlineFilter(self.filter, state=state, on_degenerate=self.on_degenerate, t0=self.t0,
+                            lost_track=self.watch_settings.lost, monitor=self.watch_settings.monitor,
+                            watch=self.watch)
 
     # -- now ------------------------------------------------------------------------------
     @property
@@ -349,6 +364,16 @@ class OnlineFilter:
     def degenerate(self) -> bool:
         return bool(self.state.degenerate)
 
+    @property
+    def lost(self) -> str | None:
+        """Why the filter lost track (None: it did not); cleared by ``reset`` and ``reinitialise``."""
+        return self.watch.lost
+
+    @property
+    def monitor(self) -> float:
+        """The innovation monitor's statistic after the last row (±1: an alarm; yauyau.solver.watch)."""
+        return self.watch.statistic
+
     def density(self, points: Any) -> np.ndarray:
         """Normalised conditional density at points (P, n) (for n = 1 a flat list will do)."""
         points = np.asarray(points, dtype=float)
@@ -370,27 +395,38 @@ class OnlineFilter:
 
     # -- state ------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """The state as JSON-safe data (carried log-likelihood included)."""
-        return self.state.to_dict()
+        """The state as JSON-safe data (carried log-likelihood and the watch included)."""
+        from .solver.watch import join_state
+
+        return join_state(self.state, self.watch)
 
     def restore(self, data: dict[str, Any]) -> None:
         """Continue from a :meth:`state_dict` (validated; bad fields raise InputError)."""
+        from .solver.watch import split_state
+
+        data, watch = split_state(data)
         self.state = self.filter.state_from_dict(data)
+        self.watch = watch
 
     def reset(self, prior: Any | None = None) -> None:
-        """Back to the start (t0) with the model's prior (or ``prior``)."""
+        """Back to the start (t0) with the model's prior (or ``prior``); the watch starts again."""
+        from .solver.watch import Watch
+
         self.state = self._initial(prior)
+        self.watch = Watch()
 
     def reinitialise(self, prior: Any | None = "last") -> Estimate:
         """Start again now (same step and time, log-likelihood carried) from ``prior``: "last" (a prior
         broadened around the last good estimate: a degenerate filter recovers), None (the model's)
         or a spec prior.  Returns the new estimate."""
         from .solver.recovery import restart, restart_from_last
+        from .solver.watch import Watch
 
         if isinstance(prior, str) and prior == "last":
             self.state, _ = restart_from_last(self.filter, self.state)
         else:
             self.state = restart(self.filter, self.state, prior)
+        self.watch = Watch()  # a filter that lost track is on track again: the counts start again
         return self.estimate
 
 

@@ -6,13 +6,15 @@ and stored with the model; no analysis runs here) in chunks of --chunk rows, wit
 BLAS threads (default 1: docs/bench-blas.md).  Rows are the spec's ``[measurement]`` kind: increments
 dy (continuous) or measurements z (discrete); --increments reads regular rows (t_k = t0 + k·dt),
 --observations rows with their own times.  --gate overrides the spec's outlier gate, --on-degenerate
-says what a degenerate density does (solver/recovery.py).  --quantiles, --mode and --density add what
-the density says beyond mean and covariance (yauyau.solver.summaries; storage.density_file).  All
-input is validated before anything is written; OUT (and the density file) appear atomically.  The
-output columns are built from the chunks' arrays (ChunkResult), not per-row objects.
+says what a degenerate density does (solver/recovery.py), --lost-track when a filter that keeps gating
+or restarting has lost track and --monitor the innovation monitor (solver/watch.py).  --quantiles,
+--mode and --density add what the density says beyond mean and covariance (yauyau.solver.summaries;
+storage.density_file).  All input is validated before anything is written; OUT (and the density file)
+appear atomically.  The output columns are built from the chunks' arrays (ChunkResult), not per-row
+objects.
 Exit status: 0 done, 2 bad input (nothing written), 3 the filter degenerated under --on-degenerate
-stop (OUT is written, the steps from the first degenerate one on are flagged; stderr says from which
-step and why).
+stop, or lost track (OUT is written, the steps from the first degenerate one on are flagged; stderr
+says from which step and why).
 """
 
 from __future__ import annotations
@@ -65,6 +67,17 @@ degenerate density (--on-degenerate): stop (default): the rows from the first de
   estimate (that row's observation is not used, the row is flagged reinitialised = 1) and goes on;
   the exit status is then 0. stderr says how many rows were gated and re-initialised, and why.
 
+lost track (--lost-track GATED,RESTARTS,WINDOW, default 20,3,100; 0 turns a rule off): a filter
+  that gated GATED consecutive rows, or restarted RESTARTS times within WINDOW rows, no longer
+  follows the state (on a fixed ball: the state left it): from that row on the rows are
+  degenerate = 1, with the reason and the fix on stderr (domain.follow = true, a larger
+  domain.radius), whatever --on-degenerate says; the exit status is 3.
+
+innovation monitor (--monitor N): a sustained bias of the observations against their predictions
+  (a drifting sensor) raises alarm = 1 on a row; N is the mean number of healthy rows per false
+  alarm (1e9 is a good choice; default: the spec's [measurement] monitor, off unless set; 0 turns
+  it off). stderr says how many alarms were raised and where the first was.
+
 output (--out OUT.csv), one row per input row:
   step, t                 step k (1, 2, ...) and its time t_k
   mean_<var>              conditional mean E[x(t) | observations up to t], one column per variable
@@ -78,6 +91,9 @@ output (--out OUT.csv), one row per input row:
   predictive_loglik       log p(this row | the rows before) (-inf: impossible under the model);
                           empty when the row has no observation (or the method does not compute it)
   reinitialised           1 when the filter started again at this row (--on-degenerate), else 0
+  alarm                   (--monitor) 1 when the innovation monitor raised its alarm at this row
+  monitor                 (--monitor) its statistic after this row (+-1: an alarm; +: the
+                          observations above their predictions)
   center_<var>            ([domain] follow = true) the centre of the ball after this row
   recentred               ([domain] follow = true) 1 when the ball moved after this row, else 0
 
@@ -86,7 +102,7 @@ density (--density OUT.h5): the density every --density-every steps on a grid ov
   HDF5 (time, step, one coordinate per variable); `yauyau plot` draws it.
 
 exit status: 0 done; 2 bad input (one line on stderr naming the field or row, nothing written);
-  3 the filter degenerated under --on-degenerate stop (OUT written, rows flagged).
+  3 the filter degenerated under --on-degenerate stop, or lost track (OUT written, rows flagged).
 """
 
 
@@ -135,6 +151,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--on-degenerate", choices=POLICIES, default="stop",
                         help="stop (default: flag the rest, exit 3) or reinitialise (start again from a "
                              "broadened prior and go on)")
+    parser.add_argument("--lost-track", default=None, metavar="GATED,RESTARTS,WINDOW",
+                        help="lost track after GATED consecutive gated rows or RESTARTS restarts within "
+                             "WINDOW rows (default 20,3,100; 0 turns a rule off)")
+    parser.add_argument("--monitor", type=float, default=None, metavar="N",
+                        help="innovation monitor: mean healthy rows per false alarm, e.g. 1e9 (default: the "
+                             "spec's [measurement] monitor, off unless set; 0: off)")
     parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
                         help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
@@ -180,9 +202,10 @@ class Source:
 def run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
     from yauyau.solver.errors import InputError
-    from yauyau.solver.filtering import cumulative_hint
+    from yauyau.solver.filtering import check_t0, cumulative_hint
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
+    from yauyau.solver.watch import check_monitor, parse_lost_track, settings_for
 
     from yauyau.api import OnlineFilter, load_model
 
@@ -191,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
     if args.t0 is not None and not math.isfinite(args.t0):
         raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
+    lost_track = None if args.lost_track is None else parse_lost_track(args.lost_track)
+    monitor = check_monitor(args.monitor, "--monitor")
     outputs = Outputs.from_args(args)
     threads = blas_threads(args.blas_threads)
     stored = load_model(args.store, args.model_id)
@@ -204,12 +229,15 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("increments", f"model {stored.id} has discrete measurements ([measurement] "
                                            'kind = "discrete"): give them with their times, --observations '
                                            "IN.csv (a header t,<one column per component>)")
+        if args.t0 is not None:  # regular rows step by dt from t0: that must still be a step
+            check_t0(float(args.t0), "t0", float(model.dt), "--t0")
         numbers: list[int] = []
         source = Source(read_increments(args.increments, model.m, numbers), None,
                         0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
     method = args.method or stored.method
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
-    state = OnlineFilter(flt, t0=source.t0).state
+    state = OnlineFilter(flt, t0=source.t0).state if source.times is None else _at(flt, source.t0)
+    watch = settings_for(flt, lost_track, monitor)
     preflight(flt, state, source, args.method is None)
     why = "--method" if args.method else f"stored at precompute: {stored.method_reason}"
     print(f"yauyau filter: method {method} ({why})", file=sys.stderr)
@@ -221,8 +249,10 @@ def run(args: argparse.Namespace) -> int:
         bar = progress_bar(args.progress, len(source.rows))
         with threadpool_limits(limits=threads, user_api="blas"), bar:
             lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
-                                        times=source.times, state=state, policy=args.on_degenerate)
-        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions")), lines)
+                                        times=source.times, state=state, policy=args.on_degenerate,
+                                        watch=watch)
+        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions"),
+                                     monitor=watch.monitor > 0), lines)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -232,11 +262,19 @@ def run(args: argparse.Namespace) -> int:
     report.print(len(source.rows), flt.gate if hasattr(flt, "gate") else None)
     if report.degenerate is not None:
         step, t, reason = report.degenerate
+        instead = ("" if (reason or "").startswith("lost track") else
+                   " (--on-degenerate reinitialise starts again instead)")
         print(f"yauyau filter: degenerate from step {step} (t = {t:g}): {reason}; the rows from there on are "
-              "flagged degenerate = 1 (--on-degenerate reinitialise starts again instead)"
-              + (f". {hint}" if hint else ""), file=sys.stderr)
+              f"flagged degenerate = 1{instead}" + (f". {hint}" if hint else ""), file=sys.stderr)
         return EXIT_DEGENERATE
     return 0
+
+
+def _at(flt, t0: float):
+    """The filter's initial state at ``t0`` (rows with their own times: their gaps were checked)."""
+    from yauyau.solver.filtering import at_time
+
+    return at_time(flt.initial_state(), t0)
 
 
 def preflight(flt, state, source: Source, stored_method: bool) -> None:
@@ -281,10 +319,17 @@ class Report:
         self.first_gated = None
         self.first_reinitialised = None
         self.degenerate = None
+        self.alarms = 0
+        self.first_alarm = None
 
     def add(self, result, gate) -> None:
         import numpy as np
 
+        if result.alarm.any():
+            if self.first_alarm is None:
+                k = int(np.argmax(result.alarm))
+                self.first_alarm = (int(result.step[k]), float(result.t[k]), float(result.monitor[k]))
+            self.alarms += int(result.alarm.sum())
         if self.degenerate is None and result.degenerate.any():
             k = int(np.argmax(result.degenerate))
             self.degenerate = (int(result.step[k]), float(result.t[k]), result.row_reason(k, gate))
@@ -306,6 +351,12 @@ class Report:
             if first is not None:
                 step, t, reason = first
                 print(f"yauyau filter: first {what} row: step {step} (t = {t:g}): {reason}", file=sys.stderr)
+        if self.first_alarm is not None:
+            step, t, value = self.first_alarm
+            side = "above" if value > 0 else "below"
+            print(f"yauyau filter: innovation monitor: {self.alarms} alarm(s), the first at step {step} "
+                  f"(t = {t:g}): the observations have drifted {side} their predictions (a sensor bias, or a "
+                  "model that does not fit): columns alarm and monitor", file=sys.stderr)
 
 
 class Outputs:
@@ -512,6 +563,8 @@ def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
         if t <= previous:
             raise InputError(f"times[{k}]", f"{path} line {number}: t = {t!r} is not after t = {previous!r} "
                                             f"(line {number - 1}): times must increase strictly")
+        if previous > -math.inf:
+            _check_gap(path, number, k, previous, t)
         values = [_number(f) for f in fields[1:]]
         for j, (field, value) in enumerate(zip(fields[1:], values, strict=True)):
             if value is None:
@@ -525,6 +578,8 @@ def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
     if not rows:
         raise InputError("observations", f"{path} has a header and no rows: one row per observation time")
     start = times[0] if t0 is None else float(t0)
+    if times[0] > start:
+        _check_gap(path, 2, 0, start, times[0], "--t0")
     if times[0] < start:
         raise InputError("times[0]", f"{path} line 2: t = {times[0]!r} is before --t0 {start!r}: the first "
                                      "row must be at or after the time of the prior")
@@ -535,6 +590,20 @@ def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
                                             "prior's time, an empty interval: give --t0 (the start of the "
                                             "first interval, e.g. --t0 0 for the files of yauyau simulate)")
     return Source(data, np.array(times, dtype=float), start, "observations", numbers)
+
+
+def _check_gap(path: str, number: int, k: int, before: float, t: float, what: str | None = None) -> None:
+    """InputError naming times[k] (line ``number``) when t is too close to the time before it to keep the
+    gap's precision (yauyau.solver.measurement.check_spacing)."""
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.measurement import check_spacing
+
+    try:
+        check_spacing(max(abs(before), abs(t)), t - before, f"times[{k}]", "t")
+    except InputError as exc:
+        after = what or f"t = {before!r} (line {number - 1})"
+        raise InputError(exc.field, f"{path} line {number}: t = {t!r} is {t - before:.3g} after {after}: "
+                                    f"{exc.message}") from None
 
 
 def _number(field: str):
@@ -549,15 +618,19 @@ def _number(field: str):
 
 
 def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, writer=None, bar=None, *,
-                times=None, state=None, policy: str = "stop"):
+                times=None, state=None, policy: str = "stop", watch=None):
     """The output lines (CSV text, one per row: step, t, means, upper-triangle covariances[, modes,
-    quantiles], loglik, degenerate, gated, predictive_loglik, reinitialised) and the :class:`Report`
-    of the run.  ``times`` (K,) or None (regular), from ``state`` (default: the filter's initial
-    state), under the ``on_degenerate`` ``policy``."""
-    from yauyau.solver.recovery import run_with_policy
+    quantiles], loglik, degenerate, gated, predictive_loglik, reinitialised, alarm, monitor) and the
+    :class:`Report` of the run.  ``times`` (K,) or None (regular), from ``state`` (default: the filter's
+    initial state), under the ``on_degenerate`` ``policy`` and the ``watch`` settings (solver/watch.py;
+    None: the defaults and the spec's monitor)."""
+    from yauyau.solver.watch import Watch, settings_for, watched_run
 
     outputs = outputs or Outputs()
     state = flt.initial_state() if state is None else state
+    settings = settings_for(flt) if watch is None else watch
+    monitored = settings.monitor > 0  # its two columns only when it is on
+    seen = Watch()
     gate = getattr(flt, "gate", None)
     lines: list[str] = []
     report = Report()
@@ -567,44 +640,47 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
         stop = min(start + chunk, len(increments))
         if outputs.per_step:
             for k in range(start, stop):
-                state, result = run_with_policy(flt, state, increments[k:k + 1],
-                                                None if times is None else times[k:k + 1], policy)
+                state, seen, result = watched_run(flt, state, seen, increments[k:k + 1],
+                                                  None if times is None else times[k:k + 1], policy, settings)
                 extra = summary_columns(flt, state, result.estimates(gate)[0], outputs, writer)
-                lines += csv_lines(result, [extra])
+                lines += csv_lines(result, [extra], monitored)
                 report.add(result, gate)
         else:
-            state, result = run_with_policy(flt, state, increments[start:stop],
-                                            None if times is None else times[start:stop], policy)
-            lines += csv_lines(result)
+            state, seen, result = watched_run(flt, state, seen, increments[start:stop],
+                                              None if times is None else times[start:stop], policy, settings)
+            lines += csv_lines(result, monitor=monitored)
             report.add(result, gate)
         if bar is not None:
             bar.update(stop - start)
     return lines, report
 
 
-def csv_lines(result, extras: list[list] | None = None) -> list[str]:
+def csv_lines(result, extras: list[list] | None = None, monitor: bool = False) -> list[str]:
     """The CSV lines of a chunk's result, column by column from its arrays (``extras``: the mode and
-    quantile fields of each row, between the covariances and loglik)."""
+    quantile fields of each row, between the covariances and loglik; ``monitor``: with the innovation
+    monitor's alarm and statistic after reinitialised)."""
     import numpy as np
 
     n = result.mean.shape[1]
     i, j = np.triu_indices(n)
     if extras is None and not np.isinf(result.predictive_loglik).any() and not np.isinf(result.loglik).any():
-        return _fast_lines(result, i, j)  # (orjson would write an infinity as an empty field)
+        return _fast_lines(result, i, j, monitor)  # (orjson would write an infinity as an empty field)
     head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
                *result.cov[:, i, j].T.tolist(), strict=True)
     pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
     follow = ([] if result.center is None
               else [*result.center.T.tolist(), result.recentred.astype(int).tolist()])
+    statistic = ["" if v != v else repr(v) for v in result.monitor.tolist()] if monitor else []
+    watched = [result.alarm.astype(int).tolist(), statistic] if monitor else []
     tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
-               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *follow,
-               strict=True)
+               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *watched,
+               *follow, strict=True)
     if extras is None:
         return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
     return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
 
 
-def _fast_lines(result, i, j) -> list[str]:
+def _fast_lines(result, i, j, monitor: bool = False) -> list[str]:
     """:func:`csv_lines` without extras, formatted by orjson in one call (shortest round-trip floats,
     as repr gives them; NaN, i.e. not known, as an empty field)."""
     import numpy as np
@@ -617,6 +693,9 @@ def _fast_lines(result, i, j) -> list[str]:
                result.degenerate.astype(float), result.gated.astype(float), result.predictive_loglik,
                result.reinitialised.astype(float)]
     flags = [0, len(columns) - 4, len(columns) - 3, len(columns) - 1]  # integers: step and the flags
+    if monitor:  # the innovation monitor's alarm (an integer) and statistic
+        columns += [result.alarm.astype(float), result.monitor]
+        flags.append(len(columns) - 2)
     if result.center is not None:  # a following ball: its centre after the row, and whether it moved
         columns += [*result.center.T, result.recentred.astype(float)]
         flags.append(len(columns) - 1)
@@ -664,7 +743,7 @@ def snapshot(flt, state, estimate, outputs: Outputs, writer) -> None:
     writer.append(int(estimate.step), float(estimate.t), marginals, joint)
 
 
-def header(model, outputs: Outputs | None = None, follow: bool = False) -> list[str]:
+def header(model, outputs: Outputs | None = None, follow: bool = False, monitor: bool = False) -> list[str]:
     """The CSV columns; ``follow`` (a ball that follows the state): center_<var> and recentred last."""
     outputs = outputs or Outputs()
     names = model.spec.state
@@ -674,8 +753,9 @@ def header(model, outputs: Outputs | None = None, follow: bool = False) -> list[
     if outputs.probs is not None:
         extra += [f"q{p}_{v}" for v in names for p in outputs.probs_text]
     tail = [*[f"center_{v}" for v in names], "recentred"] if follow else []
+    watched = ["alarm", "monitor"] if monitor else []
     return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate", "gated",
-            "predictive_loglik", "reinitialised", *tail]
+            "predictive_loglik", "reinitialised", *watched, *tail]
 
 
 def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
