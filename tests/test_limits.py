@@ -19,56 +19,24 @@ import time
 
 import httpx
 import pytest
-from conftest import free_port
+from test_service_server import Server
 
 PROBLEM = "application/problem+json"
 HALF_HEAD = b"GET /livez HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: "  # never finished
 
 
-class LimitedServer:
+class LimitedServer(Server):
     """`yauyau serve` (one worker) started with RLIMIT_NOFILE set to ``nofile`` in the child."""
 
     def __init__(self, store, db, nofile=None, env=None, args=()):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store), "--session-db",
-               str(db), "--port", str(self.port), "--log-level", "warning", *map(str, args)]
-
         def limit():
             if nofile is not None:
                 resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
 
-        self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, env={**os.environ, **(env or {})},
-                                     preexec_fn=limit)
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited: {self.proc.stderr.read().decode()[-2000:]}")
-            try:
-                if httpx.get(self.url + "/readyz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        self.kill()
-        raise RuntimeError("server did not become ready")
+        super().__init__(store, db, env=env, args=args, preexec_fn=limit)
 
     def descriptors(self) -> int:
         return len(os.listdir(f"/proc/{self.proc.pid}/fd"))
-
-    def kill(self) -> str:
-        """SIGKILL the process group; what the server wrote to stderr."""
-        if self.proc.stderr.closed:
-            return ""
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        self.proc.wait(timeout=30)
-        err = self.proc.stderr.read().decode(errors="replace")
-        self.proc.stderr.close()
-        return err
 
 
 def _raise_own_descriptor_limit(wanted: int) -> int:

@@ -32,15 +32,15 @@ CHUNKS = 8
 class Server:
     """`python -m yauyau.service.cli serve` in its own process group (SIGKILL takes the workers too)."""
 
-    def __init__(self, store, db, workers=1, env=None):
+    def __init__(self, store, db, workers=1, env=None, args=(), preexec_fn=None):
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         cmd = [sys.executable, "-m", "yauyau.service.cli", "serve", "--store", str(store),
                "--session-db", str(db), "--port", str(self.port), "--workers", str(workers),
-               "--log-level", "warning"]
+               "--log-level", "warning", *map(str, args)]
         env = {k: v for k, v in {**os.environ, **(env or {})}.items() if v is not None}  # None: unset
         self.proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, env=env)
+                                     stderr=subprocess.PIPE, env=env, preexec_fn=preexec_fn)
         self._wait_ready()
 
     def _wait_ready(self, timeout=90.0):
