@@ -9,8 +9,9 @@ authenticated, every session's owner checked).  What the rows measure together: 
 file checks through kept descriptors and the rows' checksums, the PostgreSQL-free SQLite path, the
 connection bookkeeping and header timeout, the rate limiter, the Host check, the lost-track watch
 and the time checks (the innovation monitor is off by default).  bench.chunk_accounting splits the part
-below HTTP function by function.  The issue's bound: at most 5% of one-stream throughput.  Medians over rounds of the
-chunks' latency; the server's CPU per chunk (from /proc, what varies least on a shared machine).
+below HTTP function by function.  The issue's bound: at most 5% of one-stream throughput.  Medians
+over rounds of the chunks' latency; the server's CPU per chunk (from /proc, what varies least on a
+shared machine).
 
 Writes docs/bench-trust.md.
 """
