@@ -269,6 +269,44 @@ def test_monitor_false_alarm_rate_matches_its_setting():
         assert 0.5 * target < rows / alarm.sum() < 2.0 * target, (target, alarm.sum())
 
 
+def test_monitor_columns_on_the_command_line_only_when_it_is_on(store, tmp_path):
+    """`yauyau filter --monitor 1e9` on the power meter reading 0.33 low: the columns alarm and monitor,
+    an alarm row at +-1, and stderr naming the first; without --monitor the columns of the filter
+    without the monitor; on the unbiased readings, stderr says no alarm."""
+    directory, ids = store
+    sim = yauyau.simulate(EXAMPLES / "power_meter.toml", BIAS_BOUND, seed=5)
+    times = sim.times[1:len(sim.observations) + 1]
+
+    def observations(name, rows):
+        path = tmp_path / name
+        pairs = zip(times.tolist(), rows[:, 0].tolist(), strict=True)
+        path.write_text("t,z\n" + "".join(f"{t!r},{z!r}\n" for t, z in pairs))
+        return path
+
+    biased = observations("biased.csv", sim.observations + BIAS)
+    out = tmp_path / "out.csv"
+    run = cli("filter", ids["power"], "--store", directory, "--observations", biased, "--out", out,
+              "--monitor", "1e9")
+    assert run.returncode == 0, run.stderr
+    lines = out.read_text().splitlines()
+    columns = lines[0].split(",")
+    assert columns[-2:] == ["alarm", "monitor"]
+    table = [line.split(",") for line in lines[1:]]
+    alarms = [k for k, row in enumerate(table) if row[columns.index("alarm")] == "1"]
+    assert alarms, "no alarm on the command line"
+    assert float(table[alarms[0]][columns.index("monitor")]) <= -1.0  # below: the readings are low
+    assert f"{len(alarms)} alarm(s), the first at step {alarms[0] + 1}" in run.stderr
+    assert "drifted below their predictions" in run.stderr
+    run = cli("filter", ids["power"], "--store", directory, "--observations", biased, "--out", out)
+    assert run.returncode == 0 and "innovation monitor" not in run.stderr, run.stderr
+    assert out.read_text().splitlines()[0].split(",") == columns[:-2]
+    healthy = observations("healthy.csv", sim.observations)
+    run = cli("filter", ids["power"], "--store", directory, "--observations", healthy, "--out", out,
+              "--monitor", "1e9")
+    assert run.returncode == 0, run.stderr
+    assert "innovation monitor: no alarm (1,000,000,000 healthy rows per false alarm)" in run.stderr
+
+
 def test_monitor_state_round_trips_and_continues(store):
     """Half a biased stream, the state through JSON into a new filter, the other half: the same alarms and
     statistic as one uninterrupted run, bit for bit (the charts' sums are exact)."""

@@ -259,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
         raise
     if writer is not None:
         writer.close()
-    report.print(len(source.rows), flt.gate if hasattr(flt, "gate") else None)
+    report.print(len(source.rows), flt.gate if hasattr(flt, "gate") else None, watch.monitor)
     if report.degenerate is not None:
         step, t, reason = report.degenerate
         instead = ("" if (reason or "").startswith("lost track") else
@@ -343,7 +343,7 @@ class Report:
                                                     result.row_reason(k, gate)))
                 setattr(self, name, getattr(self, name) + count)
 
-    def print(self, rows: int, gate) -> None:
+    def print(self, rows: int, gate, monitor: float = 0.0) -> None:
         gate_text = "gate off" if not gate else f"gate {gate:g} sd"
         print(f"yauyau filter: {rows} row(s), {self.gated} gated ({gate_text}), {self.reinitialised} "
               "re-initialised", file=sys.stderr)
@@ -357,6 +357,9 @@ class Report:
             print(f"yauyau filter: innovation monitor: {self.alarms} alarm(s), the first at step {step} "
                   f"(t = {t:g}): the observations have drifted {side} their predictions (a sensor bias, or a "
                   "model that does not fit): columns alarm and monitor", file=sys.stderr)
+        elif monitor > 0:
+            print(f"yauyau filter: innovation monitor: no alarm ({monitor:,.0f} healthy rows per false alarm)",
+                  file=sys.stderr)
 
 
 class Outputs:
