@@ -358,8 +358,8 @@ class Report:
                   f"(t = {t:g}): the observations have drifted {side} their predictions (a sensor bias, or a "
                   "model that does not fit): columns alarm and monitor", file=sys.stderr)
         elif monitor > 0:
-            print(f"yauyau filter: innovation monitor: no alarm ({monitor:,.0f} healthy rows per false alarm)",
-                  file=sys.stderr)
+            print(f"yauyau filter: innovation monitor: no alarm ({monitor:,.0f} healthy rows per false "
+                  "alarm)", file=sys.stderr)
 
 
 class Outputs:
