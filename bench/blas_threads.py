@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENT = ROOT / "docs" / "bench-blas.md"

@@ -25,18 +25,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 FUNCTIONS = [
     "yauyau.storage.session_base:SessionStoreBase.apply_chunks",
-    "yauyau.service.sessions:_compute_many",
-    "yauyau.solver.engine:YauYauFilter.run_batch",
+    "yauyau.service.sessions.manager:_compute_many",
+    "yauyau.solver.engine.filter:YauYauFilter.run_batch",
     "yauyau.storage.session_base:SessionStoreBase._write",
-    "yauyau.service.sessions:Sessions._chunk_job",
-    "yauyau.service.sessions:result_response",
-    "yauyau.service.sessions:_load",
-    "yauyau.solver.engine:YauYauFilter.state_from_dict",
+    "yauyau.service.sessions.manager:Sessions._chunk_job",
+    "yauyau.service.sessions.manager:result_response",
+    "yauyau.service.sessions.manager:_load",
+    "yauyau.solver.engine.filter:YauYauFilter.state_from_dict",
     "yauyau.storage.session_store:SqliteSessionStore.verify_file",
     "yauyau.storage.sqlite_files:FileWatch.look",
     "yauyau.storage.session_base:checksum",
     "yauyau.solver.watch:settle",
-    "yauyau.service.sessions:encode_response",
+    "yauyau.service.sessions.manager:encode_response",
 ]
 
 
@@ -64,7 +64,7 @@ def _timed(spent: dict[str, float], spec: str) -> None:
 
     setattr(owner, name, timed)
     if module_name.endswith(".watch"):  # imported by name into the service
-        import yauyau.service.sessions as sessions_module
+        import yauyau.service.sessions.manager as sessions_module
         if getattr(sessions_module, name, None) is original:
             setattr(sessions_module, name, timed)
 
@@ -75,8 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--chunks", type=int, default=600)
     args = parser.parse_args(argv)
     from threadpoolctl import threadpool_limits
-    from yauyau.service.app import _open_sessions
-    from yauyau.service.registry import Registry
+    from yauyau.service.http.app import _open_sessions
+    from yauyau.service.models.cache import Registry
     from yauyau.service.settings import Settings
     from yauyau.storage.model_store import ModelStore
 

@@ -3,7 +3,7 @@
     python -m bench.default_mesh [--quick]     # writes docs/bench-default-mesh.md
 
 The default mesh of a spec without ``mesh`` has about NODES_PER_MODE · N interior nodes
-(solver/fem.py).  For the bundled 1-D models it is varied over Q/N ≈ 1.25, 1.5 and 2 (the P2 cells
+(solver/offline/fem.py).  For the bundled 1-D models it is varied over Q/N ≈ 1.25, 1.5 and 2 (the P2 cells
 across the radius that give those) and each variant filters the same simulated paths; the largest
 gap of the conditional mean to the truth over every step and path, and the engine's cost per row,
 are reported.  Truth: the exact Kalman filter (Ornstein–Uhlenbeck), the exact Beneš filter, the
@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.benes import BenesFilter
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.reference.pointmass import PointMassFilter

@@ -1,4 +1,4 @@
-"""Many streams of one model stepped together (solver/batch.py) against one ``run_arrays`` each.
+"""Many streams of one model stepped together (solver/engine/batch.py) against one ``run_arrays`` each.
 
     python -m bench.engine_batch [--quick]     # writes docs/bench-engine-batch.md
 
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 from .fragments import write_fragment
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["## Many streams stepped together (`run_batch`)", "",
              "`python -m bench.engine_batch" + (" --quick" if args.quick else "") + "`", "",
              f"S states of one model, each with its own {CHUNK}-row chunk: one `run_arrays` per state "
-             "against one `run_batch` for all (solver/batch.py: a matrix–matrix product per step), "
+             "against one `run_batch` for all (solver/engine/batch.py: a matrix–matrix product per step), "
              "interleaved, one BLAS thread, medians. *gap*: the largest difference between the two "
              "answers' means (rounding; the documented tolerance is `BATCH_RTOL`).", "",
              "| model | precision | Q | N | streams | alone ms | together ms | speed-up | per stream µs/row "

@@ -36,10 +36,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver.spec import load_spec
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import OfflineModel
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline.pipeline import OfflineModel
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.simulate import simulate
-import yauyau.solver.engine as engine
+import yauyau.solver.engine.filter as engine
 assert engine.__file__.startswith({tree!r}), engine.__file__
 spec = load_spec("examples/{example}.toml")
 model = compile_model(spec)
@@ -63,7 +63,7 @@ def _arrays(example: str, folder: Path) -> Path:
     sys.path.insert(0, str(ROOT))
     import numpy as np
     from yauyau.solver.model import compile_model
-    from yauyau.solver.offline import ARRAY_NAMES, precompute
+    from yauyau.solver.offline.pipeline import ARRAY_NAMES, precompute
     from yauyau.solver.spec import load_spec
 
     path = folder / f"{example}.npz"
@@ -86,8 +86,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver.spec import load_spec
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import OfflineModel
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.offline.pipeline import OfflineModel
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.simulate import simulate
 spec = load_spec("examples/{example}.toml")
 model = compile_model(spec)

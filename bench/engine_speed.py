@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg.blas import dgemv
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 

@@ -20,12 +20,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
 from yauyau.solver.exact.wei_norman import WeiNormanFilter, kolmogorov_flow_from_offline
 from yauyau.solver.exact.yau_hu import YauHuFilter
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec, spec_from_dict

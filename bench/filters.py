@@ -122,7 +122,7 @@ def _single_step_us(filt, increments) -> float:
 
 # -- the filters of one case ----------------------------------------------------------------------
 def _engine(model: Model, form: str, offline):
-    from yauyau.solver.engine import YauYauFilter
+    from yauyau.solver.engine.filter import YauYauFilter
 
     return YauYauFilter(model, offline, form=form, precision=model.spec.discretization.precision)
 
@@ -152,7 +152,7 @@ def _reference(model: Model, case: Case):
 
 def _precompute(model: Model):
     try:
-        from yauyau.solver.offline import precompute
+        from yauyau.solver.offline.pipeline import precompute
     except ImportError:  # the engine not landed: the references still run
         return None, float("nan")
     start = time.perf_counter()

@@ -1,4 +1,4 @@
-"""A ball that follows the state (solver/follow.py) against the fixed ball, and precompute on Dask.
+"""A ball that follows the state (solver/engine/follow.py) against the fixed ball, and precompute on Dask.
 
     python -m bench.follow [--quick]     # writes docs/bench-follow.md
 
@@ -9,7 +9,7 @@
 * A re-centre's cost (``FollowingFilter.recentre``) in steps of the fixed ball.
 * Accuracy of the following ball against the exact Kalman filter of the sampled model.
 * The offline solves on Dask: one process, a local cluster of 1 and of 2 workers (2-D, N = 600).
-* An atlas (``[domain] region``, solver/atlas.py) for f = 0.8 + 0.3 sin x (1-D) and
+* An atlas (``[domain] region``, solver/engine/atlas.py) for f = 0.8 + 0.3 sin x (1-D) and
   f = (0.8 + 0.3 sin x, 0.5) (2-D: a lattice along x, translation along y): precompute in one process
   and on a running local cluster of 1 and 2 workers, file size per centre, cost per observation
   against the fixed ball and the shift-invariant following ball, centres read.
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 from .fragments import write_fragment
@@ -133,11 +133,11 @@ def dask_rows(basis: int) -> list[str]:
                           ("local cluster, 2 workers", {"workers": 2})):
         start = time.perf_counter()
         if kwargs is None:  # a one-worker cluster: the Dask path with a single worker
-            from yauyau.solver import offline as off
+            from yauyau.solver.offline import pipeline as off
 
             job = off._Job(*_job_parts(model), token="bench")
             fp = np.empty_like(job.initial)
-            from yauyau.solver.distributed import run_blocks
+            from yauyau.solver.offline.distributed import run_blocks
 
             def store(_, result, fp=fp):
                 fp[:, result[0]:result[1]] = result[2]
@@ -153,7 +153,7 @@ def dask_rows(basis: int) -> list[str]:
 
 
 def _job_parts(model):
-    from yauyau.solver.offline import dirichlet_eigenbasis, finite_element_space
+    from yauyau.solver.offline.pipeline import dirichlet_eigenbasis, finite_element_space
 
     disc = finite_element_space(model)
     phi = dirichlet_eigenbasis(disc, model.spec.discretization.basis)
@@ -161,7 +161,7 @@ def _job_parts(model):
             phi.values)
 
 
-FRAME_CASES = [  # affine drifts: the ball rides the frame ċ = Ac + b (solver/frame.py) and follows in it
+FRAME_CASES = [  # affine drifts: the ball rides the frame ċ = Ac + b (engine/frame.py) and follows in it
     ("1-D linear growth", {"state": ["x"], "drift": ["0.1*x + 0.2"], "observation": ["x"],
                            "initial": {"kind": "gaussian", "mean": [2.0], "cov": [[1.0]]},
                            "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 120}}, 3000),
@@ -301,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
              f"dt = 0.01, {steps} steps: the state travels ~{steps // 100} units) on a following ball, "
              "against the fixed ball of the same nodes Q and basis N on an OU path that stays inside it; "
              "chunks of 1000 rows, one BLAS thread, medians, interleaved. *follow*: moves inside the "
-             "engine's loop (solver/recentring.py); *between blocks*: the same filter with moves "
+             "engine's loop (solver/engine/recentring.py); *between blocks*: the same filter with moves "
              "between blocks only (the previous revision). *move*: one re-centre between blocks (carry + "
              "projection), in µs and in steps of the fixed ball, by an offset of the table of carries "
              "built with the filter (every offset in whole mesh steps no longer than (1.5·follow_distance "
@@ -315,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
              "| move µs | untabled move µs | table | mean gap | fixed gap | var error | degenerate |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     lines += follow_rows(steps, repeats)
-    lines += ["", "### In a moving frame (an affine drift, solver/frame.py)", "",
+    lines += ["", "### In a moving frame (an affine drift, solver/engine/frame.py)", "",
               "The ball rides ċ = Ac + b and follows the posterior in that frame; the fixed ball is the same "
               "spec without follow (the propagator of f itself) on the path's first 300 rows, which stay "
               "inside it. Chunks of 100 rows, one BLAS thread, medians of interleaved runs, µs per "

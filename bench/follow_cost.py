@@ -7,7 +7,7 @@ travelling target.
    dt = 0.01, 1000 steps (t = 0..10), seeds 1 and 2.  Truth: the point-mass filter on 256² cells of the
    box around the radius-4.5 ball (solver/reference/pointmass.py).  The fixed ball must hold the whole
    stationary law (radius 4.5); the drift is affine, so a following ball rides the frame of ċ = Ac
-   (solver/frame.py) and only has to hold the posterior.
+   (solver/engine/frame.py) and only has to hold the posterior.
 2. A travelling target: a 2-D random walk with trend f = (1, 0.5), a = I, h = x, the same steps and seeds
    (it travels ~11 units, and the random walk ±3 more).  Truth: the exact Kalman filter of the sampled
    model.  The following ball has the radius that holds the posterior (6, as in tests/test_follow.py);
@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 
@@ -142,7 +142,7 @@ def _range_section(steps, seeds, cells, quick, lines) -> None:
               f"examples/range_2d.toml (damped rotation, h = x1³), {steps} steps, seeds "
               f"{', '.join(map(str, seeds))}, against the point-mass filter on {cells}² cells. Each ball's "
               f"basis grows until the worst mean gap is ≤ {TARGET}; the following balls ride the frame of "
-              "ċ = Ac (solver/frame.py). µs per observation: one BLAS thread, chunks of the whole run, "
+              "ċ = Ac (engine/frame.py). µs per observation: one BLAS thread, chunks of the whole run, "
               f"median of {RUNS_TIMED} interleaved runs.", ""]
     chosen = _sweep(_range_spec, [("fixed", 4.5, False, None, sizes), ("following", 4.0, True, None, sizes)],
                     runs, lines)

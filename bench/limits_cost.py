@@ -58,8 +58,8 @@ def _micro() -> dict[str, float]:
     """Microseconds per request of what the limits add, each timed alone (medians of 5)."""
     import asyncio
 
-    from yauyau.service.connections import ConnectionGuard
-    from yauyau.service.limits import RateLimits, TokenBuckets
+    from yauyau.service.http.connections import ConnectionGuard
+    from yauyau.service.http.limits import RateLimits, TokenBuckets
 
     async def nothing(scope, receive, send):
         await send({"type": "http.response.start", "status": 201, "headers": []})

@@ -84,7 +84,7 @@ def _free_port() -> int:
 
 def _prepare_store(store: Path, spec_path: Path):
     from yauyau.solver.model import compile_model
-    from yauyau.solver.offline import precompute
+    from yauyau.solver.offline.pipeline import precompute
     from yauyau.solver.simulate import simulate
     from yauyau.solver.spec import load_spec
     from yauyau.storage.model_store import ModelStore
@@ -319,7 +319,7 @@ def _commit_ms(directory: Path, state: dict, response: dict, count: int = 300) -
 
 
 def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple]:
-    from yauyau.service.sessions import chunk_response
+    from yauyau.service.sessions.manager import chunk_response
     from yauyau.solver.methods import make_filter
 
     filt = make_filter(model, offline, None)

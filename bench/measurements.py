@@ -7,7 +7,7 @@
 1. Cost (issue "Real sensor streams", Performance): ``run_arrays`` per observation on chunks of
    1000 rows for examples/cubic_sensor.toml (1-D) and examples/range_2d.toml (2-D, N = 850, single
    precision): rows one dt apart (the stored propagator) against the same number of rows at
-   irregular times (the spectral flow of solver/semigroup.py; exponential gaps of mean dt, 5% of them
+   irregular times (the spectral flow of solver/engine/semigroup.py; exponential gaps of mean dt, 5% of them
    10× longer), for continuous increments and for discrete readings (``measurement = {kind =
    "discrete"}`` added to the spec).  Zero rows (every timed step a full step, as in
    bench/engine_speed.py), the four configurations interleaved (at least 9 repeats, more within a
@@ -49,9 +49,9 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
-from yauyau.solver.engine import PIECE, YauYauFilter
+from yauyau.solver.engine.filter import PIECE, YauYauFilter
 from yauyau.solver.model import Model, compile_model
-from yauyau.solver.offline import OfflineModel, precompute
+from yauyau.solver.offline.pipeline import OfflineModel, precompute
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import spec_from_dict
 
@@ -274,7 +274,7 @@ def measure_accuracy(case: Case, kind: str, seeds: int, steps: int, mean_gap: fl
     filters' runs on each seed interleaved (``repeats`` times) for their cost."""
     doc, model, sets = _datasets(case, kind, seeds, steps, mean_gap)
     reference, ref_name = grid_reference(model)
-    # increments over gaps longer than 2.25 dt: the engine's pieces of about 2 dt (solver/engine.py PIECE)
+    # increments over gaps longer than 2.25 dt: the engine's pieces of about 2 dt (engine/filter.py PIECE)
     piece = PIECE * float(model.dt) if kind == "continuous" else None
     runs = [reference.run(rows, times, kind, max_piece=piece) for _, rows, times in sets]
     refs = [r.mean for r in runs]
@@ -588,7 +588,7 @@ def write_markdown(costs, accuracy, command: str, wall: float, load: float) -> P
              "thread. Rows at irregular times: exponential gaps of mean dt, 5% of them 10× longer (mean "
              "kept at dt); discrete readings: the example with `measurement = {kind = \"discrete\"}` "
              "(z = h(x) + v, R as in the example: 1). Regular rows use the stored propagator over dt, "
-             "irregular rows the spectral flow e^{τA} (solver/semigroup.py). Cost: µs per observation of "
+             "irregular rows the spectral flow e^{τA} (engine/semigroup.py). Cost: µs per observation of "
              f"`run_arrays` on chunks of {CHUNK} zero rows (as in bench/engine_speed.py: the cost of a step "
              "does not depend on the data, and every timed step is a full step); the same chunk is also run "
              "once on a simulated path, and the table says where the engine flagged a step it could not "

@@ -35,7 +35,7 @@ CHILD = r"""
 import json, resource, sys, time
 import numpy as np
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 example, basis, mesh, workers = json.loads(sys.argv[1])
 if example == "3d":
     spec = spec_from_dict(dict(name="rotation-3d", state=["x", "y", "z"],
@@ -87,9 +87,9 @@ def accuracy_table() -> str:
     """Max |mean − point-mass mean| per seed for meshes side by side (stable form, one BLAS thread)."""
     import numpy as np
     from yauyau.solver import compile_model, load_spec
-    from yauyau.solver.basis import blas_threads
-    from yauyau.solver.engine import YauYauFilter
-    from yauyau.solver.offline import precompute
+    from yauyau.solver.engine.filter import YauYauFilter
+    from yauyau.solver.offline.basis import blas_threads
+    from yauyau.solver.offline.pipeline import precompute
     from yauyau.solver.reference.pointmass import PointMassFilter
     from yauyau.solver.simulate import simulate
 

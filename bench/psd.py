@@ -5,7 +5,7 @@
 Constant-velocity tracking, f = (v, −0.2v), a = diag(0, 1), 2-D P1 on the default mesh:
 ``scheme = "galerkin"`` (lumped mass), ``"consistent"`` (Galerkin, consistent mass) and ``"supg"``
 (streamline-upwind Petrov–Galerkin with the recovered second derivatives, the default for such a
-diffusion; solver/fem.py).
+diffusion; solver/offline/fem.py).
 
 * Prediction: the prior N((−2, 1), 0.2 I) moved over t = 1 without data (radius 6), against the
   exact moments of the linear SDE; *ring*: the density's most negative value over its peak, *negative
@@ -27,9 +27,9 @@ import numpy as np
 import scipy.linalg as sla
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 from .fragments import write_fragment

@@ -17,7 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.storage.model_store import ModelStore
 from yauyau.storage.session_store import SqliteSessionStore
 

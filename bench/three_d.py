@@ -8,13 +8,13 @@ Q = 4991 P1 nodes), against the exact Kalman filter of the sampled model over 50
 
 * the issue's starting point: a fixed ball of radius 4 and N = 500;
 * the same ball with N = 1500 (the dense eigensolver's cost grows with Q, not N);
-* a ball of radius 3.5 that follows the posterior in the frame of ċ = Ac (solver/frame.py), N = 1000,
+* a ball of radius 3.5 that follows the posterior in the frame of ċ = Ac (solver/engine/frame.py), N = 1000,
   its moves carried by P1 interpolation.  (A local spline carry was measured on 2026-11-24 and
   dropped: docs/bench-3d.md's analysis has its figures.)
 * the same following ball on the ball refined five times (``mesh = 5``, Q = 41727: the basis from
-  shift-invert Lanczos, solver/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process;
+  shift-invert Lanczos, solver/offline/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process;
 * the same following ball with ``element = "bubble"`` (P2 plus face and interior bubbles, the
-  15-node mass-lumped tetrahedron, solver/fem.py) on the ball refined twice (Q = 2047) and three
+  15-node mass-lumped tetrahedron, solver/offline/fem.py) on the ball refined twice (Q = 2047) and three
   times (Q = 17023, a Lanczos basis; N = 600 and 1000).
 
 ``--only WORD ...`` runs the rows whose name contains one of the WORDs (``--only bubbles``); the others
@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 from .fragments import write_fragment
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
              "f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the general "
              "engine on the default 3-D mesh (or the one named), against the exact Kalman filter of the "
              f"sampled model, {steps} steps, seeds {', '.join(map(str, seeds))}. The following ball rides "
-             "the frame of ċ = Ac (solver/frame.py). Peak memory is the process's so far; µs per "
+             "the frame of ċ = Ac (solver/engine/frame.py). Peak memory is the process's so far; µs per "
              "observation with one BLAS thread, one run each.", "",
              "| ball | radius | N | Q | precompute s | peak MB | rms mean gap | max mean gap "
              "| variance error median | variance error max | moves | µs/obs |",

@@ -4,7 +4,8 @@
     python3 scripts/import_graph.py --json     # the same as JSON
 
 Every ``.py`` file of ``yauyau/``, ``solver/``, ``storage/`` and ``service/`` is a module named as it is
-installed (``solver/engine.py`` is ``yauyau.solver.engine``: pyproject.toml's package-dir).  Every
+installed (``solver/engine/filter.py`` is ``yauyau.solver.engine.filter``;
+pyproject.toml's package-dir).  Every
 import counts, also those inside functions and under ``TYPE_CHECKING``: a lazy import is still a
 dependency.  ``from . import x`` names the module ``x`` when there is one.
 

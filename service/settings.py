@@ -107,7 +107,7 @@ class Settings(BaseSettings):
     tenants_file: Path | None = Field(
         None, description="a TOML file of [[tenant]] tables (name, token_sha256, admin): every /v1 "
                           "request then needs Authorization: Bearer TOKEN and a session belongs to the "
-                          "tenant that made it (service/tenants.py); unset: no authentication, loopback only")
+                          "tenant that made it (http/tenants.py); unset: no authentication, loopback only")
     insecure_bind: bool = Field(
         False, description="allow a non-loopback host without a tenants file (authentication done in front)")
     allowed_hosts: str | None = Field(

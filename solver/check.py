@@ -225,9 +225,9 @@ def _engine_spec(spec: Any, basis: int) -> Any:
 
 def _filter(spec: Any, basis: int, offline: Any = None):
     """The general engine at ``basis`` (on a following ball with ``[domain] follow``)."""
-    from .engine import build
+    from .engine.filter import build
     from .model import compile_model
-    from .offline import precompute
+    from .offline.pipeline import precompute
 
     model = compile_model(_engine_spec(spec, basis))
     return build(model, offline if offline is not None else precompute(model))

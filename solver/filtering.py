@@ -285,9 +285,9 @@ class ChunkedFilter:
 
     def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
                   return_exceptions: bool = False) -> list[Any]:
-        """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/batch.py;
+        """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/engine/batch.py;
         the Yau–Yau engine steps them together, other filters one after another)."""
-        from .batch import run_batch_alone
+        from .engine.batch import run_batch_alone
 
         return run_batch_alone(self, states, chunks, times, return_exceptions)
 

@@ -73,7 +73,7 @@ class Model:
 
     @cached_property
     def basis_diffusion(self) -> np.ndarray:
-        """The matrix ā of the basis's operator −½div(ā∇) (solver/basis.py): a itself where it is
+        """The matrix ā of the basis's operator −½div(ā∇) (solver/offline/basis.py): a itself where it is
         positive definite; where it is only semi-definite, a plus its largest eigenvalue on its null
         space (diag(0, 1) ↦ I), so the Dirichlet eigenbasis resolves every direction and stays
         L²(B_R)-orthonormal.  On an ellipsoid (``[domain] shape`` = Σ): Σ, so the basis is that of the

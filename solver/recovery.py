@@ -1,6 +1,6 @@
 """What a filter does when its density degenerates: stop, or start again from a broadened prior.
 
-A degenerate step (solver/diagnostics.py: the data pushed the density out of the ball, the basis
+A degenerate step (solver/engine/diagnostics.py: the data pushed the density out of the ball, the basis
 cannot resolve it, every bit of mass vanished) used to end a stream for good.  Two policies:
 
 * ``on_degenerate = "stop"`` (the default, as before): the state stays degenerate, keeps returning its
@@ -10,7 +10,7 @@ cannot resolve it, every bit of mass vanished) used to end a stream for good.  T
   :func:`broadened_prior` of the last good estimate — N(m, 4P + s²I), the standard deviations doubled, s
   the finest scale the filter resolves, on a ball no wider than R/4.5 — and goes on with the next row.
   The failing row's observation is not used; the row is flagged ``reinitialised`` with the reason.  The
-  log-likelihood is carried on across the restart.  A ball that follows the state (solver/follow.py)
+  log-likelihood is carried on across the restart.  A ball that follows the state (solver/engine/follow.py)
   restarts centred on that prior; the row's ``center`` is the new centre and it is flagged
   ``recentred``.  If the broadened prior is refused, a fixed ball starts from the model's own prior; a
   following ball does not (that prior describes t₀, where a travelling state no longer is; a state that
@@ -125,7 +125,7 @@ class NoRestart(InputError):
 
 def _follows(flt: Any) -> bool:
     """A ball that follows the state (results carry its centre)."""
-    from .follow import FollowingFilter
+    from .engine.follow import FollowingFilter
 
     return isinstance(flt, FollowingFilter)
 

@@ -20,7 +20,7 @@ class Method:
 
 
 REGISTRY: dict[str, Method] = {m.name: m for m in (
-    Method("yau-yau", "yauyau.solver.engine", "YauYauFilter", True,
+    Method("yau-yau", "yauyau.solver.engine.filter", "YauYauFilter", True,
            "the general Yau-Yau algorithm: offline propagators, online updates (Yau, 2008, section 5)"),
     Method("kalman-bucy", "yauyau.solver.exact.kalman_bucy", "KalmanBucyFilter", False,
            "exact for affine f and h with a Gaussian prior"),

@@ -159,9 +159,9 @@ FOLLOW_MASS = 1e-4  # of ∫σ in the outer tenth of the ball: this much mass th
 
 class Domain(_Strict):
     """The ball B_R(c) the density lives on.  ``follow = true``: c moves with the posterior
-    (solver/follow.py) — re-centred when the mean is more than ``follow_distance``·R from c, or when
+    (solver/engine/follow.py) — re-centred when the mean is more than ``follow_distance``·R from c, or when
     more than ``follow_mass`` of the mass lies in the ball's outer tenth; for an affine drift c also
-    rides the mean's ODE ċ = Ac + b between moves (solver/frame.py).  ``shape`` = Σ (symmetric positive
+    rides the mean's ODE ċ = Ac + b between moves (solver/engine/frame.py).  ``shape`` = Σ (symmetric positive
     definite): the domain is the ellipsoid (x − c)ᵀΣ⁻¹(x − c) < R² instead — R counts standard deviations
     of Σ — meshed as the ball mapped by x = c + Lz (Σ = LLᵀ, Cholesky), with the basis of −½div(Σ∇): give
     the shape of the posterior when it is long and thin (constant-velocity tracking,
@@ -227,7 +227,7 @@ class Discretization(_Strict):
     products per observation: "single" halves their memory traffic (the speed-up is measured in
     docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
-    their positive lumped mass instead of P1 (solver/fem.py; in 2-D ~5x closer to the exact filter at
+    their positive lumped mass instead of P1 (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at
     the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
     Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
     "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or

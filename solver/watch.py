@@ -321,7 +321,7 @@ def _gated_runs(result: ChunkResult, rows: np.ndarray, run: int, rule: LostTrack
 
 def lost_reason(flt: Any, what: str) -> str:
     """The lost-track reason: what happened and, for a filter on a ball, the domain and the fix."""
-    from .follow import FollowingFilter
+    from .engine.follow import FollowingFilter
 
     head = f"lost track: {what}; the estimates no longer follow the state"
     model = flt.model

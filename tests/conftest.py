@@ -22,7 +22,7 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session", autouse=True)
 def _testclient_host():
     """Starlette's TestClient sends ``Host: testserver``: the in-process apps of the tests accept that
-    name besides the loopback ones (the Host check, service/tenants.py; servers the tests start
+    name besides the loopback ones (the Host check, service/http/tenants.py; servers the tests start
     inherit the list, and tests of the check set their own)."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("YAUYAU_ALLOWED_HOSTS", "testserver,localhost,127.0.0.1,::1")

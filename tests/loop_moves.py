@@ -1,4 +1,4 @@
-"""The loop's moves (solver/recentring.py) against moves between blocks: a check shared by the tests of
+"""The loop's moves (solver/engine/recentring.py) against moves between blocks: a check shared by the tests of
 a following ball (tests/test_follow.py) and of one in a moving frame (tests/test_frame.py)."""
 
 from __future__ import annotations

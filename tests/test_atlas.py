@@ -1,4 +1,4 @@
-"""An atlas of propagators (``[domain] region``, solver/atlas.py): a following ball for a drift that is
+"""An atlas of propagators (``[domain] region``, solver/engine/atlas.py): a following ball for a drift that is
 not shift-invariant, against a fine-grid reference.
 
 Truth: the point-mass filter of tests/irregular_refs.py (finite volumes, zero flux) on a box that holds
@@ -21,12 +21,12 @@ from irregular_refs import GridReference
 from loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.atlas import MAX_CENTERS, lattice, lattice_step
-from yauyau.solver.engine import build
+from yauyau.solver.engine.atlas import MAX_CENTERS, lattice, lattice_step
+from yauyau.solver.engine.filter import build
+from yauyau.solver.engine.follow import FollowingFilter
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import concat_results
-from yauyau.solver.follow import FollowingFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 from yauyau.storage.errors import StoreError
 
@@ -295,7 +295,7 @@ def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_
     keeps the centre between chunks (the same means as one run in this process), and a path that
     leaves the region gives degenerate rows with the reason, not an error."""
     from fastapi.testclient import TestClient
-    from yauyau.service.app import create_app
+    from yauyau.service.http.app import create_app
     from yauyau.service.settings import Settings
 
     spec = _spec(region=[[-5.0, 20.0]])
@@ -332,7 +332,7 @@ def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_
 
 
 def test_with_an_atlas_a_move_inside_the_loop_is_the_move_between_blocks(sin):
-    """The loop's moves (solver/recentring.py) switch to the new centre's stored propagator: the same
+    """The loop's moves (solver/engine/recentring.py) switch to the new centre's stored propagator: the same
     estimates and state, to rounding, as blocks that end where the loop moved, FollowingFilter.recentre
     and the next block on the new centre's engine."""
     model, offline = sin

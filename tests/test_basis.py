@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.special import jn_zeros
 from skfem import BilinearForm, asm
-from yauyau.solver import compile_model, fem, spec_from_dict
-from yauyau.solver.basis import eigenbasis
+from yauyau.solver import compile_model, spec_from_dict
+from yauyau.solver.offline import fem
+from yauyau.solver.offline.basis import eigenbasis
 
 
 def make_model(n, radius, basis, mesh=None, order=2, center=None):
@@ -130,7 +131,7 @@ def test_lanczos_ball_spectrum_converges_and_matches_the_dense_solve(monkeypatch
     solve also handles.  The 17 lowest eigenvalues (full multiplets l = 0, 1, 2, 3 and the second
     l = 0) converge to the closed form at the P1 rate, the Gram matrix is I, and the result is the
     same on a second run (a fixed start vector)."""
-    import yauyau.solver.basis as basis_module
+    import yauyau.solver.offline.basis as basis_module
 
     radius, size = 2.0, 17
     exact = ball_dirichlet_spectrum(radius, size)

@@ -1,5 +1,5 @@
 # ruff: noqa: F811 - the fixtures imported from test_engine are parameters here
-"""Many states stepped together (solver/batch.py).
+"""Many states stepped together (solver/engine/batch.py).
 
 * Truth: a batch of OU streams (linear Gaussian) against the exact sampled-time Kalman filter, each
   stream on its own data and its own length.
@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from test_engine import cubic, ou  # noqa: F401 - the engine tests' models (OU with R != 1, cubic sensor)
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.batch import BATCH_RTOL, MAX_BATCH_BYTES
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.batch import BATCH_RTOL, MAX_BATCH_BYTES
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 
@@ -42,7 +42,7 @@ def _chunks(model, lengths, seed=0):
 
 
 def _assert_same(alone, together, precision="double"):
-    """Every field of every item equal to rounding: the tolerance documented in solver/batch.py."""
+    """Every field of every item equal to rounding: the tolerance documented in solver/engine/batch.py."""
     rtol = BATCH_RTOL[precision]
     for (s1, r1), (s2, r2) in zip(alone, together, strict=True):
         np.testing.assert_array_equal(r1.step, r2.step)
@@ -81,7 +81,7 @@ def test_a_batch_of_ou_streams_matches_the_exact_kalman_filter(ou):
 def test_the_batch_is_each_state_stepped_alone(cubic, precision):
     model, offline = cubic
     engine = YauYauFilter(model, offline, precision=precision)
-    assert len(engine.nodes) + 1 < 2 * (engine.N + 1)  # the batch's fused operator P Π (solver/batch.py)
+    assert len(engine.nodes) + 1 < 2 * (engine.N + 1)  # the batch's fused operator P Π (engine/batch.py)
     lengths = [100, 100, 64, 100, 3, 99, 100, 250, 17, 100, 0, 100]
     chunks = _chunks(model, lengths, seed=7)
     chunks[2][10:20] = np.nan
@@ -129,7 +129,7 @@ def test_a_2d_batch_is_each_state_stepped_alone(plane):
 
 
 def test_a_batch_larger_than_memory_allows_runs_in_groups(cubic, monkeypatch):
-    import yauyau.solver.batch as batch
+    import yauyau.solver.engine.batch as batch
 
     model, offline = cubic
     engine = YauYauFilter(model, offline)

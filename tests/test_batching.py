@@ -1,10 +1,10 @@
-"""Micro-batching in the service (service/batching.py, Sessions.observe_many).
+"""Micro-batching in the service (service/sessions/batching.py, Sessions.observe_many).
 
 * The executor: chunks that queue while one batch computes form the next batch, one chunk per
   session (a pipelined next chunk waits for the next batch), a reset keeps its place in the order,
   each answer goes to its own caller.
 * ``observe_many``: chunks of several sessions in one call give the answers that observing each
-  alone gives (the engine's batch tolerance, solver/batch.py), exactly once, and one bad chunk
+  alone gives (the engine's batch tolerance, solver/engine/batch.py), exactly once, and one bad chunk
   (wrong seq, wrong width, a degenerate one re-initialised by its policy) changes nothing of the others.
 * A real uvicorn process with concurrent streams: every stream matches the exact Kalman filter,
   and the server did step chunks together (its batch-size histogram).
@@ -23,11 +23,11 @@ import pytest
 from conftest import EXAMPLES
 from fastapi.testclient import TestClient
 from test_service_server import Server, session_db
-from yauyau.service.app import create_app
-from yauyau.service.batching import ChunkBatcher
-from yauyau.service.sessions import ChunkRequest
+from yauyau.service.http.app import create_app
+from yauyau.service.sessions.batching import ChunkBatcher
+from yauyau.service.sessions.manager import ChunkRequest
 from yauyau.service.settings import Settings
-from yauyau.solver.batch import BATCH_RTOL
+from yauyau.solver.engine.batch import BATCH_RTOL
 from yauyau.solver.errors import InputError
 from yauyau.solver.model import compile_model
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter

@@ -109,7 +109,7 @@ def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
     import tomllib
 
     from fastapi.testclient import TestClient
-    from yauyau.service.app import create_app
+    from yauyau.service.http.app import create_app
     from yauyau.service.settings import Settings
 
     settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=1.0)
@@ -190,7 +190,7 @@ def test_service_report_is_the_same_report_with_references(tmp_path):
     import tomllib
 
     from fastapi.testclient import TestClient
-    from yauyau.service.app import create_app
+    from yauyau.service.http.app import create_app
     from yauyau.service.settings import Settings
 
     settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=30.0)

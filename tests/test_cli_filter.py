@@ -15,10 +15,10 @@ import pytest
 from scipy.stats import norm
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.methods import make_filter, resolve_method
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 
@@ -170,7 +170,7 @@ def test_filter_uses_the_stored_method_says_so_and_never_analyses(store, tmp_pat
 _SPY = """
 import json, sys
 from threadpoolctl import threadpool_info
-from yauyau.service.commands import filter as command
+from yauyau.service.cli import filter as command
 real, seen = command.filter_rows, []
 def spy(*args, **kwargs):
     seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
@@ -291,7 +291,7 @@ def test_the_fast_csv_paths_read_and_write_the_same_numbers():
     """numpy's parse of a plain file and orjson's formatting of a chunk give exactly the numbers the
     line-by-line paths give (floats round-trip bit for bit); anything unusual takes the slow path."""
     import numpy as np
-    from yauyau.service.commands import filter as cli
+    from yauyau.service.cli import filter as cli
     from yauyau.solver.filtering import ChunkResult
 
     rng = np.random.default_rng(0)

@@ -1,4 +1,4 @@
-"""`yauyau precompute` on Dask (solver/distributed.py): a real `dask scheduler` and two `dask worker`
+"""`yauyau precompute` on Dask (solver/offline/distributed.py): a real `dask scheduler` and two `dask worker`
 processes on localhost, against a run in one process.
 
 Truth: the arrays of the one-process run; the file made on the cluster must hold the same arrays bit
@@ -198,7 +198,7 @@ def test_a_script_without_the_main_guard_is_told_why_its_local_workers_did_not_s
     script.write_text(
         "from yauyau.solver import compile_model, spec_from_dict\n"
         "from yauyau.solver.errors import InputError\n"
-        "from yauyau.solver.offline import precompute\n"
+        "from yauyau.solver.offline.pipeline import precompute\n"
         f"spec = {dict(SPEC, discretization={'dt': 0.02, 'basis': 100})!r}\n"  # 4 column blocks: a cluster
         "try:\n"
         "    precompute(compile_model(spec_from_dict(spec)), workers=2)\n"

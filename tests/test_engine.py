@@ -1,4 +1,4 @@
-"""The online Yau–Yau filter (solver/engine.py) against independent truth.
+"""The online Yau–Yau filter (solver/engine/filter.py) against independent truth.
 
 * OU (linear Gaussian, R ≠ 1, a ≠ 1): the exact sampled-time Kalman filter (Van Loan), both
   the stable form and the literal seed 002 (5.35)/(5.38) form — a misprint in exp(hᵀR⁻¹Δy) or
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.exact.riccati import (
     GaussianKolmogorov,
@@ -29,7 +29,7 @@ from yauyau.solver.exact.riccati import (
     terms_to_gaussian,
 )
 from yauyau.solver.filtering import Filter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
@@ -341,8 +341,8 @@ _CONTINUE = """
 import json, sys
 import numpy as np
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import OfflineModel
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import OfflineModel
 model = compile_model(load_spec(sys.argv[1]))
 yy = YauYauFilter(model, OfflineModel.from_arrays(model, dict(np.load(sys.argv[2]))))
 state = yy.state_from_dict(json.loads(open(sys.argv[3]).read()))

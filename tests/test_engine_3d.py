@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 
@@ -102,7 +102,7 @@ def _follow_3d(mesh=None, workers=1, element="lagrange", basis=1000):
            "discretization": {"dt": 0.02, "basis": basis, "element": element,
                               **({"mesh": mesh} if mesh else {})}}
     model = compile_model(spec_from_dict(doc))
-    from yauyau.solver.engine import build
+    from yauyau.solver.engine.filter import build
     from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
 
     offline = precompute(model, workers=workers)
@@ -126,7 +126,7 @@ def test_3d_follow_rides_the_linear_frame_on_the_default_mesh():
     """Issue 10 part 6: f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the
     general engine.  Before: a fixed ball of radius 4, basis 500, default mesh (Q = 4991): rms mean gap
     0.023 (max 0.18) and variance errors up to 67% (docs/bench-3d.md).  Here a ball of radius 3.5 that
-    follows the posterior in the frame of ċ = Ac (solver/frame.py), N = 1000 on the same mesh.
+    follows the posterior in the frame of ċ = Ac (solver/engine/frame.py), N = 1000 on the same mesh.
     Measured (seed 5, 500 steps, ~25 moves): rms mean gap 6.8e-3, max 2.6e-2; variance error median
     1.6%, max 5.2% (the issue asks 5%: each P1 carry blurs it by ~2.5 points; the next test's
     P2 + bubbles element meets it)."""
@@ -139,7 +139,7 @@ def test_3d_follow_rides_the_linear_frame_on_the_default_mesh():
 @pytest.mark.slow
 def test_3d_follow_with_p2_and_bubbles_meets_the_issue_targets():
     """Issue 10 part 6 at its targets: the model of the test above with ``element = "bubble"`` (P2 plus
-    face and interior bubbles, the 15-node mass-lumped tetrahedron, solver/fem.py) on scikit-fem's
+    face and interior bubbles, the 15-node mass-lumped tetrahedron, solver/offline/fem.py) on scikit-fem's
     ball refined three times (Q = 17023, past the dense eigensolver: a shift-invert Lanczos basis),
     radius 3.5, N = 600, following in the frame of ċ = Ac; a move interpolates exactly to quadratics
     (P1: to linear functions).  Measured (seeds 5 and 6, 500 steps each, two local workers): rms mean

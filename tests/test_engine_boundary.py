@@ -1,4 +1,4 @@
-"""The engine flags mass leaking through ∂B_R (solver/diagnostics.py, ``boundary_leak``), against truth.
+"""The engine flags mass leaking through ∂B_R (engine/diagnostics.py, ``boundary_leak``), against truth.
 
 The Dirichlet condition kills the density that reaches the wall, so the filter turns wrong long
 before much mass sits at the rim.  Measured (dt = 0.01, leak = fraction of ∫σ lost per step beyond
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.benes import BenesFilter
 from yauyau.solver.simulate import simulate
 

@@ -17,11 +17,11 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
 from yauyau.solver.exact.yau_hu import YauHuFilter
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec, spec_from_dict
 

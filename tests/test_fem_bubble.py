@@ -1,4 +1,4 @@
-"""``element = "bubble"``: P2 plus bubbles with a lumped mass (solver/fem.py), against exact truth.
+"""``element = "bubble"``: P2 plus bubbles with a lumped mass (solver/offline/fem.py), against exact truth.
 
 Truth, 2-D: the element's nodal quadrature |T|/20 (vertices), 2|T|/15 (edge midpoints), 9|T|/20
 (centroid), which integrates cubics exactly (checked here on x³ and x²y over the triangles); the Dirichlet
@@ -15,10 +15,11 @@ import pytest
 import scipy.sparse as sps
 from scipy.special import jn_zeros
 from skfem import Basis, ElementTetCCR, ElementTetP1, ElementTriP1, LinearForm, asm
-from yauyau.solver import compile_model, fem, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver import compile_model, spec_from_dict
+from yauyau.solver.engine.filter import build
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline import fem
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 OU = {"name": "ou2", "state": ["x", "y"], "drift": ["-0.5*x", "-0.5*y"], "observation": ["x", "y"],

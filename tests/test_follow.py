@@ -1,4 +1,4 @@
-"""A ball that follows the state (``[domain] follow``, solver/follow.py), against exact truth.
+"""A ball that follows the state (``[domain] follow``, solver/engine/follow.py), against exact truth.
 
 Truth: the exact Kalman filter of the sampled linear model (KalmanBucyFilter(kind="discrete"): the
 engine's own time discretisation, so what is left is the space error and the moves) and Kalman–Bucy (the
@@ -16,12 +16,12 @@ import pytest
 from loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import YauYauFilter, build
+from yauyau.solver.engine.filter import YauYauFilter, build
+from yauyau.solver.engine.follow import FollowingFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.follow import FollowingFilter
 from yauyau.solver.methods import make_filter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 import yauyau
@@ -257,7 +257,7 @@ def test_in_2d_a_following_ball_has_a_lattice_mesh_and_its_moves_do_not_blur():
     """Truth: the prior N(0, I).  Moves by whole lattice steps read the density off (6 moves: the
     moments stay to 1e-5); a move off the lattice interpolates and projects, and the variance grows
     (why follow snaps to the lattice)."""
-    from yauyau.solver.atlas import lattice_step
+    from yauyau.solver.engine.atlas import lattice_step
 
     doc = json.loads(json.dumps(TREND))
     doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
@@ -371,13 +371,13 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
 
 @pytest.mark.parametrize("window", [None, 3])
 def test_a_move_inside_the_loop_is_the_move_between_blocks(trend, window, monkeypatch):
-    """The engine's loop re-centres the ball itself (solver/recentring.py): the same as a block that
+    """The engine's loop re-centres the ball itself (solver/engine/recentring.py): the same as a block that
     ends after that row, FollowingFilter.recentre onto the centre the loop chose, and the next block
     from there (the issue's carry: the old expansion at the new nodes, zero outside, projected) — to
     rounding, with a missing row and an outlier the gate rejects among the rows, and the update
     factors a window at a time (``window``: 3 rows at a time, so most windows end without a move)."""
     if window:
-        from yauyau.solver import recentring
+        from yauyau.solver.engine import recentring
 
         for name in ("FIRST_WINDOW", "MIN_WINDOW", "MAX_WINDOW"):
             monkeypatch.setattr(recentring, name, window)
@@ -429,7 +429,7 @@ def test_the_carries_built_with_the_filter_are_those_built_one_at_a_time(element
     """The table of carries built at once with the filter (every offset a move usually takes: within
     (1.5·follow_distance + 0.1)·R) holds, for each offset, the arrays and interpolated rows that the
     carry built alone has; an offset beyond it is built when a move first takes it."""
-    from yauyau.solver.follow import _Carry
+    from yauyau.solver.engine.follow import _Carry
 
     model, flt = _trend_2d(element)
     step, reach = flt._lattice, (1.5 * flt.distance + 0.1 * model.radius)
@@ -451,7 +451,7 @@ def test_the_nearest_node_on_a_line_is_the_kd_trees():
     """follow._nearest_1d (a binary search, for 1-D carries) against scipy's cKDTree: the same
     distances and nodes, for points between, beyond and on the nodes."""
     from scipy.spatial import cKDTree
-    from yauyau.solver.follow import _nearest_1d
+    from yauyau.solver.engine.follow import _nearest_1d
 
     rng = np.random.default_rng(0)
     nodes = rng.uniform(-5.0, 5.0, (99, 1))

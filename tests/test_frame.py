@@ -1,4 +1,4 @@
-"""A ball that rides a frame moving with the mean's ODE (solver/frame.py): an affine drift f = Ax + b.
+"""A ball that rides a frame moving with the mean's ODE (solver/engine/frame.py): an affine drift f = Ax + b.
 
 Truth: the exact Kalman filter of the sampled linear model (KalmanBucyFilter(kind="discrete"): the
 engine's own time discretisation), and the closed-form flow of ċ = ac + b.  The model f = 0.1x + 0.2
@@ -14,12 +14,12 @@ import pytest
 from loop_moves import assert_loop_moves_as_blocks
 from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
+from yauyau.solver.engine.follow import FollowingFilter
+from yauyau.solver.engine.frame import AffineFrame, affine_frame
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.follow import FollowingFilter
-from yauyau.solver.frame import AffineFrame, affine_frame
-from yauyau.solver.offline import OfflineModel, precompute
+from yauyau.solver.offline.pipeline import OfflineModel, precompute
 from yauyau.solver.simulate import simulate
 
 import yauyau
@@ -211,7 +211,7 @@ def test_a_degenerate_frame_says_why_keeps_its_centre_and_restarts():
 
 
 def test_in_the_frame_a_move_inside_the_loop_is_the_move_between_blocks(growth):
-    """The loop's moves (solver/recentring.py) ride the frame too: the same estimates and state, to
+    """The loop's moves (solver/engine/recentring.py) ride the frame too: the same estimates and state, to
     rounding, as blocks that end where the loop moved, FollowingFilter.recentre and the next block
     (the frame's path restarted from the new centre)."""
     model, offline = growth

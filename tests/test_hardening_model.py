@@ -12,8 +12,8 @@ import sympy as sp
 from yauyau.solver import SpecError, compile_model, spec_from_dict
 from yauyau.solver.analysis import analyze
 from yauyau.solver.analysis.budget import BoundReached, Budget, bounded, expand, expanded_terms
-from yauyau.solver.engine import YauYauFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.gaussian_approx import ExtendedKalmanFilter
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
@@ -168,7 +168,7 @@ def test_unstable_propagator_is_refused_at_precompute():
 def test_unstable_propagator_is_flagged_online(monkeypatch):
     """A model stored before the precompute check existed: online, the first step already creates
     ~1e34 times the mass; the log-likelihood may not grow by more than the update factor allows."""
-    import yauyau.solver.offline as offline
+    import yauyau.solver.offline.pipeline as offline
 
     doc = spec(drift=["-x**64"], domain={"radius": 7.0})
     model = compile_model(spec_from_dict(doc))

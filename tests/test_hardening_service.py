@@ -76,7 +76,7 @@ def stuck_analysis(conn, *args):
 
 
 def test_analysis_process_is_killed_at_its_deadline():
-    from yauyau.service.analysis_runner import AnalysisRunner
+    from yauyau.service.models.analysis import AnalysisRunner
 
     runner = AnalysisRunner(concurrency=1, grace=0.3, start="forkserver", target=stuck_analysis)
     start = time.monotonic()

@@ -211,7 +211,7 @@ def _job_processes(store) -> list[int]:
                     state = handle.read().rsplit(")", 1)[1].split()[0]
             except OSError:
                 continue
-            if b"yauyau.service.jobs" in argv and str(store).encode() in argv and state != "Z":
+            if b"yauyau.service.models.jobs" in argv and str(store).encode() in argv and state != "Z":
                 pids.append(int(entry))
     return pids
 

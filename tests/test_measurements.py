@@ -1,5 +1,5 @@
 """Real sensor streams in the general engine: discrete measurements, irregular times, partly missing
-rows, the outlier gate, recovery (solver/measurement.py, solver/semigroup.py, solver/recovery.py).
+rows, the outlier gate, recovery (solver/measurement.py, solver/engine/semigroup.py, solver/recovery.py).
 
 Truth: the exact Kalman filter at irregular times and a fine-grid point-mass filter exact in time
 (expm_multiply per gap), both in tests/irregular_refs.py and independent of the solver.
@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from irregular_refs import GridReference, kalman_irregular, random_times, simulate_irregular
-from yauyau.solver import semigroup
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine import semigroup
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.measurement import gate_threshold, standard_score
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.recovery import run_with_policy
 from yauyau.solver.spec import spec_from_dict
 
@@ -411,7 +411,7 @@ def test_a_gate_is_a_cheap_copy_sharing_the_engine():
 def test_huge_gaps_and_long_chunks_of_increments_stay_bounded(monkeypatch):
     """A gap of 1e6 dt is at most MAX_PIECES pieces; a chunk's pieces go through in blocks of
     MAX_CHUNK_PIECES rows: the same numbers as one block."""
-    from yauyau.solver import engine
+    from yauyau.solver.engine import filter as engine
 
     flt = _engine(OU)
     rng = np.random.default_rng(13)

@@ -1,4 +1,4 @@
-"""Models added at run time (service/jobs.py): POST /v1/models precomputes in the background.
+"""Models added at run time (service/models/jobs.py): POST /v1/models precomputes in the background.
 
 The served model is the one ``yauyau.precompute`` makes of the same spec (the same content hash),
 and a session on it matches the exact Kalman filter (the spec is linear).  The same spec twice is
@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from yauyau.service.app import create_app
-from yauyau.service.jobs import Jobs
+from yauyau.service.http.app import create_app
+from yauyau.service.models.jobs import Jobs
 from yauyau.service.settings import Settings
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
@@ -94,7 +94,7 @@ def test_oversize_or_invalid_specs_are_refused_before_any_work(api, change, stat
 
 
 def test_a_job_whose_process_died_is_reported_and_started_again(tmp_path, monkeypatch):
-    import yauyau.service.jobs as jobs_module
+    import yauyau.service.models.jobs as jobs_module
 
     jobs = Jobs(tmp_path / "store", 500, 2000)
     mid = model_id(spec_from_dict(SPEC).canonical_json())
@@ -122,7 +122,7 @@ def test_a_silent_job_whose_process_holds_its_lock_is_alive(tmp_path, monkeypatc
     import subprocess
     import sys
 
-    import yauyau.service.jobs as jobs_module
+    import yauyau.service.models.jobs as jobs_module
 
     jobs = Jobs(tmp_path / "store", 500, 2000)
     mid = model_id(spec_from_dict(SPEC).canonical_json())

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from yauyau.solver import compile_model, load_spec, spec_from_dict
 from yauyau.solver.errors import InputError, SpecError
-from yauyau.solver.offline import ARRAY_NAMES, OPTIONAL_ARRAYS, OfflineModel, precompute
+from yauyau.solver.offline.pipeline import ARRAY_NAMES, OPTIONAL_ARRAYS, OfflineModel, precompute
 
 
 def make_model(n, radius=3.0, basis=24, mesh=None, order=2, dt=0.02, center=None):

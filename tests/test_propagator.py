@@ -21,10 +21,11 @@ import numpy as np
 import oracles
 import pytest
 from scipy.sparse.linalg import expm_multiply
-from yauyau.solver import compile_model, fem, spec_from_dict
+from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.exact.riccati import gaussian_to_terms
-from yauyau.solver.offline import precompute
-from yauyau.solver.propagator import SdirkPropagator
+from yauyau.solver.offline import fem
+from yauyau.solver.offline.pipeline import precompute
+from yauyau.solver.offline.propagator import SdirkPropagator
 
 
 def make_model(drift, observation, radius, n=1, mesh=None, order=2, dt=0.05, substeps=64, basis=8):

@@ -2,7 +2,7 @@
 
 Constant-velocity tracking, f = (v, −0.2v), a = diag(0, 1): the Fokker–Planck operator is
 hypoelliptic (no diffusion along p) and plain Galerkin with the lumped mass rings along the drift.
-The default for such a diffusion is ``scheme = "supg"`` (solver/fem.py: streamline-upwind
+The default for such a diffusion is ``scheme = "supg"`` (solver/offline/fem.py: streamline-upwind
 Petrov–Galerkin with the consistent mass and the recovered second derivatives).
 
 Truth, independent of the engine:
@@ -22,12 +22,12 @@ import pytest
 import scipy.linalg as sla
 from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
+from yauyau.solver.engine.follow import FollowingFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.fem import streamline_tau
-from yauyau.solver.follow import FollowingFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.fem import streamline_tau
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import simulate
 
 import yauyau
@@ -156,7 +156,7 @@ def _against_kalman(model, flt, increments):
 
 def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tracking):
     """Over t = 0..50 the target travels 50 units (six radii).  f = (v, −0.2v) is affine, so the ball
-    rides the frame of ċ = (c_v, −0.2c_v) and moves along p and v (solver/frame.py).  Measured: mean
+    rides the frame of ċ = (c_v, −0.2c_v) and moves along p and v (solver/engine/frame.py).  Measured: mean
     gap median 3.3e-3, max 2.0e-2, variance within 4.2% (with p alone moving, before the frame: 5.0e-3,
     3.8e-2 where |v̂| = 3.5 put the tail at the ball's edge along v, 6.9%).  On a round ball the gap
     halves as N doubles: basis 2000 gives a median of 1.7e-3, basis 4000 9.5e-4 (max 5.2e-3;
@@ -242,7 +242,7 @@ def test_a_nonlinear_sensor_against_a_fine_grid_reference():
     print(f"atan sensor: {int(result.recentred.sum())} moves, gap median {np.median(gap):.2e} "
           f"max {gap.max():.2e}")
     assert not result.degenerate.any() and result.recentred.sum() >= 1
-    # the ball rode the frame of ċ = (c_v, −0.2c_v) (solver/frame.py) with the target, and moved onto it
+    # the ball rode the frame of ċ = (c_v, −0.2c_v) (engine/frame.py) with the target, and moved onto it
     assert result.center[-1, 0] - result.center[0, 0] > 2 * model.radius
     assert np.median(gap) < 0.01 and gap.max() < 0.05
 

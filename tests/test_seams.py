@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from yauyau.solver.basis import OrthonormalBasis
-from yauyau.solver.engine import YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.model import compile_model
-from yauyau.solver.offline import OfflineArrays, precompute
+from yauyau.solver.offline.basis import OrthonormalBasis
+from yauyau.solver.offline.pipeline import OfflineArrays, precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import DiscretisationSpec, ModelSpec, ProblemSpec, load_spec

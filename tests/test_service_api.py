@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 from yauyau.solver.model import compile_model
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter

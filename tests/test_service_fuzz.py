@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from schemathesis import GenerationMode
 from schemathesis.specs.openapi.checks import positive_data_acceptance
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
 EXAMPLES = 50  # per operation, mode and path-parameter choice: bounded, derandomized (was 8)

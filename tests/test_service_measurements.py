@@ -22,7 +22,7 @@ import pytest
 from conftest import EXAMPLES
 from fastapi.testclient import TestClient
 from test_service_server import Server
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 from yauyau.solver.spec import load_spec, spec_from_dict
 

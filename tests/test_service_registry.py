@@ -11,7 +11,7 @@ import shutil
 
 import pytest
 from fastapi.testclient import TestClient
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
 import yauyau
@@ -75,7 +75,7 @@ _WORKER = """
 import json, sys
 from fastapi.testclient import TestClient
 from threadpoolctl import threadpool_info
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 settings = Settings(store=sys.argv[1], session_db=sys.argv[2], blas_threads=int(sys.argv[3]))
 with TestClient(create_app(settings)) as api:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 from fastapi.testclient import TestClient
-from yauyau.service.app import create_app
+from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
 

@@ -296,7 +296,7 @@ def test_threads_share_a_store_object(store: SqliteSessionStore):
 def test_the_sqlite_store_implements_the_protocol_the_service_takes(store: SqliteSessionStore):
     import inspect
 
-    from yauyau.service.sessions import Sessions
+    from yauyau.service.sessions.manager import Sessions
     from yauyau.storage.protocols import SessionStore
 
     assert isinstance(store, SessionStore)

@@ -20,11 +20,11 @@ import pytest
 import scipy.linalg as sla
 from specs import modified
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.engine import build
+from yauyau.solver.engine.filter import build
+from yauyau.solver.engine.follow import FollowingFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
-from yauyau.solver.follow import FollowingFilter
-from yauyau.solver.offline import precompute
+from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.simulate import sample_prior, simulate
 
 import yauyau

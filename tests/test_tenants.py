@@ -284,8 +284,8 @@ def test_a_bad_tenants_file_is_one_line_naming_file_tenant_and_field(example_sto
 def test_insecure_bind_is_the_operators_choice():
     """--insecure-bind lets a public host start without tenants (not started here: the tests listen on
     loopback only); a tenants file lets it too; loopback needs neither."""
+    from yauyau.service.http.tenants import serve_notes
     from yauyau.service.settings import Settings
-    from yauyau.service.tenants import serve_notes
     from yauyau.solver.errors import InputError
 
     with pytest.raises(InputError, match="--insecure-bind"):

@@ -68,7 +68,7 @@ def test_the_4d_example_is_accepted_over_http_and_its_job_completes(tmp_path):
 
 
 def test_a_mesh_free_spec_plans_no_mesh_nodes():
-    from yauyau.solver.fem import planned_nodes
+    from yauyau.solver.offline.fem import planned_nodes
     from yauyau.solver.spec import load_spec, spec_from_dict
 
     assert planned_nodes(load_spec(EXAMPLES / "range_only_4d.toml")) == 0  # 4 states: no mesh
@@ -131,7 +131,7 @@ def test_a_propagator_that_makes_negative_mass_is_refused_after_the_solve():
     growth; the spec check above would refuse this one first, so the solver is called directly."""
     from yauyau.solver.errors import SpecError
     from yauyau.solver.model import compile_model
-    from yauyau.solver.offline import precompute
+    from yauyau.solver.offline.pipeline import precompute
     from yauyau.solver.spec import spec_from_dict
 
     doc = {**OU, "drift": ["-x**64"], "domain": {"radius": 7.0}, "discretization": {"dt": 0.01, "basis": 48}}
@@ -142,8 +142,8 @@ def test_a_propagator_that_makes_negative_mass_is_refused_after_the_solve():
 
 @pytest.mark.parametrize("example", sorted(p.name for p in EXAMPLES.glob("*.toml")))
 def test_every_bundled_example_is_computable(example):
-    from yauyau.solver.computable import check_computable
     from yauyau.solver.model import compile_model
+    from yauyau.solver.offline.computable import check_computable
     from yauyau.solver.spec import load_spec
 
     check_computable(compile_model(load_spec(EXAMPLES / example)))
@@ -152,8 +152,8 @@ def test_every_bundled_example_is_computable(example):
 def test_the_rules_leave_stiff_but_solvable_drifts_alone():
     """Far from the limits of a double: a stiff drift (dt|f|/h ~ 1e3 at the rim, measured stable) is
     the offline stage's to judge (check_stable), not the spec's."""
-    from yauyau.solver.computable import check_computable
     from yauyau.solver.model import compile_model
+    from yauyau.solver.offline.computable import check_computable
     from yauyau.solver.spec import spec_from_dict
 
     stiff = {**OU, "drift": ["-x**5"], "discretization": {"dt": 0.01, "basis": 100}}  # mass stays 1 +- 2e-4

@@ -135,7 +135,7 @@ def test_linear_model_matches_kalman_bucy_with_loglik():
 
 
 def test_linear_model_with_the_stored_kolmogorov_propagator():
-    from yauyau.solver.offline import precompute
+    from yauyau.solver.offline.pipeline import precompute
 
     model = make(["x"], [f"-{THETA}*x + {B}"], [f"{C}*x + {D}"], [MEAN0], [[VAR0]], radius=8.0, dt=DT,
                  observation_noise=[[R]], discretization={"dt": DT, "basis": 120})

@@ -319,8 +319,8 @@ def test_engine_models_refuse_what_the_finite_elements_cannot_do(tmp_path):
 
 def test_cli_and_http_session_run_the_4d_model(tmp_path):
     from fastapi.testclient import TestClient
-    from yauyau.service.app import create_app
     from yauyau.service.cli import main
+    from yauyau.service.http.app import create_app
     from yauyau.service.settings import Settings
 
     store = tmp_path / "store"

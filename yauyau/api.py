@@ -81,7 +81,7 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
     import time
 
     from .solver.model import compile_model
-    from .solver.offline import precompute as solve_offline
+    from .solver.offline.pipeline import precompute as solve_offline
 
     spec = _as_spec(spec)
     model = compile_model(spec)
@@ -90,10 +90,10 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
         method, reason = _mesh_free_method(model, time_limit, analysis_grace)
         return Solved(spec, model, None, method, reason, time.perf_counter() - started, workers)
     if spec.domain.follow:  # one stored propagator must serve every centre: say so before solving
-        from .solver.follow import check_follow
+        from .solver.engine.follow import check_follow
 
         check_follow(model)
-    from .solver.computable import check_computable
+    from .solver.offline.computable import check_computable
 
     check_computable(model)  # a radius, diffusion or drift beyond a double's precision: before solving
     offline = solve_offline(model, workers=workers, progress=progress, scheduler=scheduler,
@@ -186,7 +186,7 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
     without one (``ModelStore.save`` called directly, with no "method" attr) makes the analysis run,
     here, once, with a warning."""
     from .solver.model import compile_model
-    from .solver.offline import OfflineModel
+    from .solver.offline.pipeline import OfflineModel
     from .solver.spec import parse_spec_text
 
     stored = _as_store(store).load(model_id)

@@ -1,0 +1,787 @@
+"""`yauyau filter MODEL_ID --store DIR (--increments IN | --observations IN.csv) --out OUT.csv`.
+
+The input and output formats are in EPILOG (what ``yauyau filter -h`` prints).  The stored model
+(storage.model_store) is filtered with the method of --method (default: the one chosen at precompute
+and stored with the model; no analysis runs here) in chunks of --chunk rows, with --blas-threads
+BLAS threads (default 1: docs/bench-blas.md).  Rows are the spec's ``[measurement]`` kind: increments
+dy (continuous) or measurements z (discrete); --increments reads regular rows (t_k = t0 + k·dt),
+--observations rows with their own times.  --gate overrides the spec's outlier gate, --on-degenerate
+says what a degenerate density does (solver/recovery.py), --lost-track when a filter that keeps gating
+or restarting has lost track and --monitor the innovation monitor (solver/watch.py).  --quantiles,
+--mode and --density add what the density says beyond mean and covariance (yauyau.solver.summaries;
+storage.density_file).  All input is validated before anything is written; OUT (and the density file)
+appear atomically.  The output columns are built from the chunks' arrays (ChunkResult), not per-row
+objects.
+Exit status: 0 done, 2 bad input (nothing written), 3 the filter degenerated under --on-degenerate
+stop, or lost track (OUT is written, the steps from the first degenerate one on are flagged; stderr
+says from which step and why).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from .precompute import store_argument
+
+DEFAULT_CHUNK = 1000
+EXIT_DEGENERATE = 3
+DENSITY_POINTS = {1: 401, 2: 101, 3: 61}
+POLICIES = ("stop", "reinitialise")  # yauyau.solver.recovery.POLICIES (not imported here: start-up cost)
+
+EPILOG = """\
+input, one of:
+  --increments IN   regular rows, t_k = t0 + k*dt (dt of the spec; t0 = --t0, default 0): CSV of
+                    m comma-separated numbers per row, an optional header line (any names), or a
+                    .npy array (K, m). Continuous models only ([measurement] kind = "continuous"):
+                    the rows are the increments dy_k = y(t_k) - y(t_(k-1)), not the cumulative y.
+  --observations IN.csv
+                    rows with their own times: a header whose first column is t, then one column
+                    per observation component (any names; m of them), e.g. "t,z_1"; one row per
+                    time, times finite and strictly increasing (they need not be regular). For a
+                    discrete model ([measurement] kind = "discrete") a row holds the measurements
+                    z = h(x(t)) + v at t; for a continuous one the increments dy of y over
+                    [t_(k-1), t_k], t_0 = --t0. A discrete model reads only --observations.
+  In both, an empty field is a missing component (only the others update) and a row of empty
+  fields no observation at that time (the filter only predicts). `yauyau simulate SPEC --out DIR`
+  writes DIR/increments.csv or DIR/observations.csv.
+
+time of the prior (--t0 T): the model's prior holds at t = T. With --observations the default is
+  the first row's time: the prior holds at the first observation, which is an update with no
+  propagation before it (for a continuous model that first row covers no interval: leave its
+  values empty or give --t0, e.g. --t0 0 for the files of yauyau simulate, whose paths start at 0).
+  An earlier T propagates the prior from T to the first row. With --increments the default is 0.
+
+outliers (--gate K): a row whose predictive standard score exceeds K is not used (the step only
+  predicts) and is flagged gated = 1; default: the spec's [measurement] gate (6 unless set); 0
+  turns the gate off. A method that cannot gate (wei-norman: its path integrals need every row)
+  takes every row and leaves gated = 0.
+
+degenerate density (--on-degenerate): stop (default): the rows from the first degenerate one on
+  are flagged degenerate = 1 (their estimates repeat the last good one) and the exit status is 3;
+  reinitialise: the filter starts again there from a prior broadened around the last good
+  estimate (that row's observation is not used, the row is flagged reinitialised = 1) and goes on;
+  the exit status is then 0. stderr says how many rows were gated and re-initialised, and why.
+
+lost track (--lost-track GATED,RESTARTS,WINDOW, default 20,3,100; 0 turns a rule off): a filter
+  that gated GATED consecutive rows, or restarted RESTARTS times within WINDOW rows, no longer
+  follows the state (on a fixed ball: the state left it): from that row on the rows are
+  degenerate = 1, with the reason and the fix on stderr (domain.follow = true, a larger
+  domain.radius), whatever --on-degenerate says; the exit status is 3.
+
+innovation monitor (--monitor N): a sustained bias of the observations against their predictions
+  (a drifting sensor) raises alarm = 1 on a row; N is the mean number of healthy rows per false
+  alarm (1e9 is a good choice; default: the spec's [measurement] monitor, off unless set; 0 turns
+  it off). stderr says how many alarms were raised and where the first was.
+
+output (--out OUT.csv), one row per input row:
+  step, t                 step k (1, 2, ...) and its time t_k
+  mean_<var>              conditional mean E[x(t) | observations up to t], one column per variable
+  cov_<var>_<var>         conditional covariance (upper triangle)
+  mode_<var>              with --mode: the MAP point (tallest node, refined)
+  q<p>_<var>              with --quantiles p1,p2,...: marginal quantiles, e.g. q0.05_x
+  loglik                  cumulative log-likelihood of the observations used (discrete: the sum
+                          of their predictive_loglik; continuous: relative to pure noise, dy = dw)
+  degenerate              1 from the step the density lost its mass on (see stderr), else 0
+  gated                   1 when the gate rejected this row's observation, else 0
+  predictive_loglik       log p(this row | the rows before) (-inf: impossible under the model);
+                          empty when the row has no observation (or the method does not compute it)
+  reinitialised           1 when the filter started again at this row (--on-degenerate), else 0
+  alarm                   (--monitor) 1 when the innovation monitor raised its alarm at this row
+  monitor                 (--monitor) its statistic after this row (+-1: an alarm; +: the
+                          observations above their predictions)
+  center_<var>            ([domain] follow = true) the centre of the ball after this row
+  recentred               ([domain] follow = true) 1 when the ball moved after this row, else 0
+
+density (--density OUT.h5): the density every --density-every steps on a grid over the ball
+  (--density-points per axis): joint density for 1-D and 2-D, each marginal always; CF-style
+  HDF5 (time, step, one coordinate per variable); `yauyau plot` draws it.
+
+exit status: 0 done; 2 bad input (one line on stderr naming the field or row, nothing written);
+  3 the filter degenerated under --on-degenerate stop, or lost track (OUT written, rows flagged).
+"""
+
+
+FORMS = ("stable", "literal")  # yauyau.solver.engine.filter.FORMS (not imported here: start-up cost)
+PRECISIONS = ("double", "single")
+
+
+def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
+                        help="BLAS threads of the online products (default: $YAUYAU_BLAS_THREADS or 1; one "
+                             "thread per process is faster on a busy machine, docs/bench-blas.md)")
+
+
+def blas_threads(requested: int | None) -> int:
+    """The BLAS thread count: the flag, else $YAUYAU_BLAS_THREADS, else 1."""
+    from yauyau.solver.errors import InputError
+
+    if requested is None:
+        text = os.environ.get("YAUYAU_BLAS_THREADS", "1")
+        try:
+            requested = int(text)
+        except ValueError:
+            raise InputError("YAUYAU_BLAS_THREADS", f"must be a positive integer, got {text!r}") from None
+    if requested < 1 or requested > 1024:
+        raise InputError("blas_threads", "must be a positive integer (at most 1024)")
+    return requested
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from yauyau.solver.registry import METHODS
+
+    parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
+    store_argument(parser)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--increments", metavar="IN",
+                        help="regular rows (continuous models): observation increments, .csv or .npy")
+    source.add_argument("--observations", metavar="IN.csv",
+                        help="rows with their times: CSV with a header t,<one column per component>")
+    parser.add_argument("--out", required=True, help="output CSV of the estimates")
+    parser.add_argument("--t0", type=float, default=None, metavar="T",
+                        help="time of the prior (default: the first row's time with --observations, "
+                             "0 with --increments)")
+    parser.add_argument("--gate", type=float, default=None, metavar="K",
+                        help="outlier gate in predictive standard deviations (default: the spec's "
+                             "[measurement] gate; 0: off)")
+    parser.add_argument("--on-degenerate", choices=POLICIES, default="stop",
+                        help="stop (default: flag the rest, exit 3) or reinitialise (start again from a "
+                             "broadened prior and go on)")
+    parser.add_argument("--lost-track", default=None, metavar="GATED,RESTARTS,WINDOW",
+                        help="lost track after GATED consecutive gated rows or RESTARTS restarts within "
+                             "WINDOW rows (default 20,3,100; 0 turns a rule off)")
+    parser.add_argument("--monitor", type=float, default=None, metavar="N",
+                        help="innovation monitor: mean healthy rows per false alarm, e.g. 1e9 (default: the "
+                             "spec's [measurement] monitor, off unless set; 0: off)")
+    parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
+                        help="filter (default: the method chosen at precompute, stored with the model)")
+    parser.add_argument("--form", choices=FORMS, default="stable",
+                        help="yau-yau step: stable (default) or literal: Yau (2008) (5.35)")
+    parser.add_argument("--precision", choices=PRECISIONS, default=None,
+                        help="yau-yau matrix-vector products in double or single precision "
+                             "(default: the spec's discretization.precision)")
+    parser.add_argument("--chunk", type=int, default=DEFAULT_CHUNK,
+                        help="rows per chunk (default %(default)s)")
+    parser.add_argument("--quantiles", default=None, metavar="P,P,...",
+                        help="marginal quantiles per variable, e.g. 0.05,0.5,0.95 (columns q<p>_<var>)")
+    parser.add_argument("--mode", action="store_true", help="add the MAP point (columns mode_<var>)")
+    parser.add_argument("--density", default=None, metavar="OUT.h5",
+                        help="write the density on a grid every --density-every steps (HDF5)")
+    parser.add_argument("--density-every", type=int, default=10, metavar="K",
+                        help="steps between density snapshots (default %(default)s)")
+    parser.add_argument("--density-points", type=int, default=None, metavar="G",
+                        help="grid points per axis (default 401 in 1-D, 101 in 2-D, 61 in 3-D)")
+    parser.add_argument("--progress", choices=("auto", "on", "off"), default="auto",
+                        help="progress bar on stderr (auto: only when stderr is a terminal)")
+    blas_threads_argument(parser)
+    parser.epilog = EPILOG
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+class Source:
+    """The rows read from --increments or --observations: ``rows`` (K, m) (NaN: missing), ``times``
+    (K,) or None (regular), the prior's time ``t0``, and ``field``/``lines`` to name a row at fault."""
+
+    def __init__(self, rows, times, t0: float, field: str, lines=None):
+        self.rows = rows
+        self.times = times
+        self.t0 = t0
+        self.field = field
+        self.lines = lines  # the file's line number of each row (CSV), else None
+
+    def where(self, k: int) -> str:
+        """``field[k]`` with the line number when the rows came from a CSV."""
+        line = f" (line {self.lines[k]})" if self.lines is not None and k < len(self.lines) else ""
+        return f"{self.field}[{k}]{line}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from threadpoolctl import threadpool_limits
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.filtering import check_t0, cumulative_hint
+    from yauyau.solver.measurement import check_gate
+    from yauyau.solver.methods import make_filter
+    from yauyau.solver.watch import check_monitor, parse_lost_track, settings_for
+
+    from yauyau.api import OnlineFilter, load_model
+
+    if args.chunk < 1:
+        raise InputError("chunk", "must be a positive integer")
+    if args.t0 is not None and not math.isfinite(args.t0):
+        raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
+    gate = check_gate(args.gate)
+    lost_track = None if args.lost_track is None else parse_lost_track(args.lost_track)
+    monitor = check_monitor(args.monitor, "--monitor")
+    outputs = Outputs.from_args(args)
+    threads = blas_threads(args.blas_threads)
+    stored = load_model(args.store, args.model_id)
+    model = stored.model
+    outputs.check(model)
+    kind = model.spec.measurement.kind
+    if args.observations is not None:
+        source = read_observations(args.observations, model.m, kind, args.t0)
+    else:
+        if kind == "discrete":
+            raise InputError("increments", f"model {stored.id} has discrete measurements ([measurement] "
+                                           'kind = "discrete"): give them with their times, --observations '
+                                           "IN.csv (a header t,<one column per component>)")
+        if args.t0 is not None:  # regular rows step by dt from t0: that must still be a step
+            check_t0(float(args.t0), "t0", float(model.dt), "--t0")
+        numbers: list[int] = []
+        source = Source(read_increments(args.increments, model.m, numbers), None,
+                        0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
+    method = args.method or stored.method
+    flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
+    state = OnlineFilter(flt, t0=source.t0).state if source.times is None else _at(flt, source.t0)
+    watch = settings_for(flt, lost_track, monitor)
+    preflight(flt, state, source, args.method is None)
+    why = "--method" if args.method else f"stored at precompute: {stored.method_reason}"
+    print(f"yauyau filter: method {method} ({why})", file=sys.stderr)
+    hint = cumulative_hint(source.rows, model) if source.times is None else None
+    if hint:
+        print(f"yauyau filter: warning: {hint}", file=sys.stderr)
+    writer = outputs.density_writer(flt, stored, method)
+    try:
+        bar = progress_bar(args.progress, len(source.rows))
+        with threadpool_limits(limits=threads, user_api="blas"), bar:
+            lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
+                                        times=source.times, state=state, policy=args.on_degenerate,
+                                        watch=watch)
+        write_lines(args.out, header(model, outputs, follow=hasattr(flt, "directions"),
+                                     monitor=watch.monitor > 0), lines)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    if writer is not None:
+        writer.close()
+    report.print(len(source.rows), flt.gate if hasattr(flt, "gate") else None, watch.monitor)
+    if report.degenerate is not None:
+        step, t, reason = report.degenerate
+        instead = ("" if (reason or "").startswith("lost track") else
+                   " (--on-degenerate reinitialise starts again instead)")
+        print(f"yauyau filter: degenerate from step {step} (t = {t:g}): {reason}; the rows from there on are "
+              f"flagged degenerate = 1{instead}" + (f". {hint}" if hint else ""), file=sys.stderr)
+        return EXIT_DEGENERATE
+    return 0
+
+
+def _at(flt, t0: float):
+    """The filter's initial state at ``t0`` (rows with their own times: their gaps were checked)."""
+    from yauyau.solver.filtering import at_time
+
+    return at_time(flt.initial_state(), t0)
+
+
+def preflight(flt, state, source: Source, stored_method: bool) -> None:
+    """One step of the row a method is likeliest to refuse (the first partly missing row, else the
+    first) before anything runs: a method that cannot take these rows (irregular times, discrete
+    measurements, a partly missing row) says so now, naming the row and the fix; the step is
+    discarded (a filter's state is a value)."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+
+    rows = source.rows
+    if not len(rows):
+        return
+    missing = np.isnan(rows)
+    partial = missing.any(axis=1) & ~missing.all(axis=1)
+    k = int(np.argmax(partial)) if partial.any() else 0
+    times = None if source.times is None else source.times[k:k + 1]
+    try:
+        flt.run_arrays(state, rows[k:k + 1], times)
+    except InputError as exc:
+        field = exc.field  # about the probe's one row k (increments[0], increments) or the whole input
+        if field.startswith("increments[0]"):
+            field = source.where(k) + field[len("increments[0]"):]
+        elif field == "increments":
+            field = source.where(k)
+        elif field.startswith("times[0]") and source.times is not None:
+            field = source.where(k).replace(source.field, "times", 1) + field[len("times[0]"):]
+        message = exc.message
+        if "(the general engine) takes it" in message:
+            stored_with = f" (the model was stored with {flt.method})" if stored_method else ""
+            message += f"; use --method yau-yau{stored_with}"
+        raise InputError(field, message) from None
+
+
+class Report:
+    """What a run flagged: gated and re-initialised rows (count and the first with its reason), the
+    first degenerate row (step, t, reason) or None."""
+
+    def __init__(self):
+        self.gated = 0
+        self.reinitialised = 0
+        self.first_gated = None
+        self.first_reinitialised = None
+        self.degenerate = None
+        self.alarms = 0
+        self.first_alarm = None
+
+    def add(self, result, gate) -> None:
+        import numpy as np
+
+        if result.alarm.any():
+            if self.first_alarm is None:
+                k = int(np.argmax(result.alarm))
+                self.first_alarm = (int(result.step[k]), float(result.t[k]), float(result.monitor[k]))
+            self.alarms += int(result.alarm.sum())
+        if self.degenerate is None and result.degenerate.any():
+            k = int(np.argmax(result.degenerate))
+            self.degenerate = (int(result.step[k]), float(result.t[k]), result.row_reason(k, gate))
+        for name in ("gated", "reinitialised"):
+            flags = getattr(result, name)
+            count = int(flags.sum())
+            if count:
+                if getattr(self, f"first_{name}") is None:
+                    k = int(np.argmax(flags))
+                    setattr(self, f"first_{name}", (int(result.step[k]), float(result.t[k]),
+                                                    result.row_reason(k, gate)))
+                setattr(self, name, getattr(self, name) + count)
+
+    def print(self, rows: int, gate, monitor: float = 0.0) -> None:
+        gate_text = "gate off" if not gate else f"gate {gate:g} sd"
+        print(f"yauyau filter: {rows} row(s), {self.gated} gated ({gate_text}), {self.reinitialised} "
+              "re-initialised", file=sys.stderr)
+        for what, first in (("gated", self.first_gated), ("re-initialised", self.first_reinitialised)):
+            if first is not None:
+                step, t, reason = first
+                print(f"yauyau filter: first {what} row: step {step} (t = {t:g}): {reason}", file=sys.stderr)
+        if self.first_alarm is not None:
+            step, t, value = self.first_alarm
+            side = "above" if value > 0 else "below"
+            print(f"yauyau filter: innovation monitor: {self.alarms} alarm(s), the first at step {step} "
+                  f"(t = {t:g}): the observations have drifted {side} their predictions (a sensor bias, or a "
+                  "model that does not fit): columns alarm and monitor", file=sys.stderr)
+        elif monitor > 0:
+            print(f"yauyau filter: innovation monitor: no alarm ({monitor:,.0f} healthy rows per false "
+                  "alarm)", file=sys.stderr)
+
+
+class Outputs:
+    """What to compute per step besides mean and covariance (from the command line)."""
+
+    def __init__(self, probs=None, probs_text=(), mode=False, density=None, every=10, points=None):
+        self.probs = probs
+        self.probs_text = list(probs_text)
+        self.mode = mode
+        self.density = density
+        self.every = every
+        self.points = points
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> "Outputs":
+        from yauyau.solver.errors import InputError
+        from yauyau.solver.summaries import check_probabilities
+
+        probs, texts = None, []
+        if args.quantiles is not None:
+            probs = check_probabilities(args.quantiles)
+            texts = [p.strip() for p in args.quantiles.split(",") if p.strip()]
+            if len(set(probs.tolist())) != len(probs):
+                raise InputError("quantiles", "each probability once")
+        if args.density_every < 1:
+            raise InputError("density_every", "must be a positive integer")
+        if args.density_points is not None and not 2 <= args.density_points <= 2001:
+            raise InputError("density_points", "must be an integer in 2..2001")
+        return cls(probs, texts, args.mode, args.density, args.density_every, args.density_points)
+
+    @property
+    def per_step(self) -> bool:
+        return self.probs is not None or self.mode or self.density is not None
+
+    def check(self, model) -> None:
+        from yauyau.solver.errors import InputError
+
+        if self.density is not None and Path(self.density).suffix.lower() not in (".h5", ".hdf5"):
+            raise InputError("density", f"{self.density}: the density file is HDF5, name it *.h5")
+        if self.density is not None and model.spec.domain.follow:
+            raise InputError("density", "the ball follows the state ([domain] follow = true), so no fixed "
+                                        "grid holds the density; leave --density out (the mean, covariance "
+                                        "and --quantiles columns follow it)")
+        if self.points is not None and model.n == 3 and self.points > 201:
+            raise InputError("density_points", "at most 201 per axis in 3-D")
+
+    def density_writer(self, flt, stored, method):
+        if self.density is None:
+            return None
+        import numpy as np
+        from yauyau.storage.density_file import DensityWriter
+
+        model = flt.model
+        points = self.points or DENSITY_POINTS.get(model.n, 41)
+        c, r = model.center, model.radius
+        self.axes = [np.linspace(c[i] - r, c[i] + r, points) for i in range(model.n)]
+        return DensityWriter(self.density, list(model.spec.state), self.axes, joint=model.n <= 2,
+                             attrs={"model_id": stored.id, "model_name": model.spec.name, "method": method,
+                                    "dt": float(model.dt)})
+
+
+def progress_bar(mode: str, total: int):
+    """tqdm over the rows on stderr: only on a terminal unless --progress on."""
+    from tqdm import tqdm
+
+    disable = mode == "off" or (mode == "auto" and not sys.stderr.isatty())
+    return tqdm(total=total, disable=disable, unit="obs", file=sys.stderr, desc="yauyau filter",
+                mininterval=0.5, dynamic_ncols=True)
+
+
+def read_increments(path: str, m: int, numbers: list[int] | None = None):
+    """(K, m) floats from .npy or CSV; NaN is a missing component, a NaN row a missing observation.
+    ``numbers`` (a list) receives each row's line number in a CSV."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.measurement import check_rows
+
+    if Path(path).suffix.lower() == ".npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError("increments", f"cannot read {path}: {exc}") from None
+        if data.dtype.kind not in "iuf":
+            raise InputError("increments", f"{path} must hold numbers, not {data.dtype}")
+        return check_rows(data, m)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError("increments", f"cannot read {path}: {exc}") from None
+    return check_rows(parse_csv(text, m, numbers), m)
+
+
+def parse_csv(text: str, m: int, numbers: list[int] | None = None) -> list[list[float]]:
+    """Rows of m fields; an empty field is a missing component (NaN), a blank line a missing
+    observation (a NaN row); the first line is a header when none of its fields is a number (a first
+    line with some numbers is data, and a bad field in it an error: never silently shift every step
+    by one); blank lines at the end are ignored.  ``numbers`` receives each row's line number."""
+    from yauyau.solver.errors import InputError
+
+    fast = _parse_plain(text, m, numbers)
+    if fast is not None:
+        return fast
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    rows: list[list[float]] = []
+    nan = math.nan
+    for number, line in enumerate(lines, start=1):
+        fields = [f.strip() for f in line.split(",")] if line.strip() else [""] * m
+        values = [_number(f) for f in fields]
+        if number == 1 and line.strip() and all(v is None for v in values):
+            continue  # a header: text in every field
+        where = f"increments[{len(rows)}]"
+        if len(fields) != m:
+            raise InputError(where, f"line {number}: expected {m} field(s), got {len(fields)}")
+        for j, (field, value) in enumerate(zip(fields, values, strict=True)):
+            if value is None:
+                raise InputError(f"{where}[{j}]", f"line {number}: {field[:40]!r} is not a finite number "
+                                                  "(leave the field empty for a missing value)")
+        rows.append([nan if v == "" else v for v in values])
+        if numbers is not None:
+            numbers.append(number)
+    return rows
+
+
+def _parse_plain(text: str, m: int, numbers: list[int] | None):
+    """The usual file — m finite numbers on every line, an optional header of names — parsed by numpy
+    at C speed: a (K, m) array, or None for anything else (blank lines, empty fields, a bad field),
+    which :func:`parse_csv` then reads line by line, naming what is wrong."""
+    import numpy as np
+
+    body = text.rstrip()
+    first, _, rest = body.partition("\n")
+    skip = 0
+    if first and all(_number(f.strip()) is None for f in first.split(",")):
+        body, skip = rest, 1  # a header
+    if not body or "\n\n" in body or "\r" in body:
+        return None
+    fields = body.replace("\n", ",").split(",")
+    if len(fields) % m:
+        return None
+    try:
+        values = np.array(fields, dtype=float).reshape(-1, m)
+    except ValueError:
+        return None
+    if not np.isfinite(values).all() or values.shape[0] != body.count("\n") + 1:
+        return None  # nan/inf spelled out, or a line with the wrong number of fields
+    if numbers is not None:
+        numbers.extend(range(1 + skip, 1 + skip + len(values)))
+    return values
+
+
+def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
+    """The rows and times of an --observations CSV (EPILOG); InputError names the row (observations[k],
+    times[k], with the line number) or the file at fault."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+
+    if Path(path).suffix.lower() == ".npy":
+        raise InputError("observations", f"{path}: --observations reads a CSV with a header t,<one column "
+                                          "per component>; a .npy array of regular rows goes to --increments")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError("observations", f"cannot read {path}: {exc}") from None
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    example = "t," + ",".join(f"z_{j + 1}" for j in range(m))
+    if not lines:
+        raise InputError("observations", f"{path} is empty: expected a header {example!r} and one row per "
+                                          "time")
+    names = [f.strip().strip('"').strip() for f in lines[0].split(",")]
+    if names[0].lower() != "t":
+        got = "a row of numbers" if _number(names[0]) not in (None, "") else f"{names[0][:40]!r}"
+        raise InputError("observations", f"{path} line 1: the header must start with the time column t "
+                                          f"(then one column per component, e.g. {example!r}); its first "
+                                          f"field is {got}")
+    if len(names) - 1 != m:
+        raise InputError("observations", f"{path} has {len(names) - 1} column(s) after t "
+                                          f"({','.join(names[1:]) or 'none'}); the model has m = {m} "
+                                          f"observation component(s): expected t and {m} column(s), e.g. "
+                                          f"{example!r}")
+    width = m + 1
+    times: list[float] = []
+    rows: list[list[float]] = []
+    numbers: list[int] = []
+    nan = math.nan
+    previous = -math.inf
+    for number, line in enumerate(lines[1:], start=2):
+        k = len(rows)
+        if not line.strip():
+            raise InputError(f"times[{k}]", f"{path} line {number}: a blank line has no time t; a row with "
+                                            "its time and empty fields (e.g. '1.5,') is a time with nothing "
+                                            "observed")
+        fields = [f.strip() for f in line.split(",")]
+        if len(fields) != width:
+            raise InputError(f"observations[{k}]", f"{path} line {number}: expected {width} fields (t and "
+                                                   f"{m} component(s)), got {len(fields)}")
+        t = _number(fields[0])
+        if t is None or t == "":
+            raise InputError(f"times[{k}]", f"{path} line {number}: t = {fields[0][:40]!r} is not a finite "
+                                            "number (every row needs its time)")
+        if t <= previous:
+            raise InputError(f"times[{k}]", f"{path} line {number}: t = {t!r} is not after t = {previous!r} "
+                                            f"(line {number - 1}): times must increase strictly")
+        if previous > -math.inf:
+            _check_gap(path, number, k, previous, t)
+        values = [_number(f) for f in fields[1:]]
+        for j, (field, value) in enumerate(zip(fields[1:], values, strict=True)):
+            if value is None:
+                raise InputError(f"observations[{k}][{j}]", f"{path} line {number}: {field[:40]!r} is not "
+                                                            "a finite number (leave the field empty for a "
+                                                            "missing component)")
+        previous = t
+        times.append(t)
+        rows.append([nan if v == "" else v for v in values])
+        numbers.append(number)
+    if not rows:
+        raise InputError("observations", f"{path} has a header and no rows: one row per observation time")
+    start = times[0] if t0 is None else float(t0)
+    if times[0] > start:
+        _check_gap(path, 2, 0, start, times[0], "--t0")
+    if times[0] < start:
+        raise InputError("times[0]", f"{path} line 2: t = {times[0]!r} is before --t0 {start!r}: the first "
+                                     "row must be at or after the time of the prior")
+    data = np.array(rows, dtype=float).reshape(len(rows), m)
+    if kind == "continuous" and times[0] == start:
+        raise InputError("observations[0]", f"{path} line 2: an increment of a continuous model covers "
+                                            f"[t_(k-1), t_k], and the first row's t = {times[0]!r} is the "
+                                            "prior's time, an empty interval: give --t0 (the start of the "
+                                            "first interval, e.g. --t0 0 for the files of yauyau simulate)")
+    return Source(data, np.array(times, dtype=float), start, "observations", numbers)
+
+
+def _check_gap(path: str, number: int, k: int, before: float, t: float, what: str | None = None) -> None:
+    """InputError naming times[k] (line ``number``) when t is too close to the time before it to keep the
+    gap's precision (yauyau.solver.measurement.check_spacing)."""
+    from yauyau.solver.errors import InputError
+    from yauyau.solver.measurement import check_spacing
+
+    try:
+        check_spacing(max(abs(before), abs(t)), t - before, f"times[{k}]", "t")
+    except InputError as exc:
+        after = what or f"t = {before!r} (line {number - 1})"
+        raise InputError(exc.field, f"{path} line {number}: t = {t!r} is {t - before:.3g} after {after}: "
+                                    f"{exc.message}") from None
+
+
+def _number(field: str):
+    """A finite float, "" for an empty field, None for anything else (nan/inf included)."""
+    if field == "":
+        return ""
+    try:
+        value = float(field)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, writer=None, bar=None, *,
+                times=None, state=None, policy: str = "stop", watch=None):
+    """The output lines (CSV text, one per row: step, t, means, upper-triangle covariances[, modes,
+    quantiles], loglik, degenerate, gated, predictive_loglik, reinitialised, alarm, monitor) and the
+    :class:`Report` of the run.  ``times`` (K,) or None (regular), from ``state`` (default: the filter's
+    initial state), under the ``on_degenerate`` ``policy`` and the ``watch`` settings (solver/watch.py;
+    None: the defaults and the spec's monitor)."""
+    from yauyau.solver.watch import Watch, settings_for, watched_run
+
+    outputs = outputs or Outputs()
+    state = flt.initial_state() if state is None else state
+    settings = settings_for(flt) if watch is None else watch
+    monitored = settings.monitor > 0  # its two columns only when it is on
+    seen = Watch()
+    gate = getattr(flt, "gate", None)
+    lines: list[str] = []
+    report = Report()
+    if writer is not None:
+        snapshot(flt, state, flt.estimate(state), outputs, writer)  # the prior, at t0
+    for start in range(0, len(increments), chunk):
+        stop = min(start + chunk, len(increments))
+        if outputs.per_step:
+            for k in range(start, stop):
+                state, seen, result = watched_run(flt, state, seen, increments[k:k + 1],
+                                                  None if times is None else times[k:k + 1], policy, settings)
+                extra = summary_columns(flt, state, result.estimates(gate)[0], outputs, writer)
+                lines += csv_lines(result, [extra], monitored)
+                report.add(result, gate)
+        else:
+            state, seen, result = watched_run(flt, state, seen, increments[start:stop],
+                                              None if times is None else times[start:stop], policy, settings)
+            lines += csv_lines(result, monitor=monitored)
+            report.add(result, gate)
+        if bar is not None:
+            bar.update(stop - start)
+    return lines, report
+
+
+def csv_lines(result, extras: list[list] | None = None, monitor: bool = False) -> list[str]:
+    """The CSV lines of a chunk's result, column by column from its arrays (``extras``: the mode and
+    quantile fields of each row, between the covariances and loglik; ``monitor``: with the innovation
+    monitor's alarm and statistic after reinitialised)."""
+    import numpy as np
+
+    n = result.mean.shape[1]
+    i, j = np.triu_indices(n)
+    if extras is None and not np.isinf(result.predictive_loglik).any() and not np.isinf(result.loglik).any():
+        return _fast_lines(result, i, j, monitor)  # (orjson would write an infinity as an empty field)
+    head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
+               *result.cov[:, i, j].T.tolist(), strict=True)
+    pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
+    follow = ([] if result.center is None
+              else [*result.center.T.tolist(), result.recentred.astype(int).tolist()])
+    statistic = ["" if v != v else repr(v) for v in result.monitor.tolist()] if monitor else []
+    watched = [result.alarm.astype(int).tolist(), statistic] if monitor else []
+    tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
+               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *watched,
+               *follow, strict=True)
+    if extras is None:
+        return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
+    return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
+
+
+def _fast_lines(result, i, j, monitor: bool = False) -> list[str]:
+    """:func:`csv_lines` without extras, formatted by orjson in one call (shortest round-trip floats,
+    as repr gives them; NaN, i.e. not known, as an empty field)."""
+    import numpy as np
+    import orjson
+
+    K = len(result.step)
+    if not K:
+        return []
+    columns = [result.step.astype(float), result.t, *result.mean.T, *result.cov[:, i, j].T, result.loglik,
+               result.degenerate.astype(float), result.gated.astype(float), result.predictive_loglik,
+               result.reinitialised.astype(float)]
+    flags = [0, len(columns) - 4, len(columns) - 3, len(columns) - 1]  # integers: step and the flags
+    if monitor:  # the innovation monitor's alarm (an integer) and statistic
+        columns += [result.alarm.astype(float), result.monitor]
+        flags.append(len(columns) - 2)
+    if result.center is not None:  # a following ball: its centre after the row, and whether it moved
+        columns += [*result.center.T, result.recentred.astype(float)]
+        flags.append(len(columns) - 1)
+    table = np.column_stack(columns)
+    rows = table.tolist()
+    for row in rows:
+        for c in flags:
+            row[c] = int(row[c])
+    text = orjson.dumps(rows).decode()
+    return text[2:-2].replace("null", "").split("],[")
+
+
+def _field(value) -> str:
+    """A CSV field: NaN (not known) as an empty field, everything else as Python writes it."""
+    return "" if value != value else str(value)
+
+
+def summary_columns(flt, state, estimate, outputs: Outputs, writer) -> list:
+    """Mode and quantile columns of one step (empty fields when degenerate); a density snapshot
+    every ``outputs.every`` steps."""
+    from yauyau.solver import summaries
+
+    n = flt.model.n
+    extra: list = []
+    healthy = not estimate.degenerate
+    if outputs.mode:
+        point = summaries.mode(flt, state, estimate) if healthy else None
+        extra += [float(v) for v in point] if point is not None else [""] * n
+    if outputs.probs is not None:
+        q = summaries.quantiles(flt, state, outputs.probs, estimate) if healthy else None
+        blank = [""] * len(outputs.probs)
+        for i in range(n):
+            extra += [float(v) if v == v else "" for v in q[i]] if q is not None else blank
+    if writer is not None and healthy and int(estimate.step) % outputs.every == 0:
+        snapshot(flt, state, estimate, outputs, writer)
+    return extra
+
+
+def snapshot(flt, state, estimate, outputs: Outputs, writer) -> None:
+    """The marginals (and the joint density in 1-D and 2-D) on the output grid, into the file."""
+    from yauyau.solver import summaries
+
+    marginals = summaries.marginals_on_grid(flt, state, outputs.axes, estimate)
+    joint = summaries.joint_on_grid(flt, state, outputs.axes) if flt.model.n <= 2 else None
+    writer.append(int(estimate.step), float(estimate.t), marginals, joint)
+
+
+def header(model, outputs: Outputs | None = None, follow: bool = False, monitor: bool = False) -> list[str]:
+    """The CSV columns; ``follow`` (a ball that follows the state): center_<var> and recentred last."""
+    outputs = outputs or Outputs()
+    names = model.spec.state
+    n = len(names)
+    cov = [f"cov_{names[i]}_{names[j]}" for i in range(n) for j in range(i, n)]
+    extra = [f"mode_{v}" for v in names] if outputs.mode else []
+    if outputs.probs is not None:
+        extra += [f"q{p}_{v}" for v in names for p in outputs.probs_text]
+    tail = [*[f"center_{v}" for v in names], "recentred"] if follow else []
+    watched = ["alarm", "monitor"] if monitor else []
+    return ["step", "t", *[f"mean_{v}" for v in names], *cov, *extra, "loglik", "degenerate", "gated",
+            "predictive_loglik", "reinitialised", *watched, *tail]
+
+
+def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
+    """Write the header and the lines atomically (temporary file in the same directory, then rename)."""
+    from yauyau.solver.errors import InputError
+
+    target = Path(path)
+    try:
+        handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=target.parent)
+    except OSError as exc:
+        raise InputError(field, f"cannot write {path}: {exc}") from None
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8", newline="") as out:
+            out.write(",".join(columns) + "\n")
+            for start in range(0, len(lines), 10_000):
+                out.write("\n".join(lines[start:start + 10_000]) + "\n")
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_csv(path: str, columns: list[str], rows: list[list], field: str = "out") -> None:
+    """Rows of values (floats as repr, NaN as an empty field), written atomically."""
+    lines = [",".join("" if isinstance(v, float) and v != v else str(v) for v in row) for row in rows]
+    write_lines(path, columns, lines, field)

@@ -1,0 +1,134 @@
+"""The Fokker–Planck flow over any interval τ ≥ 0 on the basis (irregular observation times).
+
+The offline stage stores the Galerkin generator of the Fokker–Planck equation on the basis,
+
+    A = Φᵀ K Φ   (N×N),   dc/dt = A c,
+
+K the finite-element Fokker–Planck matrix (W du/dt = K u) and Φ the W-orthonormal basis, so that
+e^{τA} is the flow of the coefficients over τ (the projected semigroup; for τ = dt the stored
+propagator e^{dt L}φ_k of solver/offline/propagator.py is the same flow before projection).  Online, the
+real eigen-decomposition A V = V Λ — Λ block diagonal, real eigenvalues λ and 2×2 blocks
+[[α, β], [−β, α]] for the pairs α ± iβ — gives e^{τA} = V e^{τΛ} V⁻¹ for every τ at O(N) cost in the
+modal coordinates d = V⁻¹ c:
+
+    s  = (Φ V) (e^{τΛ} d)            nodal values of the propagated density       (Q×N product)
+    d' = (V⁻¹ Φᵀ W) (s · e_k)        back to modal coordinates after the update   (N×Q product)
+
+the same two products as a regular step, plus N multiplications (a pair as one complex number:
+(d_u + i d_w) ← e^{(α − iβ)τ}(d_u + i d_w)).  The decomposition is exact algebra, but loses
+digits in proportion to cond(V); where cond(V) exceeds :data:`MAX_CONDITION` (a strongly
+non-normal generator: a stiff confining drift on a large ball) the flow is instead formed as
+e^{τA} = scipy.linalg.expm(τA) per distinct τ (exact, O(N³) once per distinct gap, cached).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from functools import cached_property
+
+import numpy as np
+
+MAX_CONDITION = 1e10  # relative rounding of a step ≈ 1e-16·cond(V): keep it below ~1e-6
+_CACHE = 64  # distinct τ kept by the exact (expm) form
+
+
+class SpectralFlow:
+    """e^{τA} of a Galerkin generator for any τ, with the two (augmented) products of the engine.
+
+    ``B`` (Q, N+1) and ``C`` (N+1, Q) are the engine's propagate and project matrices in modal
+    coordinates: ``B`` has a zero last column (the carried mass), ``C`` the quadrature weights as its
+    last row (it gives ∫σ with the coefficients), both in ``dtype``.
+    """
+
+    def __init__(self, generator: np.ndarray, basis: np.ndarray, projector: np.ndarray,
+                 weights: np.ndarray, dtype=np.float64):
+        import scipy.linalg as sla
+
+        self.generator = np.asarray(generator, dtype=float)
+        self.basis = np.asarray(basis, dtype=float)
+        self.projector = np.asarray(projector, dtype=float)
+        self.weights = np.asarray(weights, dtype=float)
+        self.dtype = dtype
+        N = self.generator.shape[0]
+        self.N = N
+        lam, vectors = sla.eig(self.generator)
+        real = np.abs(lam.imag) <= 1e-12 * np.maximum(1.0, np.abs(lam))
+        upper = ~real & (lam.imag > 0)
+        columns = [vectors[:, real].real]
+        pairs = lam[upper]
+        pair_vectors = vectors[:, upper]
+        interleaved = np.empty((N, 2 * pairs.size))
+        interleaved[:, 0::2] = pair_vectors.real
+        interleaved[:, 1::2] = pair_vectors.imag
+        columns.append(interleaved)
+        V = np.concatenate(columns, axis=1)
+        self.real_rates = lam[real].real.copy()
+        self.pair_rates = np.conj(pairs)  # (d_u + i d_w)' = (α − iβ)(d_u + i d_w)
+        self.r = int(real.sum())
+        self.condition = float(np.linalg.cond(V)) if V.shape[1] == N else math.inf
+        self.exact = not (V.shape[1] == N and self.condition <= MAX_CONDITION)
+        if not self.exact:
+            self.V = V
+            self.V_inv = np.linalg.inv(V)
+        self._expm_cache: OrderedDict[float, np.ndarray] = OrderedDict()
+
+    # -- the engine's matrices ---------------------------------------------------------------
+    @cached_property
+    def B(self) -> np.ndarray:
+        """Φ V with a zero column (modal coefficients, mass) -> nodal values."""
+        return _augmented_columns(self.basis @ self.V, self.dtype)
+
+    @cached_property
+    def C(self) -> np.ndarray:
+        """[V⁻¹ Φᵀ W; wᵀ]: nodal values -> (modal coefficients, ∫)."""
+        return np.asfortranarray(np.vstack([self.V_inv @ self.projector, self.weights]), dtype=self.dtype)
+
+    def to_modal(self, coefficients: np.ndarray) -> np.ndarray:
+        return self.V_inv @ coefficients
+
+    def from_modal(self, modal: np.ndarray) -> np.ndarray:
+        return self.V @ modal
+
+    def scales(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per step, the factors of the real modes (K, r) and of the pairs (K, p), complex."""
+        taus = np.asarray(taus, dtype=float)[:, None]
+        cdtype = np.complex64 if self.dtype == np.float32 else np.complex128
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # far ahead: e^{-inf} = 0
+            real = np.exp(taus * self.real_rates[None, :]).astype(self.dtype)
+            pairs = np.exp(taus * self.pair_rates[None, :]).astype(cdtype)
+        return real, pairs
+
+    # -- the exact form -------------------------------------------------------------------------
+    def nodal_flow(self, tau: float) -> np.ndarray:
+        """Φ e^{τA} with a zero column (coefficients, mass) -> nodal values, e^{τA} by
+        scipy.linalg.expm; cached per τ (the form used when V is ill-conditioned)."""
+        key = float(tau)
+        found = self._expm_cache.get(key)
+        if found is None:
+            import scipy.linalg as sla
+
+            found = _augmented_columns(self.basis @ sla.expm(key * self.generator), self.dtype)
+            if len(self._expm_cache) >= _CACHE:
+                self._expm_cache.popitem(last=False)
+            self._expm_cache[key] = found
+        else:
+            self._expm_cache.move_to_end(key)
+        return found
+
+
+def _augmented_columns(matrix: np.ndarray, dtype) -> np.ndarray:
+    return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
+
+
+def galerkin_generator(basis: np.ndarray, fokker_planck, mass=None, weights=None) -> np.ndarray:
+    """A = Φᵀ K Φ from the basis values Φ (Q, N) and the finite-element matrix K (Q, Q) of
+    W du/dt = K u; for M du/dt = K u (a sparse ``mass`` M, ``scheme = "supg"``) A = Φᵀ W M⁻¹ K Φ."""
+    basis = np.asarray(basis, dtype=float)
+    if mass is None:
+        return basis.T @ np.asarray(fokker_planck @ basis)
+    import scipy.sparse as sps
+    from scipy.sparse.linalg import splu
+
+    rates = splu(sps.csc_matrix(mass)).solve(np.asfortranarray(fokker_planck @ basis))
+    return (basis * np.asarray(weights, dtype=float)[:, None]).T @ rates
