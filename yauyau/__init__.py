@@ -85,6 +85,7 @@ how they fit.
 from __future__ import annotations
 
 from pathlib import Path as _Path
+from typing import Any
 
 # In a source checkout this file sits in ``yauyau/`` beside ``solver/``, ``storage/`` and
 # ``service/``: the checkout's root then serves as the rest of the package (so the tests, the
@@ -128,7 +129,7 @@ _API = {
 __all__ = ["__version__", *_API]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module 'yauyau' has no attribute {name!r}")
