@@ -345,7 +345,7 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
     np.testing.assert_array_equal(kept_all.mean, whole.mean)
 
     counted = {"rows": 0}
-    original = YauYauFilter.run_arrays
+    original = YauYauFilter.run_until
 
     def counting(self, *args, **kwargs):
         counted["rows"] += len(args[1])
@@ -359,11 +359,11 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
         if mode == "again":  # the rule keeps every row: a strayed block runs again, shorter
             follower._keep_until = lambda center: (lambda mean, centers: None)
         counted["rows"] = 0
-        YauYauFilter.run_arrays = counting
+        YauYauFilter.run_until = counting
         try:
             runs[mode] = (_run(follower, long_rows, 1000)[1], counted["rows"])
         finally:
-            YauYauFilter.run_arrays = original
+            YauYauFilter.run_until = original
     np.testing.assert_array_equal(runs["rule"][0].mean, runs["again"][0].mean)
     np.testing.assert_array_equal(runs["rule"][0].loglik, runs["again"][0].loglik)
     assert runs["rule"][1] < runs["again"][1], (runs["rule"][1], runs["again"][1])
