@@ -37,8 +37,8 @@ def _blas_floor(flt: YauYauFilter, increments: np.ndarray) -> None:
     c = np.append(flt.initial_state().coefficients, 1.0)
     row = np.empty(flt.nodes.shape[0])
     for _ in range(len(increments)):
-        dgemv(1.0, flt._observe, c, 0.0, row, overwrite_y=1)
-        c = dgemv(1.0, flt._project, row)
+        dgemv(1.0, flt.observation_propagator, c, 0.0, row, overwrite_y=1)
+        c = dgemv(1.0, flt.projection, row)
 
 
 def _configurations(flt: YauYauFilter, dy: np.ndarray, single_steps: int):

@@ -133,15 +133,16 @@ def dask_rows(basis: int) -> list[str]:
                           ("local cluster, 2 workers", {"workers": 2})):
         start = time.perf_counter()
         if kwargs is None:  # a one-worker cluster: the Dask path with a single worker
-            from yauyau.solver.offline import pipeline as off
+            from yauyau.solver.offline import jobs as off
 
-            job = off._Job(*_job_parts(model), token="bench")
+            job = off.Job(*_job_parts(model), token="bench")
             fp = np.empty_like(job.initial)
             from yauyau.solver.offline.distributed import run_blocks
 
             def store(_, result, fp=fp):
                 fp[:, result[0]:result[1]] = result[2]
-            run_blocks([job], [(0, b) for b in off.column_blocks(job.initial.shape[1])], store, workers=1)
+            blocks = [(0, b) for b in off.column_blocks(job.initial.shape[1])]
+            run_blocks([job], blocks, store, off.dask_block, workers=1)
             arrays = fp
         else:
             arrays = precompute(model, **kwargs).propagator_fp

@@ -49,7 +49,8 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
-from yauyau.solver.engine.filter import PIECE, YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.engine.pieces import PIECE
 from yauyau.solver.model import Model, compile_model
 from yauyau.solver.offline.pipeline import OfflineModel, precompute
 from yauyau.solver.simulate import simulate
