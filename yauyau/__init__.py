@@ -41,7 +41,7 @@ _API = {
     "ChunkResult": "yauyau.solver.filtering",
     "simulate": "yauyau.api",
     # analysis
-    "analyze": "yauyau.solver.analysis",
+    "analyze": "yauyau.api",
     # errors (each names the field at fault)
     "YauyauError": "yauyau.solver.errors",
     "SpecError": "yauyau.solver.errors",
@@ -49,15 +49,20 @@ _API = {
     "StoreError": "yauyau.storage.errors",
 }
 
-__all__ = ["__version__", *_API]
+# Subpackages reached as attributes after a plain ``import yauyau`` (``yauyau.examples.path(...)``).
+_SUBPACKAGES = ("examples",)
+
+__all__ = ["__version__", *_API, *_SUBPACKAGES]
 
 
 def __getattr__(name: str):
     module = _API.get(name)
-    if module is None:
+    if module is None and name not in _SUBPACKAGES:
         raise AttributeError(f"module 'yauyau' has no attribute {name!r}")
     import importlib
 
+    if module is None:  # a subpackage: importing it binds it here too
+        return importlib.import_module(f"yauyau.{name}")
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
