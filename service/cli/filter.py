@@ -449,7 +449,21 @@ def read_increments(path: str, m: int, numbers: list[int] | None = None):
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError("increments", f"cannot read {path}: {exc}") from None
+    check_untimed(text, path)
     return check_rows(parse_csv(text, m, numbers), m)
+
+
+def check_untimed(text: str, path: str) -> None:
+    """InputError naming --observations when the CSV given to --increments is a timed one (a header whose
+    first column is t, the format --observations reads): its times would be read as increments."""
+    from yauyau.solver.errors import InputError
+
+    first = text.partition("\n")[0].split(",")
+    if first[0].strip().strip('"').strip().lower() == "t":
+        raise InputError("increments", f"{path} has a time column (header {first[0].strip()!r}, ...): "
+                                       f"rows with their own times go to --observations {path} (add --t0 0 "
+                                       "for the files of yauyau simulate); --increments reads regular rows, "
+                                       "m numbers each")
 
 
 def parse_csv(text: str, m: int, numbers: list[int] | None = None) -> list[list[float]]:
