@@ -12,6 +12,7 @@ import re
 import shlex
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -263,7 +264,7 @@ def test_progress_bar_on_request(store, tmp_path, capsys):
 
 def test_every_help_page_prints(capsys):
     """`yauyau -h` and each command's -h exit 0 (argparse %-formats help text: a bare % breaks it)."""
-    from yauyau.service.cli import COMMANDS
+    from yauyau.service.cli.main import COMMANDS
 
     for argv in (["-h"], *[[name, "-h"] for name in COMMANDS]):
         with pytest.raises(SystemExit) as done:
@@ -271,3 +272,10 @@ def test_every_help_page_prints(capsys):
         assert done.value.code == 0, argv
         out = capsys.readouterr().out
         assert out.startswith("usage: yauyau"), argv
+
+
+def test_version_is_the_distribution_version():
+    """`yauyau --version` (the console script) prints the version pyproject.toml gives the distribution."""
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    done = subprocess.run(_yauyau() + ["--version"], capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (0, f"yauyau {version}\n", "")
