@@ -85,6 +85,7 @@ def test_python_example_runs_after_a_wheel_install_from_any_directory(tmp_path):
     assert found.returncode == 0, found.stderr[-3000:]
     where = found.stdout.split()
     assert all(Path(p).is_relative_to(purelib) for p in where), where  # the wheel's files, not the tree's
+    assert not (Path(purelib) / "examples").exists()  # inside yauyau/, nothing new at the top
     out = subprocess.run([python, "-c", readme_block("Python")], cwd=run, env=env, capture_output=True,
                          text=True, timeout=300)
     check_python_example(out, run)
