@@ -1,6 +1,6 @@
 """A ball that follows the state (solver/engine/follow.py) against the fixed ball, and precompute on Dask.
 
-    python -m bench.follow [--quick]     # writes docs/bench-follow.md
+    python -m bench.follow [--quick]     # writes bench/results/follow.md
 
 * Cost per observation with ``[domain] follow`` (a random walk with trend f = 1, which travels far
   beyond the ball) against the fixed ball of the same Q and N (an OU drift −x/2 that stays in it),
@@ -33,7 +33,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-follow.md"
+FRAGMENT = ROOT / "bench" / "results" / "follow.md"
 CHUNK = 1000
 
 

@@ -101,14 +101,14 @@ def precompute(venv_dir: Path, store: Path, specs: list[Path]) -> None:
                        check=True)
 
 
-# Debian packages the tests drive: the live page's browser, and curl for the README's walk-through
+# Debian packages the tests drive: the live page's browser, and curl for the docs' walk-throughs
 BROWSER = {"/usr/bin/chromium": "chromium", "/usr/bin/chromedriver": "chromium-driver",
            "/usr/bin/curl": "curl"}
 
 
 def browser() -> None:
     """Debian's chromium and chromedriver for the live-page test (tests/test_live_page.py) and curl for
-    the README's walk-through (tests/test_readme_streams.py): installed with apt-get when missing and
+    the walk-throughs of docs/ (tests/test_readme_streams.py): installed with apt-get when missing and
     this runs as root; otherwise say what to install (the test then fails with the reason; it never
     skips)."""
     missing = [package for path, package in BROWSER.items() if not Path(path).exists()]

@@ -1,6 +1,6 @@
 """`yauyau simulate`, `yauyau filter --quantiles/--mode/--density`, `yauyau plot`, exit statuses.
 
-Truth: the README's three commands reproduce the output the README prints (real processes, real
+Truth: docs/cli.md's three commands reproduce the output the page prints (real processes, real
 files); quantile columns against the normal quantiles of the exact Kalman–Bucy posterior (OU); the
 density file integrates to 1 and its mean is the filter's mean; the plot is checked as an image.
 """
@@ -22,13 +22,14 @@ import numpy as np
 import pytest
 from conftest import EXAMPLES, ROOT
 from scipy.stats import norm
-from test_readme import readme_block
+from test_readme import doc_section, readme_block
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec
 from yauyau.solver.simulate import simulate
 
 import yauyau
 
+PAGE = "docs/cli.md"
 HEADING = "From a spec to a filtered path in three commands"
 
 
@@ -49,9 +50,9 @@ def _png(path: Path) -> np.ndarray:
     return matplotlib.image.imread(path)
 
 
-def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
+def test_three_commands_reproduce_the_printed_output(tmp_path):
     (tmp_path / "examples").symlink_to(EXAMPLES)
-    commands = [line for line in readme_block(HEADING, "sh").splitlines() if line.strip()]
+    commands = [line for line in readme_block(HEADING, "sh", PAGE).splitlines() if line.strip()]
     plot = [line for line in readme_block_all(HEADING, "sh")[1].splitlines() if line.strip()]
     assert [c.split()[1] for c in commands] == ["precompute", "simulate", "filter"]
     outputs = []
@@ -62,8 +63,8 @@ def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
         assert run.returncode == 0, (line, run.stderr[-2000:])
         outputs.append(run.stdout)
     model_id = outputs[0].strip()
-    assert model_id in commands[2], "the README's filter command names the id precompute prints"
-    printed = readme_block(HEADING, "text").strip().splitlines()
+    assert model_id in commands[2], "the page's filter command names the id precompute prints"
+    printed = readme_block(HEADING, "text", PAGE).strip().splitlines()
     produced = (tmp_path / "var" / "run" / "out.csv").read_text().splitlines()[:3]
     assert produced[0] == printed[0]
     # the same numbers (to 1e-9 relative: the last digit of a float may differ with the BLAS build)
@@ -75,9 +76,7 @@ def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
 
 
 def readme_block_all(heading: str, language: str) -> list[str]:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
-    return re.findall(rf"```{language}\n(.*?)```", section, re.S)
+    return re.findall(rf"```{language}\n(.*?)```", doc_section(heading, PAGE), re.S)
 
 
 @pytest.fixture(scope="module")

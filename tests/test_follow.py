@@ -284,7 +284,7 @@ def test_in_2d_a_following_ball_has_a_lattice_mesh_and_its_moves_do_not_blur():
 def test_in_2d_with_the_bubble_element_the_following_ball_stays_near_kalman():
     """A 2-D random walk with trend (1, 0.5) over t = 0..50 (50 and 25 units: 8 and 4 radii) on the
     lattice mesh with element = "bubble", basis 600: measured 3.1e-3 in the mean and 0.45% in the
-    variance from the exact Kalman filter (P1 at basis 300: 0.16, docs/bench-follow.md)."""
+    variance from the exact Kalman filter (P1 at basis 300: 0.16, bench/results/follow.md)."""
     doc = json.loads(json.dumps(TREND))
     doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
                initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})

@@ -19,12 +19,18 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def readme_block(heading: str, language: str = "python") -> str:
-    """The first ```language block under the README's ``## heading``."""
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
-    match = re.search(rf"```{language}\n(.*?)```", section, re.S)
-    assert match, f"no {language} block under ## {heading}"
+def doc_section(heading: str, page: str = "README.md") -> str:
+    """The text under ``## heading`` of ``page`` (a path from the repository root: the README or a page
+    of docs/), up to the next ``## `` heading."""
+    text = (ROOT / page).read_text(encoding="utf-8")
+    assert f"\n## {heading}\n" in text, f"no ## {heading} in {page}"
+    return text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
+
+
+def readme_block(heading: str, language: str = "python", page: str = "README.md") -> str:
+    """The first ```language block under ``## heading`` of the README (or of ``page``: docs/models.md)."""
+    match = re.search(rf"```{language}\n(.*?)```", doc_section(heading, page), re.S)
+    assert match, f"no {language} block under ## {heading} in {page}"
     return match.group(1)
 
 
