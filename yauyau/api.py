@@ -39,6 +39,7 @@ from .solver.spec import ModelSpec, load_spec
 from .storage.model_store import ModelStore
 
 if TYPE_CHECKING:  # types only: at run time these modules load when a function first needs them
+    from .solver.analysis.report import AnalysisReport
     from .solver.model import Model
     from .solver.offline.pipeline import OfflineModel, Progress
     from .solver.simulate import Simulation
@@ -285,7 +286,7 @@ def simulate(spec: ModelSpec | PathArg | Model, steps: int, seed: int | None = 0
     return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps, times=times)
 
 
-def analyze(spec: ModelSpec | str | os.PathLike | Any, **bounds: Any) -> Any:
+def analyze(spec: ModelSpec | PathArg | Model, **bounds: Any) -> AnalysisReport:
     """The estimation-algebra analysis of ``spec`` (a :class:`ModelSpec`, a spec file, or a compiled
     model), in this process: an :class:`yauyau.solver.analysis.AnalysisReport` (Wong matrix, η, the
     structural conditions, the algebra, ``.method`` recommended and ``.reason``; ``.render()`` is the
