@@ -8,10 +8,13 @@ density file integrates to 1 and its mean is the filter's mean; the plot is chec
 from __future__ import annotations
 
 import csv
+import json
+import os
 import re
 import shlex
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -262,7 +265,7 @@ def test_progress_bar_on_request(store, tmp_path, capsys):
 
 def test_every_help_page_prints(capsys):
     """`yauyau -h` and each command's -h exit 0 (argparse %-formats help text: a bare % breaks it)."""
-    from yauyau.service.cli import COMMANDS
+    from yauyau.service.cli.main import COMMANDS
 
     for argv in (["-h"], *[[name, "-h"] for name in COMMANDS]):
         with pytest.raises(SystemExit) as done:
@@ -270,3 +273,35 @@ def test_every_help_page_prints(capsys):
         assert done.value.code == 0, argv
         out = capsys.readouterr().out
         assert out.startswith("usage: yauyau"), argv
+
+
+def test_version_is_the_distribution_version():
+    """`yauyau --version` (the console script) prints the version pyproject.toml gives the distribution."""
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    done = subprocess.run(_yauyau() + ["--version"], capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (0, f"yauyau {version}\n", "")
+
+
+def test_output_files_get_the_users_umask(store, tmp_path):
+    """Under umask 022 every file the commands write for the user is 0644, as open() would make it (the
+    temporary files they were renamed from were mkstemp's 0600): simulate --out, filter --out and
+    --density, plot --out, precompute's model file."""
+    directory, ids = store
+    spec = tmp_path / "ou.json"  # a mesh-free method: precompute writes its file at once
+    spec.write_text(json.dumps({"name": "ou-umask", "state": ["x"], "drift": ["-x"], "observation": ["x"],
+                                "method": "kalman-bucy", "domain": {"radius": 6.0},
+                                "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+                                "discretization": {"dt": 0.01, "basis": 16}}))
+    old = os.umask(0o022)
+    try:
+        run = _simulate(tmp_path, "cubic_sensor", 20, seed=8)
+        out, dens, fig = tmp_path / "out.csv", tmp_path / "d.h5", tmp_path / "fig.png"
+        assert main(["filter", ids["cubic_sensor"], "--store", str(directory), "--increments",
+                     str(run / "increments.csv"), "--out", str(out), "--density", str(dens)]) == 0
+        assert main(["plot", str(out), "--out", str(fig)]) == 0
+        assert main(["precompute", str(spec), "--store", str(tmp_path / "store"), "--quiet"]) == 0
+    finally:
+        os.umask(old)
+    written = [run / "truth.csv", run / "increments.csv", out, dens, fig, *(tmp_path / "store").glob("*.h5")]
+    assert len(written) == 6
+    assert {p.name: oct(p.stat().st_mode & 0o777) for p in written} == {p.name: "0o644" for p in written}

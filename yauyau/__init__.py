@@ -24,6 +24,8 @@ Specs and models
    precompute       -- solve the offline stage once, choose the method, store both; returns the model id
    ModelStore       -- a directory of stored models, one <id>.h5 file each
    load_model       -- read and verify a stored model: compiled model, offline arrays, method
+   examples         -- the example specs shipped with the package: examples.path("cubic_sensor"),
+                       examples.names()
 
 Filtering
 ---------
@@ -46,15 +48,17 @@ Simulation and checks
 
    simulate         -- a true path and its rows (increments dy or readings z), every dt or at given times
 
-Before any data, ``yauyau check SPEC`` (the command line) filters a few simulated paths against the
-truth and says whether the spec's discretisation resolves the posterior.
+Before any data, ``yauyau check SPEC`` (the command line) filters a few simulated paths against a
+reference (the exact Kalman filter, or the engine at twice the basis) and says whether the spec's
+discretisation resolves the posterior.
 
 Analysis
 --------
 
 .. autosummary::
 
-   analyze          -- Wong matrix, estimation algebra and the recommended method of a compiled model
+   analyze          -- Wong matrix, estimation algebra and the recommended method of a spec (a file,
+                       a ModelSpec) or a compiled model
 
 Errors, each naming the field at fault (``.field``)
 ---------------------------------------------------
@@ -68,10 +72,10 @@ Errors, each naming the field at fault (``.field``)
 
 ``__version__`` is the version of the package.
 
-Example, from the repository root (where ``examples/`` is)::
+Example, from any directory (the example specs ship with the package)::
 
     import yauyau
-    spec = yauyau.load_spec("examples/cubic_sensor.toml")
+    spec = yauyau.load_spec(yauyau.examples.path("cubic_sensor"))
     flt = yauyau.open_filter("var/store", yauyau.precompute(spec, "var/store"))
     sim = yauyau.simulate(spec, steps=1000, seed=1)        # a true path and its increments dy
     chunk = flt.run(sim.increments)                        # chunk.mean (1000, 1), chunk.cov (1000, 1, 1)
@@ -118,7 +122,7 @@ _API = {
     "ChunkResult": "yauyau.solver.filtering",
     "simulate": "yauyau.api",
     # analysis
-    "analyze": "yauyau.solver.analysis",
+    "analyze": "yauyau.api",
     # errors (each names the field at fault)
     "YauyauError": "yauyau.solver.errors",
     "SpecError": "yauyau.solver.errors",
@@ -126,15 +130,20 @@ _API = {
     "StoreError": "yauyau.storage.errors",
 }
 
-__all__ = ["__version__", *_API]
+# Subpackages reached as attributes after a plain ``import yauyau`` (``yauyau.examples.path(...)``).
+_SUBPACKAGES = ("examples",)
+
+__all__ = ["__version__", *_API, *_SUBPACKAGES]
 
 
 def __getattr__(name: str) -> Any:
     module = _API.get(name)
-    if module is None:
+    if module is None and name not in _SUBPACKAGES:
         raise AttributeError(f"module 'yauyau' has no attribute {name!r}")
     import importlib
 
+    if module is None:  # a subpackage: importing it binds it here too
+        return importlib.import_module(f"yauyau.{name}")
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value

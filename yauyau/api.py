@@ -2,7 +2,8 @@
 
     import yauyau
 
-    spec = yauyau.load_spec("examples/cubic_sensor.toml")
+    spec = yauyau.load_spec(yauyau.examples.path("cubic_sensor"))   # the examples ship with the package
+    yauyau.analyze(spec).method                            # the recommended filter, and why (.reason)
     model_id = yauyau.precompute(spec, "var/store")        # offline stage, once, into an HDF5 store
     flt = yauyau.open_filter("var/store", model_id)        # the method chosen at precompute
     sim = yauyau.simulate(spec, steps=500, seed=1)          # truth and increments dy_k
@@ -38,6 +39,7 @@ from .solver.spec import ModelSpec, load_spec
 from .storage.model_store import ModelStore
 
 if TYPE_CHECKING:  # types only: at run time these modules load when a function first needs them
+    from .solver.analysis.report import AnalysisReport
     from .solver.model import Model
     from .solver.offline.pipeline import OfflineModel, Progress
     from .solver.simulate import Simulation
@@ -282,6 +284,20 @@ def simulate(spec: ModelSpec | PathArg | Model, steps: int, seed: int | None = 0
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise InputError("steps", "must be a positive integer")
     return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps, times=times)
+
+
+def analyze(spec: ModelSpec | PathArg | Model, **bounds: Any) -> AnalysisReport:
+    """The estimation-algebra analysis of ``spec`` (a :class:`ModelSpec`, a spec file, or a compiled
+    model), in this process: an :class:`yauyau.solver.analysis.AnalysisReport` (Wong matrix, η, the
+    structural conditions, the algebra, ``.method`` recommended and ``.reason``; ``.render()`` is the
+    text of ``yauyau analyze``, ``.to_dict()`` its JSON).  ``bounds``: ``max_depth``,
+    ``max_dimension``, ``time_limit`` (seconds; None: unbounded) and ``max_size``, as
+    :func:`yauyau.solver.analysis.analyze` takes them (its defaults when left out)."""
+    from .solver.analysis import analyze as analyze_model
+    from .solver.model import Model, compile_model
+
+    model = spec if isinstance(spec, Model) else compile_model(_as_spec(spec))
+    return analyze_model(model, **bounds)
 
 
 class OnlineFilter:
