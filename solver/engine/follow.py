@@ -121,6 +121,7 @@ class FollowingFilter(ChunkedFilter):
     engine's with ``center`` set; results carry the centre after every row (``ChunkResult.center``)."""
 
     method = "yau-yau"
+    follows = True
 
     def __init__(self, engine: Any):
         self.home = engine

@@ -62,11 +62,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, SpecError
+from ..expressions import affine_coefficients
 from ..filtering import ChunkedFilter, ChunkResult, chunk_clock
 from ..gaussian import GaussianFilter, GaussianState, log_normal
 from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
-from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
+from ..reference.kalman import DiscreteKalmanFilter, van_loan
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,

@@ -54,12 +54,12 @@ from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
+from ..expressions import affine_coefficients
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
 from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
-from ..model import Model, mixture_weights
-from ..reference.kalman import affine_coefficients
-from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from ..model import Model
+from ..spec_tables import DensityPrior, GaussianPrior, MixturePrior, mixture_weights
 from .prior_fit import fit_mixture_grid, weighted_em
 from .riccati import (
     FlowFamily,

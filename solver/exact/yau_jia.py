@@ -68,7 +68,7 @@ from .riccati import (
     mixture_state_from_dict,
 )
 from .schedule import BoundedCache, regular_gaps
-from .yau_system import _exponential_sum
+from .yau_system import exponential_sum
 
 # the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
 # chosen so that mean and variance are kept exactly)
@@ -176,7 +176,7 @@ class YauJiaFilter(ChunkedFilter):
         if s.phi == 0:
             self.exp_phi_slopes, self.exp_phi_logc = np.zeros((1, n)), np.zeros(1)
         else:
-            found = _exponential_sum(s.phi, model.symbols)
+            found = exponential_sum(s.phi, model.symbols)
             if found is None:
                 raise SpecError("drift", f"e^phi (phi = {s.phi}) is not a sum of exponentials of affine "
                                          "functions: the moments of sigma = e^phi v have no closed form")
