@@ -393,6 +393,24 @@ def nonsmooth_functions(exprs: Sequence["sp.Expr"]) -> list[str]:
     return [name for name in NONSMOOTH if any(e.has(kinds[name]) for e in exprs)]
 
 
+def affine_coefficients(exprs: Sequence["sp.Expr"], symbols: Sequence["sp.Symbol"],
+                        field: str) -> tuple[np.ndarray, np.ndarray]:
+    """(A, b) with exprs = A x + b exactly; SpecError naming ``field`` if not affine."""
+    import sympy as sp
+
+    jac = sp.Matrix(exprs).jacobian(symbols)
+    if any(entry.free_symbols & set(symbols) for entry in jac):
+        raise SpecError(field, "is not affine in the state; this filter needs an affine (linear) model")
+    at_zero = {s: 0 for s in symbols}
+    try:
+        A = np.array([[float(v) for v in row] for row in jac.tolist()], dtype=float).reshape(len(exprs),
+                                                                                               len(symbols))
+        b = np.array([float(e.subs(at_zero)) for e in exprs], dtype=float)
+    except TypeError:
+        raise SpecError(field, "has non-real coefficients") from None
+    return A, b
+
+
 def _dirac_delta(*args: Any) -> Any:
     """The derivative of a jump (sign, and of abs/min/max twice) almost everywhere: 0."""
     return np.zeros_like(np.asarray(args[0], dtype=float))

@@ -25,12 +25,17 @@ the registry of solver/methods.py.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Protocol, Self, TypeVar, runtime_checkable
 
 import numpy as np
 
 from .errors import InputError
+from .measurement import Observation, check_gate, check_spacing
 
 
 @dataclass(slots=True)
@@ -257,6 +262,8 @@ class Filter(Protocol):
 
     method: ClassVar[str]
     """The registry name: "yau-yau", "kalman-bucy", "yau-hu", "wei-norman", ..."""
+    follows: ClassVar[bool]
+    """Its domain ball follows the state: results carry the centre (``[domain] follow``)."""
     model: Any  # solver/model.Model (importing it here would close the circle model -> gaussian -> here)
     """The compiled model the filter was built for (solver/model.Model)."""
 
@@ -295,6 +302,7 @@ class ChunkedFilter:
     model: Any
     """The compiled model the filter was built for (solver/model.Model)."""
 
+    follows: ClassVar[bool] = False  # the engine on a following ball (solver/engine/follow.py) says True
     gate_override: float | None = None
     """The gate set for this filter (``with_gate``; None: the spec's ``[measurement] gate``)."""
 
@@ -302,8 +310,6 @@ class ChunkedFilter:
     def observation(self):
         """The spec's ``[measurement]`` with this filter's gate (solver/measurement.Observation), one
         per gate, kept."""
-        from .measurement import Observation
-
         cache = self.__dict__.setdefault("_observations", {})
         gate = self.gate
         found = cache.get(gate)
@@ -314,10 +320,6 @@ class ChunkedFilter:
     def with_gate(self, gate: float | None) -> Self:
         """This filter with another gate (None: the spec's): a shallow copy that shares every array
         and cache of this one (cheap: what a service keeps per session option)."""
-        import copy
-
-        from .measurement import check_gate
-
         new = copy.copy(self)
         new.gate_override = check_gate(gate)
         return new
@@ -345,8 +347,6 @@ class ChunkedFilter:
                   return_exceptions: bool = False) -> list[tuple[State, ChunkResult] | InputError]:
         """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/engine/batch.py;
         the Yau–Yau engine steps them together, other filters one after another)."""
-        from .engine.batch import run_batch_alone
-
         return run_batch_alone(self, states, chunks, times, return_exceptions)
 
     def predict(self, state: State, t: float) -> tuple[State, Estimate]:
@@ -360,6 +360,33 @@ class ChunkedFilter:
         if t == state.t:
             return state, self.estimate(state)
         return self.step(state, None, t)
+
+
+def run_batch_alone(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
+                    return_exceptions: bool = False) -> list[tuple[Any, ChunkResult] | InputError]:
+    """The contract of ``run_batch`` (solver/engine/batch.py), one ``run_arrays`` per item (any filter)."""
+    return per_item(states, chunks, times, return_exceptions,
+                    lambda i, state, chunk, chunk_times: engine.run_arrays(state, chunk, chunk_times))
+
+
+def per_item(states: list[Any], chunks: list[Any], times: list[Any] | None, return_exceptions: bool,
+             item: Any) -> list[Any]:
+    """``item(i, state, chunk, times)`` for every i; a refused item's InputError in its place
+    (``return_exceptions``) or raised naming it (``chunks[i]…``)."""
+    if len(states) != len(chunks):
+        raise InputError("chunks", f"one chunk per state: {len(states)} state(s), {len(chunks)} chunk(s)")
+    if times is not None and len(times) != len(chunks):
+        raise InputError("times", f"one list of times (or None) per chunk: {len(chunks)} chunk(s), "
+                                  f"{len(times)} list(s)")
+    out: list[Any] = []
+    for i, (state, chunk) in enumerate(zip(states, chunks, strict=True)):
+        try:
+            out.append(item(i, state, chunk, None if times is None else times[i]))
+        except InputError as exc:
+            if not return_exceptions:
+                raise InputError(f"chunks[{i}].{exc.field}", exc.message) from None
+            out.append(exc)
+    return out
 
 
 def one_row(row: Any | None, m: int, field: str) -> np.ndarray:
@@ -377,11 +404,6 @@ def check_t0(t0: Any, field: str = "t0", dt: float | None = None, what: str = "t
     """The time of a prior: a finite real number, else InputError naming ``field``; with the model's
     ``dt``, one where a step of dt keeps its precision (:func:`solver.measurement.check_spacing`; the
     message calls it ``what``)."""
-    import math
-    import numbers
-
-    from .measurement import check_spacing
-
     if isinstance(t0, bool) or not isinstance(t0, numbers.Real) or not math.isfinite(t0):
         raise InputError(field, "must be a finite number (the time of the prior)")
     if dt is not None:
@@ -391,8 +413,6 @@ def check_t0(t0: Any, field: str = "t0", dt: float | None = None, what: str = "t
 
 def at_time(state: State, t0: float) -> State:
     """An initial state held at time ``t0`` (the prior's time) instead of 0."""
-    import dataclasses
-
     if t0 == 0.0:
         return state
     if hasattr(state, "last"):
@@ -404,8 +424,6 @@ def chunk_clock(state: FilterState, K: int, dt: float, times: Any,
                 taus: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
     while the state is on it, as the regular filters always were)."""
-    from .measurement import check_spacing
-
     steps = state.step + 1 + np.arange(K)
     if taus is not None:
         return steps, np.asarray(times, dtype=float).reshape(-1)

@@ -15,7 +15,7 @@ import numpy as np
 
 from .errors import InputError, SpecError
 from .filtering import Estimate, StepState
-from .spec import GaussianPrior
+from .spec_tables import GaussianPrior
 
 LOG_2PI = math.log(2.0 * math.pi)
 

@@ -18,7 +18,9 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from .errors import SpecError
 from .expressions import (
+    affine_coefficients,
     number,
     parse_expression,
     state_symbols,
@@ -26,7 +28,8 @@ from .expressions import (
     vectorize_many,
 )
 from .gaussian import log_normal
-from .spec import POSTERIOR_NEEDS_LINEAR, DensityPrior, GaussianPrior, MixturePrior, ModelSpec
+from .spec import POSTERIOR_NEEDS_LINEAR, ModelSpec
+from .spec_tables import DensityPrior, GaussianPrior, MixturePrior, mixture_weights
 
 if TYPE_CHECKING:
     import sympy as sp
@@ -118,9 +121,6 @@ class Model:
         """Σ of ``shape = "posterior"``: the stabilising solution of the Kalman–Bucy Riccati equation
         AΣ + ΣAᵀ + a − ΣHᵀR⁻¹HΣ = 0 (scipy), for f = Ax + b and h = Hx + h₀ (SymPy checks both)."""
         import scipy.linalg as sla
-
-        from .errors import SpecError
-        from .reference.kalman import affine_coefficients
 
         why = POSTERIOR_NEEDS_LINEAR
         drift = self.affine_drift
@@ -221,9 +221,6 @@ class Model:
     @cached_property
     def affine_drift(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(A, b) when f(x) = Ax + b exactly (the Jacobian of f is constant, SymPy), else None."""
-        from .errors import SpecError
-        from .reference.kalman import affine_coefficients
-
         try:
             return affine_coefficients(self.drift, self.symbols, "drift")
         except SpecError:
@@ -306,14 +303,6 @@ class Model:
             cov = np.einsum("k,kij->ij", w, covs) + np.einsum("k,ki,kj->ij", w, d, d)
             return mean, cov
         return None
-
-
-def mixture_weights(weights) -> np.ndarray:
-    """Weights scaled to sum 1 without overflow: divided by their largest first ([1e308, 1e308] ->
-    [0.5, 0.5]; the plain sum would be inf and every weight 0)."""
-    w = np.asarray(weights, dtype=float)
-    w = w / w.max()
-    return w / w.sum()
 
 
 def compile_model(spec: ModelSpec) -> Model:

@@ -31,6 +31,7 @@ import numpy as np
 
 from .errors import InputError, SpecError
 from .filtering import ChunkResult, Estimate, concat_results, slice_result
+from .spec import spec_from_dict
 
 POLICIES = ("stop", "reinitialise")
 DEFAULT_POLICY = "stop"
@@ -76,8 +77,6 @@ def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
 def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
     """The filter started again at ``state``'s step and time from ``prior`` (a spec prior or its dict;
     None: the model's), the log-likelihood carried on."""
-    from .spec import spec_from_dict
-
     if not getattr(flt, "restartable", True):
         raise InputError("on_degenerate", f"method {flt.method} cannot start again mid-stream (its "
                                           "representation runs from t = 0): use yau-yau, or start a new "
@@ -102,7 +101,7 @@ def restart_from_last(flt: Any, state: Any) -> tuple[Any, str]:
     try:
         return restart(flt, state, broadened_prior(flt, last)), "re-initialised around the last good estimate"
     except (SpecError, InputError) as exc:
-        if _follows(flt):
+        if flt.follows:
             raise NoRestart(exc.message) from None
         return restart(flt, state, None), f"re-initialised from the model's prior ({exc.message})"
 
@@ -121,13 +120,6 @@ class NoRestart(InputError):
         super().__init__("from", f"cannot start again around the last good estimate: {message}; send a "
                                  "prior where the state is now, or precompute a wider region")
         self.reason = message
-
-
-def _follows(flt: Any) -> bool:
-    """A ball that follows the state (results carry its centre)."""
-    from .engine.follow import FollowingFilter
-
-    return isinstance(flt, FollowingFilter)
 
 
 def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = None,
@@ -206,7 +198,7 @@ def _restart_row(flt: Any, state: Any, note: str) -> ChunkResult:
     n = len(e.mean)
     mode = np.asarray(e.mode if e.mode is not None else e.mean, dtype=float)[None]
     # a following ball restarts centred on the new prior: the row has its centre, like every other row
-    center = getattr(state, "center", None) if _follows(flt) else None
+    center = getattr(state, "center", None) if flt.follows else None
     return ChunkResult(step=np.array([state.step]), t=np.array([float(state.t)]),
                        mean=np.asarray(e.mean)[None], cov=np.asarray(e.cov).reshape(1, n, n), mode=mode,
                        loglik=np.array([float(state.loglik)]),

@@ -58,6 +58,8 @@ import numpy as np
 
 from .errors import InputError
 from .filtering import ChunkResult, chunk_clock
+from .measurement import check_rows, resolve_times
+from .recovery import run_with_policy
 from .spec import MONITOR_DEFAULT  # 0: the monitor is off unless a session or the spec sets it
 
 LOST_GATED = 20  # consecutive gated rows: lost track
@@ -257,8 +259,6 @@ def watched_run(flt: Any, state: Any, watch: Watch, rows: Any, times: Any | None
     """``run_with_policy`` (solver/recovery.py) with the watch: (new state, new watch, result).  A
     filter that has lost track answers degenerate rows (its last estimate, the reason) and computes
     nothing until it is reset."""
-    from .recovery import run_with_policy
-
     settings = settings or WatchSettings()
     if watch.lost is not None:
         new_state, result = hold(flt, state, rows, times, watch.lost)
@@ -321,11 +321,9 @@ def _gated_runs(result: ChunkResult, rows: np.ndarray, run: int, rule: LostTrack
 
 def lost_reason(flt: Any, what: str) -> str:
     """The lost-track reason: what happened and, for a filter on a ball, the domain and the fix."""
-    from .engine.follow import FollowingFilter
-
     head = f"lost track: {what}; the estimates no longer follow the state"
     model = flt.model
-    if isinstance(flt, FollowingFilter):
+    if flt.follows:
         where = ("or left domain.region (a wider region), " if model.spec.domain.region is not None else "")
         return (f"{head}: it probably moves faster than the ball of radius {model.radius:g} re-centres, "
                 f"{where}or the model does not explain the data: set a larger domain.radius (or a smaller "
@@ -360,8 +358,6 @@ def _marked(state: Any, reason: str) -> Any:
 def hold(flt: Any, state: Any, rows: Any, times: Any | None, reason: str) -> tuple[Any, ChunkResult]:
     """A chunk through a filter that lost track: each row degenerate with ``reason``, repeating the
     filter's estimate; the state moves to the chunk's last time and computes nothing."""
-    from .measurement import check_rows, resolve_times
-
     model = flt.model
     discrete = model.spec.measurement.kind == "discrete"
     checked = check_rows(rows, model.m, "observations" if discrete else "increments")

@@ -18,13 +18,13 @@ import sympy as sp
 from ..model import Model
 from .budget import DEFAULT_MAX_SIZE, DEFAULT_TIME_LIMIT, BoundReached, Budget, bounded, current_budget
 from .operators import (
-    _DIGITS,
-    _TOL,
+    DIGITS,
+    TOL,
     Operator,
-    _rational_polynomial,
     bracket,
     kolmogorov_operator,
     multiplication,
+    rational_polynomial,
 )
 
 DEFAULT_MAX_DEPTH = 6  # rounds of brackets
@@ -42,7 +42,7 @@ class _Echelon:
         self.rows: dict = {}  # pivot key -> row (row[pivot] == 1, zero at the other pivots)
 
     def _zero(self, v) -> bool:
-        return v == 0 if self.exact else abs(v) <= _TOL
+        return v == 0 if self.exact else abs(v) <= TOL
 
     def reduce(self, vec: dict) -> dict:
         vec = dict(vec)
@@ -142,7 +142,7 @@ class EstimationAlgebra:
 
     def contains(self, A: Operator) -> bool:
         """Is A in the span found (E itself when closed)?"""
-        with mpmath.workdps(_DIGITS):  # mpf arithmetic runs at the context precision
+        with mpmath.workdps(DIGITS):  # mpf arithmetic runs at the context precision
             return not self._echelon.reduce(self._vectorize(A))
 
 
@@ -165,7 +165,7 @@ def bounded_algebra(model: Model, max_depth: int, max_dimension: int) -> Estimat
     """The algebra under the current budget; a bound reached ends the search (not closed)."""
     budget = current_budget()
     search = _AlgebraSearch(model, max_dimension)
-    with mpmath.workdps(_DIGITS):  # mpf arithmetic of the numeric rank test runs at this precision
+    with mpmath.workdps(DIGITS):  # mpf arithmetic of the numeric rank test runs at this precision
         try:
             stopped_by = search.run(max_depth)
             rank = _linear_rank(search.echelon, search.vectorize, model.n) if stopped_by is None else None
@@ -203,7 +203,7 @@ class _AlgebraSearch:
         model, x, n = self.model, self.model.symbols, self.model.n
         generators = [(kolmogorov_operator(model), "L0")]
         generators += [(multiplication(hi, n), f"h{i + 1}") for i, hi in enumerate(model.observation)]
-        self.exact = all(_rational_polynomial(c, x) for op, _ in generators for c in op.values())
+        self.exact = all(rational_polynomial(c, x) for op, _ in generators for c in op.values())
         self.vectorize = _Vectorizer(x, self.exact, points=3 * self.max_dimension + 8, radius=model.radius,
                                      center=[float(c) for c in model.center])
         self.echelon = _Echelon(self.exact)

@@ -20,9 +20,11 @@ from typing import Any
 
 import sympy as sp
 
+from ..errors import SpecError
 from ..model import Model
 from .budget import BoundReached, current_budget, expand
 from .operators import exact_matrix, is_identity, is_zero, observation_energy, tidy
+from .yau_jia import yau_jia_structure
 
 
 def wong_matrix(model: Model) -> sp.Matrix:
@@ -242,9 +244,6 @@ def decide_conditions(model: Model) -> Facts:
 
 
 def _yau_jia_fact(model: Model, facts: Facts) -> tuple[bool | None, str]:
-    from ..errors import SpecError
-    from .yau_jia import yau_jia_structure
-
     try:
         structure = facts.decide(lambda: yau_jia_structure(model))
     except SpecError as exc:

@@ -20,9 +20,9 @@ from .budget import BoundReached, current_budget, expand, expanded_terms, expres
 
 _PRODUCT_TERMS = 20_000  # most terms of one product expanded in a composition
 _SIMPLIFY_NODES = 60  # sp.simplify only on expressions this small (its cost explodes beyond)
-_ZERO_POINTS = 6  # random points of the numeric zero test
-_DIGITS = 50  # working precision of the numeric rank test
-_TOL = mpmath.mpf(10) ** (-30)
+ZERO_POINTS = 6  # random points of the numeric zero test
+DIGITS = 50  # working precision of the numeric rank test
+TOL = mpmath.mpf(10) ** (-30)
 
 Operator = dict  # tuple[int, ...] (derivative multi-index) -> sp.Expr coefficient
 
@@ -47,7 +47,7 @@ def is_zero(expr: sp.Expr, symbols) -> bool:
     if e == 0:
         return True
     variables = sorted(e.free_symbols | set(symbols), key=str)
-    if _rational_polynomial(e, variables) or e.is_Rational:
+    if rational_polynomial(e, variables) or e.is_Rational:
         return False
     budget.numeric_zero_tests += 1
     return _vanishes_at_random_points(e, variables)
@@ -55,8 +55,8 @@ def is_zero(expr: sp.Expr, symbols) -> bool:
 
 def _vanishes_at_random_points(e: sp.Expr, symbols) -> bool:
     rng = random.Random(271828)
-    points = [[mpmath.mpf(rng.randint(-1900, 1900)) / 1000 for _ in symbols] for _ in range(_ZERO_POINTS)]
-    with mpmath.workdps(_DIGITS):
+    points = [[mpmath.mpf(rng.randint(-1900, 1900)) / 1000 for _ in symbols] for _ in range(ZERO_POINTS)]
+    with mpmath.workdps(DIGITS):
         fn = sp.lambdify(list(symbols), e, modules="mpmath")
         evaluated = 0
         for point in points:
@@ -66,7 +66,7 @@ def _vanishes_at_random_points(e: sp.Expr, symbols) -> bool:
             except (ZeroDivisionError, ValueError, OverflowError):
                 continue  # a singular point tells nothing
             evaluated += 1
-            if not abs(value) <= _TOL:
+            if not abs(value) <= TOL:
                 return False
     return evaluated > 0  # nowhere evaluable: not shown to vanish
 
@@ -83,7 +83,8 @@ def tidy(expr: sp.Expr) -> sp.Expr:
     return sp.expand(expr)
 
 
-def _rational_polynomial(expr: sp.Expr, symbols) -> bool:
+def rational_polynomial(expr: sp.Expr, symbols) -> bool:
+    """True when ``expr`` is a polynomial in ``symbols`` with rational coefficients (exact arithmetic)."""
     try:
         poly = sp.Poly(expr, *symbols)
     except sp.PolynomialError:

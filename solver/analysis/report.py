@@ -26,7 +26,7 @@ from ..papers import cite, cite_full, reference
 from .algebra import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, EstimationAlgebra, bounded_algebra
 from .budget import DEFAULT_MAX_SIZE, DEFAULT_TIME_LIMIT, Budget, bounded
 from .conditions import Condition, Facts, all_of, decide_conditions, observed_coordinate
-from .operators import _DIGITS, _ZERO_POINTS, is_identity, show, show_operator
+from .operators import DIGITS, ZERO_POINTS, is_identity, show, show_operator
 
 # the papers every report rests on: (C1)-(C3) from seed 000, E and its algorithm from seed 002, the
 # non-maximal-rank class from seed 004
@@ -69,7 +69,7 @@ class AnalysisReport:
                 "linear_rank": alg.linear_rank, "maximal_rank": alg.maximal_rank,
                 "rounds": alg.rounds, "max_depth": alg.max_depth, "max_dimension": alg.max_dimension,
                 "stopped_by": alg.stopped_by, "time_limit": alg.time_limit, "max_size": alg.max_size,
-                "rank_test": "exact over Q" if alg.exact else f"numeric, {_DIGITS} digits at random points"},
+                "rank_test": "exact over Q" if alg.exact else f"numeric, {DIGITS} digits at random points"},
             "summary": self.summary,
             "recommendation": {"method": self.method, "reason": self.reason},
             "elapsed_s": round(self.elapsed, 3),
@@ -217,7 +217,7 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
                      "(the Wong matrix of z = L^-1 x, a = L L^T); "
                      f"the {CLASS_004} class is only tested for a = I")
     if facts.numeric:
-        notes.append(f"non-polynomial zero tests are numeric ({_DIGITS} digits at {_ZERO_POINTS} "
+        notes.append(f"non-polynomial zero tests are numeric ({DIGITS} digits at {ZERO_POINTS} "
                      "random points)")
     undecided = ""
     if facts.stopped_by:

@@ -36,7 +36,7 @@ import numpy as np
 import sympy as sp
 
 from ..errors import SpecError
-from ..exact.yau_system import _potential  # φ with ∇φ = w, by successive integration
+from ..exact.yau_system import gradient_potential  # φ with ∇φ = w, by successive integration
 from ..model import Model
 from .budget import expand
 from .operators import exact_matrix, is_zero, observation_energy, show
@@ -124,7 +124,7 @@ def yau_jia_structure(model: Model) -> YauJiaStructure:
                 if not is_zero(expand(J[i, j] - J[j, i]), xs):
                     raise SpecError("drift", "(4.1) fails: f is not affine plus a times a gradient "
                                              f"(d w_{i}/dx_{j} != d w_{j}/dx_{i} for w = a^-1 (f - affine))")
-        phi = _potential(w, xs)
+        phi = gradient_potential(w, xs)
     grad = sp.Matrix([sp.diff(phi, s) for s in xs])
     hess = sp.hessian(phi, xs) if phi != 0 else sp.zeros(n, n)
     drift_affine = sp.Matrix(affine)

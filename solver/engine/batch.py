@@ -35,8 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..filtering import ChunkResult, chunk_clock
+from ..filtering import chunk_clock, per_item
 from ..measurement import check_first_gap, check_rows, resolve_times
 
 BATCH_RTOL = {"double": 1e-10, "single": 5e-3}  # relative, against stepping alone (module docstring)
@@ -67,7 +66,7 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
         member = _fast_member(engine, i, state, chunk, chunk_times)
         return engine.run_arrays(state, chunk, chunk_times) if member is None else member
 
-    out = _per_item(states, chunks, times, return_exceptions, item)
+    out = per_item(states, chunks, times, return_exceptions, item)
     members = [m for m in out if isinstance(m, _Member)]
     for group in _groups(members, len(engine.nodes), np.dtype(engine.arith.dtype).itemsize):
         for member in group:  # the update factors of this group only: memory bounded by the group
@@ -209,31 +208,4 @@ def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]
             continue
         K = len(member.rows)
         out.append((sigma[:K, s], masses[:K, s], finals[s], K, None))
-    return out
-
-
-def run_batch_alone(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
-                    return_exceptions: bool = False) -> list[tuple[Any, ChunkResult] | InputError]:
-    """The same contract as :func:`run_batch`, one ``run_arrays`` per item (any filter)."""
-    return _per_item(states, chunks, times, return_exceptions,
-                     lambda i, state, chunk, chunk_times: engine.run_arrays(state, chunk, chunk_times))
-
-
-def _per_item(states: list[Any], chunks: list[Any], times: list[Any] | None, return_exceptions: bool,
-              item: Any) -> list[Any]:
-    """``item(i, state, chunk, times)`` for every i; a refused item's InputError in its place
-    (``return_exceptions``) or raised naming it (``chunks[i]…``)."""
-    if len(states) != len(chunks):
-        raise InputError("chunks", f"one chunk per state: {len(states)} state(s), {len(chunks)} chunk(s)")
-    if times is not None and len(times) != len(chunks):
-        raise InputError("times", f"one list of times (or None) per chunk: {len(chunks)} chunk(s), "
-                                  f"{len(times)} list(s)")
-    out: list[Any] = []
-    for i, (state, chunk) in enumerate(zip(states, chunks, strict=True)):
-        try:
-            out.append(item(i, state, chunk, None if times is None else times[i]))
-        except InputError as exc:
-            if not return_exceptions:
-                raise InputError(f"chunks[{i}].{exc.field}", exc.message) from None
-            out.append(exc)
     return out

@@ -46,10 +46,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, concat_results
+from ..filtering import ChunkedFilter, ChunkResult, concat_results, run_batch_alone
 from ..measurement import check_rows
 from .atlas import kept, move_step, needs_atlas
-from .batch import run_batch_alone
 from .carry import Carry, carried_at, unshaped_points
 from .frame import affine_frame
 from .kernel import with_zero_column
@@ -91,6 +90,7 @@ class FollowingFilter(ChunkedFilter):
     engine's with ``center`` set; results carry the centre after every row (``ChunkResult.center``)."""
 
     method = "yau-yau"
+    follows = True
 
     def __init__(self, engine: Any):
         self.home = engine

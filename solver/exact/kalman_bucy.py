@@ -56,17 +56,25 @@ only predicts and is flagged (``gated``, ``gate_score``); the chunk is re-run fr
 from __future__ import annotations
 
 import math
-from dataclasses import astuple, dataclass, replace
+from dataclasses import astuple, replace
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, SpecError
+from ..errors import SpecError
+from ..expressions import affine_coefficients
 from ..filtering import ChunkedFilter, ChunkResult, chunk_clock
 from ..gaussian import GaussianFilter, GaussianState, log_normal
 from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
-from ..reference.kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
+from ..reference.kalman import DiscreteKalmanFilter, van_loan
+from .kalman_steps import (
+    LinearSteps,
+    continuous_coefficients,
+    kalman_coefficients,
+    kalman_covariances,
+    quadratic,
+)
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
@@ -88,21 +96,6 @@ from .schedule import (
 )
 
 KINDS = ("continuous", "discrete")  # the constructor's increment model: "discrete" = the sampled model
-
-
-@dataclass(frozen=True)
-class _LinearSteps:
-    """One regular step of a discrete-time Kalman filter: x ← Φx + shift + N(0, Q), then the row
-    y = C x + c + N(0, V); ``relative``: the log-likelihood is relative to N(y; 0, V) (the sampled
-    increment model's Brownian reference), else the density itself (discrete measurements)."""
-
-    phi: np.ndarray
-    shift: np.ndarray
-    Q: np.ndarray
-    C: np.ndarray
-    c: np.ndarray
-    V: np.ndarray
-    relative: bool
 
 
 class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
@@ -146,14 +139,14 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         self._schedules = ScheduleCache()  # covariance -> (schedule, step index)
         self._patterns: dict[int, tuple] = {}  # pattern -> its observation pieces
 
-    def _linear_steps(self) -> _LinearSteps | None:
+    def _linear_steps(self) -> LinearSteps | None:
         model = self.model
         if self.sampled:
             kf, dt = DiscreteKalmanFilter(model), model.dt
-            return _LinearSteps(kf.phi, kf.shift, kf.Q, kf.H * dt, kf.h0 * dt, model.R * dt, True)
+            return LinearSteps(kf.phi, kf.shift, kf.Q, kf.H * dt, kf.h0 * dt, model.R * dt, True)
         if self.discrete:
             phi, shift, Q = self._moments_over(model.dt)
-            return _LinearSteps(phi, shift, Q, self.H, self.h0, np.asarray(model.R, float), False)
+            return LinearSteps(phi, shift, Q, self.H, self.h0, np.asarray(model.R, float), False)
         return None
 
     def potential_terms(self, increment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -374,13 +367,14 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         if self._kalman is None:
             path = self._flows.path(zeros.astype(int), schedule.end[None])[:, 0]
             keep, settled = settle(path)
-            parts = _continuous_coefficients(self, path[:keep], path[1:keep + 1])
+            parts = continuous_coefficients(self.model, self._flows, self._HtR, self.h0, path[:keep],
+                                            path[1:keep + 1])
         else:
             kf = self._kalman
-            pieces = _kalman_covariances(kf.phi, kf.Q, kf.C, kf.V, schedule.end, zeros)
+            pieces = kalman_covariances(kf.phi, kf.Q, kf.C, kf.V, schedule.end, zeros)
             path = np.concatenate([schedule.end[None], pieces[-1]])
             keep, settled = settle(path)
-            parts = _kalman_coefficients(self, path[:keep], *(p[:keep] for p in pieces))
+            parts = kalman_coefficients(kf, self.model, path[:keep], *(p[:keep] for p in pieces))
         schedule.append(parts, settled, path[keep])
 
     def _scheduled_chunk(self, state: GaussianState, dy: np.ndarray):
@@ -403,7 +397,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
             b = schedule.v0[idx] + (Vy @ dy[..., None])[..., 0]
         x = linear_recursion(W, b, x0)
         u = np.concatenate([x[:-1], dy], axis=1)
-        ll = _quadratic(schedule.kappa[idx], schedule.ell[idx], schedule.M[idx], u)
+        ll = quadratic(schedule.kappa[idx], schedule.ell[idx], schedule.M[idx], u)
         if self._kalman is not None:
             mean = x[1:]
         elif self.model.n == 1:
@@ -461,7 +455,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         kf, model = self._kalman, self.model
         n, m = model.n, model.m
         Hd, Rdt = kf.C, kf.V
-        cov_pred, gain, innovation, cov = _kalman_covariances(kf.phi, kf.Q, Hd, Rdt, state.cov, missing)
+        cov_pred, gain, innovation, cov = kalman_covariances(kf.phi, kf.Q, Hd, Rdt, state.cov, missing)
         # m_k = (I − G_k Hd)(Φ m_{k−1} + shift) + G_k (Δy_k − c)
         I_GH = np.eye(n) - gain @ Hd
         W = I_GH @ kf.phi
@@ -472,140 +466,6 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         if kf.relative:
             ll = ll - log_normal(dy, np.zeros(m), Rdt[None])
         return means[1:], cov, np.where(missing, 0.0, ll)
-
-
-def _kalman_covariances(phi, Q, Hd, Rdt, P0, missing):
-    """Predicted covariances, gains, innovation covariances and filtered covariances (K, ·, ·)."""
-    K, n, m = len(missing), phi.shape[0], Hd.shape[0]
-    cov_pred, cov = np.empty((K, n, n)), np.empty((K, n, n))
-    gain, innovation = np.zeros((K, n, m)), np.empty((K, m, m))
-    innovation[:] = Rdt  # placeholder on missing rows (their log-likelihood is 0)
-    if n == 1 and m == 1:  # scalar fast path
-        f, q, hd, rdt = float(phi[0, 0]) ** 2, float(Q[0, 0]), float(Hd[0, 0]), float(Rdt[0, 0])
-        p, rows = float(P0[0, 0]), []
-        for miss in missing.tolist():
-            pp = f * p + q
-            if miss:
-                rows.append((pp, 0.0, rdt, pp))
-                p = pp
-            else:
-                s = hd * hd * pp + rdt
-                g = pp * hd / s
-                p = pp - g * s * g
-                rows.append((pp, g, s, p))
-        table = np.array(rows)
-        cov_pred[:, 0, 0], gain[:, 0, 0], innovation[:, 0, 0], cov[:, 0, 0] = table.T
-        return cov_pred, gain, innovation, cov
-    P = np.asarray(P0, dtype=float)
-    for k, miss in enumerate(missing.tolist()):
-        pp = cov_pred[k] = phi @ P @ phi.T + Q
-        if not miss:
-            S = innovation[k] = Hd @ pp @ Hd.T + Rdt
-            G = gain[k] = np.linalg.solve(S, Hd @ pp).T
-            pp = pp - G @ S @ G.T
-        P = cov[k] = 0.5 * (pp + pp.T)
-    return cov_pred, gain, innovation, cov
-
-
-# -- cached schedules: the data-free coefficients of consecutive observed steps ---------------
-# For a time-invariant model the covariance path from a given start does not depend on the data
-# and converges geometrically to the steady state.  A schedule stores, step by step, the
-# recursion x_k = W_k x_{k−1} + Vy_k Δy_k + v0_k of the data-carrying variable x (B of the
-# exponent for the continuous kind, the mean for the discrete one), the covariance P_k, and
-# the log-likelihood increment as one quadratic form ll_k = κ_k + ℓ_kᵀu + ½uᵀ𝕄_k u in
-# u = (x_{k−1}, Δy_k).  Once the path stops moving (to rounding) the last entry is the steady
-# step and is reused for every later step.
-
-def _quadratic(kappa, ell, M, u) -> np.ndarray:
-    """κ_k + ℓ_kᵀu_k + ½u_kᵀ𝕄_k u_k for rows u (K, n + m)."""
-    if u.shape[1] == 2:  # n = m = 1: elementwise
-        z, y = u[:, 0], u[:, 1]
-        return kappa + ell[:, 0] * z + ell[:, 1] * y + 0.5 * (M[:, 0, 0] * z * z + M[:, 1, 1] * y * y) \
-            + M[:, 0, 1] * z * y
-    return kappa + (ell * u).sum(-1) + 0.5 * np.einsum("ka,kab,kb->k", u, M, u)
-
-
-def _swap(X: np.ndarray) -> np.ndarray:
-    return np.swapaxes(X, -1, -2)
-
-
-def _scalar_ops(n: int):
-    """(product, inverse, log det) of stacked n×n matrices; elementwise for n = 1 (no per-matrix calls)."""
-    if n == 1:
-        return np.multiply, np.reciprocal, lambda X: np.log(X[..., 0, 0])
-    return np.matmul, np.linalg.inv, lambda X: np.linalg.slogdet(X)[1]
-
-
-def _continuous_coefficients(kb: "KalmanBucyFilter", A_prev: np.ndarray, A_next: np.ndarray) -> dict:
-    """Schedule entries of observed continuous steps from A_prev (L, n, n) (A_next: after each step).
-
-    The flow of riccati.StepBatch written out with the data kept symbolic: B(s) = X(s)⁻ᵀ[B_prev +
-    IX(s)ᵀq − 2IY(s)ᵀd] with q = HᵀR⁻¹(h0 − Δy/dt) is affine in u = (B_prev, Δy), so the C gain
-    (Gauss–Legendre in s) and log ∫σ_k − log ∫σ_{k−1} are quadratic in u.
-    """
-    model, family = kb.model, kb._flows
-    n, dt, eq = model.n, model.dt, family.eq
-    mm, inv, log_det = _scalar_ops(n)
-    Phi, Psi, w = family.Phi[0], family.Psi[0], family.w  # the observed flow: (S+1, 2n, 2n)
-    A = A_prev[:, None]
-    X = Phi[:, :n, :n] + mm(Phi[:, :n, n:], A)  # (L, S+1, n, n)
-    IX = Psi[:, :n, :n] + mm(Psi[:, :n, n:], A)
-    IY = Psi[:, n:, :n] + mm(Psi[:, n:, n:], A)
-    X_dt = X[:, -1]
-    if n == 1 and not np.all(X_dt > 0) or n > 1 and np.any(np.linalg.slogdet(X_dt)[0] <= 0):
-        raise InputError("dt", "the Riccati solution blows up within the step (det X <= 0)")
-    T = _swap(inv(X))
-    TF = mm(T, _swap(IX))
-    Ls = np.concatenate([T, mm(TF, -kb._HtR / dt)], axis=-1)  # B(s) = Ls u + c(s), (L, S+1, n, n+m)
-    forcing = mm(TF, (kb._HtR @ kb.h0)[:, None]) - 2.0 * mm(T, mm(_swap(IY), eq.d[:, None]))
-    c = forcing[..., 0]
-    # Σ_s w_s(½B(s)ᵀaB(s) + dᵀB(s)) at the quadrature nodes, as batched products over (s, i)
-    root_w = np.sqrt(w)[:, None, None]  # Gauss–Legendre weights are positive
-    Ln, cn = Ls[:, :-1] * root_w, c[:, :-1]
-    L_flat = _swap(Ln.reshape(len(Ln), -1, Ln.shape[-1]))  # (L, n+m, S·n)
-    Mw = L_flat @ (eq.a @ Ln).reshape(len(Ln), -1, Ln.shape[-1])
-    lw = (L_flat @ ((cn @ eq.a + eq.d) * root_w[..., 0]).reshape(len(Ln), -1, 1))[..., 0]
-    cw = (0.5 * ((cn @ eq.a) * cn).sum(-1) + cn @ eq.d) @ w
-    G, v0 = Ls[:, -1], c[:, -1]
-    P, P_prev = inv(2.0 * A_next), inv(2.0 * A_prev)
-    P, P_prev = 0.5 * (P + _swap(P)), 0.5 * (P_prev + _swap(P_prev))
-    R_inv, h0 = model.R_inv, kb.h0
-    g0 = 0.5 * log_det(X_dt) + (0.5 * h0 @ R_inv @ h0 + 0.5 * np.trace(eq.D)) * dt
-    Pv = mm(P, v0[..., None])
-    M = mm(mm(_swap(G), P), G) + Mw
-    M[:, :n, :n] -= P_prev
-    ell = mm(_swap(G), Pv)[..., 0] + lw
-    ell[:, n:] += R_inv @ h0  # − ∂gain/∂Δy, the r dt = (½h0ᵀR⁻¹h0 − (R⁻¹h0)ᵀΔy/dt) dt part
-    # log ∫σ = ½ log det(2πP) + ½BᵀPB: the log det parts of steps k and k−1
-    kappa = 0.5 * (log_det(A_prev) - log_det(A_next)) + 0.5 * (v0 * Pv[..., 0]).sum(-1) - g0 + cw
-    return {"W": G[..., :n], "Vy": G[..., n:], "v0": v0, "kappa": kappa, "ell": ell, "M": M,
-            "prev": A_prev, "cov": P}
-
-
-def _kalman_coefficients(kb: "KalmanBucyFilter", P_prev, cov_pred, gain, innovation, cov) -> dict:
-    """Schedule entries of observed discrete-time Kalman steps (x = the mean).
-
-    ll = log N(y; C(Φx + shift) + c, S) [− log N(y; 0, V) for the sampled increment model] with the
-    residual E u + e0.
-    """
-    kf, model = kb._kalman, kb.model
-    n, m = model.n, model.m
-    Hd, Rdt = kf.C, kf.V
-    I_GH = np.eye(n) - gain @ Hd
-    E = np.concatenate([np.broadcast_to(-Hd @ kf.phi, (len(gain), m, n)),
-                        np.broadcast_to(np.eye(m), (len(gain), m, m))], axis=-1)
-    e0 = -(Hd @ kf.shift + kf.c)
-    S_inv = np.linalg.inv(innovation)
-    M = -_swap(E) @ S_inv @ E
-    if kf.relative:
-        M[:, n:, n:] += np.linalg.inv(Rdt)
-        log_det_ratio = np.linalg.slogdet(innovation)[1] - np.linalg.slogdet(Rdt)[1]
-    else:
-        log_det_ratio = np.linalg.slogdet(innovation)[1] + m * LOG_2PI
-    ell = -(_swap(E) @ (S_inv @ e0)[..., None])[..., 0]
-    kappa = -0.5 * np.einsum("i,kij,j->k", e0, S_inv, e0) - 0.5 * log_det_ratio
-    return {"W": I_GH @ kf.phi, "Vy": gain, "v0": (I_GH @ kf.shift) - gain @ kf.c, "kappa": kappa,
-            "ell": ell, "M": M, "prev": P_prev, "cov": cov}
 
 
 def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> KalmanBucyFilter:

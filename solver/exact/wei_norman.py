@@ -82,6 +82,7 @@ class WeiNormanFilter:
     """Exact filter of seed 004 Theorem 1 (Filter protocol of solver.filtering)."""
 
     method = "wei-norman"
+    follows = False  # the Filter contract: its grid does not move
 
     def __init__(self, model: Model, kolmogorov_flow: Callable[[float, np.ndarray], np.ndarray], *,
                  log_flow: bool = False, nodes: np.ndarray | None = None, weights: np.ndarray | None = None,

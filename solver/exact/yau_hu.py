@@ -50,20 +50,19 @@ from typing import Any
 
 import numpy as np
 import sympy as sp
-from scipy.linalg import expm
 from scipy.special import logsumexp
 
 from ..errors import InputError, SpecError
+from ..expressions import affine_coefficients
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
 from ..measurement import LOG_2PI, Observation, check_first_gap, check_gate, check_rows, resolve_times
-from ..model import Model, mixture_weights
-from ..reference.kalman import affine_coefficients
-from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from ..model import Model, compile_model
+from ..spec_tables import DensityPrior, GaussianPrior, MixturePrior
+from .mixtures import log_sum_exp, mixture_moments, mixture_terms, scalar_mixture
 from .prior_fit import fit_mixture_grid, weighted_em
 from .riccati import (
     FlowFamily,
-    GaussianKolmogorov,
     affine_path,
     gap_pieces,
     gaussian_terms_batch,
@@ -82,95 +81,8 @@ from .schedule import (
     gated_chunk,
     regular_gaps,
 )
-from .yau_system import YauSystem, yau_system
-
-_NODES = 8  # Gauss–Legendre nodes for c(dt) = ∫c'
-
-
-# -- the online step -------------------------------------------------------------------
-def _step_equations(D, d, E, e, e0, H):
-    """The observation-free Kolmogorov equation (3.1) and the matrix of the (b, a, y) ODEs (3.3)–(3.4)."""
-    n = len(d)
-    # (3.1) as u_t = ½Δu − ℓ·∇u − (tr D + xᵀQx + qᵀx + r)u: Q, q, r from ½(η − |ℓ|² + tr D)
-    kolmogorov = GaussianKolmogorov(D, d, Q=0.5 * (E - D.T @ D), q=0.5 * e - D.T @ d,
-                                    r=0.5 * (e0 - d @ d - np.trace(D)))
-    # (3.3)–(3.4) with y(s) = s ẏ:  b' = a + Db − Hᵀy,  a' = E b − Dᵀb'  (E symmetric)
-    m = H.shape[0]
-    M = np.zeros((2 * n + 2 * m, 2 * n + 2 * m))
-    M[:n, :n], M[:n, n:2 * n], M[:n, 2 * n:2 * n + m] = D, np.eye(n), -H.T
-    M[n:2 * n] = -D.T @ M[:n]
-    M[n:2 * n, :n] += E
-    M[2 * n:2 * n + m, 2 * n + m:] = np.eye(m)  # y' = ẏ
-    return kolmogorov, M
-
-
-class _Step:
-    """One observation interval of the method for a given (whitened) H, h0.
-
-    ``gap=True``: a flow over an irregular gap (the Riccati flow from the eigen-decomposition,
-    the (a, b, y) maps in one batched call; solver/exact/riccati.py ``gap_flow``)."""
-
-    def __init__(self, system: YauSystem, H: np.ndarray, h0: np.ndarray, eta_shift, dt: float,
-                 gap: bool = False):
-        D, d, n = system.D, system.d, len(system.d)
-        E, e, e0 = system.E + eta_shift[0], system.e + eta_shift[1], system.e0 + eta_shift[2]
-        self.E, self.e, self.D, self.d, self.H, self.h0, self.dt = E, e, D, d, H, h0, dt
-        kolmogorov, M = _step_equations(D, d, E, e, e0, H)
-        self.flow = kolmogorov.gap_flow(dt) if gap else kolmogorov.flow(dt)
-        m = H.shape[0]
-        nodes, w = np.polynomial.legendre.leggauss(_NODES)
-        self.s, self.w = 0.5 * dt * (nodes + 1), 0.5 * dt * w
-        # state (b, a, y) at s as a linear map of ẏ (everything starts at 0)
-        if gap:
-            self.maps = expm(M[None] * np.append(self.s, dt)[:, None, None])[:, :2 * n + m, 2 * n + m:]
-        else:
-            self.maps = np.stack([expm(M * s)[:2 * n + m, 2 * n + m:] for s in np.append(self.s, dt)])
-        self.n = n
-
-    @staticmethod
-    def rate(system: YauSystem, H: np.ndarray, eta_shift) -> float:
-        """The larger spectral radius of the Riccati flow's and the (b, a, y) maps' linear systems:
-        a long gap is split into pieces no longer than its inverse (riccati.gap_pieces)."""
-        D, d = system.D, system.d
-        E, e, e0 = system.E + eta_shift[0], system.e + eta_shift[1], system.e0 + eta_shift[2]
-        kolmogorov, M = _step_equations(D, d, E, e, e0, H)
-        return max(kolmogorov.spectrum()[1], float(np.abs(np.linalg.eigvals(M)).max()))
-
-    def increment_terms(self):
-        """(Ga, Gb, Qc, lc): a = Ga y, b = Gb y, c = yᵀQc y + lcᵀy for the whitened increment y = ẏ dt.
-
-        The maps of :meth:`observation_terms` with the data kept symbolic; seed 000 (3.3)–(3.5).
-        """
-        n = self.n
-        maps = self.maps / self.dt  # y = ẏ dt
-        Mb, Ma, My = maps[:, :n], maps[:, n:2 * n], maps[:, 2 * n:]
-        P = Ma + self.D @ Mb - self.H.T @ My  # b' = P y
-        Mb_, Ma_, P_ = Mb[:-1], Ma[:-1], P[:-1]  # quadrature nodes
-        cross = np.swapaxes(Ma_, -1, -2) @ P_
-        Qs = -0.5 * np.swapaxes(P_, -1, -2) @ P_ + 0.5 * (cross + np.swapaxes(cross, -1, -2)) \
-            + 0.5 * np.swapaxes(Mb_, -1, -2) @ self.E @ Mb_
-        ls = -np.swapaxes(P_, -1, -2) @ self.d + 0.5 * np.swapaxes(Mb_, -1, -2) @ self.e
-        return Ma[-1], Mb[-1], np.einsum("s,sij->ij", self.w, Qs), self.w @ ls
-
-    def observation_terms(self, ydot: np.ndarray):
-        """(a, b, c) at dt for constant rates ẏ (K, m) -> (K, n), (K, n), (K,); seed 000 (3.3)–(3.5)."""
-        n = self.n
-        states = np.einsum("sij,kj->ksi", self.maps, ydot)
-        b, a, y = states[..., :n], states[..., n:2 * n], states[..., 2 * n:]
-        bp = a + b @ self.D.T - y @ self.H  # b' from (3.3)
-        cp = (-0.5 * (bp * bp).sum(-1) + (a * bp).sum(-1) - bp @ self.d
-              + 0.5 * np.einsum("ksi,ij,ksj->ks", b, self.E, b) + 0.5 * b @ self.e)  # (3.5)
-        return a[:, -1], b[:, -1], cp[:, :-1] @ self.w
-
-
-@dataclass(frozen=True)
-class _Kit:
-    """A step over a gap (or a piece of one): the method's maps and its flow."""
-
-    step: _Step
-    family: FlowFamily
-    q: np.ndarray
-    r: np.ndarray
+from .yau_hu_step import StepKit, YauHuStep, schedule_coefficients
+from .yau_system import yau_system
 
 
 @dataclass(frozen=True)
@@ -211,11 +123,11 @@ class YauHuFilter(ChunkedFilter):
         H, h0 = affine_coefficients(model.observation, model.symbols, "observation")
         self.H, self.h0 = H, h0
         Hw, h0w = self.L_inv @ H, self.L_inv @ h0
-        self._observed = _Step(self.system, Hw, h0w, (0, 0, 0), model.dt)
+        self._observed = YauHuStep(self.system, Hw, h0w, (0, 0, 0), model.dt)
         # a missing row: the signal alone, η without |h|²
         minus_h = (-Hw.T @ Hw, -2 * Hw.T @ h0w, -float(h0w @ h0w))
         self._minus_h = minus_h
-        predicted = _Step(self.system, np.zeros_like(Hw), np.zeros_like(h0w), minus_h, model.dt)
+        predicted = YauHuStep(self.system, np.zeros_like(Hw), np.zeros_like(h0w), minus_h, model.dt)
         flows = [self._observed.flow, predicted.flow]  # choice 0: observed step, 1: missing row
         self._family = FlowFamily(flows)
         self._q = np.stack([f.eq.q for f in flows])
@@ -223,7 +135,7 @@ class YauHuFilter(ChunkedFilter):
         self._Hw, self._h0w = Hw, h0w
         self._scalar_whitening = float(self.L_inv[0, 0])  # the one-row path (n = m = 1)
         self._schedules = ScheduleCache()  # exponents A -> (schedule, step index)
-        self._kits = BoundedCache()  # (gap, pattern) -> _Kit (irregular gaps, partly missing rows)
+        self._kits = BoundedCache()  # (gap, pattern) -> StepKit (irregular gaps, partly missing rows)
         self._steps_by_key: dict[int, tuple] = {}
         self._patterns: dict[int, tuple] = {}
 
@@ -244,7 +156,7 @@ class YauHuFilter(ChunkedFilter):
                 cov.reshape(lead[:-1] + (-1, n, n)))
 
     def _normalised(self, A, B, C):
-        log_mass = float(_log_sum_exp(self._components(A, B, C)[0]))
+        log_mass = float(log_sum_exp(self._components(A, B, C)[0]))
         return C + log_mass, log_mass
 
     # -- prior -------------------------------------------------------------------------
@@ -252,7 +164,7 @@ class YauHuFilter(ChunkedFilter):
         prior = self.model.spec.initial if prior is None else prior
         if isinstance(prior, (GaussianPrior, MixturePrior)) and len(self.system.exp_F_logc) == 1 \
                 and not np.any(self.system.exp_F_slopes):
-            A, B, C = _mixture_terms(prior)  # F constant: e^{−F}σ0 is the prior mixture itself
+            A, B, C = mixture_terms(prior)  # F constant: e^{−F}σ0 is the prior mixture itself
             fit_error = 0.0
         elif isinstance(prior, (GaussianPrior, MixturePrior, DensityPrior)):
             A, B, C, fit_error = self._fit_prior(prior)
@@ -263,7 +175,7 @@ class YauHuFilter(ChunkedFilter):
 
     def _fit_prior(self, prior):
         """Fit e^{−F}σ0 on a grid by a weighted EM Gaussian mixture; L¹ relative fit error."""
-        from ..model import compile_model  # the prior override is checked by the model
+        # a prior override is checked by the model
         model = self.model if prior is self.model.spec.initial else compile_model(
             self.model.spec.model_copy(update={"initial": prior}))
         X, vol = fit_mixture_grid(model)
@@ -355,13 +267,13 @@ class YauHuFilter(ChunkedFilter):
             return None
         return (*lean, float(pll))
 
-    def _advance(self, family: FlowFamily, q, r, obs: "_Step", choice, dyw, A0, B0, C0):
+    def _advance(self, family: FlowFamily, q, r, obs: YauHuStep, choice, dyw, A0, B0, C0):
         """The exponent paths (K+1) of K steps of one flow family from (A0, B0, C0): the Riccati path
         of the A_k, B as an affine recursion in the (whitened) data, C by sums."""
         A = family.path(choice, A0)  # (K+1, J, n, n)
         batch = family.batch(choice, A[:-1], q[choice], r[choice])
         a, b, c = obs.observation_terms(dyw / obs.dt)  # 0 on missing rows
-        # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (_Step's (a, b, c) shift)
+        # seed 000 (3.2) restarted each step: B2 = B_flow − 2A b + a − Hᵀdy (YauHuStep's (a, b, c) shift)
         Ab = batch.mm(A[1:], b[:, None, :, None])[..., 0]  # (K, J, n)
         shift = -2.0 * Ab + (a - dyw @ obs.H)[:, None]
         B = affine_path(batch.W, batch.v + shift, B0)  # (K+1, J, n)
@@ -378,9 +290,9 @@ class YauHuFilter(ChunkedFilter):
         A, B, C = self._advance(self._family, self._q, self._r, self._observed, choice, dyw, state.A, state.B,
                                 state.C)
         logw, means, covs = self._integrable(A, B, C)
-        log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
+        log_mass = log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
         increments_ll = np.where(missing, 0.0, log_mass[1:] - log_mass[:-1])
-        mean, cov = _mixture_moments(logw[1:], means[1:], covs[1:])
+        mean, cov = mixture_moments(logw[1:], means[1:], covs[1:])
         return (mean, cov, increments_ll), (A[1:], B[1:], C[1:] + log_mass[1:, None])
 
     def _integrable(self, A, B, C):
@@ -416,15 +328,15 @@ class YauHuFilter(ChunkedFilter):
                 # η with |h_o|² (whitened by R_oo) in place of |h|²
                 shift = tuple(full + part for full, part in zip(self._minus_h, (
                     Hw.T @ Hw, 2 * Hw.T @ h0w, float(h0w @ h0w)), strict=True))
-            found = self._steps_by_key[key] = (Hw, h0w, shift, _Step.rate(self.system, Hw, shift))
+            found = self._steps_by_key[key] = (Hw, h0w, shift, YauHuStep.rate(self.system, Hw, shift))
         return found
 
-    def _kit(self, length: float, key: int) -> "_Kit":
+    def _kit(self, length: float, key: int) -> StepKit:
         """The step over ``length`` with the observed components ``key`` (0: prediction only), cached."""
         def make():
             Hw, h0w, shift, _ = self._whitened(key)
-            step = _Step(self.system, Hw, h0w, shift, length, gap=True)
-            return _Kit(step, FlowFamily([step.flow]), step.flow.eq.q[None], np.array([step.flow.eq.r]))
+            step = YauHuStep(self.system, Hw, h0w, shift, length, gap=True)
+            return StepKit(step, FlowFamily([step.flow]), step.flow.eq.q[None], np.array([step.flow.eq.r]))
         return self._kits.get((float(length), key), make)
 
     def _pieces(self, A: np.ndarray, tau: float, key: int) -> tuple[float, ...]:
@@ -474,20 +386,25 @@ class YauHuFilter(ChunkedFilter):
             paths.append((A, B, C))
         A, B, C = (np.stack(v) for v in zip(*paths, strict=True))
         logw, means, covs = self._integrable(A, B, C)
-        log_mass = _log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
-        start_mass = float(_log_sum_exp(self._components(state.A, state.B, state.C)[0]))
+        log_mass = log_sum_exp(logw)  # log ∫σ_k relative to the normalised start
+        start_mass = float(log_sum_exp(self._components(state.A, state.B, state.C)[0]))
         increments_ll = np.where(keys == 0, 0.0, np.diff(log_mass, prepend=start_mass))
-        mean, cov = _mixture_moments(logw, means, covs)
+        mean, cov = mixture_moments(logw, means, covs)
         return (mean, cov, increments_ll), (A, B, C + log_mass[:, None])
 
     def _h_cov(self, state: YauHuState, tau: float, index: np.ndarray) -> np.ndarray:
         """Cov_pred(h_o) = H_o Cov_pred(x) H_oᵀ under the mixture predicted over τ (the gate's exact S)."""
         A, B, C = self._predicted(state.A, state.B, state.C, tau)
-        _, cov = _mixture_moments(*self._components(A, B, C))
+        _, cov = mixture_moments(*self._components(A, B, C))
         H_o = self.H[index]
         return H_o @ cov @ H_o.T
 
     # -- scheduled chunks (observed rows from remembered exponents A) -----------------------
+    # The exponents A_k of every component follow an observation-free Riccati path that converges to
+    # the steady solution; B enters each step affinely and the C gain quadratically in (B_prev, y)
+    # (yau_hu_step.schedule_coefficients).  A schedule stores those coefficients step by step from one
+    # start until the path stops moving (to rounding), then reuses the last (steady) entry.  Positions
+    # are keyed by the bytes of A: the coefficients of a step depend only on the A it starts from.
     def _schedule_at(self, state: YauHuState) -> tuple[Schedule, int]:
         """The schedule and position whose exponents are ``state.A`` (a new schedule if unseen)."""
         return self._schedules.at(state.A)
@@ -513,38 +430,10 @@ class YauHuFilter(ChunkedFilter):
         if len(bad):  # keep the good steps; a later extension starts at the bad one and fails
             keep, settled = int(bad[0]), False
         if keep:
-            schedule.append(self._coefficients(path[:keep], path[1:keep + 1]), settled, path[keep])
+            parts = schedule_coefficients(self._observed, self._family, self._q, self._r, path[:keep],
+                                          path[1:keep + 1])
+            schedule.append(parts, settled, path[keep])
         return j + K <= schedule.length or schedule.settled
-
-    def _coefficients(self, A_prev: np.ndarray, A_next: np.ndarray) -> dict:
-        """Schedule entries of observed steps from A_prev (L, J, n, n) (A_next: after each step).
-
-        The general chunk written out with the data kept symbolic: with u = (B_prev, y) (y the
-        whitened increment) B_next = W B_prev + Vy y + v0 and the C gain is κ + ℓᵀu + ½uᵀ𝕄u.
-        """
-        zeros = np.zeros(len(A_prev), dtype=int)
-        batch = self._family.batch(zeros, A_prev, self._q[zeros], self._r[zeros])
-        T = batch.XinvT  # B(s) = T(s)(B_prev + forcing(s)), (L, S+1, J, n, n)
-        cs = np.einsum("lsjab,lsjb->lsja", T, batch.forcing)
-        Tn, cn, w, d = T[:, :-1], cs[:, :-1], batch.w, self._family.eq.d
-        # gain = gain0 − Σ_s w_s(½|B(s)|² + dᵀB(s)) (a = I)
-        kappa = batch.gain0 - np.einsum("s,lsj->lj", w, 0.5 * (cn * cn).sum(-1) + cn @ d)
-        lx = -np.einsum("s,lsjba,lsjb->lja", w, Tn, cn + d)
-        Mxx = -np.einsum("s,lsjca,lsjcb->ljab", w, Tn, Tn)
-        W, v = batch.W, batch.v
-        Ga, Gb, Qc, lc = self._observed.increment_terms()
-        AGb = A_next @ Gb  # (L, J, n, m)
-        # B_next = B_flow − 2A b + a − Hᵀy;  dC += (A b − B_flow)ᵀb + c − aᵀb − h0ᵀy
-        Vy = -2.0 * AGb + (Ga - self._Hw.T)
-        ly = -v @ Gb + lc - self._h0w
-        Mxy = -np.swapaxes(W, -1, -2) @ Gb
-        GaGb = Ga.T @ Gb
-        Myy = 2.0 * (Gb.T @ AGb) + 2.0 * Qc - (GaGb + GaGb.T)
-        cov = np.linalg.inv(2.0 * A_next)
-        cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
-        half_log_det = 0.5 * np.linalg.slogdet(2 * np.pi * cov)[1]
-        return {"A": A_next, "W": W, "Vy": Vy, "v0": v, "kappa": kappa, "lx": lx, "ly": ly, "Mxx": Mxx,
-                "Mxy": Mxy, "Myy": Myy, "cov": cov, "half_log_det": half_log_det}
 
     def _position(self, state: YauHuState, K: int):
         """(schedule, start index j, step indices) covering K observed steps from ``state``, or None."""
@@ -582,10 +471,10 @@ class YauHuFilter(ChunkedFilter):
               + np.einsum("km,kjmp,kp->kj", y, 0.5 * c["Myy"], y))
         C = state.C + np.cumsum(dC, axis=0)
         logw, means, covs = self._terms(c["cov"], c["half_log_det"], B[1:], C)
-        log_mass = _log_sum_exp(logw)
-        start_mass = _log_sum_exp(self._components(state.A, state.B, state.C)[0])
+        log_mass = log_sum_exp(logw)
+        start_mass = log_sum_exp(self._components(state.A, state.B, state.C)[0])
         increments_ll = np.diff(log_mass, prepend=start_mass)
-        mean, cov = _mixture_moments(logw, means, covs)
+        mean, cov = mixture_moments(logw, means, covs)
         return (mean, cov, increments_ll), (B[1:], C + log_mass[:, None])
 
     def _scalar_chunk(self, state: YauHuState, rows: dict, idx, y: np.ndarray):
@@ -615,7 +504,7 @@ class YauHuFilter(ChunkedFilter):
             mean = (w * means).sum(axis=0) / total
             cov = (w * (var + (means - mean) ** 2)).sum(axis=0) / total
             log_mass = top + np.log(total)
-        start_mass = _scalar_mixture((0.5 / state.A[:, 0, 0]).tolist(), None, state.B[:, 0].tolist(),
+        start_mass = scalar_mixture((0.5 / state.A[:, 0, 0]).tolist(), None, state.B[:, 0].tolist(),
                                      state.C.tolist(), slopes.tolist(), logc.tolist())[0]
         increments_ll = np.diff(log_mass, prepend=start_mass)
         return (mean[:, None], cov[:, None, None], increments_ll), (B[:, 1:].T[..., None], (C + log_mass).T)
@@ -650,14 +539,14 @@ class YauHuFilter(ChunkedFilter):
             cov_new.append(p)
             hl_new.append(hl)
         cov_old = [0.5 / a for a in state.A[:, 0, 0].tolist()]
-        start_mass = _scalar_mixture(cov_old, None, state.B[:, 0].tolist(), state.C.tolist(), slopes, logc)[0]
-        log_mass, mean, var = _scalar_mixture(cov_new, hl_new, B_new, C_new, slopes, logc)
+        start_mass = scalar_mixture(cov_old, None, state.B[:, 0].tolist(), state.C.tolist(), slopes, logc)[0]
+        log_mass, mean, var = scalar_mixture(cov_new, hl_new, B_new, C_new, slopes, logc)
         A_last = schedule.parts["A"][k].copy()
         self._schedules.remember(A_last, schedule, j + 1)
         return mean, var, log_mass - start_mass, A_last, B_new, [c + log_mass for c in C_new]
 
     def estimate(self, state: YauHuState) -> Estimate:
-        mean, cov = _mixture_moments(*self._components(state.A, state.B, state.C))
+        mean, cov = mixture_moments(*self._components(state.A, state.B, state.C))
         return Estimate(step=state.step, t=state.t, mean=mean, cov=cov, loglik=state.loglik,
                         loglik_increment=state.loglik_increment, degenerate=state.degenerate,
                         reason=state.reason)
@@ -674,32 +563,6 @@ class YauHuFilter(ChunkedFilter):
         return mixture_state_from_dict(YauHuState, data, self.model.n, "yau-hu")
 
 
-def _log_sum_exp(values):
-    """log Σ exp over the last axis (finite values; scipy's logsumexp costs ~10x more per call)."""
-    top = values.max(axis=-1)
-    return top + np.log(np.exp(values - top[..., None]).sum(axis=-1))
-
-
-def _mixture_moments(logw, means, covs):
-    """Mean and covariance of Σ w_i N(means_i, covs_i), w ∝ e^{logw}; leading axes batched."""
-    w = np.exp(logw - _log_sum_exp(logw)[..., None])
-    mean = np.einsum("...i,...ij->...j", w, means)
-    dev = means - mean[..., None, :]
-    cov = np.einsum("...i,...ijk->...jk", w, covs) + np.einsum("...i,...ij,...ik->...jk", w, dev, dev)
-    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
-
-
-def _mixture_terms(prior):
-    if isinstance(prior, GaussianPrior):
-        weights, means, covs = [1.0], [prior.mean], [prior.cov]
-    else:
-        weights, means, covs = prior.weights, prior.means, prior.covs
-    scaled = mixture_weights(weights)  # the largest first: [1e308, 1e308] -> [0.5, 0.5], as the engine
-    terms = [gaussian_to_terms(mu, P, w)
-             for w, mu, P in zip(scaled, means, covs, strict=True) if w > 0]
-    return (np.stack([t.A for t in terms]), np.stack([t.B for t in terms]), np.array([t.C for t in terms]))
-
-
 def _one_row_result(state: YauHuState, step: int, t: float, mean: float, var: float, ll: float, A, B: list,
                     C: list, pll: float, gate: float):
     """The new state and the one-row ChunkResult of a scalar step (plain floats in, arrays out)."""
@@ -711,38 +574,6 @@ def _one_row_result(state: YauHuState, step: int, t: float, mean: float, var: fl
                                  loglik_increment=np.array([ll]), degenerate=np.zeros(1, bool),
                                  predictive_loglik=np.array([pll]), gate=gate)
 
-
-def _scalar_mixture(covs, half_log_dets, Bs, Cs, slopes, logc):
-    """(log mass, mean, variance) of σ = e^{F}Σ_j exp(−A_jx² − B_jx − C_j), n = 1, in plain floats.
-
-    Component j, term t: log mass ½log(2πp_j) + ½p_j(B_j − s_t)² − C_j + log c_t, mean −p_j(B_j − s_t).
-    """
-    if half_log_dets is None:
-        half_log_dets = [0.5 * math.log(2 * math.pi * p) for p in covs]
-    logs, means, variances = [], [], []
-    for p, hl, b, c in zip(covs, half_log_dets, Bs, Cs, strict=True):
-        for s, lc in zip(slopes, logc, strict=True):
-            dev = b - s
-            logs.append(hl + 0.5 * p * dev * dev - c + lc)
-            means.append(-p * dev)
-            variances.append(p)
-    if len(logs) == 1:
-        return logs[0], means[0], variances[0]
-    top = max(logs)
-    weights = [math.exp(v - top) for v in logs]
-    total = math.fsum(weights)
-    mean = math.fsum(w * m for w, m in zip(weights, means, strict=True)) / total
-    var = math.fsum(w * (p + (m - mean) ** 2)
-                    for w, p, m in zip(weights, variances, means, strict=True)) / total
-    return top + math.log(total), mean, var
-
-
-# -- cached schedules: the data-free coefficients of consecutive observed steps ---------------
-# The exponents A_k of every component follow an observation-free Riccati path that converges to
-# the steady solution; B enters each step affinely and the C gain quadratically in (B_prev, y).
-# A schedule stores those coefficients step by step from one start until the path stops moving
-# (to rounding), then reuses the last (steady) entry.  Positions are keyed by the bytes of A:
-# the coefficients of a step depend only on the A it starts from.
 
 def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauHuFilter:
     """The registry's constructor (solver/registry.py)."""

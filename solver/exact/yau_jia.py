@@ -59,6 +59,17 @@ from ..gaussian import log_normal
 from ..measurement import check_first_gap, check_gate, check_rows, resolve_times, standard_score
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .mixtures import (
+    SPLIT_OFFSETS,
+    SPLIT_WEIGHTS,
+    SPLIT_WIDTH,
+    cubature_points,
+    exponent_terms,
+    log_sum_exp,
+    merge_to,
+    split_all,
+    times_exp_quadratic,
+)
 from .riccati import (
     FlowFamily,
     GaussianKolmogorov,
@@ -68,13 +79,8 @@ from .riccati import (
     mixture_state_from_dict,
 )
 from .schedule import BoundedCache, regular_gaps
-from .yau_system import _exponential_sum
+from .yau_system import exponential_sum
 
-# the three-component split of N(0, 1) (weights and offsets of DeMars, Bishop & Jah (2013), width
-# chosen so that mean and variance are kept exactly)
-SPLIT_WEIGHTS = np.array([0.2252246249, 0.5495507502, 0.2252246249])
-SPLIT_OFFSETS = np.array([-1.0575154615, 0.0, 1.0575154615])
-SPLIT_WIDTH = math.sqrt(1.0 - float(SPLIT_WEIGHTS @ SPLIT_OFFSETS**2))
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
 MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: docs/bench-yau-jia.md)
@@ -131,22 +137,6 @@ def default_components(n: int) -> int:
     return MAX_COMPONENTS.get(n, 32)
 
 
-def _terms(means, covs, logw):
-    """Exponent (A, B, C) of w·N(m, P) for stacks: A = ½P⁻¹, B = −P⁻¹m, C = ½mᵀP⁻¹m + ½log det 2πP − log w."""
-    n = means.shape[-1]
-    chol = np.linalg.cholesky(covs)
-    P_inv = np.linalg.inv(covs)
-    P_inv = 0.5 * (P_inv + np.swapaxes(P_inv, -1, -2))
-    log_det = 2.0 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1) + n * math.log(2 * math.pi)
-    Pm = (P_inv @ means[..., None])[..., 0]
-    return 0.5 * P_inv, -Pm, 0.5 * (means * Pm).sum(-1) + 0.5 * log_det - logw
-
-
-def _log_sum_exp(values, axis=-1):
-    top = np.max(values, axis=axis, keepdims=True)
-    return (top + np.log(np.exp(values - top).sum(axis=axis, keepdims=True))).squeeze(axis)
-
-
 class YauJiaFilter(ChunkedFilter):
     """Filter protocol; see the module docstring."""
 
@@ -176,7 +166,7 @@ class YauJiaFilter(ChunkedFilter):
         if s.phi == 0:
             self.exp_phi_slopes, self.exp_phi_logc = np.zeros((1, n)), np.zeros(1)
         else:
-            found = _exponential_sum(s.phi, model.symbols)
+            found = exponential_sum(s.phi, model.symbols)
             if found is None:
                 raise SpecError("drift", f"e^phi (phi = {s.phi}) is not a sum of exponentials of affine "
                                          "functions: the moments of sigma = e^phi v have no closed form")
@@ -210,7 +200,7 @@ class YauJiaFilter(ChunkedFilter):
     def _normalise(self, A, B, C, components=None):
         """C of ∫σ = 1, log ∫σ before, and σ's components (log weights, means, covs) after."""
         logw, means, covs = self._components(A, B, C) if components is None else components
-        log_mass = float(_log_sum_exp(logw))
+        log_mass = float(log_sum_exp(logw))
         if not math.isfinite(log_mass):
             raise InputError("increments", "the mixture has no finite mass")
         return C + log_mass, log_mass, (logw - log_mass, means, covs)
@@ -252,13 +242,13 @@ class YauJiaFilter(ChunkedFilter):
             means, covs, log_mass = gaussian_terms_batch(A, B, C)
             if len(C) * 3 > self.max_components:
                 break
-            A, B, C = _terms(*_split_all(means, covs, log_mass))
+            A, B, C = exponent_terms(*split_all(means, covs, log_mass))
         means, covs, _ = gaussian_terms_batch(A, B, C)
         with np.errstate(all="ignore"):
             vals = fn(*means.T)
         flat = np.stack([np.broadcast_to(np.asarray(v, float), (len(C),)) for v in vals], axis=1)
         s0, g, S = -flat[:, 0], -flat[:, 1:1 + n], -flat[:, 1 + n:].reshape(-1, n, n)
-        A, B, C, _ = _times_exp_quadratic(A, B, C, means, covs, s0, g, S)
+        A, B, C, _ = times_exp_quadratic(A, B, C, means, covs, s0, g, S)
         return A, B, C
 
     # -- the step -----------------------------------------------------------------------------
@@ -266,7 +256,7 @@ class YauJiaFilter(ChunkedFilter):
         """E[h], E[∂h], E[∂²h] over each component N(m_j, P_j): the mean over the 2n points
         m ± √n·√λ_k u_k (third-degree cubature, exact for quadratic integrands)."""
         J_count, n = means.shape
-        points = _cubature_points(means, covs)
+        points = cubature_points(means, covs)
         h, Jh, H = self.sensor(points.reshape(-1, n))
         m = h.shape[1]
         return (h.reshape(J_count, 2 * n, m).mean(1), Jh.reshape(J_count, 2 * n, m, n).mean(1),
@@ -294,7 +284,7 @@ class YauJiaFilter(ChunkedFilter):
             # has mean and mean gradient 0 over the component: only its curvature term is left.
             S = 0.5 * np.einsum("jmab,m->jab", H0, c)
             s0 = -0.5 * np.einsum("jab,jba->j", covs, S)
-            A, B, C, damped0 = _times_exp_quadratic(A, B, C, means, covs, s0, np.zeros_like(means), S)
+            A, B, C, damped0 = times_exp_quadratic(A, B, C, means, covs, s0, np.zeros_like(means), S)
             q = self._q[0] - np.einsum("jmn,m->jn", J0, c_dot)
             r = self._r[0] - (h0 - np.einsum("jmn,jn->jm", J0, means)) @ c_dot
         A1 = family.path([choice], A)[1]
@@ -308,7 +298,7 @@ class YauJiaFilter(ChunkedFilter):
             s0 = 0.5 * (h1 - h0 - np.einsum("jmn,jn->jm", J0, means1 - means)) @ c \
                 - 0.5 * np.einsum("jab,jba->j", covs1, S)
             g = 0.5 * np.einsum("jmn,m->jn", J1 - J0, c)
-            A1, B1, C1, damped1 = _times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
+            A1, B1, C1, damped1 = times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
             return A1, B1, C1, damped0 + damped1
         if not self._predict_exact:  # the flow took ½hᵀR⁻¹h dt off: put it back, to second order
             h1, J1, H1 = self.sensor(means1)
@@ -317,7 +307,7 @@ class YauJiaFilter(ChunkedFilter):
             s0 = 0.5 * (Rh * h1).sum(-1) * dt
             g = np.einsum("jmn,jm->jn", J1, Rh) * dt
             S = (np.einsum("jma,mk,jkb->jab", J1, self.R_inv, J1) + np.einsum("jmab,jm->jab", H1, Rh)) * dt
-            return _times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
+            return times_exp_quadratic(A1, B1, C1, means1, covs1, s0, g, S)
         return A1, B1, C1, 0
 
     # -- error control ---------------------------------------------------------------------------
@@ -367,7 +357,7 @@ class YauJiaFilter(ChunkedFilter):
             split = np.zeros(len(logw), bool)
             split[chosen] = True
             room = self.max_components - 2 * len(chosen)  # components left for the unsplit ones
-            rest = _merge_to(means[~split], covs[~split], logw[~split], room - len(chosen))
+            rest = merge_to(means[~split], covs[~split], logw[~split], room - len(chosen))
             axis = np.argmax(rates[chosen], axis=1)  # split along the axis of the largest rate
             u = U[chosen, :, axis] * np.sqrt(lam[chosen, axis])[:, None]
             child = covs[chosen] - (1.0 - SPLIT_WIDTH**2) * np.einsum("ja,jb->jab", u, u)
@@ -376,10 +366,10 @@ class YauJiaFilter(ChunkedFilter):
             covs = np.concatenate([rest[1], np.repeat(child, 3, axis=0)])
             logw = np.concatenate([rest[2], (logw[chosen][:, None] + np.log(SPLIT_WEIGHTS)).reshape(-1)])
         elif len(logw) > self.max_components:  # a prior with more components than the cap
-            means, covs, logw = _merge_to(means, covs, logw, self.max_components)
+            means, covs, logw = merge_to(means, covs, logw, self.max_components)
         if len(chosen) or len(logw) != len(C):
             covs = 0.5 * (covs + np.swapaxes(covs, -1, -2))
-            A, B, C = _terms(means, covs, logw)
+            A, B, C = exponent_terms(means, covs, logw)
         return A, B, C, int(len(chosen)), ((logw, means, covs) if self.structure.phi == 0 else None)
 
     # -- Filter protocol ---------------------------------------------------------------------
@@ -490,9 +480,9 @@ class YauJiaFilter(ChunkedFilter):
         """Cov(h) under the mixture σ = e^{φ}Σ_j exp(−xᵀA_jx − B_jᵀx − C_j): per component E[h] and
         E[hhᵀ] by the 2n-point cubature of :meth:`_expected` (exact for affine h)."""
         logw, means, covs = self._components(A, B, C)
-        w = np.exp(logw - _log_sum_exp(logw))
+        w = np.exp(logw - log_sum_exp(logw))
         J_count, n = means.shape
-        points = _cubature_points(means, covs)
+        points = cubature_points(means, covs)
         h = self.sensor(points.reshape(-1, n))[0].reshape(J_count, 2 * n, -1)
         first = np.einsum("j,jpm->m", w, h) / (2 * n)
         second = np.einsum("j,jpa,jpb->ab", w, h, h) / (2 * n)
@@ -501,7 +491,7 @@ class YauJiaFilter(ChunkedFilter):
     def _moments(self, A, B, C, components=None):
         """Mean and covariance of σ (its components if known)."""
         logw, means, covs = self._components(A, B, C) if components is None else components
-        w = np.exp(logw - _log_sum_exp(logw))
+        w = np.exp(logw - log_sum_exp(logw))
         mean = w @ means
         dev = means - mean
         cov = np.einsum("j,jab->ab", w, covs) + np.einsum("j,ja,jb->ab", w, dev, dev)
@@ -519,93 +509,10 @@ class YauJiaFilter(ChunkedFilter):
             raise InputError("points", f"must be finite points of shape (P, {self.model.n})")
         logw, means, covs = self._components(state.A, state.B, state.C)
         logs = np.stack([lw + log_normal(X, mu, P) for lw, mu, P in zip(logw, means, covs, strict=True)])
-        return np.exp(_log_sum_exp(logs, axis=0) - _log_sum_exp(logw))
+        return np.exp(log_sum_exp(logs, axis=0) - log_sum_exp(logw))
 
     def state_from_dict(self, data: dict[str, Any]) -> YauJiaState:
         return mixture_state_from_dict(YauJiaState, data, self.model.n, "yau-jia")
-
-
-def _cubature_points(means, covs) -> np.ndarray:
-    """The 2n points m ± √n·√λ_k u_k of each component N(m, P) (P = U diag(λ) Uᵀ), equally weighted:
-    the third-degree cubature of ``_expected`` and ``_h_cov``.  Returns (J, 2n, n)."""
-    n = means.shape[-1]
-    lam, U = np.linalg.eigh(covs)
-    axes = np.swapaxes(math.sqrt(n) * np.sqrt(np.clip(lam, 0.0, None))[:, None, :] * U, 1, 2)
-    return np.concatenate([means[:, None] + axes, means[:, None] - axes], axis=1)
-
-
-def _times_exp_quadratic(A, B, C, at, covs, s0, g, S):
-    """Multiply each component exp(−xᵀAx − Bᵀx − C) by exp(s0 + gᵀ(x − at) + ½(x − at)ᵀS(x − at)).
-
-    Where the product would not be integrable (P⁻¹ − S not positive definite: a wide component and
-    a convex factor) S is damped to θS with θ = 0.9/λ_max(PS) (counted in ``clipped``).
-    """
-    S = 0.5 * (S + np.swapaxes(S, -1, -2))
-    try:  # λ_max(PS) < 0.9 iff P⁻¹ − S/0.9 = 2A − S/0.9 > 0: no damping (the common case)
-        np.linalg.cholesky(2.0 * A - S / 0.9)
-    except np.linalg.LinAlgError:
-        top = np.linalg.eigvals(covs @ S).real.max(-1)  # λ_max(PS): P⁻¹ − θS > 0 iff θλ_max < 1
-        theta = np.where(top > 0.9, 0.9 / np.where(top > 0.9, top, 1.0), 1.0)
-        S = theta[:, None, None] * S
-    else:
-        theta = np.ones(len(S))
-    Sm = (S @ at[..., None])[..., 0]
-    A2 = A - 0.5 * S
-    B2 = B - (g - Sm)
-    C2 = C - (s0 - (g * at).sum(-1) + 0.5 * (at * Sm).sum(-1))
-    return A2, B2, C2, int((theta < 1.0).sum())
-
-
-def _split_all(means, covs, logw):
-    """Every component split in three along its widest axis (the prior's first refinement)."""
-    lam, U = np.linalg.eigh(covs)
-    u = U[:, :, -1] * np.sqrt(lam[:, -1])[:, None]
-    child = covs - (1.0 - SPLIT_WIDTH**2) * np.einsum("ja,jb->jab", u, u)
-    m = (means[:, None, :] + SPLIT_OFFSETS[None, :, None] * u[:, None, :]).reshape(-1, means.shape[1])
-    P = np.repeat(child, 3, axis=0)
-    w = (logw[:, None] + np.log(SPLIT_WEIGHTS)[None, :]).reshape(-1)
-    return m, P, w
-
-
-def _pair_costs(means, covs, w, ld, i, j):
-    """Runnalls' bound ½[(w_i+w_j) log det P_ij − w_i log det P_i − w_j log det P_j] of merging the
-    pairs (i, j) into one Gaussian with the pair's weight, mean and covariance; returns (cost, P_ij)."""
-    wi, wj = w[i], w[j]
-    tot = wi + wj
-    d = means[i] - means[j]
-    Pij = (wi[:, None, None] * covs[i] + wj[:, None, None] * covs[j]) / tot[:, None, None] \
-        + (wi * wj / tot**2)[:, None, None] * np.einsum("pa,pb->pab", d, d)
-    return 0.5 * (tot * np.linalg.slogdet(Pij)[1] - wi * ld[i] - wj * ld[j]), Pij
-
-
-def _merge_to(means, covs, logw, cap: int):
-    """Merge the cheapest pair (Runnalls' bound), moments kept, until at most ``cap`` components
-    are left: the costs of all pairs once, then only the merged component's row per merge."""
-    J = len(logw)
-    if J <= max(cap, 1):
-        return means, covs, logw
-    top = logw.max()
-    w, means, covs = np.exp(logw - top), means.copy(), covs.copy()
-    ld = np.linalg.slogdet(covs)[1]
-    cost = np.full((J, J), np.inf)
-    i, j = np.triu_indices(J, 1)
-    cost[i, j] = _pair_costs(means, covs, w, ld, i, j)[0]
-    alive = np.ones(J, bool)
-    for _ in range(J - max(cap, 1)):
-        a, b = divmod(int(np.argmin(cost)), J)
-        tot = w[a] + w[b]
-        d = means[a] - means[b]
-        covs[a] = (w[a] * covs[a] + w[b] * covs[b]) / tot + (w[a] * w[b] / tot**2) * np.outer(d, d)
-        means[a], w[a] = (w[a] * means[a] + w[b] * means[b]) / tot, tot
-        P = covs[a]
-        ld[a] = np.linalg.slogdet(P)[1]
-        alive[b] = False
-        cost[b, :] = cost[:, b] = np.inf
-        others = np.flatnonzero(alive)
-        others = others[others != a]
-        row = _pair_costs(means, covs, w, ld, others, np.full(len(others), a))[0]
-        cost[np.minimum(others, a), np.maximum(others, a)] = row
-    return means[alive], covs[alive], np.log(w[alive]) + top
 
 
 def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauJiaFilter:

@@ -14,8 +14,8 @@ import numpy as np
 import sympy as sp
 
 from ..errors import SpecError
+from ..expressions import affine_coefficients
 from ..model import Model
-from ..reference.kalman import affine_coefficients
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ def _affine_part(expr: sp.Expr, symbols) -> sp.Expr:
                     if t.is_polynomial(*symbols) and sp.Poly(t, *symbols).total_degree() <= 1])
 
 
-def _potential(g: list[sp.Expr], symbols) -> sp.Expr:
+def gradient_potential(g: list[sp.Expr], symbols) -> sp.Expr:
     """F with ∇F = g (g has a symmetric Jacobian), by successive integration."""
     F = sp.Integer(0)
     for i, xi in enumerate(symbols):
@@ -69,7 +69,7 @@ def _quadratic(expr: sp.Expr, symbols, field: str):
     return E, e, float(poly.coeff_monomial(1))
 
 
-def _exponential_sum(F: sp.Expr, symbols):
+def exponential_sum(F: sp.Expr, symbols):
     """e^{F} = Σ_k c_k exp(s_kᵀx) (c_k > 0), or None."""
     total = sp.expand(sp.simplify(sp.exp(F).rewrite(sp.exp)).rewrite(sp.exp))
     slopes, logc = [], []
@@ -110,12 +110,12 @@ def yau_system(model: Model) -> YauSystem:
     ell = [li + si for li, si in zip(ell, shift, strict=False)]
     g = [sp.simplify(gi - si) for gi, si in zip(g, shift, strict=False)]
     D, d = affine_coefficients(ell, xs, "drift")
-    F = _potential(g, xs)
+    F = gradient_potential(g, xs)
     # η is fixed by f and h (R whitened): |f|² + div f + hᵀR⁻¹h
     eta = sum(fi**2 for fi in f) + sum(sp.diff(fi, xi) for fi, xi in zip(f, xs, strict=True))
     eta += 2 * model.potential
     E, e, e0 = _quadratic(eta, xs, "drift")
-    found = _exponential_sum(F, xs)
+    found = exponential_sum(F, xs)
     if found is None:
         raise SpecError("drift", f"e^F (F = {F}) is not a sum of exponentials of affine functions: "
                                  "no closed-form moments")

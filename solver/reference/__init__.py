@@ -5,9 +5,10 @@ f = tanh x, h = x), ``PointMassFilter`` (fine finite-volume grid, n = 1, 2),
 ``BootstrapParticleFilter``, ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter``.
 """
 
+from ..expressions import affine_coefficients
 from .benes import BenesFilter
 from .gaussian_approx import ExtendedKalmanFilter, UnscentedKalmanFilter
-from .kalman import DiscreteKalmanFilter, affine_coefficients, van_loan
+from .kalman import DiscreteKalmanFilter, van_loan
 from .particle import BootstrapParticleFilter
 from .pointmass import PointMassFilter
 

@@ -10,28 +10,12 @@ Both are exact, so this is the time discretisation the engine approximates, with
 from __future__ import annotations
 
 import numpy as np
-import sympy as sp
 from scipy.linalg import expm
 
-from ..errors import SpecError
+from ..expressions import affine_coefficients
 from ..gaussian import GaussianState
 from ..model import Model
 from ._base import GaussianReferenceFilter, advance, gaussian_update
-
-
-def affine_coefficients(exprs, symbols, field: str) -> tuple[np.ndarray, np.ndarray]:
-    """(A, b) with exprs = A x + b exactly; SpecError naming ``field`` if not affine."""
-    jac = sp.Matrix(exprs).jacobian(symbols)
-    if any(entry.free_symbols & set(symbols) for entry in jac):
-        raise SpecError(field, "is not affine in the state; this filter needs an affine (linear) model")
-    at_zero = {s: 0 for s in symbols}
-    try:
-        A = np.array([[float(v) for v in row] for row in jac.tolist()], dtype=float).reshape(len(exprs),
-                                                                                               len(symbols))
-        b = np.array([float(e.subs(at_zero)) for e in exprs], dtype=float)
-    except TypeError:
-        raise SpecError(field, "has non-real coefficients") from None
-    return A, b
 
 
 def van_loan(F: np.ndarray, a: np.ndarray, f0: np.ndarray, dt: float):
