@@ -43,7 +43,7 @@ FUNCTIONS = {name: 1 for name in ("exp", "log", "sqrt", "sin", "cos", "tan", "ta
 FUNCTIONS.update(atan2=2, min=2, max=2)
 # Continuous but not differentiable everywhere: values are all the general engine needs; their
 # derivatives are taken almost everywhere (d|x| = sign x, d sign x = 0 off x = 0) by the Gaussian
-# filters' Jacobians, and the analysis refuses the exact filters for them (docs/spec.md).
+# filters' Jacobians, and the analysis refuses the exact filters for them (docs/models.md).
 NONSMOOTH = ("abs", "sign", "min", "max")
 CONSTANTS = {"pi": math.pi, "e": math.e}
 RESERVED_NAMES = frozenset(FUNCTIONS) | frozenset(CONSTANTS)

@@ -212,7 +212,8 @@ class ModelSpec(Strict):
         if self.discretization.element == "bubble":
             raise SpecError("discretization.element", f"{chosen}supg is built on the P1 element: use "
                                                       "element = \"lagrange\" (or scheme = \"galerkin\", "
-                                                      "measured to ring on such models: docs/bench-psd.md)")
+                                                      "measured to ring on such models: "
+                                                      "bench/results/psd.md)")
 
     def scheme(self) -> str:
         """``[discretization] scheme``, or where left out "supg" for a diffusion that is only positive

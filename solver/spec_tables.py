@@ -137,7 +137,7 @@ class Domain(Strict):
     definite): the domain is the ellipsoid (x − c)ᵀΣ⁻¹(x − c) < R² instead — R counts standard deviations
     of Σ — meshed as the ball mapped by x = c + Lz (Σ = LLᵀ, Cholesky), with the basis of −½div(Σ∇): give
     the shape of the posterior when it is long and thin (constant-velocity tracking,
-    docs/bench-cv-basis.md).  ``shape = "posterior"``: Σ is the steady-state Kalman–Bucy covariance of a
+    bench/results/cv-basis.md).  ``shape = "posterior"``: Σ is the steady-state Kalman–Bucy covariance of a
     linear model (solver/model.py ``Model.shape``)."""
 
     radius: float = Field(gt=0, le=1e6)
@@ -197,7 +197,7 @@ class Discretization(Strict):
     polynomial degree of the finite elements.  ``substeps`` splits dt for the offline time
     integration.  ``precision`` is the floating point of the online engine's two matrix-vector
     products per observation: "single" halves their memory traffic (the speed-up is measured in
-    docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
+    bench/results/engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
     their positive lumped mass instead of P1 (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at
     the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
@@ -205,9 +205,9 @@ class Discretization(Strict):
     "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or
     "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent
     mass; P1 elements in 2-D and 3-D).  For noise on some coordinates only, "consistent" on the bubble
-    element is the closest to the exact filter at a given cost (docs/bench-cv-basis.md).  Left out, it
+    element is the closest to the exact filter at a given cost (bench/results/cv-basis.md).  Left out, it
     is "supg" where the diffusion is only positive semi-definite (noise on some coordinates: the
-    operator is hypoelliptic and plain Galerkin rings along the drift, docs/bench-psd.md) and "galerkin"
+    operator is hypoelliptic and plain Galerkin rings along the drift, bench/results/psd.md) and "galerkin"
     otherwise.
     """
 

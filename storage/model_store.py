@@ -46,7 +46,7 @@ _ARRAY_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}\Z")
 _TMP = re.compile(rf"^{re.escape(TMP_PREFIX)}[0-9a-f]{{{ID_LENGTH}}}-(\d+)-[0-9a-f]+{re.escape(SUFFIX)}\Z")
 _LIBRARIES = ("numpy", "scipy", "h5py", "scikit-fem")
 # Integer arrays (mesh cells, node indices) shrink 3-15x under shuffle+gzip at no cost.  Dense
-# float arrays shrink by 5-35% but load 20-40x slower (bench/storage.py, docs/bench-storage.md),
+# float arrays shrink by 5-35% but load 20-40x slower (bench/storage.py, bench/results/storage.md),
 # so they are compressed only on request (ModelStore(compress_floats=True)).
 _INTEGER_KINDS = "iub"
 

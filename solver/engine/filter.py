@@ -92,7 +92,7 @@ class YauYauFilter(ChunkedFilter):
 
     ``offline`` is any :class:`solver.offline.OfflineArrays` (nodes, weights, basis, projector, the two
     propagators, ``evaluate_basis``).  ``precision="single"`` runs the two matrix-vector products per
-    step in float32 (speed-up: docs/bench-engine.md; relative rounding ~1e-7 per step); the moments,
+    step in float32 (speed-up: bench/results/engine.md; relative rounding ~1e-7 per step); the moments,
     log-likelihood and state stay in float64.
     """
 

@@ -504,7 +504,7 @@ class FollowingFilter(ChunkedFilter):
         """The carries of the offsets (whole steps along the shift directions) no longer than a move
         usually goes (:data:`LEAD`, ``STRAY``), built at once with the filter, so that a move in the
         stream costs the projection only, also the first one by an offset (a carry built alone costs
-        8–20 steps of the fixed ball, docs/bench-follow.md)."""
+        8–20 steps of the fixed ball, bench/results/follow.md)."""
         reach = (float(self.distance) * (1.0 + LEAD) + STRAY * self.radius) / self._lattice
         span = np.arange(-int(reach), int(reach) + 1)
         grid = np.stack(np.meshgrid(*[span] * len(self.directions), indexing="ij"), axis=-1)

@@ -83,7 +83,7 @@ from .yau_system import exponential_sum
 
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
-MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: docs/bench-yau-jia.md)
+MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: bench/results/yau-jia.md)
 SPLIT_SHARE = 8  # at most max_components / 8 splits per step (diffusion widens every component)
 SPLIT_TOLERANCE = 0.05  # log-likelihood error per unit time at the ±√3σ points, per component
 

@@ -16,7 +16,7 @@ its scheduler, ends the run with one InputError naming the scheduler and what to
 one line, exit status 2); nothing is stored.
 
 Without ``scheduler`` a local cluster of ``workers`` processes (one thread each: SuperLU's solves do
-not gain from threads, docs/bench-precompute.md) is started for the run and shut down after it; they
+not gain from threads, bench/results/precompute.md) is started for the run and shut down after it; they
 are spawned, so a script asking for several needs the usual ``if __name__ == "__main__":`` guard.
 Workers of a cluster of your own should run one thread each too (``dask worker --nthreads 1``); a
 worker with more threads solves its blocks one at a time (a lock: the factorisations are shared).

@@ -55,14 +55,14 @@ from .basis import DENSE_NODES
 
 # Interior degrees of freedom per basis function when the mesh is not given (Q ≈ 2N).  The online
 # step costs ~2·Q·N flops per observation.  Chosen by measurement (bench/default_mesh.py,
-# docs/bench-default-mesh.md): of Q/N ≈ 1.25, 1.5 and 2, only 2 keeps the largest mean gap ≤ 1e-3 on
+# bench/results/default-mesh.md): of Q/N ≈ 1.25, 1.5 and 2, only 2 keeps the largest mean gap ≤ 1e-3 on
 # every bundled 1-D model (the two-peaked √(1+x²) sensor: 4.4e-2, 3.0e-3, 4.3e-6; the cubic sensor
 # 3.2e-4, 1.7e-4, 6.2e-5).  A spec may set ``mesh`` to trade the margin for speed (the cubic example).
 NODES_PER_MODE = {1: 2.0, 2: 2.0, 3: 2.0}
 # Up to DENSE_NODES the basis comes from a dense eigensolve, beyond from shift-invert Lanczos
 # (solver/offline/basis.py).  MAX_NODES bounds what a spec may ask for: the 3-D ball refined five times
 # (41727 nodes), N = 1000: its eigensolve takes ~8 min and 2.6 GB, the whole precompute ~25 min and
-# 3.5 GB on one process (docs/bench-3d.md).  A default mesh stays within the dense solver.
+# 3.5 GB on one process (bench/results/3d.md).  A default mesh stays within the dense solver.
 MAX_NODES = 50000
 # Interior vertices of the ball refined r times.
 BALL_INTERIOR = {1: 7, 2: 63, 3: 575, 4: 4991, 5: 41727}
@@ -366,7 +366,7 @@ def supg(basis: Basis, model, drift=None) -> tuple[sps.csr_matrix, sps.csr_matri
     whose second derivatives a P1 function lacks inside an element; they are those of its recovered
     gradient g_k = W⁻¹ ∫ ψ ∂_k u (lumped L² projection, so a:∇²u ≈ Σ a_kl ∂_l g_k): without them the
     scheme is consistent only to O(h) (measured while building it: the predicted mean of
-    docs/bench-psd.md was 5e-2, 3.4e-2, 2.2e-2 off at N = 300, 600, 1200; with them 3.5e-3, 2.0e-3,
+    bench/results/psd.md was 5e-2, 3.4e-2, 2.2e-2 off at N = 300, 600, 1200; with them 3.5e-3, 2.0e-3,
     1.1e-3).  With τ from :func:`streamline_tau`,
 
         S_M(u, v) = ∫ τ u f·∇v,   S_A(u, v) = ∫ τ (f·∇u + (div f) u − ½ Σ a_kl ∂_l g_k(u)) f·∇v,
