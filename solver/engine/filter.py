@@ -64,13 +64,11 @@ from ..measurement import (
     standard_score,
 )
 from ..model import Model
+from ..registry import FORMS, PRECISIONS
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .diagnostics import Diagnostics
 from .semigroup import SpectralFlow
 from .state import YauYauState, state_from_dict
-
-FORMS = ("stable", "literal")
-PRECISIONS = ("double", "single")
 
 
 @dataclass(frozen=True)
