@@ -263,7 +263,7 @@ def test_progress_bar_on_request(store, tmp_path, capsys):
 
 def test_every_help_page_prints(capsys):
     """`yauyau -h` and each command's -h exit 0 (argparse %-formats help text: a bare % breaks it)."""
-    from yauyau.service.cli import COMMANDS
+    from yauyau.service.cli.main import COMMANDS
 
     for argv in (["-h"], *[[name, "-h"] for name in COMMANDS]):
         with pytest.raises(SystemExit) as done:

@@ -22,7 +22,7 @@ import math
 import sys
 from pathlib import Path
 
-from .filter import write_csv
+from .csv_io import write_csv
 
 EPILOG = """\
 files (in DIR):
