@@ -19,7 +19,7 @@ RUN python3 scripts/provision.py install --venv /opt/venv \
 # Runtime stage: the virtual environment, the store (read-only) and the script; no build tools.
 # The server listens on every interface of the container's own network (what a published port reaches):
 # without a tenants file that needs YAUYAU_INSECURE_BIND, so publish on the host's loopback only
-# (docker run -p 127.0.0.1:8000:8000) or mount a tenants file and set YAUYAU_TENANTS_FILE (README, Docker).
+# (docker run -p 127.0.0.1:8000:8000) or mount a tenants file and set YAUYAU_TENANTS_FILE (docs/service.md, Docker).
 FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 \
     YAUYAU_STORE=/opt/store YAUYAU_SESSION_DB=/var/lib/yauyau/sessions.sqlite3 YAUYAU_HOST=0.0.0.0 \

@@ -23,7 +23,9 @@ import provision  # noqa: E402
 VENV = Path(os.environ.get("YAUYAU_VENV", ROOT / ".venv"))
 STORE = Path(os.environ.get("YAUYAU_STORE", ROOT / "var" / "store"))
 EXAMPLES = [ROOT / "examples" / "cubic_sensor.toml", ROOT / "examples" / "power_meter.toml"]
-EXTRAS = "test,bench"
+# the test tools; the benchmarks need nothing more here (their peers, particles and FilterPy, pin numpy < 2
+# and run in a venv of their own: python -m bench.measurements --setup-peers)
+EXTRAS = "test"
 
 
 def serve(args: list[str]) -> int:

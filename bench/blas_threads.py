@@ -1,6 +1,6 @@
 """BLAS threads in the online hot path: one thread (yauyau's default) vs OpenBLAS's default.
 
-    python -m bench.blas_threads [--quick]     # writes docs/bench-blas.md
+    python -m bench.blas_threads [--quick]     # writes bench/results/blas.md
 
 The engine's step is two small matrix-vector products (seed 002 (5.35)–(5.38)); OpenBLAS splits each
 over all cores, which pays a hand-off per product and collapses when another process holds a core.
@@ -24,7 +24,7 @@ from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.offline.pipeline import precompute
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-blas.md"
+FRAGMENT = ROOT / "bench" / "results" / "blas.md"
 CHUNK = 1000
 
 

@@ -1,6 +1,6 @@
 """`yauyau filter` over a file against the engine's `run_arrays` and the `particles` library.
 
-    python -m bench.cli_speed [--quick]     # writes docs/bench-cli.md
+    python -m bench.cli_speed [--quick]     # writes bench/results/cli.md
 
 The 1-D cubic sensor with its tuned mesh (examples/cubic_sensor.toml: mesh = 40, Q = 159) and the
 same spec without ``mesh`` (the default discretisation, Q ≈ 2N = 259): a CSV of K increments, filtered
@@ -30,7 +30,7 @@ import numpy as np
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-cli.md"
+FRAGMENT = ROOT / "bench" / "results" / "cli.md"
 SPEC = ROOT / "examples" / "cubic_sensor.toml"
 TARGET_CLI, TARGET_PF = 1.3, 100.0
 

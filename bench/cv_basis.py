@@ -1,6 +1,6 @@
 """Constant-velocity tracking against Kalman as the basis grows (issue 10's 1e-3 proof).
 
-    python -m bench.cv_basis [--quick]     # writes docs/bench-cv-basis.md
+    python -m bench.cv_basis [--quick]     # writes bench/results/cv-basis.md
 
 The model of bench/psd.py and tests/test_psd.py: f = (v, −0.2v), a = diag(0, 1), h = p, R = 1,
 dt = 0.01, prior N(0, I), SUPG (the default for this diffusion) on a following ball of radius 8 that
@@ -30,7 +30,7 @@ from .fragments import write_fragment
 from .psd import _doc
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-cv-basis.md"
+FRAGMENT = ROOT / "bench" / "results" / "cv-basis.md"
 
 
 def posterior_shape() -> np.ndarray:

@@ -1,6 +1,6 @@
 """The default discretisation, chosen by measurement: accuracy and cost against nodes per basis function.
 
-    python -m bench.default_mesh [--quick]     # writes docs/bench-default-mesh.md
+    python -m bench.default_mesh [--quick]     # writes bench/results/default-mesh.md
 
 The default mesh of a spec without ``mesh`` has about NODES_PER_MODE · N interior nodes
 (solver/offline/fem.py).  For the bundled 1-D models it is varied over Q/N ≈ 1.25, 1.5 and 2 (the P2 cells
@@ -31,7 +31,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-default-mesh.md"
+FRAGMENT = ROOT / "bench" / "results" / "default-mesh.md"
 TARGET = 1e-3
 RATIOS = (1.25, 1.5, 2.0)
 MODELS = [("cubic sensor", "cubic_sensor.toml", lambda m: PointMassFilter(m, cells=4000), 2000),

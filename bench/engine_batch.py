@@ -1,6 +1,6 @@
 """Many streams of one model stepped together (solver/engine/batch.py) against one ``run_arrays`` each.
 
-    python -m bench.engine_batch [--quick]     # writes docs/bench-engine-batch.md
+    python -m bench.engine_batch [--quick]     # writes bench/results/engine-batch.md
 
 S states of a model, each with its own 100-row chunk (simulated), advanced by ``run_batch`` and by
 a loop of ``run_arrays``, interleaved, one BLAS thread, medians of the repeats.  Models: the 1-D
@@ -26,7 +26,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-engine-batch.md"
+FRAGMENT = ROOT / "bench" / "results" / "engine-batch.md"
 CHUNK = 100
 MODELS = [("1-D cubic sensor", "cubic_sensor.toml", None), ("2-D rotation", "range_2d.toml", None),
           ("2-D rotation", "range_2d.toml", "double")]

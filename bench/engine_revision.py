@@ -12,7 +12,7 @@ processes of the same code (memory layout), so the instructions per observation 
 (valgrind's callgrind: the same count whatever else the machine does), from the difference of runs
 of one and six chunks in the same process.
 
-Writes docs/bench-engine-revision.md.
+Writes bench/results/engine-revision.md.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs"
+RESULTS = ROOT / "bench" / "results"
 EXAMPLES = {"cubic_sensor": 30, "range_2d": 3}  # example -> repeats of a 1000-row chunk per round
 COUNTED = ("cubic_sensor",)  # instructions counted (under valgrind the 2-D products take half an hour)
 ROUND = """
@@ -164,7 +164,7 @@ def main(argv=None) -> None:
         lines.append(f"| `examples/{example}.toml` | {a:.2f} | {b:.2f} | {ratio:.3f} | "
                      f"{low:.3f} – {high:.3f} | {count} |")
     text = "\n".join(lines) + "\n"
-    (DOCS / "bench-engine-revision.md").write_text(text)
+    (RESULTS / "engine-revision.md").write_text(text)
     print(text)
 
 

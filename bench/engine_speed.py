@@ -1,6 +1,6 @@
 """Online engine speed: µs per observation of the Yau–Yau step (seed 002 (5.35)–(5.38)).
 
-    python -m bench.engine_speed [--quick]     # writes docs/bench-engine.md
+    python -m bench.engine_speed [--quick]     # writes bench/results/engine.md
 
 For the 1-D cubic sensor and the 2-D example, stable vs literal form, the chunk-of-1 API
 (``step``: validation and one Estimate per call), chunks of 1000 through ``run`` (Estimate objects)
@@ -25,7 +25,7 @@ from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-engine.md"
+FRAGMENT = ROOT / "bench" / "results" / "engine.md"
 # title: (example, discretization override, target µs/observation)
 CASES = {"1-D cubic sensor": ("cubic_sensor.toml", {}, 10.0),
          "1-D cubic sensor, mesh = 40": ("cubic_sensor.toml", {"mesh": 40}, 10.0),
@@ -37,8 +37,8 @@ def _blas_floor(flt: YauYauFilter, increments: np.ndarray) -> None:
     c = np.append(flt.initial_state().coefficients, 1.0)
     row = np.empty(flt.nodes.shape[0])
     for _ in range(len(increments)):
-        dgemv(1.0, flt._observe, c, 0.0, row, overwrite_y=1)
-        c = dgemv(1.0, flt._project, row)
+        dgemv(1.0, flt.observation_propagator, c, 0.0, row, overwrite_y=1)
+        c = dgemv(1.0, flt.projection, row)
 
 
 def _configurations(flt: YauYauFilter, dy: np.ndarray, single_steps: int):
@@ -142,7 +142,7 @@ def render(results: dict, steps: int) -> str:
               "In 2-D the example uses radius 4.5 and N = 850 (N = 300 at radius 6 did not resolve the "
               "narrow posterior of the cubic sensor) and `discretization.precision = \"single\"`, "
               "which meets the 0.5 ms target that double precision misses; accuracy in "
-              "docs/bench-filters.md.",
+              "bench/results/filters.md.",
               ""]
     return "\n".join(lines)
 

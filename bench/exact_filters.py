@@ -9,7 +9,7 @@ absolute numbers, are what a noisy machine can tell).  Three ways to call a filt
 same chunk (a list of Estimate objects) and chunks of one row (the service's worst case).
 The issue asks that an ODE filter's online step be >= 10x cheaper than the general engine on
 the same model.  The Yau–Hu filter also runs with its cached schedules switched off (the general
-chunk code it used before them), side by side.  Writes docs/bench-exact.md; hand-written notes
+chunk code it used before them), side by side.  Writes bench/results/exact.md; hand-written notes
 below the NOTES marker in that file are kept.
 """
 
@@ -31,7 +31,7 @@ from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec, spec_from_dict
 
 ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "docs" / "bench-exact.md"
+OUT = ROOT / "bench" / "results" / "exact.md"
 CHUNK = 1000
 ENGINE = "Yau–Yau engine (stable)"
 NOTES = "<!-- hand-written notes below this line are kept by bench/exact_filters.py -->"
@@ -131,8 +131,8 @@ def _wei_norman_case(repeats: int, single: int) -> list[str]:
         for label, us in times.items():
             best[label] = np.fmin(best[label], us) if label in best else np.array(us)
     base = best[ENGINE]
-    lines = [f"### Wei–Norman (seed 004 class: f = −x in 3-D, h = x1, a = R = I; dt = {model.dt}, "
-             f"refinement 3, Q = {len(offline.nodes)}, basis {offline.basis.shape[1]})", "",
+    lines = [f"### Wei–Norman (the class of Shi et al. (2017): f = −x in 3-D, h = x1, a = R = I; "
+             f"dt = {model.dt}, refinement 3, Q = {len(offline.nodes)}, basis {offline.basis.shape[1]})", "",
              f"Valid chunk: {chunk} rows (Wei–Norman mean within 0.1 of the discrete Kalman filter, largest "
              f"gap {gap:.3f}; the horizon of r1, r2 ~ e^(√A t), A = 2).  Timed on those {chunk} rows and "
              f"{single} single rows, after a first pass over {len(increments)} rows on a fresh filter "
@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     repeats, single = (1, 100) if args.quick else (3, 300)
-    lines = ["## Exact ODE filters (bench/exact_filters.py)", "",
+    lines = ["## Exact ODE filters against the engine", "",
              f"Command: `.venv/bin/python -m bench.exact_filters{' --quick' if args.quick else ''}` "
              f"(best of {repeats} interleaved rounds; {single} single-row chunks)", ""]
     lines += _case("Ornstein–Uhlenbeck", "examples/ou.toml", [

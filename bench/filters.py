@@ -11,7 +11,7 @@ conditional mean against the true state over all seeds and steps, and the gap
 |E[x] − E_ref[x]| (∞-norm over components) averaged over steps and seeds, and its maximum.
 Speed: µs per observation amortised over a chunk of 1000 (median over seeds) and over 100
 chunks of 1, in the same process, so that ratios are meaningful on a noisy machine.
-Writes docs/bench-filters.md and docs/img/filters-*.png.
+Writes bench/results/filters.md and docs/img/filters-*.png.
 """
 
 from __future__ import annotations
@@ -334,7 +334,7 @@ def _density_plot(result, plt) -> str:
 
 
 def write_markdown(results: dict[str, dict[str, Any]], images: list[str], command: str, wall: float) -> Path:
-    parts = ["## Filters: accuracy and speed (issue 3)", "",
+    parts = ["## Filters: accuracy and speed against reference filters", "",
              f"Command: `{command}` (wall time {wall:.0f} s). Every filter runs on the same simulated paths "
              "(Euler–Maruyama, 10 substeps per dt); RMSE is of the conditional mean against the true state "
              "over all seeds and steps; *gap* is |E[x] − E_ref[x]|∞ averaged over steps and seeds "
@@ -351,8 +351,8 @@ def write_markdown(results: dict[str, dict[str, Any]], images: list[str], comman
                   f"`{case.spec}`, {res['seeds']} seeds × {res['steps']} steps, reference: {case.reference}; "
                   f"offline precompute {_fmt(res['precompute_s'])} s.", "", table(res)]
     if images:
-        parts += ["", "### Plots", ""] + [f"![{name}](img/{name})" for name in images]
-    out = DOCS / "bench-filters.md"
+        parts += ["", "### Plots", ""] + [f"![{name}](../../docs/img/{name})" for name in images]
+    out = ROOT / "bench" / "results" / "filters.md"
     out.write_text("\n".join(parts) + "\n")
     return out
 

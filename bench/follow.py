@@ -1,6 +1,6 @@
 """A ball that follows the state (solver/engine/follow.py) against the fixed ball, and precompute on Dask.
 
-    python -m bench.follow [--quick]     # writes docs/bench-follow.md
+    python -m bench.follow [--quick]     # writes bench/results/follow.md
 
 * Cost per observation with ``[domain] follow`` (a random walk with trend f = 1, which travels far
   beyond the ball) against the fixed ball of the same Q and N (an OU drift −x/2 that stays in it),
@@ -33,7 +33,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-follow.md"
+FRAGMENT = ROOT / "bench" / "results" / "follow.md"
 CHUNK = 1000
 
 
@@ -133,15 +133,16 @@ def dask_rows(basis: int) -> list[str]:
                           ("local cluster, 2 workers", {"workers": 2})):
         start = time.perf_counter()
         if kwargs is None:  # a one-worker cluster: the Dask path with a single worker
-            from yauyau.solver.offline import pipeline as off
+            from yauyau.solver.offline import jobs as off
 
-            job = off._Job(*_job_parts(model), token="bench")
+            job = off.Job(*_job_parts(model), token="bench")
             fp = np.empty_like(job.initial)
             from yauyau.solver.offline.distributed import run_blocks
 
             def store(_, result, fp=fp):
                 fp[:, result[0]:result[1]] = result[2]
-            run_blocks([job], [(0, b) for b in off.column_blocks(job.initial.shape[1])], store, workers=1)
+            blocks = [(0, b) for b in off.column_blocks(job.initial.shape[1])]
+            run_blocks([job], blocks, store, off.dask_block, workers=1)
             arrays = fp
         else:
             arrays = precompute(model, **kwargs).propagator_fp

@@ -1,7 +1,7 @@
 """What a following ball saves: the basis and cost for a 0.01 gap, on the 2-D range example and on a
 travelling target.
 
-    python -m bench.follow_cost [--quick]     # writes docs/bench-follow-cost.md
+    python -m bench.follow_cost [--quick]     # writes bench/results/follow-cost.md
 
 1. examples/range_2d.toml: a damped rotation f = (−0.5x1 + x2, −x1 − 0.5x2) observed through h = x1³,
    dt = 0.01, 1000 steps (t = 0..10), seeds 1 and 2.  Truth: the point-mass filter on 256² cells of the
@@ -40,7 +40,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-follow-cost.md"
+FRAGMENT = ROOT / "bench" / "results" / "follow-cost.md"
 TARGET = 0.01
 FOLLOW_RADIUS = 6.0  # the travelling target's posterior is N(·, ~I): a radius-4.5 ball leaks (measured)
 RUNS_TIMED = 5

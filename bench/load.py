@@ -22,7 +22,7 @@ off (``YAUYAU_MAX_BATCH=1``: every chunk stepped and committed alone), side by s
 drives the 2-D rotation example (examples/range_2d.toml) instead of the 1-D cubic sensor.
 ``--stores`` compares the session stores instead: SQLite and PostgreSQL (a server of its own,
 scripts/pg_server.py), each with one and two server processes (``--workers``).
-Writes docs/bench-load.md (docs/bench-load-2d.md for the 2-D example, docs/bench-load-stores.md for
+Writes bench/results/load.md (bench/results/load-2d.md for the 2-D example, bench/results/load-stores.md for
 ``--stores``).
 Targets (issue "Many streams at once"): 1-D, 64 streams >= 100 000 observations/s with p99 <= 50 ms,
 one stream >= 2x the previous revision's throughput; 2-D, 64 streams batched >= 2.5x unbatched.
@@ -51,8 +51,9 @@ from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = {"1d": ROOT / "examples" / "cubic_sensor.toml", "2d": ROOT / "examples" / "range_2d.toml"}
-DOCS = {"1d": ROOT / "docs" / "bench-load.md", "2d": ROOT / "docs" / "bench-load-2d.md",
-        "stores": ROOT / "docs" / "bench-load-stores.md", "windows": ROOT / "docs" / "bench-load-windows.md"}
+RESULTS = ROOT / "bench" / "results"
+DOCS = {"1d": RESULTS / "load.md", "2d": RESULTS / "load-2d.md", "stores": RESULTS / "load-stores.md",
+        "windows": RESULTS / "load-windows.md"}
 CHUNK = 100
 MAX_CHUNKS = 20_000  # per stream and row: bounds the work however fast the server is
 STREAMS = (1, 8, 64)
@@ -406,7 +407,7 @@ def _parse(argv):
                         help="also serve the working tree with micro-batching off (YAUYAU_MAX_BATCH=1)")
     parser.add_argument("--streams-list", default=",".join(map(str, STREAMS)),
                         help="comma-separated concurrent streams per row (default 1,8,64)")
-    parser.add_argument("--no-doc", action="store_true", help="print only; leave docs/bench-load.md")
+    parser.add_argument("--no-doc", action="store_true", help="print only; leave bench/results/load.md")
     # the client process (internal)
     parser.add_argument("--drive", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--client", help=argparse.SUPPRESS)

@@ -1,6 +1,6 @@
 """HTTP load on the 2-D example, micro-batching on and off side by side (bench/load.py --example 2d).
 
-    python -m bench.load_2d [--quick]     # writes docs/bench-load-2d.md
+    python -m bench.load_2d [--quick]     # writes bench/results/load-2d.md
 """
 
 from __future__ import annotations

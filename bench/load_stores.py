@@ -1,7 +1,7 @@
 """HTTP load with the session store in SQLite and in PostgreSQL, one and two server processes side by
 side (bench/load.py --stores).
 
-    python -m bench.load_stores [--quick]     # writes docs/bench-load-stores.md
+    python -m bench.load_stores [--quick]     # writes bench/results/load-stores.md
 """
 
 from __future__ import annotations

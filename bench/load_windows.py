@@ -1,7 +1,7 @@
 """HTTP load with micro-batching windows of 0, 1 and 3 ms side by side (bench/load.py --windows): how
 the default window (0) was chosen.
 
-    python -m bench.load_windows [--quick]     # writes docs/bench-load-windows.md
+    python -m bench.load_windows [--quick]     # writes bench/results/load-windows.md
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@
    says so.
 
 The offline stage is cached in bench/out/ (keyed by the spec and the solver's offline sources;
-``--fresh`` recomputes it).  Writes docs/bench-measurements.md.
+``--fresh`` recomputes it).  Writes bench/results/measurements.md.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
-from yauyau.solver.engine.filter import PIECE, YauYauFilter
+from yauyau.solver.engine.filter import YauYauFilter
+from yauyau.solver.engine.pieces import PIECE
 from yauyau.solver.model import Model, compile_model
 from yauyau.solver.offline.pipeline import OfflineModel, precompute
 from yauyau.solver.simulate import simulate
@@ -58,7 +59,7 @@ from yauyau.solver.spec import spec_from_dict
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
 OUT = ROOT / "bench" / "out"
-FRAGMENT = ROOT / "docs" / "bench-measurements.md"
+FRAGMENT = ROOT / "bench" / "results" / "measurements.md"
 PEER_VENV = OUT / "peers-venv"
 PEER_PYTHON = PEER_VENV / "bin" / "python"
 PEER_SCRIPT = Path(__file__).resolve().parent / "peer_particles.py"
@@ -574,7 +575,7 @@ def reading(costs: list[dict], accuracy: list[dict]) -> list[str]:
                   if any(res["checks"][(when, "discrete")][0] for when in ("regular", "irregular"))]]))
         out.append(" ".join([
             "- particles' bootstrap filter draws one Gaussian per particle per gap (the transition is",
-            "exact here), so it is leaner than the bench's own particle filter of docs/bench-filters.md",
+            "exact here), so it is leaner than the bench's own particle filter of bench/results/filters.md",
             "(two Euler–Maruyama substeps per dt): the speed-up target of the continuous form (≥ 100× over",
             "a 10k-particle filter), applied here to particles, is a harder bar."]))
     return out + [""]
@@ -594,7 +595,7 @@ def write_markdown(costs, accuracy, command: str, wall: float, load: float) -> P
              "once on a simulated path, and the table says where the engine flagged a step it could not "
              "resolve there.", "", "### Targets", "",
              "The cost ratios are the issue's targets; the accuracy and particles lines apply the targets "
-             "of the continuous form (docs/bench-filters.md: mean gap ≤ 0.01, ≥ 100× faster than a "
+             "of the continuous form (bench/results/filters.md: mean gap ≤ 0.01, ≥ 100× faster than a "
              "10k-particle filter, a smaller gap than it) to these runs.", ""]
     parts += targets(costs, accuracy)
     parts += ["", "### Cost per observation: regular vs irregular times", ""]

@@ -1,6 +1,6 @@
 """Offline-stage benchmark: wall time, peak memory and array size of ``precompute``.
 
-    python -m bench.precompute [--quick] [--accuracy]      # writes docs/bench-precompute.md
+    python -m bench.precompute [--quick] [--accuracy]      # writes bench/results/precompute.md
 
 Each case runs in a fresh Python process, so its peak resident memory (ru_maxrss of the process
 and of its worker processes) is its own.  The split "setup" (mesh, assembly, eigenbasis, LU) vs
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-precompute.md"
+FRAGMENT = ROOT / "bench" / "results" / "precompute.md"
 
 # (label, example file, basis N override, mesh override, workers, target seconds)
 CASES = [

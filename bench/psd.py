@@ -1,6 +1,6 @@
 """Noise on some coordinates only (a positive semi-definite diffusion): the three schemes side by side.
 
-    python -m bench.psd [--quick]     # writes docs/bench-psd.md
+    python -m bench.psd [--quick]     # writes bench/results/psd.md
 
 Constant-velocity tracking, f = (v, −0.2v), a = diag(0, 1), 2-D P1 on the default mesh:
 ``scheme = "galerkin"`` (lumped mass), ``"consistent"`` (Galerkin, consistent mass) and ``"supg"``
@@ -35,7 +35,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-psd.md"
+FRAGMENT = ROOT / "bench" / "results" / "psd.md"
 SCHEMES = ("galerkin", "consistent", "supg")
 A = np.array([[0.0, 1.0], [0.0, -0.2]])
 NOISE = np.diag([0.0, 1.0])

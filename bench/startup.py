@@ -1,6 +1,6 @@
 """Start-up: what a user waits for before the first estimate, side by side in one run.
 
-    python -m bench.startup [--quick] [--baseline REV]     # writes docs/bench-startup.md
+    python -m bench.startup [--quick] [--baseline REV]     # writes bench/results/startup.md
 
 * the floor: ``python -c "import numpy, scipy.sparse.linalg, h5py"`` (what any filter needs);
 * ``yauyau filter`` on a 1-row input of the 1-D cubic sensor (stored model, method chosen at
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-startup.md"
+FRAGMENT = ROOT / "bench" / "results" / "startup.md"
 SPEC = ROOT / "examples" / "cubic_sensor.toml"
 
 

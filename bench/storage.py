@@ -1,7 +1,7 @@
 """Storage benchmark: HDF5 file size and write/load time per dataset filter policy, and the
 session store's chunk throughput (1 vs 2 processes, and contention on one session).
 
-    python -m bench.storage [--quick]      # writes docs/bench-storage.md
+    python -m bench.storage [--quick]      # writes bench/results/storage.md
 
 Sizes are exact; times are ratios against the plain (unfiltered) layout measured in the same run.
 """
@@ -22,7 +22,7 @@ from yauyau.storage.model_store import ModelStore
 from yauyau.storage.session_store import SqliteSessionStore
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-storage.md"
+FRAGMENT = ROOT / "bench" / "results" / "storage.md"
 POLICIES = {
     "plain (no checksum)": lambda arr: {},
     "fletcher32": lambda arr: {"fletcher32": True, "chunks": True},

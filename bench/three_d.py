@@ -1,6 +1,6 @@
 """3-D through the general engine (issue 10 part 6): a fixed ball against one that follows the state.
 
-    python -m bench.three_d [--quick]     # writes docs/bench-3d.md
+    python -m bench.three_d [--quick]     # writes bench/results/3d.md
 
 The issue's model f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, prior N(0, ½I),
 ``method = "yau-yau"``, on the default 3-D mesh for the basis (refinement 4 of scikit-fem's ball,
@@ -10,7 +10,7 @@ Q = 4991 P1 nodes), against the exact Kalman filter of the sampled model over 50
 * the same ball with N = 1500 (the dense eigensolver's cost grows with Q, not N);
 * a ball of radius 3.5 that follows the posterior in the frame of ċ = Ac (solver/engine/frame.py), N = 1000,
   its moves carried by P1 interpolation.  (A local spline carry was measured on 2026-11-24 and
-  dropped: docs/bench-3d.md's analysis has its figures.)
+  dropped: bench/results/3d.md's analysis has its figures.)
 * the same following ball on the ball refined five times (``mesh = 5``, Q = 41727: the basis from
   shift-invert Lanczos, solver/offline/basis.py).  Its precompute takes ~25 min and 3.5 GB on one process;
 * the same following ball with ``element = "bubble"`` (P2 plus face and interior bubbles, the
@@ -42,7 +42,7 @@ from yauyau.solver.simulate import simulate
 from .fragments import write_fragment
 
 ROOT = Path(__file__).resolve().parent.parent
-FRAGMENT = ROOT / "docs" / "bench-3d.md"
+FRAGMENT = ROOT / "bench" / "results" / "3d.md"
 
 
 def _doc(radius: float, basis: int, follow: bool, mesh: int | None = None, element: str = "lagrange") -> dict:

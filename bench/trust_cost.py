@@ -13,7 +13,7 @@ below HTTP function by function.  The issue's bound: at most 5% of one-stream th
 over rounds of the chunks' latency; the server's CPU per chunk (from /proc, what varies least on a
 shared machine).
 
-Writes docs/bench-trust.md.
+Writes bench/results/trust.md.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 from . import load
 from .fragments import write_fragment
 
-DOC = Path(__file__).resolve().parent.parent / "docs" / "bench-trust.md"
+DOC = Path(__file__).resolve().parent.parent / "bench" / "results" / "trust.md"
 BEFORE = "6118770"  # main before the issue "Trust"
 
 

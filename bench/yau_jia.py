@@ -15,7 +15,7 @@ observation, median over seeds, one BLAS thread.  Then the dimension: n = 2, 4, 
 constant velocity with a range sensor √(1 + |p|²) / |p| / |p|), cost per observation and gap to a
 10⁵-particle reference.  Last, the 2-D ring posterior of tests/test_yau_jia.py: gap to the point-mass
 reference and cost by the number of components and the splits allowed per step.  Writes
-docs/bench-yau-jia.md.
+bench/results/yau-jia.md.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec, spec_from_dict
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs"
+RESULTS = ROOT / "bench" / "results"
 
 
 def _cv_matrices(model, d):
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
               "ms per observation |", "|---|---|---|---|---|"]
     lines += [f"| {cap} | {budget} | {worst:.4f} | {mean:.4f} | {ms:.3f} |"
               for cap, budget, worst, mean, ms in ring]
-    out = DOCS / "bench-yau-jia.md"
+    out = RESULTS / "yau-jia.md"
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

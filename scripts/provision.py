@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Set up, precompute and serve yauyau: the one script the Dockerfile, dev.py and the tests use.
 
-    python3 scripts/provision.py install    --venv DIR [--editable] [--extras test,bench]
+    python3 scripts/provision.py install    --venv DIR [--editable] [--extras test]
     python3 scripts/provision.py browser
     python3 scripts/provision.py precompute --venv DIR --store DIR SPEC.toml ...
     python3 scripts/provision.py serve      --venv DIR --store DIR [--host H] [--port P]
@@ -19,6 +19,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import tomllib
 import venv
 from pathlib import Path
 
@@ -41,8 +42,26 @@ def _install_key(editable: bool, extras: str) -> str:
     return hashlib.sha256(text).hexdigest()
 
 
+def defined_extras() -> list[str]:
+    """The extras pyproject.toml defines ([project.optional-dependencies])."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    return list(project.get("optional-dependencies", {}))
+
+
+def unknown_extras(extras: str) -> list[str]:
+    """The extras named in ``extras`` ("test,...") that pyproject.toml does not define (pip only warns)."""
+    defined = defined_extras()
+    return [name for name in (e.strip() for e in extras.split(",")) if name and name not in defined]
+
+
 def install(venv_dir: Path, editable: bool = False, extras: str = "") -> None:
-    """Create ``venv_dir`` if needed and install this checkout (skipped when already done)."""
+    """Create ``venv_dir`` if needed and install this checkout (skipped when already done); an extra
+    that pyproject.toml does not define is refused before anything is installed."""
+    unknown = unknown_extras(extras)
+    if unknown:
+        defined = ", ".join(defined_extras()) or "none"
+        raise SystemExit(f"[provision] --extras: {', '.join(unknown)} not defined in pyproject.toml "
+                         f"[project.optional-dependencies] (defined: {defined})")
     venv_dir = venv_dir.resolve()
     key = _install_key(editable, extras)
     stamp = venv_dir / STAMP
@@ -82,14 +101,14 @@ def precompute(venv_dir: Path, store: Path, specs: list[Path]) -> None:
                        check=True)
 
 
-# Debian packages the tests drive: the live page's browser, and curl for the README's walk-through
+# Debian packages the tests drive: the live page's browser, and curl for the docs' walk-throughs
 BROWSER = {"/usr/bin/chromium": "chromium", "/usr/bin/chromedriver": "chromium-driver",
            "/usr/bin/curl": "curl"}
 
 
 def browser() -> None:
     """Debian's chromium and chromedriver for the live-page test (tests/test_live_page.py) and curl for
-    the README's walk-through (tests/test_readme_streams.py): installed with apt-get when missing and
+    the walk-throughs of docs/ (tests/test_readme_streams.py): installed with apt-get when missing and
     this runs as root; otherwise say what to install (the test then fails with the reason; it never
     skips)."""
     missing = [package for path, package in BROWSER.items() if not Path(path).exists()]

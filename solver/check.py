@@ -1,9 +1,9 @@
 """Does the discretisation resolve the posterior this model will have?  Answered before any data.
 
 ``resolution_check(spec)`` simulates a few short paths of the model, filters them with the spec's
-discretisation (the general engine, seed 002 §5) and compares the conditional means with the truth:
+discretisation (the general engine, seed 002 §5) and compares the conditional means with a reference:
 the exact Kalman filter when the model is linear with a Gaussian prior and increments (then the
-truth is exact), otherwise the same engine at twice the basis (and its default mesh) — a finer
+reference is exact), otherwise the same engine at twice the basis (and its default mesh) — a finer
 resolution whose own error is far smaller where the coarse one is off; if that reference degenerates
 on some step it is doubled once more, and one that still does judges nothing (no basis passes against
 it).  A suggested basis is compared with a reference at twice its own basis.  It reports the mean and the
@@ -45,7 +45,7 @@ class Trial:
 
 @dataclass
 class CheckReport:
-    truth: str
+    truth: str  # the reference, in words (``reference`` in to_dict and render)
     target: float
     paths: int
     steps: int
@@ -80,18 +80,19 @@ class CheckReport:
         return min(passing) if passing else None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"truth": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
+        return {"reference": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
                 "ok": self.ok, "resolved": self.requested.ok, "left_domain": self.left,
                 "domain": self.domain, "left_at_step": self.left_at, "suggested_basis": self.suggested,
-                "truth_rmse": self.truth_rmse,
-                "truth_degenerate": self.truth_degenerate, "degenerate_rate_bound": self.rate_bound,
+                "reference_rmse": self.truth_rmse,
+                "reference_degenerate": self.truth_degenerate, "degenerate_rate_bound": self.rate_bound,
                 "region": self.region, "covered": self.covered, "trials": [t.__dict__ for t in self.trials]}
 
     def render(self) -> str:
         r = self.requested
-        lines = [f"resolution check: {self.paths} simulated paths of {self.steps} steps, truth: {self.truth}",
+        lines = [f"resolution check: {self.paths} simulated paths of {self.steps} steps, "
+                 f"reference: {self.truth}",
                  f"  basis {r.basis} ({r.nodes} nodes): mean gap {r.mean_gap:.3g}, largest {r.max_gap:.3g}, "
-                 f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} (truth {self.truth_rmse:.3g})"]
+                 f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} (reference {self.truth_rmse:.3g})"]
         lines += self._left()
         if r.ok:
             lines.append(f"  {'OK' if self.ok else 'resolved'}: the mean gap is within the target "
@@ -146,7 +147,7 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
                      exact_only: bool = False) -> CheckReport | None:
     """The check of the module docstring for a :class:`ModelSpec` (the general engine's discretisation).
     ``offline``: the spec's own offline arrays when they exist (not computed again).  ``exact_only``:
-    None unless the truth is exact (a linear model: the check then costs a few filtered paths)."""
+    None unless the reference is exact (a linear model: the check then costs a few filtered paths)."""
     from .model import compile_model
     from .simulate import simulate
 

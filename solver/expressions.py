@@ -326,7 +326,14 @@ def _checked_tree(text: Any, field: str) -> ast.expr:
         raise SpecError(field, f"expression has more than {MAX_NODES} syntax nodes")
     if _depth(tree, MAX_DEPTH) > MAX_DEPTH:
         raise SpecError(field, f"expression nested deeper than {MAX_DEPTH}")
+    _check_caret(tree, field)
     return tree.body
+
+
+def _check_caret(tree: ast.AST, field: str) -> None:
+    """``x^3`` parses as Python's exclusive or (BitXor): say what was meant instead of 'not allowed'."""
+    if any(isinstance(node, ast.BinOp) and isinstance(node.op, ast.BitXor) for node in ast.walk(tree)):
+        raise SpecError(field, "'^' is not a power here: use ** for powers (x**3, not x^3)")
 
 
 def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping[str, float],

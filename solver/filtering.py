@@ -26,7 +26,7 @@ the registry of solver/methods.py.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, Callable, ClassVar, Protocol, Self, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -42,18 +42,31 @@ class Estimate:
     """
 
     step: int
+    """The step number k (0: the prior)."""
     t: float
-    mean: np.ndarray  # (n,)
-    cov: np.ndarray  # (n, n)
-    loglik: float  # cumulative log-likelihood (log of the normaliser ratio)
-    loglik_increment: float  # this step's contribution
+    """The time t_k of the step."""
+    mean: np.ndarray
+    """(n,) the conditional mean E[x(t_k) | rows up to k]."""
+    cov: np.ndarray
+    """(n, n) the conditional covariance."""
+    loglik: float
+    """The cumulative log-likelihood (log of the normaliser ratio)."""
+    loglik_increment: float
+    """This step's contribution to ``loglik``."""
     degenerate: bool = False
-    reason: str | None = None  # why the step is degenerate, gated or re-initialised
-    mode: np.ndarray | None = None  # (n,), where the filter can tell
-    gated: bool = False  # the observation was rejected by the gate: the step only predicted
-    predictive_loglik: float | None = None  # log p(row | rows before); None without an observation
-    reinitialised: bool = False  # the filter degenerated here and started again (on_degenerate)
-    alarm: bool = False  # the innovation monitor raised its alarm at this row (solver/watch.py)
+    """The filter could not resolve this step (``reason`` says why)."""
+    reason: str | None = None
+    """Why the step is degenerate, gated or re-initialised (None: none of these)."""
+    mode: np.ndarray | None = None
+    """(n,) the MAP point, where the filter can tell (None otherwise)."""
+    gated: bool = False
+    """The observation was rejected by the gate: the step only predicted."""
+    predictive_loglik: float | None = None
+    """log p(row | rows before); None without an observation."""
+    reinitialised: bool = False
+    """The filter degenerated here and started again (``on_degenerate``)."""
+    alarm: bool = False
+    """The innovation monitor raised its alarm at this row (solver/watch.py)."""
 
     def to_dict(self) -> dict[str, Any]:
         out = {"step": self.step, "t": self.t, "mean": self.mean.tolist(), "cov": self.cov.tolist(),
@@ -73,25 +86,44 @@ class ChunkResult:
     repeats the last good estimate) and their :class:`Estimate` has no mode.
     """
 
-    step: np.ndarray  # (K,) int
-    t: np.ndarray  # (K,)
-    mean: np.ndarray  # (K, n)
-    cov: np.ndarray  # (K, n, n)
-    mode: np.ndarray | None  # (K, n) or None
-    loglik: np.ndarray  # (K,) cumulative
-    loglik_increment: np.ndarray  # (K,)
-    degenerate: np.ndarray  # (K,) bool
-    reason: str | None = None  # of the first degenerate step
-    predictive_loglik: np.ndarray | None = None  # (K,) log p(row_k | rows before); NaN: no observation
-    gated: np.ndarray | None = None  # (K,) bool: the gate rejected the row (it only predicted)
-    gate_score: np.ndarray | None = None  # (K,) predictive standard score of a gated row (NaN elsewhere)
-    reinitialised: np.ndarray | None = None  # (K,) bool: degenerate here, started again from a prior
-    notes: dict[int, str] | None = None  # row -> why it was re-initialised
-    gate: float | None = None  # the gate the rows were checked against (predictive sd; 0: off)
-    center: np.ndarray | None = None  # (K, n) the ball's centre after each row ([domain] follow; else None)
-    recentred: np.ndarray | None = None  # (K,) bool: the ball moved onto ``center`` after this row
-    alarm: np.ndarray | None = None  # (K,) bool: the innovation monitor's alarm (solver/watch.py)
-    monitor: np.ndarray | None = None  # (K,) the monitor's signed statistic after each row (±1: alarm)
+    step: np.ndarray
+    """(K,) int: the step numbers."""
+    t: np.ndarray
+    """(K,) the times of the steps."""
+    mean: np.ndarray
+    """(K, n) the conditional means."""
+    cov: np.ndarray
+    """(K, n, n) the conditional covariances."""
+    mode: np.ndarray | None
+    """(K, n) the MAP points, or None where the filter does not compute them."""
+    loglik: np.ndarray
+    """(K,) the cumulative log-likelihood."""
+    loglik_increment: np.ndarray
+    """(K,) each step's contribution to ``loglik``."""
+    degenerate: np.ndarray
+    """(K,) bool: the steps the filter could not resolve."""
+    reason: str | None = None
+    """Why the first degenerate step is degenerate."""
+    predictive_loglik: np.ndarray | None = None
+    """(K,) log p(row_k | rows before); NaN: no observation."""
+    gated: np.ndarray | None = None
+    """(K,) bool: the gate rejected the row (it only predicted)."""
+    gate_score: np.ndarray | None = None
+    """(K,) the predictive standard score of a gated row (NaN elsewhere)."""
+    reinitialised: np.ndarray | None = None
+    """(K,) bool: degenerate here, started again from a prior."""
+    notes: dict[int, str] | None = None
+    """Row -> why it was re-initialised."""
+    gate: float | None = None
+    """The gate the rows were checked against (predictive standard deviations; 0: off)."""
+    center: np.ndarray | None = None
+    """(K, n) the ball's centre after each row ([domain] follow; else None)."""
+    recentred: np.ndarray | None = None
+    """(K,) bool: the ball moved onto ``center`` after this row."""
+    alarm: np.ndarray | None = None
+    """(K,) bool: the innovation monitor's alarm (solver/watch.py)."""
+    monitor: np.ndarray | None = None
+    """(K,) the monitor's signed statistic after each row (±1: an alarm)."""
 
     def __post_init__(self):
         K = len(self.step)
@@ -180,11 +212,20 @@ class FilterState(Protocol):
     """What every filter state has: where it is, the carried log-likelihood, its health."""
 
     step: int
+    """The number of rows taken (0: the prior)."""
     t: float
+    """The state's time."""
     loglik: float
+    """The log-likelihood carried along (log of the normaliser ratio)."""
     degenerate: bool
+    """The filter could not resolve a step: it stays so until restarted."""
 
-    def to_dict(self) -> dict[str, Any]: ...
+    def to_dict(self) -> dict[str, Any]:
+        """The state as JSON-safe data (the filter's ``state_from_dict`` reads it back, exactly)."""
+        ...
+
+
+State = TypeVar("State", bound=FilterState)
 
 
 @dataclass(frozen=True)
@@ -200,11 +241,24 @@ class StepState:
 
 
 @runtime_checkable
+class MarginalFilter(Protocol):
+    """A filter that computes a marginal density itself (the engine, on its nodes); the others get
+    one by quadrature of their joint density (:func:`marginal_by_quadrature`)."""
+
+    def marginal(self, state: FilterState, variable: int, grid: np.ndarray, resolution: int = 64,
+                 /) -> np.ndarray:
+        """Marginal density of state variable ``variable`` at the values ``grid`` (G,)."""
+        ...
+
+
+@runtime_checkable
 class Filter(Protocol):
     """The interface of every filter (general engine and exact filters alike)."""
 
-    method: ClassVar[str]  # the registry name: "yau-yau", "kalman-bucy", "yau-hu", "wei-norman", ...
-    model: Any
+    method: ClassVar[str]
+    """The registry name: "yau-yau", "kalman-bucy", "yau-hu", "wei-norman", ..."""
+    model: Any  # solver/model.Model (importing it here would close the circle model -> gaussian -> here)
+    """The compiled model the filter was built for (solver/model.Model)."""
 
     def initial_state(self, prior: Any | None = None) -> FilterState:
         """State at t = 0; ``prior`` (a spec prior) overrides the model's."""
@@ -239,8 +293,10 @@ class ChunkedFilter:
     """``step``, ``run`` and ``predict`` of a filter that advances whole chunks with ``run_arrays``."""
 
     model: Any
+    """The compiled model the filter was built for (solver/model.Model)."""
 
     gate_override: float | None = None
+    """The gate set for this filter (``with_gate``; None: the spec's ``[measurement] gate``)."""
 
     @property
     def observation(self):
@@ -255,7 +311,7 @@ class ChunkedFilter:
             found = cache[gate] = Observation(self.model, gate)
         return found
 
-    def with_gate(self, gate: float | None) -> Any:
+    def with_gate(self, gate: float | None) -> Self:
         """This filter with another gate (None: the spec's): a shallow copy that shares every array
         and cache of this one (cheap: what a service keeps per session option)."""
         import copy
@@ -274,24 +330,26 @@ class ChunkedFilter:
             return self.gate_override
         return float(self.model.spec.measurement.gate)
 
-    def step(self, state: Any, increment: np.ndarray | None, t: float | None = None) -> tuple[Any, Estimate]:
+    def step(self, state: State, increment: np.ndarray | None,
+             t: float | None = None) -> tuple[State, Estimate]:
         rows = one_row(increment, self.model.m, "increment")
         new_state, result = self.run_arrays(state, rows, None if t is None else [t])  # validates the row
         return new_state, result.estimates(self.gate)[0]
 
-    def run(self, state: Any, increments: np.ndarray, times: Any | None = None) -> tuple[Any, list[Estimate]]:
+    def run(self, state: State, increments: np.ndarray,
+            times: Any | None = None) -> tuple[State, list[Estimate]]:
         new_state, result = self.run_arrays(state, increments, times)
         return new_state, result.estimates(self.gate)
 
-    def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
-                  return_exceptions: bool = False) -> list[Any]:
+    def run_batch(self, states: list[State], chunks: list[Any], times: list[Any] | None = None,
+                  return_exceptions: bool = False) -> list[tuple[State, ChunkResult] | InputError]:
         """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/engine/batch.py;
         the Yau–Yau engine steps them together, other filters one after another)."""
         from .engine.batch import run_batch_alone
 
         return run_batch_alone(self, states, chunks, times, return_exceptions)
 
-    def predict(self, state: Any, t: float) -> tuple[Any, Estimate]:
+    def predict(self, state: State, t: float) -> tuple[State, Estimate]:
         try:
             t = float(t)
         except (TypeError, ValueError):
@@ -331,7 +389,7 @@ def check_t0(t0: Any, field: str = "t0", dt: float | None = None, what: str = "t
     return float(t0)
 
 
-def at_time(state: Any, t0: float) -> Any:
+def at_time(state: State, t0: float) -> State:
     """An initial state held at time ``t0`` (the prior's time) instead of 0."""
     import dataclasses
 
@@ -342,7 +400,8 @@ def at_time(state: Any, t0: float) -> Any:
     return dataclasses.replace(state, t=t0)
 
 
-def chunk_clock(state: Any, K: int, dt: float, times: Any, taus: np.ndarray | None):
+def chunk_clock(state: FilterState, K: int, dt: float, times: Any,
+                taus: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
     while the state is on it, as the regular filters always were)."""
     from .measurement import check_spacing
@@ -377,8 +436,9 @@ def refuse_form(method: str, rows: np.ndarray, times: Any | None, model: Any, *,
                                                 f"{other} (or send the whole row as missing)")
 
 
-def marginal_by_quadrature(density: Any, n: int, variable: int, grid: np.ndarray, low: np.ndarray,
-                           high: np.ndarray, resolution: int = 64) -> np.ndarray:
+def marginal_by_quadrature(density: Callable[[np.ndarray], np.ndarray], n: int, variable: int,
+                           grid: np.ndarray, low: np.ndarray, high: np.ndarray,
+                           resolution: int = 64) -> np.ndarray:
     """Marginal of coordinate ``variable`` at ``grid`` (G,) from a joint ``density(points (P, n))``:
     the other coordinates integrated out with the trapezoidal rule on ``resolution`` points per
     direction over the box [low, high] (arrays of n bounds; the marginal coordinate's are unused).

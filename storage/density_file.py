@@ -15,7 +15,6 @@ prefix ``coord_``.  Storage knows files, not math: the caller hands in the numbe
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ import h5py
 import numpy as np
 
 from .errors import StoreError
+from .files import temporary_beside
 
 RESERVED = {"time", "step", "density"}
 AXES = "XYZ"
@@ -40,8 +40,7 @@ class DensityWriter:
                  attrs: dict[str, Any]):
         self.path = Path(path)
         try:
-            handle, self._tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".h5", dir=self.path.parent)
-            os.close(handle)
+            self._tmp = temporary_beside(self.path, ".h5")  # the user's umask, not mkstemp's 0600
             self._file = h5py.File(self._tmp, "w")
         except OSError as exc:
             raise StoreError("density", f"cannot write {path}: {exc}") from None

@@ -136,3 +136,25 @@ def test_marginal_of_a_gaussian_filter_in_2d_is_the_normal_marginal(tmp_path):
         m, v = flt.mean[i], flt.cov[i, i]
         normal = np.exp(-0.5 * (grid - m) ** 2 / v) / math.sqrt(2 * math.pi * v)
         assert np.max(np.abs(flt.marginal(name, grid) - normal)) < 1e-3
+
+
+def test_analyze_takes_a_spec_as_precompute_and_simulate_do():
+    """A spec file's path (a str, as a newcomer types it) or a ModelSpec, not only a compiled model; the
+    linear OU model gets the Kalman–Bucy filter, which is exact for it."""
+    for spec in (str(OU), yauyau.load_spec(OU)):
+        report = yauyau.analyze(spec)
+        assert report.method == "kalman-bucy", type(spec)
+    with pytest.raises(SpecError) as err:
+        yauyau.analyze("no/such/spec.toml")
+    assert err.value.field == "spec"
+
+
+def test_examples_ship_with_the_package():
+    on_disk = sorted(p.stem for p in (ROOT / "examples").glob("*.toml"))
+    assert yauyau.examples.names() == on_disk and "cubic_sensor" in on_disk
+    shipped = yauyau.examples.path("cubic_sensor")
+    assert shipped.read_bytes() == (ROOT / "examples" / "cubic_sensor.toml").read_bytes()
+    assert yauyau.examples.path("ou.toml").name == "ou.toml"
+    with pytest.raises(SpecError) as err:
+        yauyau.examples.path("cubic")
+    assert err.value.field == "example" and "cubic_sensor" in err.value.message

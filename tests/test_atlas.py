@@ -357,7 +357,7 @@ def test_the_loops_propagator_at_a_centre_is_the_one_stored_for_it(sin):
             np.testing.assert_array_equal(found[:, :-1], solved.propagator_fp[k].astype(found.dtype))
             assert not found[:, -1].any()
         flt.engine(offline.atlas.center(7))  # the block path's engine there: its matrix is the one used
-        assert flt.propagator_at(offline.atlas.center(7)) is flt._atlas_engine(7)._predict
+        assert flt.propagator_at(offline.atlas.center(7)) is flt._atlas_engine(7).propagator
 
 
 def test_a_precomputed_atlas_goes_to_the_store_centre_by_centre_and_is_never_all_in_memory(sin, tmp_path):

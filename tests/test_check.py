@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from yauyau.service.cli import main
-from yauyau.solver.check import resolution_check
+from yauyau.solver.check import CheckReport, Trial, resolution_check
 from yauyau.solver.errors import InputError
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
@@ -74,6 +74,7 @@ def test_the_cli_exit_status_says_resolved_or_not(tmp_path, capsys):
     assert main(["check", str(spec), "--paths", "2", "--steps", "200"]) == 0  # nonlinear: against 2x basis
     out = capsys.readouterr().out
     assert "OK" in out and "basis 256" in out
+    assert "reference: the engine at basis 256" in out and "truth" not in out  # a reference, not the truth
     with pytest.raises(InputError, match="paths"):
         resolution_check(_spec(400), paths=0)
     assert main(["check", str(spec), "--paths", "0"]) == 2
@@ -131,3 +132,24 @@ def test_the_report_bounds_the_degenerate_rate_and_says_how_much_of_the_region_t
     assert f"the paths crossed [{lo:.3g}, {hi:.3g}] of [-5, 60] of domain.region" in text
     assert "the centres beyond are not checked" in text
     assert report.to_dict()["covered"] == report.covered
+
+
+def test_check_help_explains_the_report_and_the_exit_status(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["check", "-h"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    for line in ("reference", "mean gap, largest", "degenerate steps", "RMSE (reference R)", "NOT RESOLVED",
+                 "suggestion", "exit status: 0 resolved", "1 not resolved", "2 bad input"):
+        assert line in out, line
+    assert "truth" not in out
+
+
+def test_the_json_report_names_its_reference():
+    trial = Trial(basis=8, nodes=9, mean_gap=0.01, max_gap=0.02, degenerate=0.0, rmse=0.3, ok=True)
+    report = CheckReport(truth="the exact Kalman filter (the model is linear)", target=0.05, paths=1,
+                         steps=10, trials=[trial], truth_rmse=0.29)
+    shown = report.to_dict()
+    assert shown["reference"].startswith("the exact Kalman") and shown["reference_rmse"] == 0.29
+    assert not [key for key in shown if "truth" in key]
+    assert "reference: the exact Kalman" in report.render() and "truth" not in report.render()

@@ -7,6 +7,7 @@ input/output layout and the error contract (one line naming the row/field, exit 
 from __future__ import annotations
 
 import csv
+import json
 import tomllib
 from pathlib import Path
 
@@ -316,3 +317,23 @@ def test_the_fast_csv_paths_read_and_write_the_same_numbers():
         assert [float(x) if x else None for x in fa] == [float(x) if x else None for x in fb]
     inf = ChunkResult(**{**result.__dict__, "predictive_loglik": np.full(K, -np.inf)})
     assert cli.csv_lines(inf)[0].split(",")[-2] == "-inf"  # an impossible row keeps its -inf
+
+
+@pytest.mark.parametrize("key", ["ou", "2d"])
+def test_a_timed_file_given_to_increments_suggests_observations(store, tmp_path, capsys, key):
+    """simulate --mean-gap writes observations.csv (t, dy_1..dy_m): given to --increments its times would be
+    read as increments; exit 2, nothing written, and the option the message names reads the file."""
+    directory, ids, _ = store
+    spec = EXAMPLES / "ou.toml" if key == "ou" else tmp_path / "2d.json"
+    if key == "2d":
+        spec.write_text(json.dumps(TWO_D))
+    assert main(["simulate", str(spec), "--steps", "20", "--mean-gap", "0.05", "--out", str(tmp_path)]) == 0
+    timed = tmp_path / "observations.csv"
+    capsys.readouterr()
+    code, out = _filter(store, key, tmp_path, timed)
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists() and err.count("\n") == 1, err
+    assert "error: increments:" in err and f"--observations {timed}" in err and "--t0 0" in err, err
+    assert main(["filter", ids[key], "--store", str(directory), "--observations", str(timed), "--t0", "0",
+                 "--out", str(out)]) == 0
+    assert len(_read(out)[1]) == 20

@@ -123,13 +123,16 @@ def _filter(store, name: str, out: Path, *argv) -> subprocess.CompletedProcess:
     return _run("filter", ids[name], "--store", directory, "--out", out, *argv)
 
 
-def _printed_command(stderr: str, store, name: str, out: Path) -> list[str]:
-    """The `yauyau filter ...` line simulate prints, with its placeholders filled in."""
+def _printed_command(stderr: str, store, name: str, out: Path, command: str = "filter") -> list[str]:
+    """The `yauyau filter ...` (or `yauyau precompute ...`) line simulate prints, on this test's store and
+    ``out``; the filter line names the model by the id precompute gave the spec (no placeholder)."""
     directory, ids = store
-    line = next(x for x in stderr.splitlines() if x.strip().startswith("yauyau filter "))
-    words = shlex.split(line)
-    fill = {"MODEL_ID": ids[name], "STORE": str(directory), "OUT.csv": str(out)}
-    return [fill.get(w, w) for w in words[1:]]
+    line = next(x for x in stderr.splitlines() if x.strip().startswith(f"yauyau {command} "))
+    words = shlex.split(line, comments=True)
+    if command == "filter":
+        assert words[2] == ids[name], line
+    words[words.index("--store") + 1] = str(directory)
+    return [str(out) if w == "OUT.csv" else w for w in words[1:]]
 
 
 def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(store, specs, tmp_path):
@@ -153,6 +156,8 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     assert truth[0, 1] == 0.0
 
     out = tmp_path / "out.csv"
+    precompute = _run(*_printed_command(done.stderr, store, "ou_discrete", out, "precompute"))
+    assert precompute.returncode == 0 and precompute.stdout.split() == [store[1]["ou_discrete"]]
     command = _printed_command(done.stderr, store, "ou_discrete", out)
     assert "--observations" in command and command[command.index("--t0") + 1] == "0"
     run = _run(*command, "--method", "yau-yau")

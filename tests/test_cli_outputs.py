@@ -1,6 +1,6 @@
 """`yauyau simulate`, `yauyau filter --quantiles/--mode/--density`, `yauyau plot`, exit statuses.
 
-Truth: the README's three commands reproduce the output the README prints (real processes, real
+Truth: docs/cli.md's three commands reproduce the output the page prints (real processes, real
 files); quantile columns against the normal quantiles of the exact Kalman–Bucy posterior (OU); the
 density file integrates to 1 and its mean is the filter's mean; the plot is checked as an image.
 """
@@ -8,10 +8,13 @@ density file integrates to 1 and its mean is the filter's mean; the plot is chec
 from __future__ import annotations
 
 import csv
+import json
+import os
 import re
 import shlex
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -19,13 +22,14 @@ import numpy as np
 import pytest
 from conftest import EXAMPLES, ROOT
 from scipy.stats import norm
-from test_readme import readme_block
+from test_readme import doc_section, readme_block
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec
 from yauyau.solver.simulate import simulate
 
 import yauyau
 
+PAGE = "docs/cli.md"
 HEADING = "From a spec to a filtered path in three commands"
 
 
@@ -46,9 +50,9 @@ def _png(path: Path) -> np.ndarray:
     return matplotlib.image.imread(path)
 
 
-def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
+def test_three_commands_reproduce_the_printed_output(tmp_path):
     (tmp_path / "examples").symlink_to(EXAMPLES)
-    commands = [line for line in readme_block(HEADING, "sh").splitlines() if line.strip()]
+    commands = [line for line in readme_block(HEADING, "sh", PAGE).splitlines() if line.strip()]
     plot = [line for line in readme_block_all(HEADING, "sh")[1].splitlines() if line.strip()]
     assert [c.split()[1] for c in commands] == ["precompute", "simulate", "filter"]
     outputs = []
@@ -59,8 +63,8 @@ def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
         assert run.returncode == 0, (line, run.stderr[-2000:])
         outputs.append(run.stdout)
     model_id = outputs[0].strip()
-    assert model_id in commands[2], "the README's filter command names the id precompute prints"
-    printed = readme_block(HEADING, "text").strip().splitlines()
+    assert model_id in commands[2], "the page's filter command names the id precompute prints"
+    printed = readme_block(HEADING, "text", PAGE).strip().splitlines()
     produced = (tmp_path / "var" / "run" / "out.csv").read_text().splitlines()[:3]
     assert produced[0] == printed[0]
     # the same numbers (to 1e-9 relative: the last digit of a float may differ with the BLAS build)
@@ -72,9 +76,7 @@ def test_readme_three_commands_reproduce_the_printed_output(tmp_path):
 
 
 def readme_block_all(heading: str, language: str) -> list[str]:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
-    return re.findall(rf"```{language}\n(.*?)```", section, re.S)
+    return re.findall(rf"```{language}\n(.*?)```", doc_section(heading, PAGE), re.S)
 
 
 @pytest.fixture(scope="module")
@@ -271,3 +273,35 @@ def test_every_help_page_prints(capsys):
         assert done.value.code == 0, argv
         out = capsys.readouterr().out
         assert out.startswith("usage: yauyau"), argv
+
+
+def test_version_is_the_distribution_version():
+    """`yauyau --version` (the console script) prints the version pyproject.toml gives the distribution."""
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    done = subprocess.run(_yauyau() + ["--version"], capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stdout, done.stderr) == (0, f"yauyau {version}\n", "")
+
+
+def test_output_files_get_the_users_umask(store, tmp_path):
+    """Under umask 022 every file the commands write for the user is 0644, as open() would make it (the
+    temporary files they were renamed from were mkstemp's 0600): simulate --out, filter --out and
+    --density, plot --out, precompute's model file."""
+    directory, ids = store
+    spec = tmp_path / "ou.json"  # a mesh-free method: precompute writes its file at once
+    spec.write_text(json.dumps({"name": "ou-umask", "state": ["x"], "drift": ["-x"], "observation": ["x"],
+                                "method": "kalman-bucy", "domain": {"radius": 6.0},
+                                "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
+                                "discretization": {"dt": 0.01, "basis": 16}}))
+    old = os.umask(0o022)
+    try:
+        run = _simulate(tmp_path, "cubic_sensor", 20, seed=8)
+        out, dens, fig = tmp_path / "out.csv", tmp_path / "d.h5", tmp_path / "fig.png"
+        assert main(["filter", ids["cubic_sensor"], "--store", str(directory), "--increments",
+                     str(run / "increments.csv"), "--out", str(out), "--density", str(dens)]) == 0
+        assert main(["plot", str(out), "--out", str(fig)]) == 0
+        assert main(["precompute", str(spec), "--store", str(tmp_path / "store"), "--quiet"]) == 0
+    finally:
+        os.umask(old)
+    written = [run / "truth.csv", run / "increments.csv", out, dens, fig, *(tmp_path / "store").glob("*.h5")]
+    assert len(written) == 6
+    assert {p.name: oct(p.stat().st_mode & 0o777) for p in written} == {p.name: "0o644" for p in written}

@@ -257,9 +257,9 @@ def test_a_non_positive_variance_is_degenerate(ou):
     sigma = np.tile(offline.weights * 0 + 1e-3, (4, 1))
     cov = np.ones((4, 1, 1))
     cov[2, 0, 0] = -1e-3
-    bad, reason = yy._diagnostics.first_implausible(sigma, np.ones(4), cov)
+    bad, reason = yy.diagnostics.first_implausible(sigma, np.ones(4), cov)
     assert bad == 2 and "covariance" in reason
-    assert yy._diagnostics.first_implausible(sigma, np.ones(4), np.ones((4, 1, 1))) == (None, None)
+    assert yy.diagnostics.first_implausible(sigma, np.ones(4), np.ones((4, 1, 1))) == (None, None)
 
 
 # -- state round trip ----------------------------------------------------------------------------

@@ -125,7 +125,7 @@ def _follow_3d(mesh=None, workers=1, element="lagrange", basis=1000):
 def test_3d_follow_rides_the_linear_frame_on_the_default_mesh():
     """Issue 10 part 6: f = (−x1 + 0.5x2, −x2, −0.5x3), h = (x1, x3), a = R = I, dt = 0.02, through the
     general engine.  Before: a fixed ball of radius 4, basis 500, default mesh (Q = 4991): rms mean gap
-    0.023 (max 0.18) and variance errors up to 67% (docs/bench-3d.md).  Here a ball of radius 3.5 that
+    0.023 (max 0.18) and variance errors up to 67% (bench/results/3d.md).  Here a ball of radius 3.5 that
     follows the posterior in the frame of ċ = Ac (solver/engine/frame.py), N = 1000 on the same mesh.
     Measured (seed 5, 500 steps, ~25 moves): rms mean gap 6.8e-3, max 2.6e-2; variance error median
     1.6%, max 5.2% (the issue asks 5%: each P1 carry blurs it by ~2.5 points; the next test's
@@ -145,7 +145,7 @@ def test_3d_follow_with_p2_and_bubbles_meets_the_issue_targets():
     (P1: to linear functions).  Measured (seeds 5 and 6, 500 steps each, two local workers): rms mean
     gap 3.3e-3 and 4.3e-3, max 2.1e-2 and 2.3e-2, variance error median 1.1–1.2%, max 4.1% and 4.0%;
     precompute 3.3 min and 0.8 GB (N = 1000: 3.0e-3 and 4.4e-3, variance max 3.9% and 4.4%, 6 min; P1
-    meets the targets only on the ball refined five times, after ~25 min and 3.5 GB: docs/bench-3d.md)."""
+    meets the targets only on the ball refined five times, after ~25 min and 3.5 GB: bench/results/3d.md)."""
     moves, gap, var = _follow_3d(mesh=3, workers=2, element="bubble", basis=600)
     assert moves > 5
     assert np.sqrt(np.mean(gap ** 2)) <= 0.01 and np.abs(gap).max() <= 0.03

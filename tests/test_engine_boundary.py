@@ -57,13 +57,13 @@ def test_leak_of_the_first_dirichlet_mode_is_its_exact_decay():
     sigma = np.cos(np.pi * x / (2 * radius))[None, :]
     masses = sigma @ yy.weights
     exact = 1.0 - np.exp(-0.5 * (np.pi / (2 * radius)) ** 2 * dt)
-    assert yy._diagnostics.boundary_leak(sigma, masses)[0] == pytest.approx(exact, rel=1e-3)
-    bad, reason = yy._diagnostics.first_implausible(sigma, masses, np.ones((1, 1, 1)))
+    assert yy.diagnostics.boundary_leak(sigma, masses)[0] == pytest.approx(exact, rel=1e-3)
+    bad, reason = yy.diagnostics.first_implausible(sigma, masses, np.ones((1, 1, 1)))
     assert bad == 0 and "domain.radius" in reason and "leaks" in reason
     # a narrow Gaussian in the middle loses nothing (its tail at the wall is e^{−45}); what is
     # left is the truncation of 32 modes, far below the limit
     centred = np.exp(-x ** 2 / (2 * 0.1))[None, :]
-    assert abs(yy._diagnostics.boundary_leak(centred, centred @ yy.weights)[0]) < 1e-6
+    assert abs(yy.diagnostics.boundary_leak(centred, centred @ yy.weights)[0]) < 1e-6
 
 
 @pytest.mark.parametrize("seed", [0, 1, 3, 4])
@@ -89,9 +89,9 @@ def _unflagged_means(yy: YauYauFilter, dy: np.ndarray) -> np.ndarray:
     """Means of the hot loop with no plausibility check at all (what the engine used to return)."""
     start = yy.initial_state()
     keys, _, log_factor, top, _ = yy._factors(dy, np.full(len(dy), yy.model.dt))
-    sigma, masses, *_ = yy._propagate(np.append(start.coefficients, start.mass), log_factor, top,
+    sigma, masses, *_ = yy.propagate(np.append(start.coefficients, start.mass), log_factor, top,
                                       (keys == 0).tolist(), None, None)
-    return yy._moments(sigma, masses)[0][:, 0]
+    return yy.moments(sigma, masses)[0][:, 0]
 
 
 def test_flagged_benes_run_is_the_same_in_chunks_and_after_a_restart(benes):

@@ -284,7 +284,7 @@ def test_in_2d_a_following_ball_has_a_lattice_mesh_and_its_moves_do_not_blur():
 def test_in_2d_with_the_bubble_element_the_following_ball_stays_near_kalman():
     """A 2-D random walk with trend (1, 0.5) over t = 0..50 (50 and 25 units: 8 and 4 radii) on the
     lattice mesh with element = "bubble", basis 600: measured 3.1e-3 in the mean and 0.45% in the
-    variance from the exact Kalman filter (P1 at basis 300: 0.16, docs/bench-follow.md)."""
+    variance from the exact Kalman filter (P1 at basis 300: 0.16, bench/results/follow.md)."""
     doc = json.loads(json.dumps(TREND))
     doc.update(state=["x", "y"], drift=["1.0", "0.5"], observation=["x", "y"],
                initial={"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[1.0, 0.0], [0.0, 1.0]]})
@@ -320,7 +320,7 @@ def test_a_stream_of_single_rows_moves_as_often_as_one_chunk(trend):
 
 
 def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(trend):
-    """``run_arrays(..., until=rule)`` (what a following ball uses instead of running a strayed block
+    """``run_until(..., rule)`` (what a following ball uses instead of running a strayed block
     again): the chunk ends after the rows the rule keeps; result and state are those of the shorter
     chunk, bit for bit, and the run goes on from there as it would have.  A following filter that
     moves between blocks gives the same estimates with and without the rule, running fewer rows."""
@@ -330,7 +330,7 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
     rows = simulate(model, 120, np.random.default_rng(9)).increments
     start = flt.initial_state()
     seen = []
-    state, part = engine.run_arrays(start, rows, until=lambda mean, centers: seen.append(len(mean)) or 40)
+    state, part = engine.run_until(start, rows, None, lambda mean, centers: seen.append(len(mean)) or 40)
     short_state, short = engine.run_arrays(start, rows[:40])
     assert seen == [120] and len(part.step) == 40 and not part.degenerate.any()
     for name in ("step", "t", "mean", "cov", "loglik", "loglik_increment"):
@@ -341,11 +341,11 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
     _, rest = engine.run_arrays(state, rows[40:])
     _, whole = engine.run_arrays(start, rows)
     np.testing.assert_array_equal(rest.mean, whole.mean[40:])
-    _, kept_all = engine.run_arrays(start, rows, until=lambda mean, centers: None)
+    _, kept_all = engine.run_until(start, rows, None, lambda mean, centers: None)
     np.testing.assert_array_equal(kept_all.mean, whole.mean)
 
     counted = {"rows": 0}
-    original = YauYauFilter.run_arrays
+    original = YauYauFilter.run_until
 
     def counting(self, *args, **kwargs):
         counted["rows"] += len(args[1])
@@ -359,11 +359,11 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
         if mode == "again":  # the rule keeps every row: a strayed block runs again, shorter
             follower._keep_until = lambda center: (lambda mean, centers: None)
         counted["rows"] = 0
-        YauYauFilter.run_arrays = counting
+        YauYauFilter.run_until = counting
         try:
             runs[mode] = (_run(follower, long_rows, 1000)[1], counted["rows"])
         finally:
-            YauYauFilter.run_arrays = original
+            YauYauFilter.run_until = original
     np.testing.assert_array_equal(runs["rule"][0].mean, runs["again"][0].mean)
     np.testing.assert_array_equal(runs["rule"][0].loglik, runs["again"][0].loglik)
     assert runs["rule"][1] < runs["again"][1], (runs["rule"][1], runs["again"][1])
@@ -429,13 +429,13 @@ def test_the_carries_built_with_the_filter_are_those_built_one_at_a_time(element
     """The table of carries built at once with the filter (every offset a move usually takes: within
     (1.5·follow_distance + 0.1)·R) holds, for each offset, the arrays and interpolated rows that the
     carry built alone has; an offset beyond it is built when a move first takes it."""
-    from yauyau.solver.engine.follow import _Carry
+    from yauyau.solver.engine.carry import Carry
 
     model, flt = _trend_2d(element)
     step, reach = flt._lattice, (1.5 * flt.distance + 0.1 * model.radius)
     assert len(flt._table) >= 8 and all(0 < np.hypot(*k) * step <= reach for k in flt._table)
     for key, tabled in flt._table.items():
-        alone = _Carry.build(flt.home.offline, flt.home_center, flt.radius, np.array(key) * step,
+        alone = Carry.build(flt.home.offline, flt.home_center, flt.radius, np.array(key) * step,
                              flt.home.node_tree)
         for name in ("size", "matched", "source", "rest", "others"):
             assert np.array_equal(getattr(tabled, name), getattr(alone, name)), (key, name)
@@ -448,15 +448,15 @@ def test_the_carries_built_with_the_filter_are_those_built_one_at_a_time(element
 
 
 def test_the_nearest_node_on_a_line_is_the_kd_trees():
-    """follow._nearest_1d (a binary search, for 1-D carries) against scipy's cKDTree: the same
+    """carry.nearest_1d (a binary search, for 1-D carries) against scipy's cKDTree: the same
     distances and nodes, for points between, beyond and on the nodes."""
     from scipy.spatial import cKDTree
-    from yauyau.solver.engine.follow import _nearest_1d
+    from yauyau.solver.engine.carry import nearest_1d
 
     rng = np.random.default_rng(0)
     nodes = rng.uniform(-5.0, 5.0, (99, 1))
     points = np.vstack([rng.uniform(-7.0, 7.0, (300, 1)), nodes + 1e-13, nodes[:5]])
-    gap, index = _nearest_1d(nodes, points)
+    gap, index = nearest_1d(nodes, points)
     tree_gap, tree_index = cKDTree(nodes).query(points)
     np.testing.assert_array_equal(gap, tree_gap)
     np.testing.assert_array_equal(index, tree_index)

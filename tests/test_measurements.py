@@ -404,7 +404,7 @@ def test_a_gate_is_a_cheap_copy_sharing_the_engine():
     flt = _engine(CUBIC, kind="discrete")
     other = flt.with_gate(3.0)
     assert other.gate == 3.0 and flt.gate == 6.0
-    assert other._predict is flt._predict and other.offline is flt.offline
+    assert other.propagator is flt.propagator and other.offline is flt.offline
     assert other.observation.gate == 3.0 and flt.observation.gate == 6.0
 
 

@@ -122,7 +122,7 @@ def predicted():
 def test_supg_predicts_the_exact_moments_and_rings_less_than_plain_galerkin(predicted):
     """Measured (N = 600, Q = 1250): SUPG mean 2.0e-3 and covariance 1.5% from exact, min/max of the
     density −4e-3; plain Galerkin (lumped) 8e-4 and 0.8%, but its density rings to −2.2e-2 of its
-    peak along the drift (docs/bench-psd.md)."""
+    peak along the drift (bench/results/psd.md)."""
     mean, cov = _exact_moments(np.array([-2.0, 1.0]), 0.2 * np.eye(2), 1.0)
     m, c, ring = predicted["supg"]
     assert np.abs(m - mean).max() < 4e-3
@@ -160,7 +160,7 @@ def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tra
     gap median 3.3e-3, max 2.0e-2, variance within 4.2% (with p alone moving, before the frame: 5.0e-3,
     3.8e-2 where |v̂| = 3.5 put the tail at the ball's edge along v, 6.9%).  On a round ball the gap
     halves as N doubles: basis 2000 gives a median of 1.7e-3, basis 4000 9.5e-4 (max 5.2e-3;
-    docs/bench-cv-basis.md).  The issue's 1e-3 at every step is met on the posterior's ellipse
+    bench/results/cv-basis.md).  The issue's 1e-3 at every step is met on the posterior's ellipse
     (``[domain] shape``, tests/test_shape.py)."""
     model, offline = tracking
     flt = build(model, offline)
@@ -181,7 +181,7 @@ def test_the_bubble_element_with_the_consistent_mass_tracks_closer_to_kalman_at_
     """The path above on P2 + bubble with the consistent mass (``scheme = "consistent"``), radius 6.5,
     N = 1000 (Q = 2129: the cost per observation of P1's Q = 2093).  Measured: gap median 3.8e-4, 90%
     1.7e-3, max 1.3e-2, variance within 3.6%; P1 SUPG at this radius: 2.1e-3, 3.7e-3, 2.6e-2, 4.6%
-    (docs/bench-cv-basis.md).  The worst steps are a stretch near t = 42.3 where σ has ~1% of
+    (bench/results/cv-basis.md).  The worst steps are a stretch near t = 42.3 where σ has ~1% of
     negative, oscillating mass beyond 5 standard deviations (the core's moments are within 1e-3)."""
     model = compile_model(spec_from_dict(modified(TRACK, domain={"radius": 6.5, "follow": True},
                                                   discretization={"basis": 1000, "element": "bubble",

@@ -1,4 +1,4 @@
-"""The README's "Many streams" section runs as printed: its Python block (16 streams stepped together)
+"""docs/service.md's "Many streams" section runs as printed: its Python block (16 streams stepped together)
 and its curl walk-through against a real `yauyau serve`.
 
 Truth: the block's streams are Ornstein–Uhlenbeck (linear), so the printed mean and variance are the
@@ -15,9 +15,11 @@ import subprocess
 import time
 
 import httpx
+from test_readme import doc_section
 from test_readme_streams import ROOT, _env, _json_objects, run_python_block
 from test_service_server import Server
 
+PAGE = "docs/service.md"
 SECTION = "Many streams, several hosts, models at run time"
 
 
@@ -26,7 +28,7 @@ def test_python_block_matches_the_kalman_filter(tmp_path):
 
     import yauyau
 
-    stdout = run_python_block(SECTION, tmp_path)
+    stdout = run_python_block(SECTION, tmp_path, PAGE)
     found = re.search(r"t = ([\d.]+): mean (-?[\d.]+), variance ([\d.]+)", stdout)
     t, mean, var = map(float, found.groups())
     spec = yauyau.load_spec(ROOT / "examples" / "ou.toml")
@@ -65,5 +67,4 @@ def test_curl_block_adds_a_model_to_a_running_server(tmp_path):
 
 
 def _section() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split(f"\n## {SECTION}\n", 1)[1].split("\n## ", 1)[0]
+    return doc_section(SECTION, PAGE)

@@ -1,4 +1,4 @@
-"""The README's "A state that travels" section runs as printed, and its numbers are the exact Kalman
+"""docs/models.md's "A state that travels" section runs as printed, and its numbers are the exact Kalman
 filter's (the example is linear: KalmanBucyFilter(kind="discrete") on the same increments)."""
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ import re
 
 from test_readme_streams import ROOT, run_python_block
 
+PAGE = "docs/models.md"
 SECTION = "A state that travels: a ball that follows it"
 
 
@@ -22,7 +23,7 @@ def test_python_block_follows_the_state_and_matches_kalman(tmp_path):
 
     import yauyau
 
-    stdout = run_python_block(SECTION, tmp_path)
+    stdout = run_python_block(SECTION, tmp_path, PAGE)
     x, mean, centre, moves, degenerate = _printed(stdout)
     spec = yauyau.load_spec(ROOT / "examples" / "random_walk_trend.toml")
     sim = yauyau.simulate(spec, steps=5000, seed=1)
@@ -42,7 +43,7 @@ def test_atlas_block_follows_a_drift_that_is_not_shift_invariant(tmp_path):
 
     import yauyau
 
-    stdout = run_python_block(ATLAS_SECTION, tmp_path)
+    stdout = run_python_block(ATLAS_SECTION, tmp_path, PAGE)
     x, mean, centre, moves, degenerate = _printed(stdout)
     spec = yauyau.load_spec(ROOT / "examples" / "sin_drift_atlas.toml")
     sim = yauyau.simulate(spec, steps=3000, seed=2)
@@ -61,7 +62,7 @@ def test_constant_velocity_block_follows_the_target_and_matches_kalman(tmp_path)
 
     import yauyau
 
-    stdout = run_python_block(PSD_SECTION, tmp_path)
+    stdout = run_python_block(PSD_SECTION, tmp_path, PAGE)
     found = re.search(r"p = (-?[\d.]+): mean (-?[\d.]+), velocity (-?[\d.]+), (\d+) moves, degenerate: (\w+)",
                       stdout)
     p, mean, velocity, moves = (float(v) for v in found.groups()[:4])

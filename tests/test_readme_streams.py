@@ -1,5 +1,6 @@
-"""The README's "Real sensor streams" section runs as printed: its Python block verbatim (its output is
-the text block under it), its three commands, and its curl walk-through against a real `yauyau serve`.
+"""docs/measurements.md's "Readings at irregular times" section runs as printed: its Python block
+verbatim (its output is the text block under it), its three commands, and its curl walk-through
+against a real `yauyau serve`.
 
 Truth: the power meter (examples/power_meter.toml, z = x² + v) is symmetric under x -> -x once the
 prior's mean has decayed (e^(-0.5 t), t ≈ 20), so the density must have two equal peaks at ±|x| and a
@@ -20,29 +21,30 @@ from pathlib import Path
 
 import numpy as np
 from irregular_refs import GridReference
-from test_readme import readme_block
+from test_readme import doc_section, readme_block
 from test_service_server import Server
 
 ROOT = Path(__file__).resolve().parent.parent
-SECTION = "Real sensor streams: readings at irregular times, missing values, outliers"
+PAGE = "docs/measurements.md"
+SECTION = "Readings at irregular times, missing values, outliers"
 
 
 def _env():
     return dict(os.environ, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1")
 
 
-def run_python_block(section: str, tmp_path) -> str:
-    """The README section's Python block run in ``tmp_path`` (with examples/ linked there): its stdout."""
+def run_python_block(section: str, tmp_path, page: str) -> str:
+    """The Python block of ``page``'s section, run in ``tmp_path`` (examples/ linked there): its stdout."""
     (tmp_path / "examples").symlink_to(ROOT / "examples")
-    out = subprocess.run([sys.executable, "-c", readme_block(section)], cwd=tmp_path, env=_env(),
+    out = subprocess.run([sys.executable, "-c", readme_block(section, page=page)], cwd=tmp_path, env=_env(),
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout
 
 
-def test_python_block_prints_what_the_readme_shows(tmp_path):
-    stdout = run_python_block(SECTION, tmp_path)
-    assert stdout.strip() == readme_block(SECTION, "text").strip()
+def test_python_block_prints_what_the_page_shows(tmp_path):
+    stdout = run_python_block(SECTION, tmp_path, PAGE)
+    assert stdout.strip() == readme_block(SECTION, "text", PAGE).strip()
     # the numbers against truth: the fine grid on the same readings, the glitch left out (it was gated)
     import yauyau
 
@@ -60,7 +62,7 @@ def test_python_block_prints_what_the_readme_shows(tmp_path):
 
 
 def test_three_commands_filter_the_readings(tmp_path):
-    shell = readme_block(SECTION, "sh")
+    shell = readme_block(SECTION, "sh", PAGE)
     commands = [line for line in shell.splitlines() if line.startswith("yauyau ")][:3]
     assert [c.split()[1] for c in commands] == ["precompute", "simulate", "filter"]
     yauyau = str(Path(sys.executable).with_name("yauyau"))
@@ -71,7 +73,7 @@ def test_three_commands_filter_the_readings(tmp_path):
                              text=True, timeout=300)
         assert out.returncode == 0, (command, out.stderr[-2000:])
         printed.append(out.stdout.strip())
-    assert printed[0] in commands[2], "the README's filter command names the id precompute prints"
+    assert printed[0] in commands[2], "the page's filter command names the id precompute prints"
     with open(tmp_path / "var" / "meter" / "observations.csv") as f:
         rows = list(csv.reader(f))
     assert rows[0] == ["t", "z_1"] and len(rows) == 401
@@ -118,8 +120,7 @@ def test_curl_walk_through_against_a_real_server(tmp_path):
 
 
 def _section_text() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split(f"\n## {SECTION}\n", 1)[1].split("\n## ", 1)[0]
+    return doc_section(SECTION, PAGE)
 
 
 def _json_objects(text: str) -> list[dict]:

@@ -220,6 +220,20 @@ def test_analyze(api):
     _problem(api.post("/v1/analyze", json={**spec, "drift": ["__import__('os')"]}), 422, "drift[0]")
 
 
+def test_analyze_takes_the_body_of_post_models(api):
+    """{"spec": ...}, as POST /v1/models takes it, besides the bare spec: OU is linear, so both recommend
+    the Kalman–Bucy filter (exact for it); a field at fault is named spec.<field>, as POST /v1/models does."""
+    spec = load_spec(EXAMPLES / "ou.toml").model_dump(mode="json")
+    wrapped, bare = api.post("/v1/analyze", json={"spec": spec}), api.post("/v1/analyze", json=spec)
+    assert wrapped.status_code == bare.status_code == 200, wrapped.text
+    methods = [r.json()["recommendation"]["method"] for r in (wrapped, bare)]
+    assert methods == ["kalman-bucy", "kalman-bucy"]
+    _problem(api.post("/v1/analyze", json={"spec": {**spec, "drift": ["x", "x"]}}), 422, "spec.drift")
+    _problem(api.post("/v1/analyze", json={"spec": {**spec, "drift": ["x^3"]}}), 422, "spec.drift[0]")
+    _problem(api.post("/v1/analyze", json={"spec": spec, "colour": "red"}), 422, "colour")
+    _problem(api.post("/v1/analyze", json={"spec": [1, 2]}), 422, "spec")
+
+
 def test_unknown_route_and_method_are_problems(api):
     _problem(api.get("/v1/nothing"), 404)
     _problem(api.put("/v1/models"), 405)

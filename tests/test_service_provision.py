@@ -8,10 +8,12 @@ so a missing dependency or a broken entry point fails here even without a Docker
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import httpx
@@ -92,3 +94,21 @@ def test_fresh_install_precompute_and_serve(tmp_path):
         os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
         proc.stderr.close()
+
+
+def test_the_scripts_ask_only_for_extras_pyproject_defines(tmp_path):
+    """dev.py asked for "test,bench" and pyproject.toml defines no bench (pip only warns): every --extras
+    and EXTRAS in dev.py, scripts/provision.py, the Dockerfile and .ci/run names a defined extra, and
+    provision refuses an undefined one before creating anything."""
+    defined = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"])
+    named = []
+    for name in ("dev.py", "scripts/provision.py", "Dockerfile", ".ci/run"):
+        text = (ROOT / name).read_text()
+        named += re.findall(r'^EXTRAS = "([^"]*)"', text, re.M) + re.findall(r"--extras[ =]([\w,-]+)", text)
+    assert named and all(set(extras.split(",")) <= defined for extras in named), (named, defined)
+    venv = tmp_path / "venv"
+    done = subprocess.run([*PROVISION, "install", "--venv", str(venv), "--extras", "test,bench"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, done.stderr
+    assert "--extras: bench not defined in pyproject.toml" in done.stderr, done.stderr
+    assert not venv.exists()

@@ -183,7 +183,7 @@ def test_constant_velocity_tracking_on_the_posterior_ellipse_matches_kalman_to_1
     1e-3 of the exact Kalman filter at every step, the variances within 1%.  Measured (seed 1, radius 7,
     basis 2000, P2 + bubble with the consistent mass): gap median 4.8e-5, max 3.9e-4, variances within
     0.1%; the round ball of radius 6.5 on the same element
-    and basis 1000: 3.8e-4 and 1.3e-2, 3.6% (docs/bench-cv-basis.md)."""
+    and basis 1000: 3.8e-4 and 1.3e-2, 3.6% (bench/results/cv-basis.md)."""
     model = compile_model(spec_from_dict(CV))
     flt = build(model, precompute(model))
     assert isinstance(flt, FollowingFilter) and flt.moves_in_loop

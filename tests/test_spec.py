@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import sympy as sp
 from yauyau.solver import SpecError, compile_model, load_spec, spec_from_dict
-from yauyau.solver.expressions import parse_expression
+from yauyau.solver.expressions import numeric_expression, parse_expression
 
 X = sp.Symbol("x_0", real=True)
 
@@ -122,3 +122,15 @@ def test_mixture_prior_is_normalised_density():
     # cosh(x) N(x; 0, 1) normalised: cosh(x) e^{-x²/2} / (sqrt(2π) e^{1/2})
     exact = np.cosh(x[:, 0]) * np.exp(-x[:, 0] ** 2 / 2) / np.sqrt(2 * np.pi * np.e)
     assert np.max(np.abs(p - exact)) < 1e-12
+
+
+@pytest.mark.parametrize("over, field", [({"observation": ["x^3"]}, "observation[0]"),
+                                         ({"drift": ["-0.2*(x - 1)^2"]}, "drift[0]")])
+def test_caret_is_not_a_power_and_says_so(over, field):
+    """x^3 is Python's exclusive or: the spec is refused with the fix, both by SymPy's parser and by the
+    numeric one a stored model is filtered with."""
+    with pytest.raises(SpecError) as err:
+        spec_from_dict(base(**over))
+    assert err.value.field == field and "use ** for powers" in err.value.message, str(err.value)
+    with pytest.raises(SpecError, match=r"use \*\* for powers"):
+        numeric_expression("x^3", {"x": 0}, {}, "observation[0]")

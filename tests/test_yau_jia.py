@@ -352,8 +352,8 @@ def test_cli_and_http_session_run_the_4d_model(tmp_path):
     assert np.allclose(last["mean"], direct[-1].mean, rtol=0, atol=1e-12)
 
 
-def test_readme_yau_jia_commands_run(tmp_path):
-    """The README's two yau-jia commands, as printed (the store redirected to a temporary directory)."""
+def test_docs_yau_jia_commands_run(tmp_path):
+    """docs/models.md's two yau-jia commands, as printed (the store redirected to a temporary directory)."""
     import shlex
     import subprocess
     import sys
@@ -361,7 +361,7 @@ def test_readme_yau_jia_commands_run(tmp_path):
 
     from test_readme import ROOT, readme_block
 
-    script = readme_block("Model specification (TOML or JSON)", "sh")
+    script = readme_block("Model specification (TOML or JSON)", "sh", "docs/models.md")
     yauyau = Path(sys.executable).parent / "yauyau"
     outputs = []
     for line in filter(None, (ln.split("#")[0].strip() for ln in script.splitlines())):

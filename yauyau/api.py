@@ -2,7 +2,8 @@
 
     import yauyau
 
-    spec = yauyau.load_spec("examples/cubic_sensor.toml")
+    spec = yauyau.load_spec(yauyau.examples.path("cubic_sensor"))   # the examples ship with the package
+    yauyau.analyze(spec).method                            # the recommended filter, and why (.reason)
     model_id = yauyau.precompute(spec, "var/store")        # offline stage, once, into an HDF5 store
     flt = yauyau.open_filter("var/store", model_id)        # the method chosen at precompute
     sim = yauyau.simulate(spec, steps=500, seed=1)          # truth and increments dy_k
@@ -16,25 +17,47 @@ A filter of :mod:`yauyau.solver` is a function of (state, data) (the ``Filter`` 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .solver.errors import InputError, SpecError
-from .solver.filtering import Estimate, marginal_by_quadrature
+from .solver.filtering import (
+    ChunkResult,
+    Estimate,
+    Filter,
+    FilterState,
+    MarginalFilter,
+    marginal_by_quadrature,
+)
 from .solver.methods import choose_method
 from .solver.spec import ModelSpec, load_spec
 from .storage.model_store import ModelStore
 
+if TYPE_CHECKING:  # types only: at run time these modules load when a function first needs them
+    from .solver.analysis.report import AnalysisReport
+    from .solver.model import Model
+    from .solver.offline.pipeline import OfflineModel, Progress
+    from .solver.simulate import Simulation
+    from .solver.watch import LostTrack, Watch, WatchSettings
+
 DEFAULT_TIME_LIMIT = 60.0  # seconds the estimation-algebra analysis may spend choosing the method
 
+PathArg = str | os.PathLike[str]
+"""A file or directory: a string or a path."""
+AtlasSink = Callable[[int, int, dict[str, Any]], None]
+"""Where an atlas's centres go as they are solved: ``sink(k, K, arrays of centre k)``."""
 
-def _as_spec(spec: ModelSpec | str | os.PathLike) -> ModelSpec:
-    return spec if isinstance(spec, ModelSpec) else load_spec(spec)
+
+def _as_spec(spec: ModelSpec | PathArg) -> ModelSpec:
+    return spec if isinstance(spec, ModelSpec) else load_spec(Path(spec))
 
 
-def _as_store(store: ModelStore | str | os.PathLike) -> ModelStore:
+def _as_store(store: ModelStore | PathArg) -> ModelStore:
     return store if isinstance(store, ModelStore) else ModelStore(store)
 
 
@@ -43,13 +66,21 @@ class Solved:
     """The offline stage of one spec, solved: the model, its arrays, the method chosen and why."""
 
     spec: ModelSpec
-    model: Any
-    offline: Any
+    """The spec solved."""
+    model: Model
+    """Its compiled model."""
+    offline: OfflineModel | None
+    """The offline stage's arrays (None: a mesh-free model has none)."""
     method: str
+    """The filter method chosen (a registry name)."""
     method_reason: str
+    """Why that method was chosen."""
     seconds: float
+    """Wall-clock seconds the offline stage took."""
     workers: int
-    scheduler: str | None = None  # the running Dask cluster that solved it (``workers`` then unused)
+    """The local processes that solved it."""
+    scheduler: str | None = None  # ``workers`` then unused
+    """The running Dask cluster that solved it (None: local processes)."""
 
     def attrs(self) -> dict[str, Any]:
         """What the model file records besides the arrays (read back by :func:`load_model`): where it was
@@ -59,18 +90,18 @@ class Solved:
                 "method": self.method, "method_reason": self.method_reason,
                 "offline": self.offline is not None}
 
-    def arrays(self) -> dict[str, Any]:
+    def arrays(self) -> dict[str, np.ndarray]:
         """The arrays to store: the offline stage's, none for a mesh-free model."""
         return {} if self.offline is None else self.offline.to_arrays()
 
-    def lazy_arrays(self) -> dict[str, Any]:
+    def lazy_arrays(self) -> dict[str, np.ndarray]:
         """The arrays to store row by row: an atlas's per-centre propagators ([domain] region)."""
         return {} if self.offline is None else self.offline.lazy_arrays()
 
 
-def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
-          time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Any | None = None,
-          scheduler: str | None = None, atlas_sink: Any | None = None,
+def solve(spec: ModelSpec | PathArg, *, workers: int = 1,
+          time_limit: float | None = DEFAULT_TIME_LIMIT, progress: Progress | None = None,
+          scheduler: str | None = None, atlas_sink: AtlasSink | None = None,
           analysis_grace: float | None = None) -> Solved:
     """The offline stage of ``spec`` (seed 002 §5) and the method choice (``auto``: the analysis, in a
     process of its own killed ``analysis_grace`` seconds (default 2) after ``time_limit``: a wall-clock
@@ -103,7 +134,7 @@ def solve(spec: ModelSpec | str | os.PathLike, *, workers: int = 1,
     return Solved(spec, model, offline, method, reason, seconds, workers, scheduler)
 
 
-def mesh_free_only(model: Any) -> bool:
+def mesh_free_only(model: Model) -> bool:
     """True when the model gets no offline stage: more than three state variables (the general
     engine's finite elements go up to 3), or a method named in the spec that needs none (kalman-bucy,
     yau-jia: nothing to precompute).  A mesh-free method filters it.  (A diffusion that is only
@@ -113,7 +144,7 @@ def mesh_free_only(model: Any) -> bool:
     return mesh_free(model.spec)
 
 
-def _mesh_free_method(model: Any, time_limit: float | None, grace: float | None) -> tuple[str, str]:
+def _mesh_free_method(model: Model, time_limit: float | None, grace: float | None) -> tuple[str, str]:
     from .solver.methods import make_filter
     from .solver.registry import REGISTRY
 
@@ -128,9 +159,9 @@ def _mesh_free_method(model: Any, time_limit: float | None, grace: float | None)
     return method, reason + "; mesh-free model: no offline stage"
 
 
-def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os.PathLike, *,
+def precompute(spec: ModelSpec | PathArg, store: ModelStore | PathArg, *,
                workers: int = 1, time_limit: float | None = DEFAULT_TIME_LIMIT, force: bool = False,
-               progress: Any | None = None, scheduler: str | None = None,
+               progress: Progress | None = None, scheduler: str | None = None,
                analysis_grace: float | None = None) -> str:
     """Solve the offline stage of ``spec`` (a :class:`ModelSpec` or a spec file) and save it in
     ``store`` (a directory or a :class:`ModelStore`); returns the model id (a content hash).
@@ -174,14 +205,20 @@ class StoredFilterModel:
     chosen at precompute (with the reason)."""
 
     id: str
-    model: Any
-    offline: Any
+    """The model id (a content hash of the spec)."""
+    model: Model
+    """The compiled model."""
+    offline: OfflineModel | None
+    """The offline stage's arrays (None: a mesh-free model)."""
     method: str
+    """The filter method chosen at precompute (a registry name)."""
     method_reason: str
+    """Why that method was chosen."""
     attrs: dict[str, Any]
+    """What the model file records besides the arrays (:meth:`Solved.attrs`)."""
 
 
-def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFilterModel:
+def load_model(store: ModelStore | PathArg, model_id: str) -> StoredFilterModel:
     """Read and verify a stored model.  The method is the one chosen at precompute; only a file saved
     without one (``ModelStore.save`` called directly, with no "method" attr) makes the analysis run,
     here, once, with a warning."""
@@ -204,10 +241,11 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
                              attrs=stored.attrs)
 
 
-def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: str | None = None, *,
+def open_filter(store: ModelStore | PathArg, model_id: str, method: str | None = None, *,
                 prior: Any | None = None, form: str = "stable", precision: str | None = None,
                 gate: float | None = None, on_degenerate: str = "stop", t0: float = 0.0,
-                lost_track: Any | None = None, monitor: float | None = None) -> "OnlineFilter":
+                lost_track: LostTrack | dict[str, int] | None = None,
+                monitor: float | None = None) -> OnlineFilter:
     """A ready-to-step filter of a stored model.
 
     ``method`` overrides the one chosen at precompute (``yau-yau``, ``kalman-bucy``, ...; an exact
@@ -233,8 +271,8 @@ def open_filter(store: ModelStore | str | os.PathLike, model_id: str, method: st
                         monitor=monitor)
 
 
-def simulate(spec: ModelSpec | str | os.PathLike | Any, steps: int, seed: int | None = 0,
-             substeps: int = 10, times: Any | None = None) -> Any:
+def simulate(spec: ModelSpec | PathArg | Model, steps: int, seed: int | None = 0,
+             substeps: int = 10, times: Any | None = None) -> Simulation:
     """A sample path of the model and its observations (Euler–Maruyama with ``substeps`` per dt):
     ``.times`` (K+1,) from 0, ``.states`` (K+1, n), ``.rows`` (K, m): the ``.increments`` of a
     continuous model or the ``.observations`` of a discrete one (``[measurement] kind``).  ``times``
@@ -246,6 +284,20 @@ def simulate(spec: ModelSpec | str | os.PathLike | Any, steps: int, seed: int | 
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise InputError("steps", "must be a positive integer")
     return simulate_model(model, steps, np.random.default_rng(seed), substeps=substeps, times=times)
+
+
+def analyze(spec: ModelSpec | PathArg | Model, **bounds: Any) -> AnalysisReport:
+    """The estimation-algebra analysis of ``spec`` (a :class:`ModelSpec`, a spec file, or a compiled
+    model), in this process: an :class:`yauyau.solver.analysis.AnalysisReport` (Wong matrix, η, the
+    structural conditions, the algebra, ``.method`` recommended and ``.reason``; ``.render()`` is the
+    text of ``yauyau analyze``, ``.to_dict()`` its JSON).  ``bounds``: ``max_depth``,
+    ``max_dimension``, ``time_limit`` (seconds; None: unbounded) and ``max_size``, as
+    :func:`yauyau.solver.analysis.analyze` takes them (its defaults when left out)."""
+    from .solver.analysis import analyze as analyze_model
+    from .solver.model import Model, compile_model
+
+    model = spec if isinstance(spec, Model) else compile_model(_as_spec(spec))
+    return analyze_model(model, **bounds)
 
 
 class OnlineFilter:
@@ -262,23 +314,24 @@ class OnlineFilter:
     (``alarm`` on the rows where it is raised); it is part of ``state_dict()``.
     """
 
-    def __init__(self, flt: Any, prior: Any | None = None, state: Any | None = None, *,
-                 on_degenerate: str = "stop", t0: float = 0.0, lost_track: Any | None = None,
-                 monitor: float | None = None, watch: Any | None = None):
+    def __init__(self, flt: Filter, prior: Any | None = None, state: FilterState | None = None, *,
+                 on_degenerate: str = "stop", t0: float = 0.0,
+                 lost_track: LostTrack | dict[str, int] | None = None, monitor: float | None = None,
+                 watch: Watch | None = None) -> None:
         from .solver.filtering import check_t0
         from .solver.recovery import check_policy
         from .solver.watch import Watch, settings_for
 
-        self.filter = flt
-        self.model = flt.model
+        self.filter: Filter = flt
+        self.model: Model = flt.model
         self.method: str = flt.method
-        self.on_degenerate = check_policy(on_degenerate)
-        self.t0 = check_t0(t0, "t0", float(flt.model.dt))
-        self.watch_settings = settings_for(flt, lost_track, monitor)
-        self.watch = Watch() if watch is None else watch
-        self.state = self._initial(prior) if state is None else state
+        self.on_degenerate: str = check_policy(on_degenerate)
+        self.t0: float = check_t0(t0, "t0", float(flt.model.dt))
+        self.watch_settings: WatchSettings = settings_for(flt, lost_track, monitor)
+        self.watch: Watch = Watch() if watch is None else watch
+        self.state: FilterState = self._initial(prior) if state is None else state
 
-    def _initial(self, prior: Any | None) -> Any:
+    def _initial(self, prior: Any | None) -> FilterState:
         from .solver.filtering import at_time
 
         return at_time(self.filter.initial_state(prior), self.t0)
@@ -287,15 +340,16 @@ class OnlineFilter:
         return f"<OnlineFilter {self.model.spec.name!r} method={self.method} step={self.state.step}>"
 
     # -- stepping -----------------------------------------------------------------------
-    def step(self, row: Any | None = None, t: float | None = None) -> Estimate:
+    def step(self, row: ArrayLike | None = None, t: float | None = None) -> Estimate:
         """One row: an increment Δy (continuous kind) or a measurement z (discrete kind), m numbers
         (NaN: that component missing), or None to only predict; at time ``t`` (default: one dt on)."""
         from .solver.filtering import one_row
 
         rows = one_row(row, self.model.m, "row")
-        return self.run(rows, None if t is None else [t]).estimates(self.filter.gate)[0]
+        gate: float | None = getattr(self.filter, "gate", None)  # a filter that never gates has none
+        return self.run(rows, None if t is None else [t]).estimates(gate)[0]
 
-    def run(self, rows: Any, times: Any | None = None) -> Any:
+    def run(self, rows: ArrayLike, times: ArrayLike | None = None) -> ChunkResult:
         """A chunk of rows (K, m) (NaN: missing), at ``times`` (K,) (absolute, strictly increasing) or
         one dt apart; returns the chunk's estimates as arrays (``step``, ``t``, ``mean`` (K, n), ``cov``
         (K, n, n), ``mode``, ``loglik``, ``predictive_loglik``, ``gated``, ``degenerate``,
@@ -306,15 +360,15 @@ class OnlineFilter:
                                                      self.on_degenerate, self.watch_settings)
         return result
 
-    def iterate(self, rows: Any, times: Any | None = None):
+    def iterate(self, rows: ArrayLike, times: Iterable[float] | None = None) -> Iterator[Estimate]:
         """Yield one Estimate per row, stepping as it goes."""
         from .solver.measurement import check_rows
 
-        rows = check_rows(rows, self.model.m)
-        times = [None] * len(rows) if times is None else list(times)
-        if len(times) != len(rows):
-            raise InputError("times", f"needs one time per row: {len(rows)} row(s), got {len(times)} time(s)")
-        for row, t in zip(rows, times, strict=True):
+        checked = check_rows(rows, self.model.m)
+        at: list[float | None] = [None] * len(checked) if times is None else list(times)
+        if len(at) != len(checked):
+            raise InputError("times", f"needs one time per row: {len(checked)} row(s), got {len(at)} time(s)")
+        for row, t in zip(checked, at, strict=True):
             yield self.step(None if np.isnan(row).all() else row, t)
 
     def predict(self, t: float) -> "OnlineFilter":
@@ -328,18 +382,22 @@ class OnlineFilter:
     # -- now ------------------------------------------------------------------------------
     @property
     def estimate(self) -> Estimate:
+        """The :class:`Estimate` now (mean, covariance, log-likelihood, ...), without stepping."""
         return self.filter.estimate(self.state)
 
     @property
     def t(self) -> float:
+        """The filter's time now."""
         return float(self.state.t)
 
     @property
     def mean(self) -> np.ndarray:
+        """(n,) the conditional mean now."""
         return self.estimate.mean
 
     @property
     def cov(self) -> np.ndarray:
+        """(n, n) the conditional covariance now."""
         return self.estimate.cov
 
     @property
@@ -350,7 +408,7 @@ class OnlineFilter:
 
         return mode(self.filter, self.state)
 
-    def quantiles(self, probs: Any = (0.05, 0.5, 0.95)) -> np.ndarray:
+    def quantiles(self, probs: Sequence[float] | np.ndarray = (0.05, 0.5, 0.95)) -> np.ndarray:
         """Marginal quantiles now: an array (n, len(probs)), row i for state variable i."""
         from .solver.summaries import quantiles
 
@@ -358,10 +416,13 @@ class OnlineFilter:
 
     @property
     def loglik(self) -> float:
+        """The cumulative log-likelihood of the rows so far (log of the normaliser ratio)."""
         return self.estimate.loglik
 
     @property
     def degenerate(self) -> bool:
+        """Whether the filter could not resolve a step (it stays so until ``reinitialise`` or
+        ``reset``, or restarts by itself with ``on_degenerate="reinitialise"``)."""
         return bool(self.state.degenerate)
 
     @property
@@ -374,24 +435,24 @@ class OnlineFilter:
         """The innovation monitor's statistic after the last row (±1: an alarm; yauyau.solver.watch)."""
         return self.watch.statistic
 
-    def density(self, points: Any) -> np.ndarray:
+    def density(self, points: ArrayLike) -> np.ndarray:
         """Normalised conditional density at points (P, n) (for n = 1 a flat list will do)."""
         points = np.asarray(points, dtype=float)
         if points.ndim == 1 and self.model.n == 1:
             points = points[:, None]
         return self.filter.density(self.state, points)
 
-    def marginal(self, variable: int | str, grid: Any, resolution: int = 64) -> np.ndarray:
+    def marginal(self, variable: int | str, grid: ArrayLike, resolution: int = 64) -> np.ndarray:
         """Marginal density of one state variable (index or name) at the values ``grid``."""
         names = list(self.model.spec.state)
         if isinstance(variable, str):
             if variable not in names:
                 raise InputError("variable", f"unknown state variable {variable!r} (have {names})")
             variable = names.index(variable)
-        grid = np.asarray(grid, dtype=float)
-        if hasattr(self.filter, "marginal"):
-            return self.filter.marginal(self.state, variable, grid, resolution)
-        return _gaussian_box_marginal(self, variable, grid, resolution)
+        values = np.asarray(grid, dtype=float)
+        if isinstance(self.filter, MarginalFilter):  # the engine's own, on its nodes
+            return self.filter.marginal(self.state, variable, values, resolution)
+        return _gaussian_box_marginal(self, variable, values, resolution)
 
     # -- state ------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

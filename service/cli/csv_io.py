@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from pathlib import Path
 
 from yauyau.solver.errors import InputError
+from yauyau.storage.files import temporary_beside
 
 
 class Source:
@@ -51,7 +51,19 @@ def read_increments(path: str, m: int, numbers: list[int] | None = None):
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError("increments", f"cannot read {path}: {exc}") from None
+    check_untimed(text, path)
     return check_rows(parse_csv(text, m, numbers), m)
+
+
+def check_untimed(text: str, path: str) -> None:
+    """InputError naming --observations when the CSV given to --increments is a timed one (a header whose
+    first column is t, the format --observations reads): its times would be read as increments."""
+    first = text.partition("\n")[0].split(",")
+    if first[0].strip().strip('"').strip().lower() == "t":
+        raise InputError("increments", f"{path} has a time column (header {first[0].strip()!r}, ...): "
+                                       f"rows with their own times go to --observations {path} (add --t0 0 "
+                                       "for the files of yauyau simulate); --increments reads regular rows, "
+                                       "m numbers each")
 
 
 def parse_csv(text: str, m: int, numbers: list[int] | None = None) -> list[list[float]]:
@@ -277,20 +289,21 @@ def _field(value) -> str:
 
 
 def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
-    """Write the header and the lines atomically (temporary file in the same directory, then rename)."""
+    """Write the header and the lines atomically (temporary file in the same directory, then rename); the
+    file gets the user's umask (storage.files)."""
     target = Path(path)
     try:
-        handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=target.parent)
+        tmp = temporary_beside(target, ".csv")
     except OSError as exc:
         raise InputError(field, f"cannot write {path}: {exc}") from None
     try:
-        with os.fdopen(handle, "w", encoding="utf-8", newline="") as out:
+        with open(tmp, "w", encoding="utf-8", newline="") as out:
             out.write(",".join(columns) + "\n")
             for start in range(0, len(lines), 10_000):
                 out.write("\n".join(lines[start:start + 10_000]) + "\n")
         os.replace(tmp, target)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 

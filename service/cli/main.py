@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import os
 import sys
+
+from yauyau import __version__
 
 COMMANDS = {
     "precompute": "solve the Kolmogorov propagators offline and store the model (prints its id)",
@@ -28,6 +31,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The parser; with ``only`` (the command about to run) just that command's module is imported,
     so a command pays for its own imports only (``yauyau filter`` never loads the analysis)."""
     parser = argparse.ArgumentParser(prog="yauyau", description="Real-time optimal nonlinear filtering.")
+    parser.add_argument("--version", action="version", version=f"yauyau {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, help_text in COMMANDS.items():
         cmd = sub.add_parser(name, help=help_text, description=help_text)
@@ -38,13 +42,22 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def version() -> str:
+    """The installed distribution's version (a checkout run without installing: the package's own)."""
+    try:
+        return importlib.metadata.version("yauyau")
+    except importlib.metadata.PackageNotFoundError:
+        return __version__
+
+
 def main(argv: list[str] | None = None) -> int:
     from yauyau.solver.errors import YauyauError
     from yauyau.storage.errors import StoreError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     first = argv[0] if argv else None
-    args = build_parser(first if first in COMMANDS else None).parse_args(argv)
+    # a command's module only for that command; none for --version; all of them for the help
+    args = build_parser(first if first in COMMANDS or first == "--version" else None).parse_args(argv)
     try:
         return int(args._module.run(args) or 0)
     except (YauyauError, StoreError) as exc:

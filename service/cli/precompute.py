@@ -20,8 +20,13 @@ import sys
 DEFAULT_STORE = "var/store"
 
 
+def default_store() -> str:
+    """The model store of a command given no --store: $YAUYAU_STORE, else var/store."""
+    return os.environ.get("YAUYAU_STORE", DEFAULT_STORE)
+
+
 def store_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--store", default=os.environ.get("YAUYAU_STORE", DEFAULT_STORE),
+    parser.add_argument("--store", default=default_store(),
                         help="model store directory (default: $YAUYAU_STORE or %(default)s)")
 
 

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 from pathlib import Path
 
 from .csv_io import write_csv
+from .precompute import default_store
 
 EPILOG = """\
 files (in DIR):
@@ -32,7 +34,8 @@ files (in DIR):
   observations.csv  discrete model, or --mean-gap: header t,z_1..z_m (measurements z = h(x(t)) + v)
                     or t,dy_1..dy_m (increments over the gap ending at t): yauyau filter
                     --observations reads it, with --t0 0 (the path starts at t = 0)
-stderr ends with the yauyau filter command for the files.
+stderr ends with the commands that filter the files: yauyau precompute SPEC (once) and yauyau filter
+with the model id it prints, computed here from the spec.
 """
 
 
@@ -91,17 +94,30 @@ def run(args: argparse.Namespace) -> int:
         path = out / "observations.csv"
         write_csv(str(path), ["t", *columns], [[float(t), *map(float, row)]
                                               for t, row in zip(sim.times[1:], sim.rows, strict=True)])
-        option = f"--observations {path} --t0 0"
+        option = ["--observations", str(path), "--t0", "0"]
     else:
         path = out / "increments.csv"
         write_csv(str(path), columns, [[float(v) for v in row] for row in sim.rows])
-        option = f"--increments {path}"
+        option = ["--increments", str(path)]
     print(f"{out / 'truth.csv'}\n{path}")
     when = "every dt" if times is None else f"at random times (mean gap {args.mean_gap:g})"
     print(f"yauyau simulate: {args.steps} {'measurements' if discrete else 'increments'} of {spec.name!r} "
-          f"{when} (seed {args.seed}); filter them with\n"
-          f"  yauyau filter MODEL_ID --store STORE {option} --out OUT.csv", file=sys.stderr)
+          f"{when} (seed {args.seed}); filter them with", file=sys.stderr)
+    print(follow_up(args.spec, spec, option), file=sys.stderr)
     return 0
+
+
+def follow_up(spec_path: str, spec, option: list[str]) -> str:
+    """The two commands that filter the files: precompute the spec (once; it prints the model id) and
+    filter with that id, the content hash of the spec (storage.model_store.model_id), in the store a
+    command given no --store uses."""
+    from yauyau.storage.model_store import model_id  # h5py: not at start-up (yauyau -h imports this module)
+
+    store = default_store()
+    mid = model_id(spec.canonical_json())
+    precompute = shlex.join(["yauyau", "precompute", spec_path, "--store", store])
+    run = shlex.join(["yauyau", "filter", mid, "--store", store, *option, "--out", "OUT.csv"])
+    return f"  {precompute}    # once: it prints {mid}\n  {run}"
 
 
 def times_seed(seed: int):

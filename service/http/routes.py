@@ -284,26 +284,50 @@ _EXAMPLE_SPEC = {"name": "cubic-sensor", "state": ["x"], "drift": ["-0.2*x"], "o
                  "discretization": {"dt": 0.01, "basis": 128}}
 
 
+_ANALYZE_BODY = Body(description='{"spec": a model spec}, the body POST /v1/models takes, or the bare spec '
+                                "(the JSON form of the TOML spec)",
+                     examples=[{"spec": _EXAMPLE_SPEC}, _EXAMPLE_SPEC])
+
+
 @analysis.post("", response_model=AnalyzeReport, responses=_errors(400, 413, 422, 503))
 def analyze(settings: SettingsDep, request: Request,
-            spec: Annotated[dict[str, Any], Body(description="a model spec (JSON form of the TOML spec)",
-                                                 examples=[_EXAMPLE_SPEC])]) -> Response:
+            body: Annotated[dict[str, Any], _ANALYZE_BODY]) -> Response:
     """The estimation-algebra analysis, in a process of its own that is killed at the time limit
     (YAUYAU_ANALYZE_TIME_LIMIT) plus YAUYAU_ANALYZE_GRACE (2 s): a request never takes longer,
     whatever the spec; a killed analysis answers the bounded report (what it had not decided is
     undecided, with a note saying it was stopped)."""
-    from yauyau.solver.model import compile_model
-    from yauyau.solver.spec import spec_from_dict
-
     from ..models.analysis import AnalysisBusy, analysis_runner
 
-    compile_model(spec_from_dict(spec))  # a bad spec is refused here, at once (422 naming the field)
+    spec = _checked_analysis_spec(body)  # a bad spec is refused here, at once (422 naming the field)
     limit = settings.analyze_time_limit
     try:
         done = analysis_runner(request.app).run(spec, limit)
     except AnalysisBusy as exc:
         raise Problem(503, f"{exc}; retry later", "spec", retry_after=max(1, round(limit))) from None
     return _json(done.report)
+
+
+def _checked_analysis_spec(body: dict[str, Any]) -> dict[str, Any]:
+    """The spec of a POST /v1/analyze body, compiled once to refuse a bad one: ``{"spec": {...}}`` as
+    POST /v1/models takes it (a field at fault is named ``spec.<field>``, as there), or the bare spec (no
+    spec has a field named spec)."""
+    from yauyau.solver.model import compile_model
+    from yauyau.solver.spec import spec_from_dict
+
+    if "spec" not in body:
+        compile_model(spec_from_dict(body))
+        return body
+    extra = sorted(set(body) - {"spec"})
+    if extra:
+        raise SpecError(extra[0], 'not a field of the body: {"spec": {...}} holds the spec alone (or '
+                                  "send the spec itself as the body)")
+    if not isinstance(body["spec"], dict):
+        raise SpecError("spec", "must be an object: the model spec (JSON form of the TOML spec)")
+    try:
+        compile_model(spec_from_dict(body["spec"]))
+    except SpecError as exc:
+        raise SpecError(f"spec.{exc.field}", exc.message) from None
+    return body["spec"]
 
 
 routers = [health, models, jobs_router, sessions, analysis]

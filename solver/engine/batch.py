@@ -52,7 +52,7 @@ class _Member:
     rows: np.ndarray
     steps: np.ndarray
     times: np.ndarray
-    ready: Any  # engine._Prepared, while its group runs
+    ready: Any  # engine.gate.Prepared, while its group runs
 
 
 def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
@@ -69,15 +69,15 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
 
     out = _per_item(states, chunks, times, return_exceptions, item)
     members = [m for m in out if isinstance(m, _Member)]
-    for group in _groups(members, len(engine.nodes), np.dtype(engine._arith.dtype).itemsize):
+    for group in _groups(members, len(engine.nodes), np.dtype(engine.arith.dtype).itemsize):
         for member in group:  # the update factors of this group only: memory bounded by the group
-            member.ready = engine._prepare(member.state, member.rows, None, gating=True)
+            member.ready = engine.prepare(member.state, member.rows, None, gating=True)
         for member, loop in zip(group, _propagate_together(engine, group), strict=True):
             if loop is None:  # it left the fast path: alone, from the start of its chunk
                 out[member.index] = engine.run_arrays(member.state, member.rows,
                                                       None if times is None else times[member.index])
             else:
-                out[member.index] = engine._finish(member.state, member.rows, member.steps, member.times,
+                out[member.index] = engine.finish(member.state, member.rows, member.steps, member.times,
                                                    None, member.ready, *loop)
             member.ready = None
     return out
@@ -110,16 +110,16 @@ def _groups(members: list[_Member], Q: int, itemsize: int) -> list[list[_Member]
 
 
 def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]:
-    """The hot loop of :meth:`YauYauFilter._propagate` for the group's states at once (sorted longest
+    """The hot loop of :meth:`YauYauFilter.propagate` for the group's states at once (sorted longest
     first).  Per member: (σ_k (K, Q), ∫σ_k (K,), carried (N+1,), K, None) as the single loop returns
     them, or None when the member needs a slow step (dropped: its row is zeroed and left to ride).
     A group of one runs the single loop itself (the same bits as ``run_arrays``)."""
     if len(group) == 1:
         ready = group[0].ready
-        loop = engine._propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
+        loop = engine.propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
                                  None)
         return [None if loop[4] is not None else loop]
-    arith, N = engine._arith, engine.N
+    arith, N = engine.arith, engine.N
     dtype = arith.dtype
     S, Kmax, Q = len(group), len(group[0].rows), len(engine.nodes)
     lengths = np.array([len(m.rows) for m in group])
@@ -137,8 +137,8 @@ def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]
     carried = np.stack([m.ready.initial for m in group]).astype(dtype, copy=False)  # (S, N+1)
     np.divide(carried, carried[:, N:].copy(), out=carried)  # a unit-mass σ: the loop's 1/∫σ
     following = np.empty_like(carried)
-    propagate_t = np.ascontiguousarray(engine._predict.T)  # (N+1, Q), zero last row
-    project_t = np.ascontiguousarray(engine._project.T)  # (Q, N+1), the weights as last column
+    propagate_t = np.ascontiguousarray(engine.propagator.T)  # (N+1, Q), zero last row
+    project_t = np.ascontiguousarray(engine.projection.T)  # (Q, N+1), the weights as last column
     scratch = np.empty((S, Q), dtype=dtype)
     dropped = np.zeros(S, dtype=bool)
     finals: list[np.ndarray | None] = [None] * S
@@ -153,8 +153,8 @@ def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]
     fused = Q + 1 < 2 * (N + 1)
     if fused:
         operator = np.empty((Q, Q + 1), dtype=dtype)
-        operator[:, :Q] = (engine._predict[:, :N].astype(float) @ engine._project[:N].astype(float)).T
-        operator[:, Q] = engine._project[N]
+        operator[:, :Q] = (engine.propagator[:, :N].astype(float) @ engine.projection[:N].astype(float)).T
+        operator[:, Q] = engine.projection[N]
         extended = np.empty((S, Q + 1), dtype=dtype)
 
     def check(new: np.ndarray, step: int, rows: np.ndarray, low: np.ndarray) -> None:

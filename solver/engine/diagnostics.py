@@ -50,7 +50,7 @@ class Diagnostics:
         kept = [np.asarray(m, dtype=float).T @ weights for m in (offline.basis, offline.propagator_fp)]
         self._kept = np.vstack([projector.T @ row for row in kept])
         self.leak_limit = LEAK_RATE * model.dt
-        self._h_nodes = np.asarray(h_nodes, dtype=float)  # (Q, m), the engine's own evaluation
+        self.h_nodes = np.asarray(h_nodes, dtype=float)  # (Q, m), the engine's own evaluation
         self._r_diag = np.diag(model.R).astype(float)
 
     def translated(self, h_nodes: np.ndarray) -> "Diagnostics":
@@ -58,7 +58,7 @@ class Diagnostics:
         import copy
 
         new = copy.copy(self)
-        new._h_nodes = np.asarray(h_nodes, dtype=float)
+        new.h_nodes = np.asarray(h_nodes, dtype=float)
         return new
 
     def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:
@@ -117,7 +117,7 @@ class Diagnostics:
         throws it at the wall, which is not the basis' or the ball's fault).  Missing components
         are skipped.  ``h_nodes``: h at the nodes where ``before`` lives (a moving frame's row; the
         ball's own nodes by default)."""
-        h_nodes = self._h_nodes if h_nodes is None else h_nodes
+        h_nodes = self.h_nodes if h_nodes is None else h_nodes
         weights = self.weights * np.clip(np.nan_to_num(before), 0.0, None)
         total = weights.sum()
         if not total > 0 or not np.all(np.isfinite(h_nodes)):

@@ -27,7 +27,7 @@ basis.  ∫σ of the carried density becomes the state's mass, so the next step 
 the log-likelihood is not touched by a move (it is the sum of the steps' log ∫σ_k/∫σ_(k−1), none of
 which the move changes).  The mass the move leaves outside the new ball is measured and reported.
 A move by whole mesh steps is the same map wherever the ball is (every ball is the home ball
-translated), so it is built once per offset and kept (:class:`_Carry`).  A block ends in the engine
+translated), so it is built once per offset and kept (:class:`Carry`).  A block ends in the engine
 before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
 shorter), so a fast state is caught before it reaches the wall.
 
@@ -44,13 +44,15 @@ from collections import OrderedDict
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sps
 
 from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, concat_results
 from ..measurement import check_rows
 from .atlas import kept, move_step, needs_atlas
+from .batch import run_batch_alone
+from .carry import Carry, carried_at, unshaped_points
 from .frame import affine_frame
+from .kernel import with_zero_column
 
 SHELL = 0.9  # |x − c| > SHELL·R is the outer shell whose mass the trigger reads
 STRAY = 0.1  # of R beyond follow_distance: a block whose mean strays further runs again, shorter
@@ -62,38 +64,6 @@ CARRIES = 64  # carries kept, one per move offset in mesh steps (index arrays an
 # a move goes to the lead point, at most the stray limit (follow_distance + STRAY)·R from the centre plus
 # the lead's ½·follow_distance·R along each axis; offsets within that length (Euclidean) are tabled.
 LEAD = 0.5
-
-
-class TranslatedOffline:
-    """The offline arrays of B_R(c₀) seen on B_R(c₀ + shift): nodes moved, everything else shared."""
-
-    def __init__(self, home: Any, shift: np.ndarray, home_center: np.ndarray):
-        self.home, self.shift = home, np.asarray(shift, dtype=float)
-        self.home_center = np.asarray(home_center, dtype=float)
-        self.nodes = np.asarray(home.nodes) + self.shift
-        for name in ("weights", "basis", "projector", "propagator_fp", "propagator_k"):
-            setattr(self, name, getattr(home, name))
-
-    @property
-    def size(self) -> int:
-        return self.basis.shape[1]
-
-    def _points(self, points: Any) -> np.ndarray:
-        from ..offline.pipeline import _check_points
-
-        return _check_points(points, self.nodes.shape[1]) - self.shift
-
-    def evaluate_basis(self, points: Any) -> np.ndarray:
-        return self.home.evaluate_basis(self._points(points))
-
-    def interpolate(self, nodal: np.ndarray, points: Any) -> np.ndarray:
-        return self.home.interpolate(nodal, self._points(points))
-
-    def interpolation_matrix(self, points: Any) -> Any:
-        return self.home.interpolation_matrix(self._points(points))
-
-    def fokker_planck_generator(self) -> np.ndarray:
-        return self.home.fokker_planck_generator()
 
 
 def check_follow(model: Any, form: str = "stable") -> tuple[int, ...]:
@@ -137,7 +107,7 @@ class FollowingFilter(ChunkedFilter):
             raise SpecError("domain.shape", "a following ellipsoid moves along every coordinate, but the "
                                             "drift depends on some (neither shift-invariant nor affine): "
                                             "leave shape out")
-        points = _unshaped_points(engine.model, getattr(engine.offline, "mesh_points", None))
+        points = unshaped_points(engine.model, getattr(engine.offline, "mesh_points", None))
         self._lattice = move_step(points, engine.model.n, engine.model.center, engine.model.radius)
         self._engines: OrderedDict[tuple, Any] = OrderedDict()
         self.region = None if domain.region is None else np.asarray(domain.region, dtype=float)
@@ -150,7 +120,7 @@ class FollowingFilter(ChunkedFilter):
         self._shell = engine.model.ball_distance(engine.nodes - self.home_center) > SHELL * self.radius
         self.frame = affine_frame(engine.model) if self.atlas is None else None
         self._framed: OrderedDict[Any, Any] = OrderedDict()
-        self._carries: OrderedDict[tuple, _Carry] = OrderedDict()
+        self._carries: OrderedDict[tuple, Carry] = OrderedDict()
         self._table = self._carry_table() if self._lattice else {}
         # moves inside the engine's loop (engine/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
@@ -189,10 +159,8 @@ class FollowingFilter(ChunkedFilter):
     def _atlas_engine(self, k: int) -> Any:
         """The engine on the ball of atlas centre k (its own propagator; kept a few at a time)."""
         def make():
-            from .filter import YauYauFilter
-
             offline = self.atlas.offline(k)
-            return YauYauFilter(offline.model, offline, form=self.home.form, precision=self.home.precision)
+            return type(self.home)(offline.model, offline, form=self.home.form, precision=self.home.precision)
 
         return kept(self._bases, k, make, CACHE)
 
@@ -230,7 +198,7 @@ class FollowingFilter(ChunkedFilter):
     def initial_state(self, prior: Any | None = None) -> Any:
         """The prior on the ball centred at its mean along the shift directions."""
         start = self.home_center
-        mean = _prior_mean(self.model, prior)
+        mean = _prior_mean(self.home, prior)
         if mean is not None:
             outside = self.left_region(mean)
             if outside:
@@ -293,9 +261,9 @@ class FollowingFilter(ChunkedFilter):
         while start < K:
             stop = min(K, start + block)
             center = np.asarray(state.center, dtype=float)
-            new, part = self.runner(center).run_arrays(state, rows[start:stop],
-                                                       None if times is None else times[start:stop],
-                                                       until=self._keep_until(center))
+            new, part = self.runner(center).run_until(state, rows[start:stop],
+                                                      None if times is None else times[start:stop],
+                                                      self._keep_until(center))
             stop = start + len(part.step)  # the engine ends the block before a row that strays
             # (K, n) in a moving frame (an engine that only stayed degenerate gives none: the centre stays)
             centers = center if self.frame is None or part.center is None else part.center
@@ -336,7 +304,7 @@ class FollowingFilter(ChunkedFilter):
         while start < K:
             before, moves = state.last.mean[along], []
             engine = self.home if self.frame is None else self.runner(state.center)  # nodes at home
-            new, part = engine.run_arrays(state, rows[start:], follow=(self, velocity, moves))
+            new, part = engine.run_moving(state, rows[start:], self, velocity, moves)
             length = len(part.mean)  # rows with estimates (fewer when it degenerated)
             if length and self.frame is None:  # (in a frame the loop leads by nothing)
                 drift = (part.mean[-1, along] - before) / length  # per row
@@ -375,16 +343,14 @@ class FollowingFilter(ChunkedFilter):
         k = self.atlas.lattice.index(center)
 
         def make():
-            from .filter import _with_zero_column
-
             engine = self._bases.get(k)  # the centre's engine, where the block path built it: its matrix
             if engine is not None:
-                return engine._predict
-            return _with_zero_column(self.atlas.offline(k).propagator_fp, self.home._arith.dtype)
+                return engine.propagator
+            return with_zero_column(self.atlas.offline(k).propagator_fp, self.home.arith.dtype)
 
         return kept(self._predicts, k, make, CACHE)
 
-    def h_at(self, center: np.ndarray, carry: "_Carry | None" = None,
+    def h_at(self, center: np.ndarray, carry: "Carry | None" = None,
              before: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """h at the nodes of the ball around ``center`` (Q, m) and a factor cache for them (kept a few
         at a time: what a centred engine holds for the update factors, without the rest of it).  With
@@ -410,20 +376,16 @@ class FollowingFilter(ChunkedFilter):
         outer shell, and the basis with a zero column (it reads the carried vector [a, ∫σ, …])."""
         found = self._watch.get(dtype)
         if found is None:
-            from .filter import _with_zero_column
-
             home = self.home
             offsets = self.model.unshaped(home.nodes - self.home_center)
             rows = [home.weights * offsets[:, i] for i in self.directions] + [home.weights * self._shell]
-            project = np.vstack([np.asarray(home._project, dtype=float), rows])
+            project = np.vstack([np.asarray(home.projection, dtype=float), rows])
             found = self._watch[dtype] = (np.asfortranarray(project, dtype=dtype),
-                                          _with_zero_column(home.offline.basis, dtype))
+                                          with_zero_column(home.offline.basis, dtype))
         return found
 
     def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
                   return_exceptions: bool = False) -> list[Any]:
-        from .batch import run_batch_alone
-
         return run_batch_alone(self, states, chunks, times, return_exceptions)
 
     def _block_for(self, velocity: np.ndarray, jitter: float) -> int:
@@ -495,7 +457,7 @@ class FollowingFilter(ChunkedFilter):
         """The state carried onto the ball around ``center``: the old expansion at the new nodes (0
         outside the old ball), projected; ∫σ of the carried density is the new mass."""
         new = self.engine(center)
-        if not np.all(np.isfinite(new._h_nodes)):
+        if not np.all(np.isfinite(new.h_nodes)):
             return dataclasses.replace(state, degenerate=True, reason=(
                 f"the ball cannot move to {_point(center)}: the observation function is not finite there"))
         carried, before = self._carried_to(state, new)
@@ -517,13 +479,13 @@ class FollowingFilter(ChunkedFilter):
         center = np.asarray(state.center, dtype=float)
         nodal = self.home.nodal_density(state)  # the basis is the same on every ball
         carry = self.carry(np.asarray(new.model.center, dtype=float) - center)
-        carried = _carried(self.engine(center), nodal, new.nodes) if carry is None else carry.apply(nodal)
+        carried = carried_at(self.engine(center), nodal, new.nodes) if carry is None else carry.apply(nodal)
         return carried, float(self.home.weights @ nodal)
 
-    def carry(self, offset: np.ndarray) -> "_Carry | None":
+    def carry(self, offset: np.ndarray) -> "Carry | None":
         """The carry by a move of whole mesh steps (1-D elements, the 2-D lattice), kept per move: it
         depends on the offset only, every ball being the home ball translated (None: a move of any
-        other length, or a mesh without steps: :func:`_carried` then works on the nodes themselves)."""
+        other length, or a mesh without steps: :func:`carried_at` then works on the nodes themselves)."""
         if not self._lattice:
             return None
         raw, offset = offset, self.model.unshaped(np.asarray(offset, dtype=float))  # (the ball's: the same)
@@ -535,10 +497,10 @@ class FollowingFilter(ChunkedFilter):
         if found is not None:
             return found
         return kept(self._carries, key,
-                    lambda: _Carry.build(self.home.offline, self.home_center, self.radius, raw,
+                    lambda: Carry.build(self.home.offline, self.home_center, self.radius, raw,
                                          self.home.node_tree), CARRIES)
 
-    def _carry_table(self) -> dict[tuple, "_Carry"]:
+    def _carry_table(self) -> dict[tuple, "Carry"]:
         """The carries of the offsets (whole steps along the shift directions) no longer than a move
         usually goes (:data:`LEAD`, ``STRAY``), built at once with the filter, so that a move in the
         stream costs the projection only, also the first one by an offset (a carry built alone costs
@@ -550,120 +512,10 @@ class FollowingFilter(ChunkedFilter):
         grid = grid[(np.linalg.norm(grid, axis=1) <= reach) & np.any(grid != 0, axis=1)]
         offsets = np.zeros((len(grid), self.model.n))
         offsets[:, list(self.directions)] = grid * self._lattice
-        carries = _Carry.build_many(self.home.offline, self.home_center, self.radius,
+        carries = Carry.build_many(self.home.offline, self.home_center, self.radius,
                                     self.model.shaped(offsets), self.home.node_tree)
         return {tuple(int(k) for k in np.round(o / self._lattice)): c
                 for o, c in zip(offsets, carries, strict=True)}
-
-
-@dataclasses.dataclass(frozen=True)
-class _Carry:
-    """The carry by one offset as index arrays and a small matrix: ``carried[matched] =
-    nodal[source]``, ``carried[rest] = rows @ nodal`` (interpolation in the old mesh), 0 elsewhere."""
-
-    size: int
-    matched: np.ndarray
-    source: np.ndarray
-    rest: np.ndarray
-    rows: Any  # (len(rest), Q) sparse; None: no row is interpolated
-    others: np.ndarray  # the new nodes that are not old ones (``rest`` and those outside the old ball)
-
-    @classmethod
-    def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray,
-              tree: Any) -> "_Carry":
-        """On the home ball (nodes ``home.nodes`` around ``center``, ``tree`` their KD-tree): where its
-        nodes moved by ``offset`` land, as :func:`_carried` finds it."""
-        return cls.build_many(home, center, radius, np.asarray(offset, dtype=float)[None, :], tree)[0]
-
-    @classmethod
-    def build_many(cls, home: Any, center: np.ndarray, radius: float, offsets: np.ndarray,
-                   tree: Any) -> list["_Carry"]:
-        """:meth:`build` for every row of ``offsets`` (M, n) at once: one search of the landing nodes
-        and one interpolation matrix for all of them (a carry alone pays both calls' fixed cost)."""
-        nodes = np.asarray(home.nodes, dtype=float)
-        Q = len(nodes)
-        points = (nodes[None, :, :] + offsets[:, None, :]).reshape(-1, nodes.shape[1])
-        nearest, matched, rest = _landing(tree, nodes, points, center, radius, home.model)
-        everywhere = np.flatnonzero(rest)
-        rows = home.interpolation_matrix(points[everywhere]).tocsr() if len(everywhere) else None
-        bounds = np.searchsorted(everywhere, np.arange(len(offsets) + 1) * Q)
-        found = []
-        for m in range(len(offsets)):
-            part = slice(m * Q, (m + 1) * Q)
-            hit = np.flatnonzero(matched[part])
-            lo, hi = int(bounds[m]), int(bounds[m + 1])
-            found.append(cls(Q, hit, nearest[part][hit], everywhere[lo:hi] - m * Q,
-                             _row_block(rows, lo, hi), np.flatnonzero(~matched[part])))
-        return found
-
-    def apply(self, nodal: np.ndarray) -> np.ndarray:
-        out = np.zeros(self.size)
-        out[self.matched] = nodal[self.source]
-        if self.rows is not None:
-            out[self.rest] = self.rows @ nodal
-        return out
-
-
-def _row_block(rows: Any, lo: int, hi: int) -> Any:
-    """Rows lo:hi of a CSR matrix as a CSR matrix of their own (None: no row), without scipy's slicing
-    (~50 µs a call, for a table of carries the bulk of the split)."""
-    if hi <= lo:
-        return None
-    start, stop = rows.indptr[lo], rows.indptr[hi]
-    return sps.csr_matrix((rows.data[start:stop], rows.indices[start:stop], rows.indptr[lo:hi + 1] - start),
-                          shape=(hi - lo, rows.shape[1]))
-
-
-def _carried(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """The old engine's density (nodal values ``nodal``) at ``points``, 0 outside its ball: read off
-    where a point is an old node (a move by whole steps: 1-D elements, the 2-D lattice), interpolated
-    in the old mesh elsewhere (the nodes near the boundary, or a mesh without a lattice)."""
-    nearest, matched, rest = _landing(old.node_tree, old.nodes, points, old.model.center, old.model.radius,
-                                      old.model)
-    out = np.where(matched, nodal[nearest], 0.0)
-    if rest.any():
-        out[rest] = old.offline.interpolate(nodal, points[rest])
-    return out
-
-
-def _landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any, radius: float,
-             model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: a
-    node at each point (where one is: the rest get an arbitrary valid index), the points inside the ball
-    that are nodes (read off), and those inside that are not (interpolated).  The sphere itself counts
-    as outside (Dirichlet: σ = 0 there)."""
-    tolerance = 1e-9 * max(1.0, float(np.abs(nodes).max()))
-    if nodes.shape[1] == 1 < len(nodes):
-        gap, nearest = _nearest_1d(nodes, points)
-    else:  # only a node within the tolerance counts: the tree stops looking beyond it (~3× faster)
-        gap, nearest = tree.query(points, distance_upper_bound=2.0 * tolerance)
-        nearest = np.minimum(nearest, len(nodes) - 1)
-    inside = model.ball_distance(points - center) < radius * (1 - 1e-12)  # (an ellipsoid's, model.shape)
-    matched = (gap <= tolerance) & inside
-    return nearest, matched, inside & ~matched
-
-
-
-def _unshaped_points(model: Any, mesh_points: Any) -> Any:
-    """Mesh points (n, Np) of an ellipsoid in the ball's coordinates, c + L⁻¹(p − c) (where its lattice
-    is the ball's); the ball's as they are."""
-    if mesh_points is None or model.shape is None:
-        return mesh_points
-    c = np.asarray(model.center, dtype=float)[:, None]
-    return c + model.unshaped((np.asarray(mesh_points, dtype=float) - c).T).T
-
-
-def _nearest_1d(nodes: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distance to the nearest node and its index, on a line (a binary search of the sorted nodes:
-    the KD-tree's query costs ~20 µs a call for a hundred points, this a few)."""
-    x, p = nodes[:, 0], points[:, 0]
-    order = np.argsort(x)
-    xs = x[order]
-    right = np.clip(np.searchsorted(xs, p), 1, len(xs) - 1)
-    left = right - 1
-    take_left = np.abs(p - xs[left]) <= np.abs(xs[right] - p)
-    best = np.where(take_left, left, right)
-    return np.abs(p - xs[best]), order[best]
 
 
 def _with_centers(result: ChunkResult, before: np.ndarray, after: np.ndarray | None = None) -> ChunkResult:
@@ -686,13 +538,8 @@ def _flagged(result: ChunkResult, row: int, reason: str | None) -> ChunkResult:
     return dataclasses.replace(result, degenerate=flags, reason=result.reason or reason)
 
 
-def _prior_mean(model: Any, prior: Any | None) -> np.ndarray | None:
-    if prior is None:
-        moments = model.prior_moments()
-        return None if moments is None else moments[0]
-    from .filter import _override_model
-
-    moments = _override_model(model, prior).prior_moments()
+def _prior_mean(engine: Any, prior: Any | None) -> np.ndarray | None:
+    moments = (engine.model if prior is None else engine.prior_model(prior)).prior_moments()
     return None if moments is None else moments[0]
 
 

@@ -4,7 +4,7 @@ Between blocks, :class:`~solver.follow.FollowingFilter` re-centres B_R(c) on the
 block is one pass through the engine, whose fixed cost (the chunk's row terms, factors, moments,
 checks: ~0.1–0.3 ms) is paid per block; a state that moves a mesh step every few dozen rows paid it
 that often (1-D: 3× the fixed ball's cost per observation).  Where a move is a fixed map of the
-coefficients — a shift-invariant drift and a move by whole mesh steps (:class:`~solver.follow._Carry`)
+coefficients — a shift-invariant drift and a move by whole mesh steps (:class:`~solver.engine.carry.Carry`)
 — the loop itself re-centres:
 
 * the projection that gives the coefficients and ∫σ_k also gives Σ_q w_q (x_q − c)_i σ_k(x_q) along
@@ -52,7 +52,7 @@ class Recentring:
         self.engine, self.follower, self.frame = engine, follower, engine.frame
         self.rows, self.gaps, self.keys, self.terms, self.missing = rows, gaps, keys, terms, missing
         K, Q = len(rows), len(engine.nodes)
-        self.dtype = engine._arith.dtype
+        self.dtype = engine.arith.dtype
         self.log_factor = np.zeros((K, Q))
         self.factor = np.empty((K, Q), dtype=self.dtype)
         self.top, self.top_before = np.zeros(K), np.zeros(K)
@@ -93,7 +93,7 @@ class Recentring:
             self.shifts[start:stop] = self.frame.path(begin, self.gaps[part]) - self.origin
             self.shifts[stop:] = self.shifts[stop - 1]  # beyond the rows run: where the frame stopped
             self.path_from = None
-            h, cache = engine._h_shifted(self.shifts[part]), None
+            h, cache = engine.h_shifted(self.shifts[part]), None
         log_factor = obs.log_factors(h, self.rows[part], self.gaps[part], self.keys[part],
                                      self.terms.rows(start, stop, self.keys), cache,
                                      penalty=engine.form != "literal", out=self.log_factor[part])
@@ -114,7 +114,7 @@ class Recentring:
             np.exp(log_factor, out=factor)
         else:
             factor[...] = np.exp(log_factor)
-        factor[factor < engine._arith.negligible] = 0.0
+        factor[factor < engine.arith.negligible] = 0.0
         if self.gate is not None:
             if start == 0:  # the gate's floors but for the factor's top, once a chunk
                 self._floor = self.gate.floor_exponents(self.missing)
@@ -176,7 +176,7 @@ class Recentring:
         if not np.all(np.isfinite(h)):
             return None
         predict = follower.propagator_at(target)
-        arith = self.engine._arith
+        arith = self.engine.arith
         nodal = arith.gemv(1.0, self.basis, carried)
         moved = carry.apply(nodal).astype(self.dtype, copy=False)
         arith.gemv(1.0, self.project, moved, 0.0, following, 0, 1, 0, 1, 0, 1)

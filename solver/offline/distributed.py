@@ -39,15 +39,14 @@ RESUBMITS = 3  # times a block whose future was cancelled (its worker died) is s
 WORKERLESS_S = 30.0  # seconds a cluster may have no worker at all before the run gives up
 
 
-def solve_block(job: Any, columns: tuple[int, int], basis: Any = None):
-    """The task: one block of columns on this worker (serialised per process, see the docstring);
-    ``basis``: the initial values when the job was sent without them."""
-    from .pipeline import dask_block
-
+def solve_block(solve: Callable[[Any, tuple[int, int]], Any], job: Any, columns: tuple[int, int],
+                basis: Any = None):
+    """The task: ``solve(job, columns)``, one block of columns on this worker (serialised per process,
+    see the docstring); ``basis``: the initial values when the job was sent without them."""
     if basis is not None:
         job = dataclasses.replace(job, initial=basis)
     with _LOCK:
-        return dask_block(job, columns)
+        return solve(job, columns)
 
 
 def _check_reachable(scheduler: str) -> None:
@@ -72,9 +71,11 @@ def _check_reachable(scheduler: str) -> None:
 
 
 def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
-               store: Callable[[int, Any], None], *, workers: int = 1, scheduler: str | None = None) -> None:
-    """Solve ``tasks`` ((job index, column block) pairs) on Dask, calling ``store(j, result)`` as each
-    block arrives.  Every job is scattered to every worker once."""
+               store: Callable[[int, Any], None], solve: Callable[[Any, tuple[int, int]], Any], *,
+               workers: int = 1, scheduler: str | None = None) -> None:
+    """Solve ``tasks`` ((job index, column block) pairs) on Dask with ``solve(job, block)`` (a module-level
+    function: workers import it by name), calling ``store(j, result)`` as each block arrives.  Every job
+    is scattered to every worker once."""
     try:
         from distributed import Client, LocalCluster
     except ImportError:  # pragma: no cover - distributed is a dependency
@@ -105,7 +106,7 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
         raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
     watch = _Watch(client, WORKERLESS_S)
     try:
-        _solve(client, jobs, tasks, store, watch)
+        _solve(client, jobs, tasks, store, solve, watch)
     except InputError:
         raise
     except (TimeoutError, OSError, CancelledError, _killed_worker()) as exc:  # the cluster, not the spec
@@ -118,7 +119,8 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
 
 
 def _solve(client, jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
-           store: Callable[[int, Any], None], watch: "_Watch") -> None:
+           store: Callable[[int, Any], None], solve: Callable[[Any, tuple[int, int]], Any],
+           watch: "_Watch") -> None:
     from distributed import as_completed
 
     values = None  # an atlas's jobs share the basis values: sent once, not once per centre
@@ -136,7 +138,7 @@ def _solve(client, jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
             if shared[j].status != "finished":
                 shared[j] = client.scatter(jobs[j], broadcast=True, hash=False)
         key = f"yauyau-propagators-{jobs[j].token}-{block[0]}" + (f"-again{attempt}" if attempt else "")
-        return client.submit(solve_block, shared[j], block, basis, retries=2, pure=False, key=key)
+        return client.submit(solve_block, solve, shared[j], block, basis, retries=2, pure=False, key=key)
 
     futures = {submit(j, block, 0): (j, block, 0) for j, block in tasks}
     watch.futures = futures  # the same dict, kept up to date below: what the watch cancels

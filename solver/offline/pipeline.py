@@ -33,16 +33,19 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..engine.diagnostics import MASS_GROWTH_LIMIT
+from ..engine.atlas import needs_atlas
+from ..engine.frame import affine_frame
+from ..engine.semigroup import galerkin_generator
 from ..errors import InputError, SpecError
 from ..model import Model
+from .atlas import attach_solved, attach_stored, model_lattice, solve_atlas
+from .jobs import Job, Progress, check_stable, propagate_all
 
 ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
                "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
 # stored since irregular times; a file without it rebuilds it from its mesh on first use.  "frame":
 # f(c₀), what a moving frame's propagator leaves out of the drift (solver/engine/frame.py)
 OPTIONAL_ARRAYS = ("generator", "frame")
-Progress = Callable[[int, int], None]
 
 
 @runtime_checkable
@@ -110,113 +113,9 @@ def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int
     """The default propagators: Alexander's L-stable SDIRK2 over dt (solver/offline/propagator.py), the
     column blocks as Dask tasks (``scheduler``: a running cluster's address; else ``workers``
     local processes)."""
-    job = _Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values,
+    job = Job(disc.fokker_planck, disc.kolmogorov, disc.weights, dt, substeps, basis.values,
                token=uuid.uuid4().hex, mass=disc.mass)
     return propagate_all(job, workers, progress, scheduler)
-
-
-# -- the column blocks, in this process or in workers ----------------------------------------------
-@dataclass(frozen=True)
-class _Job:
-    fokker_planck: object
-    kolmogorov: object | None  # None: only e^{dt L} (an atlas centre: the stable form never needs L_K)
-    weights: np.ndarray
-    dt: float
-    substeps: int
-    initial: np.ndarray  # (Q, N) basis values
-    token: str = ""  # names the job on Dask workers (their factorisations are kept per token)
-    mass: object | None = None  # sparse M of M du/dt = A u (scheme = "supg"); None: diag(weights)
-
-
-_WORKER: dict = {}
-
-
-def _setup(job: _Job) -> None:
-    """Factor both matrices once per process."""
-    from .propagator import SdirkPropagator
-
-    _WORKER["initial"] = job.initial
-    _WORKER["fp"] = SdirkPropagator(job.fokker_planck, job.weights, job.dt, job.substeps, job.mass)
-    _WORKER["k"] = (None if job.kolmogorov is None else
-                    SdirkPropagator(job.kolmogorov, job.weights, job.dt, job.substeps, job.mass))
-
-
-def _propagate(columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
-    from .basis import blas_threads
-
-    start, stop = columns
-    u0 = _WORKER["initial"][:, start:stop]
-    kolmogorov = _WORKER["k"]
-    with blas_threads(1):  # SuperLU's small dense kernels: threads only add contention (measured)
-        return start, stop, _WORKER["fp"].apply(u0), None if kolmogorov is None else kolmogorov.apply(u0)
-
-
-def column_blocks(size: int, width: int = 32) -> list[tuple[int, int]]:
-    """Fixed blocks of basis columns (independent of the worker count: reproducible output)."""
-    return [(s, min(s + width, size)) for s in range(0, size, width)]
-
-
-def propagate_all(job: _Job, workers: int = 1, progress: Progress | None = None,
-                  scheduler: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Every column block of ``job`` (:func:`propagate_jobs` of one job)."""
-    return propagate_jobs([job], workers, progress, scheduler)[0]
-
-
-def propagate_jobs(jobs: list[_Job], workers: int = 1, progress: Progress | None = None,
-                   scheduler: str | None = None,
-                   finished: Callable[[int, np.ndarray, np.ndarray | None], None] | None = None,
-                   ) -> list[tuple[np.ndarray, np.ndarray | None] | None]:
-    """Every column block of every job: in this process (one worker and no scheduler, or a single
-    block), else as Dask tasks (solver/offline/distributed.py).  The blocks are fixed, so the arrays are
-    bit-identical whoever solves them.  ``progress(done, total)`` counts basis columns over all jobs.
-    ``finished(j, e^{dt L}φ, e^{dt L_K}φ)``: called as soon as job j's last block is in, which then
-    keeps nothing of it (its entry is None): an atlas's centres are not all held at once."""
-    out: list[Any] = [None] * len(jobs)
-    left = [job.initial.shape[1] for job in jobs]
-    tasks = [(j, block) for j, job in enumerate(jobs) for block in column_blocks(job.initial.shape[1])]
-    total = sum(job.initial.shape[1] for job in jobs)
-    done = 0
-
-    def store(j, result):
-        nonlocal done
-        start, stop, a, b = result
-        if out[j] is None:  # the job's arrays, made when its first block arrives
-            initial = jobs[j].initial
-            out[j] = (np.empty_like(initial), None if jobs[j].kolmogorov is None else np.empty_like(initial))
-        out[j][0][:, start:stop] = a
-        if b is not None:
-            out[j][1][:, start:stop] = b
-        left[j] -= stop - start
-        done += stop - start
-        if progress is not None:
-            progress(done, total)
-        if finished is not None and left[j] == 0:
-            finished(j, *out[j])
-            out[j] = None
-
-    if scheduler is None and (workers <= 1 or len(tasks) == 1):
-        for j, job in enumerate(jobs):
-            _setup(job)
-            try:
-                for block in column_blocks(job.initial.shape[1]):
-                    store(j, _propagate(block))
-            finally:
-                _WORKER.clear()
-    else:
-        from .distributed import run_blocks
-
-        run_blocks(jobs, tasks, store, workers=workers, scheduler=scheduler)
-    return out
-
-
-def dask_block(job: _Job, columns: tuple[int, int]) -> tuple[int, int, np.ndarray, np.ndarray]:
-    """One column block on a Dask worker: both matrices factored once per worker and job (kept
-    under the job's token), then the block's solves."""
-    if _WORKER.get("token") != job.token:
-        _WORKER.clear()
-        _setup(job)
-        _WORKER["token"] = job.token
-    return _propagate(columns)
 
 
 # -- the offline model --------------------------------------------------------------------------
@@ -252,7 +151,6 @@ class OfflineModel:
         arrays["generator"] = self.fokker_planck_generator()
         if self.atlas is not None:
             arrays["atlas_centers"] = self.atlas.centers()
-        from ..engine.frame import affine_frame
 
         frame = affine_frame(self.model)
         if frame is not None:
@@ -286,7 +184,6 @@ class OfflineModel:
                 raise InputError("arrays.generator", f"must be a finite ({size}, {size}) matrix")
         _check_frame(model, arrays.get("frame"))
         found = cls(model=model, generator=generator, **values)
-        from ..engine.atlas import attach_stored, needs_atlas
 
         if needs_atlas(model):
             attach_stored(found, arrays.get("atlas_centers"), lazy)
@@ -296,7 +193,6 @@ class OfflineModel:
         """A = Φᵀ K Φ, the Fokker–Planck generator on the basis (solver/engine/semigroup.py): stored, or
         rebuilt once from the mesh (a file written before irregular times)."""
         if self.generator is None:
-            from ..engine.semigroup import galerkin_generator
             from . import fem
 
             operators = fem.assemble(self.model, self.space)
@@ -321,7 +217,7 @@ class OfflineModel:
 
         from . import fem
 
-        X = _check_points(points, self.model.n)
+        X = check_points(points, self.model.n)
         Q = len(self.node_index)
         linear = self.model.n > 1 and int(self.element_order) == 1  # DOFs are the mesh's vertices
         column = np.full(self.mesh_points.shape[1] if linear else self.space.basis.N, -1)
@@ -360,7 +256,7 @@ class OfflineModel:
         return self._space
 
 
-def _check_points(points, n: int) -> np.ndarray:
+def check_points(points, n: int) -> np.ndarray:
     try:
         X = np.asarray(points, dtype=float)
     except (TypeError, ValueError):
@@ -396,7 +292,6 @@ def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
 def _check_frame(model: Model, stored: Any) -> None:
     """A moving frame's arrays must be the frame's: a file solved before frames (with f itself) is
     the same only where f(c₀) = 0."""
-    from ..engine.frame import affine_frame
 
     frame = affine_frame(model)
     if frame is None:
@@ -423,7 +318,6 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         raise InputError("workers", "must be a positive integer")
     spec = model.spec.discretization
     disc = space(model)
-    from ..engine.atlas import model_lattice, needs_atlas
 
     # an atlas where the drift depends on a coordinate the ball must move along (solver/engine/atlas.py);
     # its lattice first: a region too large is refused before any solve
@@ -444,7 +338,6 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         if not np.all(np.isfinite(arr)):
             raise SpecError("discretization", f"{name} is not finite: refine the mesh or the substeps")
     check_stable(model, disc.nodes, disc.weights, phi.values, phi.projector, prop_fp)
-    from ..engine.semigroup import galerkin_generator
 
     found = OfflineModel(
         model=model, nodes=disc.nodes, weights=disc.weights, basis=phi.values, projector=phi.projector,
@@ -452,42 +345,10 @@ def precompute(model: Model, workers: int = 1, progress: Progress | None = None,
         generator=galerkin_generator(phi.values, disc.fokker_planck, disc.mass, disc.weights),
         _space=disc.space)
     if grid is not None:
-        from ..engine.atlas import attach_solved, solve_atlas
 
         attach_solved(found, solve_atlas(model, disc, phi, space, grid, workers, atlas_progress, scheduler,
                                          sink=atlas_sink), grid)
     return found
-
-
-def check_stable(model: Model, nodes: np.ndarray, weights: np.ndarray, basis_values: np.ndarray,
-                 projector: np.ndarray, propagator_fp: np.ndarray) -> None:
-    """Predict the prior (no data) over t = 1 (at most 2000 steps): SpecError naming the cure when a
-    step creates mass (e.g. drift -x**64 on a radius-7 ball: ×1e34 per step, the log-likelihood then
-    grows by ~79 a step while the data allow at most ~5), positive or negative (the same drift with
-    basis 48: ×-6e30, a model degenerate from its first step)."""
-    step = projector @ propagator_fp  # coefficients -> coefficients
-    mass_of = weights @ basis_values
-    log_prior = model.log_prior(nodes)
-    finite = np.isfinite(log_prior)
-    if not finite.any():
-        return  # the prior's own error is reported where the prior is used
-    density = np.where(finite, np.exp(np.where(finite, log_prior - log_prior[finite].max(), 0.0)), 0.0)
-    c = projector @ density
-    mass = float(mass_of @ c)
-    for k in range(int(min(2000, max(1, round(1.0 / model.dt))))):
-        if not mass > 0.0:
-            return  # all mass left the ball: the engine reports that as it happens
-        c = step @ c / mass
-        new_mass = float(mass_of @ c)
-        if not abs(new_mass) <= 1.0 + MASS_GROWTH_LIMIT:  # more mass, or a huge negative one (-x**64: -6e30)
-            with np.errstate(all="ignore"):
-                speed = float(np.max(np.abs(model.f(nodes))))
-            raise SpecError("discretization", (
-                f"the Fokker-Planck propagator is unstable: step {k + 1} of dt = {model.dt:g} multiplies the "
-                f"probability mass by {new_mass:.3g} (a stable flow never creates mass); the drift reaches "
-                f"|f| = {speed:.3g} on the ball, too stiff for this mesh and dt: shrink domain.radius, "
-                "lower discretization.dt or raise discretization.substeps"))
-        mass = new_mass
 
 
 def default_workers() -> int:

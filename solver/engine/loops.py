@@ -1,0 +1,235 @@
+"""The hot loops of the engine: one per kind of chunk, each a few named steps over the kernel.
+
+* :func:`loop_regular` — rows one dt apart: the stored propagator over dt (seed 002 (5.35)/(5.38)).
+* :func:`loop_irregular` — rows at any times: the coefficients carried in the modal coordinates of
+  solver/engine/semigroup.py and scaled by e^{τΛ} before the same two products (or, for an
+  ill-conditioned generator, the nodal flow Φe^{τA} of each gap).
+* :func:`loop_moving` — a ball that moves inside the loop (solver/engine/recentring.py): after a row
+  whose mean or outer-shell mass calls for it, the carried density moves onto a ball around the mean;
+  the update factors come a window at a time.
+
+Each returns (σ_k, ∫σ_k, carried, done, reason): the nodal σ_k of the good steps (pre-projection, K×Q,
+each relative to a unit-mass σ_{k−1}), their ∫σ_k, the carried vector [c, ∫σ] after the last, the
+number of good steps and why the loop stopped early (None: it did not).  A step whose ∫σ under- or
+overflows, or an observed row whose cheap gate bound is over its threshold, takes the slow path
+(:func:`slow_step`: log scale, the exact gate score).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from .gate import Gate
+from .kernel import NO_MASS_AFTER_UPDATE, NO_MASS_ON_BALL, log_mean_factor, observe, predict, project, rescue
+
+Result = tuple[np.ndarray, np.ndarray, np.ndarray, int, "str | None"]
+
+
+class Rows:
+    """What the loops share: the chunk's buffers, its factors and gate, and one step of the kernel."""
+
+    def __init__(self, engine: Any, factor: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
+                 skip: list[bool], gate: Gate | None):
+        K, Q = log_factor.shape
+        dtype = engine.arith.dtype
+        self.sigma = np.empty((K, Q), dtype=dtype)
+        self.masses = [0.0] * K
+        self.observed = [not m for m in skip]
+        # the gate's bound g = bias − 2(log ∫σ + top) ≤ threshold is ∫σ ≥ floor: one comparison a step
+        self.floors = [0.0] * K if gate is None else gate.floors(top, skip)
+        self.reason: str | None = None
+        self.step = _stepper(engine, self, factor, log_factor, top, gate)
+
+    def result(self, done: int, carried: np.ndarray) -> Result:
+        return self.sigma, np.array(self.masses[:done]), carried.copy(), done, self.reason
+
+
+def _stepper(engine: Any, rows: Rows, factor: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
+             gate: Gate | None) -> Callable[..., float]:
+    """step(k, P, P_observe, Π, carried, following, mass) -> ∫σ_k: row k from the carried vector into
+    ``following`` (a closure: the hot loop reads its constants from cells, not attributes)."""
+    arith, N = engine.arith, engine.N
+    tiny, huge = arith.tiny, arith.huge
+    scratch = np.empty(log_factor.shape[1], dtype=arith.dtype)
+    sigma_rows, factors, observed, floors, masses = (list(rows.sigma), list(factor), rows.observed,
+                                                     rows.floors, rows.masses)
+
+    def step(k: int, propagator: np.ndarray, observing: np.ndarray, projection: np.ndarray,
+             carried: np.ndarray, following: np.ndarray, mass: float) -> float:
+        row = sigma_rows[k]
+        if observed[k]:
+            observe(arith, observing, carried, mass, factors[k], scratch, row)
+        else:
+            predict(arith, propagator, carried, mass, row)
+        new_mass = project(arith, projection, row, following, N)
+        if not tiny < new_mass < huge or new_mass < floors[k]:  # rare: rescue, or a row near the gate
+            s = scratch if observed[k] else row
+            new_mass, rows.reason = slow_step(engine, k, new_mass, s, row, observed[k], log_factor, top, gate,
+                                              projection, following)
+        masses[k] = new_mass
+        return new_mass
+
+    return step
+
+
+def loop_regular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_factor: np.ndarray,
+                 top: np.ndarray, skip: list[bool], gate: Gate | None) -> Result:
+    """Rows one dt apart, two BLAS calls a step."""
+    rows = Rows(engine, factor, log_factor, top, skip, gate)
+    step, P, projection = rows.step, engine.propagator, engine.projection
+    P_observe = engine.observation_propagator
+    carried, following = carried.copy(), np.empty_like(carried)  # two buffers, alternately each
+    mass = carried.item(engine.N)
+    for k in range(len(factor)):
+        mass = step(k, P, P_observe, projection, carried, following, mass)
+        if rows.reason is not None:
+            return rows.result(k, carried)
+        carried, following = following, carried
+    return rows.result(len(factor), carried)
+
+
+def loop_irregular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_factor: np.ndarray,
+                   top: np.ndarray, skip: list[bool], gate: Gate | None, taus: np.ndarray) -> Result:
+    """Rows at any times: the flow e^{τA} of each gap (solver/engine/semigroup.py), modal where the
+    generator's eigenbasis is well conditioned (a diagonal scaling before the products), else nodal."""
+    rows, flow, N = Rows(engine, factor, log_factor, top, skip, gate), engine.flow, engine.N
+    step = rows.step
+    if flow.exact:  # ill-conditioned: Φe^{τA} at the nodes, one matrix a gap
+        carried, following = carried.copy(), np.empty_like(carried)
+        mass = carried.item(N)
+        for k in range(len(factor)):
+            P = flow.nodal_flow(taus[k])
+            mass = step(k, P, P, engine.projection, carried, following, mass)
+            if rows.reason is not None:
+                return rows.result(k, carried)
+            carried, following = following, carried
+        return rows.result(len(factor), carried)
+    carried = carried.copy()
+    carried[:N] = flow.to_modal(carried[:N].astype(float))
+    carried, following = carried.copy(), np.empty_like(carried)
+    scale = _ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
+    mass = carried.item(N)
+    for k in range(len(factor)):
+        scale.apply(k)
+        mass = step(k, flow.B, flow.B, flow.C, carried, following, mass)
+        if rows.reason is not None:
+            return rows.result(k, carried)
+        carried, following = following, carried
+        scale.swap()
+    return rows.result(len(factor), carried)
+
+
+class _ModalScale:
+    """e^{τ_kΛ} on the modal coefficients of the carried vector, in place: real rates, then the complex
+    pairs (views on both buffers, swapped with them)."""
+
+    def __init__(self, flow: Any, taus: np.ndarray, carried: np.ndarray, following: np.ndarray, N: int,
+                 dtype: Any):
+        r = flow.r
+        self.real_scale, self.pair_scale = (list(part) for part in flow.scales(taus))  # row views made once
+        self.pairs = flow.pair_rates.size > 0
+        cdtype = np.complex64 if dtype == np.float32 else np.complex128
+        self.real_c, self.real_f = carried[:r], following[:r]
+        self.pair_c, self.pair_f = ((carried[r:N].view(cdtype), following[r:N].view(cdtype)) if self.pairs
+                                    else (None, None))
+
+    def apply(self, k: int) -> None:
+        np.multiply(self.real_c, self.real_scale[k], out=self.real_c)
+        if self.pairs:
+            np.multiply(self.pair_c, self.pair_scale[k], out=self.pair_c)
+
+    def swap(self) -> None:
+        self.real_c, self.real_f = self.real_f, self.real_c
+        self.pair_c, self.pair_f = self.pair_f, self.pair_c
+
+
+def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
+                skip: list[bool], gate: Gate | None, moving: Any) -> Result:
+    """Rows one dt apart on a ball that moves inside the loop (solver/engine/recentring.py): the carried
+    vector holds the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer
+    shell's Σwσ); past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean."""
+    rows, N, K = Rows(engine, moving.factor, log_factor, top, skip, gate), engine.N, len(log_factor)
+    step = rows.step
+    moving.observed, moving.floors = rows.observed, rows.floors
+    P, P_observe = engine.propagator, engine.observation_propagator
+    if moving.predict is not None:  # an atlas centre's propagator
+        P = P_observe = moving.predict
+    carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
+    carried, following = carried.copy(), np.empty_like(carried)
+    watch, shell = tuple(range(N + 1, N + 1 + moving.d)), N + 1 + moving.d
+    reach, shell_limit = moving.reach, moving.shell_limit
+    mass, next_window = carried.item(N), 0
+    for k in range(K):
+        if k == next_window:  # the update factors of the next rows at the ball's centre
+            next_window = moving.window(k)
+        mass = step(k, P, P_observe, moving.project, carried, following, mass)
+        if rows.reason is not None:
+            return rows.result(k, carried)
+        carried, following = following, carried
+        if not watch or k == K - 1 or not _strayed(carried, mass, watch, reach, shell, shell_limit) \
+                or k < moving.quiet:
+            continue
+        moved = moving.move(k, carried, following, mass)
+        if moved is None:  # the loop cannot move on: the chunk ends after row k
+            moving.stopped = k + 1
+            return rows.result(k + 1, carried)
+        if moved > 0.0:
+            mass = moved
+            carried, following = following, carried
+            next_window = moving.window(k + 1)
+            if moving.predict is not None:
+                P = P_observe = moving.predict
+    return rows.result(K, carried)
+
+
+def _strayed(carried: np.ndarray, mass: float, watch: tuple[int, ...], reach: float, shell: int,
+             shell_limit: float) -> bool:
+    """The trigger: the shell's Σwσ over limit·∫σ, or the mean's offset Σw(x − c)_iσ beyond ±reach·∫σ."""
+    if carried.item(shell) > shell_limit * mass:
+        return True
+    return any(not -reach * mass <= carried.item(i) <= reach * mass for i in watch)
+
+
+def slow_step(engine: Any, k: int, new_mass: float, s: np.ndarray, row: np.ndarray, observed: bool,
+              log_factor: np.ndarray, top: np.ndarray, gate: Gate | None, projection: np.ndarray,
+              following: np.ndarray) -> tuple[float, str | None]:
+    """Step k when ∫σ under/overflowed (recomputed in log scale) or an observed row's cheap gate
+    bound is over the threshold (the exact score decides).  Returns (∫σ, reason or None); writes
+    row and ``following`` as the hot loop would have."""
+    arith, N = engine.arith, engine.N
+    if not arith.tiny < new_mass < arith.huge:
+        new_mass, reason = rescue(arith, engine.weights, s, log_factor, top, not observed, k, row)
+        if reason is NO_MASS_AFTER_UPDATE and observed and gate is not None:
+            ll = log_mean_factor(engine.weights, s, log_factor[k]) + float(top[k])  # in log scale
+            score = gate.bias[k] - 2.0 * ll - gate.correction(k, s) if ll > -math.inf else math.inf
+            if score > gate.threshold[k]:
+                gate.attempted[k] = ll
+                return reject(engine, gate, k, score, s, row, projection, following)
+        if reason is not None:
+            return 0.0, reason
+        arith.gemv(1.0, projection, row, 0.0, following, 0, 1, 0, 1, 0, 1)
+        following[N] = new_mass
+    if gate is not None and observed:
+        ll = math.log(new_mass) + float(top[k])
+        bound = gate.bias[k] - 2.0 * ll
+        if bound > gate.threshold[k]:  # maybe an outlier: the exact score needs Cov_pred(h)
+            score = bound - gate.correction(k, s)
+            if score > gate.threshold[k]:
+                gate.attempted[k] = ll
+                return reject(engine, gate, k, score, s, row, projection, following)
+    return new_mass, None
+
+
+def reject(engine: Any, gate: Gate, k: int, score: float, s: np.ndarray, row: np.ndarray,
+           projection: np.ndarray, following: np.ndarray) -> tuple[float, str | None]:
+    """Gate row k: the step only predicts (σ = the propagated density).  (∫σ, reason or None)."""
+    gate.scores[k] = score
+    if s is not row:
+        np.copyto(row, s)
+    new_mass = project(engine.arith, projection, row, following, engine.N)
+    if not engine.arith.tiny < new_mass < engine.arith.huge:
+        return 0.0, NO_MASS_ON_BALL
+    return new_mass, None
