@@ -23,21 +23,26 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-FUNCTIONS = [
+FUNCTIONS = [  # a revision's own: the session code moved to chunks.py and responses.py (issue 36)
     "yauyau.storage.session_base:SessionStoreBase.apply_chunks",
     "yauyau.service.sessions.manager:_compute_many",
+    "yauyau.service.sessions.chunks:compute_many",
     "yauyau.solver.engine.filter:YauYauFilter.run_batch",
     "yauyau.storage.session_base:SessionStoreBase._write",
     "yauyau.service.sessions.manager:Sessions._chunk_job",
     "yauyau.service.sessions.manager:result_response",
+    "yauyau.service.sessions.responses:result_response",
     "yauyau.service.sessions.manager:_load",
+    "yauyau.service.sessions.chunks:load_state",
     "yauyau.solver.engine.filter:YauYauFilter.state_from_dict",
     "yauyau.storage.session_store:SqliteSessionStore.verify_file",
     "yauyau.storage.sqlite_files:FileWatch.look",
     "yauyau.storage.session_base:checksum",
     "yauyau.solver.watch:settle",
     "yauyau.service.sessions.manager:encode_response",
+    "yauyau.service.sessions.responses:encode_response",
 ]
+SESSION_MODULES = ("yauyau.service.sessions.manager", "yauyau.service.sessions.chunks")  # import by name
 
 
 def _timed(spent: dict[str, float], spec: str) -> None:
@@ -63,10 +68,13 @@ def _timed(spent: dict[str, float], spec: str) -> None:
             spent[attr] = spent.get(attr, 0.0) + time.perf_counter() - start
 
     setattr(owner, name, timed)
-    if module_name.endswith(".watch"):  # imported by name into the service
-        import yauyau.service.sessions.manager as sessions_module
-        if getattr(sessions_module, name, None) is original:
-            setattr(sessions_module, name, timed)
+    for user in SESSION_MODULES:  # a function the session modules imported by name: timed there too
+        try:
+            module = importlib.import_module(user)
+        except ImportError:
+            continue
+        if getattr(module, name, None) is original:
+            setattr(module, name, timed)
 
 
 def main(argv: list[str] | None = None) -> int:

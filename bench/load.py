@@ -320,7 +320,7 @@ def _commit_ms(directory: Path, state: dict, response: dict, count: int = 300) -
 
 
 def _store_round(model, offline, increments, directory: Path) -> dict[str, tuple]:
-    from yauyau.service.sessions.manager import chunk_response
+    from yauyau.service.sessions.chunks import chunk_response
     from yauyau.solver.methods import make_filter
 
     filt = make_filter(model, offline, None)

@@ -31,10 +31,9 @@ import numpy as np
 
 from .errors import InputError, SpecError
 from .filtering import ChunkResult, Estimate, concat_results, slice_result
+from .registry import DEFAULT_POLICY, POLICIES
 from .spec import spec_from_dict
 
-POLICIES = ("stop", "reinitialise")
-DEFAULT_POLICY = "stop"
 BROADEN = 2.0  # the restart's standard deviations: the last good ones times this
 FIT = 4.5  # ... but on a ball at most R/FIT (N(0, (R/4.5)²) leaves 7e-6 of its mass beyond R)
 

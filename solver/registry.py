@@ -1,5 +1,9 @@
 """The filter methods, by name: the one list the spec, the CLI, the service and ``make_filter`` use.
 
+It also holds the other names a filter is configured with (the yau-yau step's forms and precisions,
+the policies on a degenerate density), so that the CLI and the HTTP schemas list them from here: this
+module imports nothing heavy (the CLI's start-up).
+
 A method is a class implementing the filter contract (solver/filtering.py) in its own module, with a
 module-level ``build(model, offline=None, **options)`` that makes it; the module is imported only when
 the method is used.  Adding an exact filter is one module plus one line here.
@@ -35,6 +39,11 @@ REGISTRY: dict[str, Method] = {m.name: m for m in (
 
 AUTO = "auto"  # resolved once, at precompute, by the estimation-algebra analysis
 METHODS: tuple[str, ...] = (AUTO, *REGISTRY)
+
+FORMS = ("stable", "literal")  # the yau-yau step (solver/engine/filter.py); stable is the default
+PRECISIONS = ("double", "single")  # the yau-yau matrix-vector products ([discretization] precision)
+POLICIES = ("stop", "reinitialise")  # what a degenerate density does (solver/recovery.py)
+DEFAULT_POLICY = "stop"
 
 
 MAX_MESH_DIMENSION = 3  # the general engine's finite elements: intervals, disks, balls

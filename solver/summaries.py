@@ -146,6 +146,17 @@ def quantiles(flt: Any, state: Any, probs: Sequence[float] | np.ndarray,
     return out
 
 
+def summarise(flt: Any, state: Any, estimate: Any, want_mode: bool = False,
+              probs: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(mode (n,), marginal quantiles (n, len(probs))) of the density in ``state`` whose estimate is
+    ``estimate``: each None when not asked for (``want_mode`` false, ``probs`` None) or when the
+    density is degenerate."""
+    healthy = not estimate.degenerate and not bool(getattr(state, "degenerate", False))
+    point = mode(flt, state, estimate) if want_mode and healthy else None
+    q = quantiles(flt, state, probs, estimate) if probs is not None and healthy else None
+    return point, q
+
+
 # -- the mode -------------------------------------------------------------------------------------
 def mode(flt: Any, state: Any, estimate: Any | None = None) -> np.ndarray | None:
     """The MAP point of the filter's density in ``state`` (None when degenerate)."""

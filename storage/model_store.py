@@ -4,17 +4,24 @@
 
 Layout of ``<id>.h5``: root attributes ``format_version``, ``model_id``, ``spec`` (JSON),
 ``created`` (UTC ISO 8601), ``versions`` (JSON: numpy, scipy, h5py, scikit-fem), ``attrs``
-(JSON, the caller's), ``meta_sha256`` (hash of all of the above plus the name, shape, dtype and
-sha256 of every array); group ``arrays`` holds one dataset per array, each with a fletcher32
-checksum (per chunk, checked by HDF5 on read).  Group ``lazy`` (only when the caller has such
-arrays: an atlas of propagators, one row per centre) holds (K, ...) datasets chunked one row per
-chunk, with the sha256 of every row in the attribute ``row_sha256``; they are not read by ``load``
-but row by row (:class:`LazyArrays`), each row checked against its hash.
+(JSON, the caller's, plus the ``summary`` the store adds), ``meta_sha256`` (hash of all of the
+above plus the name, shape, dtype and sha256 of every array); group ``arrays`` holds one dataset
+per array, each with a fletcher32 checksum (per chunk, checked by HDF5 on read).  Group ``lazy``
+(only when the caller has such arrays: an atlas of propagators, one row per centre) holds (K, ...)
+datasets chunked one row per chunk, with the sha256 of every row in the attribute ``row_sha256``;
+they are not read by ``load`` but row by row (:class:`LazyArrays`), each row checked against its
+hash.
 
 Writes go to a hidden temporary file in the same directory which is flushed, fsynced and
 ``os.replace``d, so a killed writer never leaves a half-written file under the final name.  The rows
 of the lazy arrays may be written as they are computed (:class:`ModelWriter`: an atlas centre by
 centre, never all in memory), the arrays and the hashes at the end.
+
+A listing (``yauyau models``, ``GET /v1/models`` and ``/v1/models/{id}``) shows a model's summary:
+its name, state variables, n, m, dt, radius, basis size and domain (:data:`SUMMARY_FIELDS`).  It is
+computed once, when the file is written (:func:`spec_summary`), and stored in ``attrs["summary"]``;
+every listing reads it from there.  A file written before summaries were stored (yauyau 0.2.0) has
+none: its summary is computed from its stored spec when it is listed, by the same function.
 Storage knows files, not math: it never imports solver or service.
 """
 
@@ -94,9 +101,13 @@ class LazyArrays:
         return row
 
 
+SUMMARY_FIELDS = ("name", "state", "n", "m", "dt", "radius", "basis", "follow", "region", "shape")
+
+
 @dataclass(frozen=True)
 class ModelSummary:
-    """What ``list()`` reports, read from attributes only; ``error`` is set for an unreadable file."""
+    """What ``list()`` reports, read from attributes only (the stored summary, :data:`SUMMARY_FIELDS`,
+    and the method chosen at precompute); ``error`` is set for an unreadable file."""
 
     id: str
     name: str | None = None
@@ -343,19 +354,22 @@ class ModelStore:
 
     def list(self) -> list[ModelSummary]:
         """Summaries of every stored model, from the file attributes (datasets are not read)."""
-        return [self._summary(mid) for mid in self.ids()]
+        return [self.summary(mid) for mid in self.ids()]
 
-    def _summary(self, mid: str) -> ModelSummary:
+    def summary(self, mid: str) -> ModelSummary:
+        """The summary of model ``mid`` stored in its file's attributes (a file written before summaries
+        were stored: computed from its stored spec); ``error`` set when the file cannot be read."""
         path = self.path(mid)
         try:
             size = path.stat().st_size
             with h5py.File(path, "r") as h5:
                 _check_version(h5, mid)
                 spec_text = _text_attr(h5, "spec")
-                spec = json.loads(spec_text)
                 created = _text_attr(h5, "created")
-                basis_shape = _basis_shape(h5)
                 attrs = json.loads(_text_attr(h5, "attrs"))
+                fields = attrs.get("summary") if isinstance(attrs, dict) else None
+                if not isinstance(fields, dict):  # written before summaries were stored: from the spec
+                    fields = spec_summary(json.loads(spec_text), _basis_shape(h5), attrs)
         except FileNotFoundError:
             return ModelSummary(id=mid, error="deleted while listing")
         except (OSError, KeyError, ValueError, TypeError, RuntimeError, StoreError) as exc:
@@ -364,7 +378,9 @@ class ModelStore:
         if held != mid:  # a file renamed or swapped: its spec hashes to another id
             swapped = f"the file holds model {held}, not {mid} (renamed or swapped); not served"
             return ModelSummary(id=mid, file_size=size, error=swapped)
-        return _summary_from_spec(mid, spec, created, size, basis_shape, attrs)
+        return ModelSummary(id=mid, **{key: fields.get(key) for key in SUMMARY_FIELDS}, created=created,
+                            file_size=size,
+                            extra={key: attrs[key] for key in ("method", "method_reason") if key in attrs})
 
 
 class ModelWriter:
@@ -439,7 +455,10 @@ class ModelWriter:
         if self._h5 is None:
             raise StoreError("store", "the writer is closed (finish is called once)")
         checked = _checked_arrays(arrays)
-        attrs_text = _attrs_json(attrs)
+        _attrs_json(attrs)  # the caller's attrs, checked as they are given
+        basis = checked["basis"].shape if "basis" in checked else None
+        summary = spec_summary(json.loads(self.spec), basis, attrs)  # computed once, here, for every listing
+        attrs_text = _attrs_json({**(attrs or {}), "summary": summary})
         for name, (shape, _, hashes) in self._rows.items():
             if name in checked:
                 raise StoreError(f"lazy.{name}", "must be named apart from the arrays")
@@ -483,21 +502,21 @@ class ModelWriter:
             os.close(fd)
 
 
-def _summary_from_spec(mid: str, spec: dict, created: str, size: int, basis_shape,
-                       attrs: dict | None = None) -> ModelSummary:
+def spec_summary(spec: dict, basis_shape: tuple | None, attrs: dict | None = None) -> dict[str, Any]:
+    """A model's summary (:data:`SUMMARY_FIELDS`) from its spec document, the shape of its ``basis``
+    array (None: no such array; the spec's basis size then) and its attrs (``offline`` false: a
+    mesh-free model, basis 0 whatever the spec says)."""
     disc = spec.get("discretization") or {}
     domain = spec.get("domain") or {}
     basis = int(basis_shape[-1]) if basis_shape else disc.get("basis")
     if (attrs or {}).get("offline") is False:  # a mesh-free model (yau-jia): no basis, whatever the spec says
         basis = 0
     state, obs = spec.get("state"), spec.get("observation")
-    return ModelSummary(
-        id=mid, name=spec.get("name"), state=state if isinstance(state, list) else None,
-        n=len(state) if isinstance(state, list) else None,
-        m=len(obs) if isinstance(obs, list) else None, dt=disc.get("dt"), radius=domain.get("radius"),
-        basis=basis, follow=bool(domain.get("follow", False)), region=domain.get("region"),
-        shape=domain.get("shape"), created=created, file_size=size,
-        extra={key: (attrs or {})[key] for key in ("method", "method_reason") if key in (attrs or {})})
+    return {"name": spec.get("name"), "state": state if isinstance(state, list) else None,
+            "n": len(state) if isinstance(state, list) else None,
+            "m": len(obs) if isinstance(obs, list) else None, "dt": disc.get("dt"),
+            "radius": domain.get("radius"), "basis": basis, "follow": bool(domain.get("follow", False)),
+            "region": domain.get("region"), "shape": domain.get("shape")}
 
 
 def _basis_shape(h5: h5py.File) -> tuple | None:

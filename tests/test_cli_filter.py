@@ -292,17 +292,17 @@ def test_the_fast_csv_paths_read_and_write_the_same_numbers():
     """numpy's parse of a plain file and orjson's formatting of a chunk give exactly the numbers the
     line-by-line paths give (floats round-trip bit for bit); anything unusual takes the slow path."""
     import numpy as np
-    from yauyau.service.cli import filter as cli
+    from yauyau.service.cli import csv_io as cli
     from yauyau.solver.filtering import ChunkResult
 
     rng = np.random.default_rng(0)
     values = rng.normal(size=(50, 2)) * 10.0 ** rng.integers(-8, 8, size=(50, 2))
     text = "dy1,dy2\n" + "\n".join(f"{a!r},{b!r}" for a, b in values.tolist()) + "\n"
     numbers: list[int] = []
-    fast = cli._parse_plain(text, 2, numbers)
+    fast = cli.parse_plain(text, 2, numbers)
     assert fast is not None and np.array_equal(fast, values) and numbers == list(range(2, 52))
     for unusual in ("1,2\n\n3,4\n", "1,\n3,4\n", "1,2\n3,nan\n", "1,2,3\n4,5\n", "1,2\n3\n"):
-        assert cli._parse_plain(unusual, 2, None) is None  # blank line, empty field, nan, widths
+        assert cli.parse_plain(unusual, 2, None) is None  # blank line, empty field, nan, widths
     K = 7
     result = ChunkResult(step=np.arange(1, K + 1), t=0.01 * np.arange(1, K + 1), mean=rng.normal(size=(K, 2)),
                          cov=rng.normal(size=(K, 2, 2)) * 1e-7, mode=None,
@@ -310,7 +310,7 @@ def test_the_fast_csv_paths_read_and_write_the_same_numbers():
                          degenerate=np.arange(K) >= 5,
                          predictive_loglik=np.where(np.arange(K) == 2, np.nan, rng.normal(size=K)))
     i, j = np.triu_indices(2)
-    fast_lines = cli._fast_lines(result, i, j)
+    fast_lines = cli.fast_lines(result, i, j)
     slow_lines = cli.csv_lines(result, [[] for _ in range(K)])  # with (empty) extras: the line-by-line path
     for a, b in zip(fast_lines, slow_lines, strict=True):
         fa, fb = a.split(","), b.split(",")

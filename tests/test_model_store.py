@@ -161,6 +161,29 @@ def test_edited_attribute_is_refused(store: ModelStore):
         store.load(mid)
 
 
+def _edit_attrs(path: Path, change) -> None:
+    """Rewrite a file's ``attrs`` JSON in place (the listing reads it; ``load`` would now refuse the file)."""
+    with h5py.File(path, "r+") as h5:
+        attrs = json.loads(h5.attrs["attrs"])
+        change(attrs)
+        h5.attrs["attrs"] = json.dumps(attrs, sort_keys=True)
+
+
+def test_the_summary_is_stored_once_and_read_by_every_listing(store: ModelStore):
+    """Written with the file (attrs["summary"]) and read back by ``list()``; a file written before
+    summaries were stored (none in its attrs) is listed from its spec."""
+    mid = store.save(SPEC, _arrays(np.random.default_rng(3)), {"method": "yau-yau"})
+    truth = {"name": "ou", "state": ["x"], "n": 1, "m": 1, "dt": 0.01, "radius": 8.0, "basis": 6,
+             "follow": False, "region": None, "shape": None}
+    assert store.load(mid).attrs["summary"] == truth
+    _edit_attrs(store.path(mid), lambda attrs: attrs["summary"].update(name="renamed"))
+    [summary] = store.list()
+    assert (summary.name, summary.n, summary.basis, summary.extra["method"]) == ("renamed", 1, 6, "yau-yau")
+    _edit_attrs(store.path(mid), lambda attrs: attrs.pop("summary"))  # as yauyau 0.2.0 wrote it
+    [legacy] = store.list()
+    assert {key: getattr(legacy, key) for key in truth} == truth and legacy.error is None
+
+
 def test_truncated_file_is_refused_and_listed_with_an_error(store: ModelStore):
     mid = store.save(SPEC, _arrays(np.random.default_rng(5)))
     path = store.path(mid)

@@ -48,6 +48,25 @@ def test_start_up_loads_no_model_and_lists_them_from_attributes(store, tmp_path)
         assert registry.loaded_ids() == [ids["ou"]] and registry.loads == 1
 
 
+def test_the_listing_and_the_detail_show_the_summary_stored_at_precompute(tmp_path, monkeypatch):
+    """GET /v1/models and GET /v1/models/{id} show the summary the file holds (computed once, when it
+    was written: storage/model_store.py), not one computed again from the model: a file whose stored
+    summary names the model otherwise is shown with that name by both."""
+    from conftest import EXAMPLES
+    from yauyau.storage import model_store
+
+    computed = model_store.spec_summary
+    monkeypatch.setattr(model_store, "spec_summary", lambda *args: {**computed(*args), "name": "as stored"})
+    mid = yauyau.precompute(EXAMPLES / "ou.toml", tmp_path / "store")
+    monkeypatch.undo()
+    with _client(tmp_path / "store", tmp_path) as api:
+        [listed] = api.get("/v1/models").json()
+        detail = api.get(f"/v1/models/{mid}").json()
+    assert listed["name"] == detail["name"] == "as stored" and detail["spec"]["name"] == "ornstein-uhlenbeck"
+    assert [listed[key] for key in ("n", "m", "dt", "radius", "basis")] == [1, 1, 0.01, 8.0, 96]
+    assert {key: value for key, value in detail.items() if key != "spec"} == listed
+
+
 def test_the_cache_is_bounded_and_an_evicted_model_comes_back(store, tmp_path):
     directory, ids = store
     with _client(directory, tmp_path, model_cache=1) as api:

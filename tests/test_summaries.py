@@ -127,6 +127,32 @@ def test_gaussian_mode_is_the_mean_and_degenerate_has_none(store):
     assert np.isnan(yy.quantiles([0.5])).all()
 
 
+def test_a_summarised_run_gives_each_row_the_normal_quantiles_and_none_once_degenerate(store):
+    """solver/summarised.py, the one path of ``yauyau filter --quantiles/--mode`` and of a session chunk
+    that asks for them: row by row, the Yau–Hu filter's quantiles are the normal quantiles of the exact
+    Kalman–Bucy posterior at that row and its mode is that posterior's mean; after an impossible row
+    (the gate off) the density is degenerate and neither is given."""
+    from yauyau.solver.summarised import summarised_rows
+    from yauyau.solver.watch import Watch
+
+    spec, opener = _open(store, "ou.toml")
+    kb, yh = opener("kalman-bucy"), opener("yau-hu")
+    increments = simulate(kb.model, 40, np.random.default_rng(5)).increments
+    rows = list(summarised_rows(yh.filter, yh.state, Watch(), increments, mode=True, probs=PROBS))
+    assert len(rows) == len(increments)
+    for dy, row in zip(increments, rows, strict=True):
+        kb.step(dy)
+        m, sd = kb.mean[0], np.sqrt(kb.cov[0, 0])
+        assert row.estimate.step == kb.estimate.step and not row.estimate.degenerate
+        np.testing.assert_allclose(row.quantiles[0], norm.ppf(PROBS, loc=m, scale=sd), atol=1e-3)
+        assert row.mode[0] == pytest.approx(m, abs=1e-3)
+    yy = opener("yau-yau", gate=0)
+    [bad] = summarised_rows(yy.filter, yy.state, Watch(), np.array([[1e6]]), mode=True, probs=PROBS)
+    assert bad.estimate.degenerate and bad.mode is None and bad.quantiles is None
+    [plain] = summarised_rows(yh.filter, rows[-1].state, rows[-1].watch, increments[:1])
+    assert plain.mode is None and plain.quantiles is None  # nothing asked: nothing computed
+
+
 @pytest.mark.parametrize("bad", [[], [0.0], [1.0], [0.5, float("nan")], "a,b", [[0.5]] * 100])
 def test_probabilities_are_checked(bad):
     with pytest.raises(InputError) as err:

@@ -9,9 +9,11 @@ dy (continuous) or measurements z (discrete); --increments reads regular rows (t
 says what a degenerate density does (solver/recovery.py), --lost-track when a filter that keeps gating
 or restarting has lost track and --monitor the innovation monitor (solver/watch.py).  --quantiles,
 --mode and --density add what the density says beyond mean and covariance (yauyau.solver.summaries;
-storage.density_file).  All input is validated before anything is written; OUT (and the density file)
-appear atomically.  The output columns are built from the chunks' arrays (ChunkResult), not per-row
-objects.
+storage.density_file): the rows are then run one at a time (solver/summarised.py, the path the
+service takes for a chunk that asks for them).  All input is validated before anything is written;
+OUT (and the density file) appear atomically.  The output columns are built from the chunks' arrays
+(ChunkResult), not per-row objects; the files are read and written by service/cli/csv_io.py.  The
+solver's modules are imported inside the functions: ``yauyau -h`` imports this module (start-up).
 Exit status: 0 done, 2 bad input (nothing written), 3 the filter degenerated under --on-degenerate
 stop, or lost track (OUT is written, the steps from the first degenerate one on are flagged; stderr
 says from which step and why).
@@ -25,14 +27,15 @@ import os
 import sys
 from pathlib import Path
 
-from yauyau.storage.files import temporary_beside
+from yauyau.solver.errors import InputError
+from yauyau.solver.registry import AUTO, DEFAULT_POLICY, FORMS, METHODS, POLICIES, PRECISIONS
 
+from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
 from .precompute import store_argument
 
 DEFAULT_CHUNK = 1000
 EXIT_DEGENERATE = 3
 DENSITY_POINTS = {1: 401, 2: 101, 3: 61}
-POLICIES = ("stop", "reinitialise")  # yauyau.solver.recovery.POLICIES (not imported here: start-up cost)
 
 EPILOG = """\
 input, one of:
@@ -107,10 +110,6 @@ exit status: 0 done; 2 bad input (one line on stderr naming the field or row, no
 """
 
 
-FORMS = ("stable", "literal")  # yauyau.solver.engine.filter.FORMS (not imported here: start-up cost)
-PRECISIONS = ("double", "single")
-
-
 def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
                         help="BLAS threads of the online products (default: $YAUYAU_BLAS_THREADS or 1; one "
@@ -119,7 +118,6 @@ def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
 
 def blas_threads(requested: int | None) -> int:
     """The BLAS thread count: the flag, else $YAUYAU_BLAS_THREADS, else 1."""
-    from yauyau.solver.errors import InputError
 
     if requested is None:
         text = os.environ.get("YAUYAU_BLAS_THREADS", "1")
@@ -133,8 +131,6 @@ def blas_threads(requested: int | None) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from yauyau.solver.registry import METHODS
-
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)
     source = parser.add_mutually_exclusive_group(required=True)
@@ -149,7 +145,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gate", type=float, default=None, metavar="K",
                         help="outlier gate in predictive standard deviations (default: the spec's "
                              "[measurement] gate; 0: off)")
-    parser.add_argument("--on-degenerate", choices=POLICIES, default="stop",
+    parser.add_argument("--on-degenerate", choices=POLICIES, default=DEFAULT_POLICY,
                         help="stop (default: flag the rest, exit 3) or reinitialise (start again from a "
                              "broadened prior and go on)")
     parser.add_argument("--lost-track", default=None, metavar="GATED,RESTARTS,WINDOW",
@@ -158,7 +154,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--monitor", type=float, default=None, metavar="N",
                         help="innovation monitor: mean healthy rows per false alarm, e.g. 1e9 (default: the "
                              "spec's [measurement] monitor, off unless set; 0: off)")
-    parser.add_argument("--method", choices=[m for m in METHODS if m != "auto"], default=None,
+    parser.add_argument("--method", choices=[m for m in METHODS if m != AUTO], default=None,
                         help="filter (default: the method chosen at precompute, stored with the model)")
     parser.add_argument("--form", choices=FORMS, default="stable",
                         help="yau-yau step: stable (default) or literal: Yau (2008) (5.35)")
@@ -183,26 +179,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
-class Source:
-    """The rows read from --increments or --observations: ``rows`` (K, m) (NaN: missing), ``times``
-    (K,) or None (regular), the prior's time ``t0``, and ``field``/``lines`` to name a row at fault."""
-
-    def __init__(self, rows, times, t0: float, field: str, lines=None):
-        self.rows = rows
-        self.times = times
-        self.t0 = t0
-        self.field = field
-        self.lines = lines  # the file's line number of each row (CSV), else None
-
-    def where(self, k: int) -> str:
-        """``field[k]`` with the line number when the rows came from a CSV."""
-        line = f" (line {self.lines[k]})" if self.lines is not None and k < len(self.lines) else ""
-        return f"{self.field}[{k}]{line}"
-
-
 def run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
-    from yauyau.solver.errors import InputError
     from yauyau.solver.filtering import check_t0, cumulative_hint
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
@@ -284,7 +262,6 @@ def preflight(flt, state, source: Source, stored_method: bool) -> None:
     measurements, a partly missing row) says so now, naming the row and the fix; the step is
     discarded (a filter's state is a value)."""
     import numpy as np
-    from yauyau.solver.errors import InputError
 
     rows = source.rows
     if not len(rows):
@@ -313,7 +290,6 @@ def preflight(flt, state, source: Source, stored_method: bool) -> None:
 class Report:
     """What a run flagged: gated and re-initialised rows (count and the first with its reason), the
     first degenerate row (step, t, reason) or None."""
-
     def __init__(self):
         self.gated = 0
         self.reinitialised = 0
@@ -365,7 +341,6 @@ class Report:
 
 class Outputs:
     """What to compute per step besides mean and covariance (from the command line)."""
-
     def __init__(self, probs=None, probs_text=(), mode=False, density=None, every=10, points=None):
         self.probs = probs
         self.probs_text = list(probs_text)
@@ -376,7 +351,6 @@ class Outputs:
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> "Outputs":
-        from yauyau.solver.errors import InputError
         from yauyau.solver.summaries import check_probabilities
 
         probs, texts = None, []
@@ -396,8 +370,6 @@ class Outputs:
         return self.probs is not None or self.mode or self.density is not None
 
     def check(self, model) -> None:
-        from yauyau.solver.errors import InputError
-
         if self.density is not None and Path(self.density).suffix.lower() not in (".h5", ".hdf5"):
             raise InputError("density", f"{self.density}: the density file is HDF5, name it *.h5")
         if self.density is not None and model.spec.domain.follow:
@@ -431,210 +403,6 @@ def progress_bar(mode: str, total: int):
                 mininterval=0.5, dynamic_ncols=True)
 
 
-def read_increments(path: str, m: int, numbers: list[int] | None = None):
-    """(K, m) floats from .npy or CSV; NaN is a missing component, a NaN row a missing observation.
-    ``numbers`` (a list) receives each row's line number in a CSV."""
-    import numpy as np
-    from yauyau.solver.errors import InputError
-    from yauyau.solver.measurement import check_rows
-
-    if Path(path).suffix.lower() == ".npy":
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise InputError("increments", f"cannot read {path}: {exc}") from None
-        if data.dtype.kind not in "iuf":
-            raise InputError("increments", f"{path} must hold numbers, not {data.dtype}")
-        return check_rows(data, m)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError("increments", f"cannot read {path}: {exc}") from None
-    check_untimed(text, path)
-    return check_rows(parse_csv(text, m, numbers), m)
-
-
-def check_untimed(text: str, path: str) -> None:
-    """InputError naming --observations when the CSV given to --increments is a timed one (a header whose
-    first column is t, the format --observations reads): its times would be read as increments."""
-    from yauyau.solver.errors import InputError
-
-    first = text.partition("\n")[0].split(",")
-    if first[0].strip().strip('"').strip().lower() == "t":
-        raise InputError("increments", f"{path} has a time column (header {first[0].strip()!r}, ...): "
-                                       f"rows with their own times go to --observations {path} (add --t0 0 "
-                                       "for the files of yauyau simulate); --increments reads regular rows, "
-                                       "m numbers each")
-
-
-def parse_csv(text: str, m: int, numbers: list[int] | None = None) -> list[list[float]]:
-    """Rows of m fields; an empty field is a missing component (NaN), a blank line a missing
-    observation (a NaN row); the first line is a header when none of its fields is a number (a first
-    line with some numbers is data, and a bad field in it an error: never silently shift every step
-    by one); blank lines at the end are ignored.  ``numbers`` receives each row's line number."""
-    from yauyau.solver.errors import InputError
-
-    fast = _parse_plain(text, m, numbers)
-    if fast is not None:
-        return fast
-    lines = text.splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()
-    rows: list[list[float]] = []
-    nan = math.nan
-    for number, line in enumerate(lines, start=1):
-        fields = [f.strip() for f in line.split(",")] if line.strip() else [""] * m
-        values = [_number(f) for f in fields]
-        if number == 1 and line.strip() and all(v is None for v in values):
-            continue  # a header: text in every field
-        where = f"increments[{len(rows)}]"
-        if len(fields) != m:
-            raise InputError(where, f"line {number}: expected {m} field(s), got {len(fields)}")
-        for j, (field, value) in enumerate(zip(fields, values, strict=True)):
-            if value is None:
-                raise InputError(f"{where}[{j}]", f"line {number}: {field[:40]!r} is not a finite number "
-                                                  "(leave the field empty for a missing value)")
-        rows.append([nan if v == "" else v for v in values])
-        if numbers is not None:
-            numbers.append(number)
-    return rows
-
-
-def _parse_plain(text: str, m: int, numbers: list[int] | None):
-    """The usual file — m finite numbers on every line, an optional header of names — parsed by numpy
-    at C speed: a (K, m) array, or None for anything else (blank lines, empty fields, a bad field),
-    which :func:`parse_csv` then reads line by line, naming what is wrong."""
-    import numpy as np
-
-    body = text.rstrip()
-    first, _, rest = body.partition("\n")
-    skip = 0
-    if first and all(_number(f.strip()) is None for f in first.split(",")):
-        body, skip = rest, 1  # a header
-    if not body or "\n\n" in body or "\r" in body:
-        return None
-    fields = body.replace("\n", ",").split(",")
-    if len(fields) % m:
-        return None
-    try:
-        values = np.array(fields, dtype=float).reshape(-1, m)
-    except ValueError:
-        return None
-    if not np.isfinite(values).all() or values.shape[0] != body.count("\n") + 1:
-        return None  # nan/inf spelled out, or a line with the wrong number of fields
-    if numbers is not None:
-        numbers.extend(range(1 + skip, 1 + skip + len(values)))
-    return values
-
-
-def read_observations(path: str, m: int, kind: str, t0: float | None) -> Source:
-    """The rows and times of an --observations CSV (EPILOG); InputError names the row (observations[k],
-    times[k], with the line number) or the file at fault."""
-    import numpy as np
-    from yauyau.solver.errors import InputError
-
-    if Path(path).suffix.lower() == ".npy":
-        raise InputError("observations", f"{path}: --observations reads a CSV with a header t,<one column "
-                                          "per component>; a .npy array of regular rows goes to --increments")
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError("observations", f"cannot read {path}: {exc}") from None
-    lines = text.splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()
-    example = "t," + ",".join(f"z_{j + 1}" for j in range(m))
-    if not lines:
-        raise InputError("observations", f"{path} is empty: expected a header {example!r} and one row per "
-                                          "time")
-    names = [f.strip().strip('"').strip() for f in lines[0].split(",")]
-    if names[0].lower() != "t":
-        got = "a row of numbers" if _number(names[0]) not in (None, "") else f"{names[0][:40]!r}"
-        raise InputError("observations", f"{path} line 1: the header must start with the time column t "
-                                          f"(then one column per component, e.g. {example!r}); its first "
-                                          f"field is {got}")
-    if len(names) - 1 != m:
-        raise InputError("observations", f"{path} has {len(names) - 1} column(s) after t "
-                                          f"({','.join(names[1:]) or 'none'}); the model has m = {m} "
-                                          f"observation component(s): expected t and {m} column(s), e.g. "
-                                          f"{example!r}")
-    width = m + 1
-    times: list[float] = []
-    rows: list[list[float]] = []
-    numbers: list[int] = []
-    nan = math.nan
-    previous = -math.inf
-    for number, line in enumerate(lines[1:], start=2):
-        k = len(rows)
-        if not line.strip():
-            raise InputError(f"times[{k}]", f"{path} line {number}: a blank line has no time t; a row with "
-                                            "its time and empty fields (e.g. '1.5,') is a time with nothing "
-                                            "observed")
-        fields = [f.strip() for f in line.split(",")]
-        if len(fields) != width:
-            raise InputError(f"observations[{k}]", f"{path} line {number}: expected {width} fields (t and "
-                                                   f"{m} component(s)), got {len(fields)}")
-        t = _number(fields[0])
-        if t is None or t == "":
-            raise InputError(f"times[{k}]", f"{path} line {number}: t = {fields[0][:40]!r} is not a finite "
-                                            "number (every row needs its time)")
-        if t <= previous:
-            raise InputError(f"times[{k}]", f"{path} line {number}: t = {t!r} is not after t = {previous!r} "
-                                            f"(line {number - 1}): times must increase strictly")
-        if previous > -math.inf:
-            _check_gap(path, number, k, previous, t)
-        values = [_number(f) for f in fields[1:]]
-        for j, (field, value) in enumerate(zip(fields[1:], values, strict=True)):
-            if value is None:
-                raise InputError(f"observations[{k}][{j}]", f"{path} line {number}: {field[:40]!r} is not "
-                                                            "a finite number (leave the field empty for a "
-                                                            "missing component)")
-        previous = t
-        times.append(t)
-        rows.append([nan if v == "" else v for v in values])
-        numbers.append(number)
-    if not rows:
-        raise InputError("observations", f"{path} has a header and no rows: one row per observation time")
-    start = times[0] if t0 is None else float(t0)
-    if times[0] > start:
-        _check_gap(path, 2, 0, start, times[0], "--t0")
-    if times[0] < start:
-        raise InputError("times[0]", f"{path} line 2: t = {times[0]!r} is before --t0 {start!r}: the first "
-                                     "row must be at or after the time of the prior")
-    data = np.array(rows, dtype=float).reshape(len(rows), m)
-    if kind == "continuous" and times[0] == start:
-        raise InputError("observations[0]", f"{path} line 2: an increment of a continuous model covers "
-                                            f"[t_(k-1), t_k], and the first row's t = {times[0]!r} is the "
-                                            "prior's time, an empty interval: give --t0 (the start of the "
-                                            "first interval, e.g. --t0 0 for the files of yauyau simulate)")
-    return Source(data, np.array(times, dtype=float), start, "observations", numbers)
-
-
-def _check_gap(path: str, number: int, k: int, before: float, t: float, what: str | None = None) -> None:
-    """InputError naming times[k] (line ``number``) when t is too close to the time before it to keep the
-    gap's precision (yauyau.solver.measurement.check_spacing)."""
-    from yauyau.solver.errors import InputError
-    from yauyau.solver.measurement import check_spacing
-
-    try:
-        check_spacing(max(abs(before), abs(t)), t - before, f"times[{k}]", "t")
-    except InputError as exc:
-        after = what or f"t = {before!r} (line {number - 1})"
-        raise InputError(exc.field, f"{path} line {number}: t = {t!r} is {t - before:.3g} after {after}: "
-                                    f"{exc.message}") from None
-
-
-def _number(field: str):
-    """A finite float, "" for an empty field, None for anything else (nan/inf included)."""
-    if field == "":
-        return ""
-    try:
-        value = float(field)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
-
-
 def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, writer=None, bar=None, *,
                 times=None, state=None, policy: str = "stop", watch=None):
     """The output lines (CSV text, one per row: step, t, means, upper-triangle covariances[, modes,
@@ -642,6 +410,7 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
     :class:`Report` of the run.  ``times`` (K,) or None (regular), from ``state`` (default: the filter's
     initial state), under the ``on_degenerate`` ``policy`` and the ``watch`` settings (solver/watch.py;
     None: the defaults and the spec's monitor)."""
+    from yauyau.solver.summarised import summarised_rows
     from yauyau.solver.watch import Watch, settings_for, watched_run
 
     outputs = outputs or Outputs()
@@ -656,13 +425,13 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
         snapshot(flt, state, flt.estimate(state), outputs, writer)  # the prior, at t0
     for start in range(0, len(increments), chunk):
         stop = min(start + chunk, len(increments))
-        if outputs.per_step:
-            for k in range(start, stop):
-                state, seen, result = watched_run(flt, state, seen, increments[k:k + 1],
-                                                  None if times is None else times[k:k + 1], policy, settings)
-                extra = summary_columns(flt, state, result.estimates(gate)[0], outputs, writer)
-                lines += csv_lines(result, [extra], monitored)
-                report.add(result, gate)
+        if outputs.per_step:  # one row at a time: the density after each is summarised (or drawn)
+            for row in summarised_rows(flt, state, seen, increments[start:stop],
+                                       None if times is None else times[start:stop], policy, settings,
+                                       mode=outputs.mode, probs=outputs.probs):
+                state, seen = row.state, row.watch
+                lines += csv_lines(row.result, [summary_columns(flt, row, outputs, writer)], monitored)
+                report.add(row.result, gate)
         else:
             state, seen, result = watched_run(flt, state, seen, increments[start:stop],
                                               None if times is None else times[start:stop], policy, settings)
@@ -673,82 +442,20 @@ def filter_rows(flt, increments, chunk: int, outputs: Outputs | None = None, wri
     return lines, report
 
 
-def csv_lines(result, extras: list[list] | None = None, monitor: bool = False) -> list[str]:
-    """The CSV lines of a chunk's result, column by column from its arrays (``extras``: the mode and
-    quantile fields of each row, between the covariances and loglik; ``monitor``: with the innovation
-    monitor's alarm and statistic after reinitialised)."""
-    import numpy as np
-
-    n = result.mean.shape[1]
-    i, j = np.triu_indices(n)
-    if extras is None and not np.isinf(result.predictive_loglik).any() and not np.isinf(result.loglik).any():
-        return _fast_lines(result, i, j, monitor)  # (orjson would write an infinity as an empty field)
-    head = zip(result.step.tolist(), result.t.tolist(), *result.mean.T.tolist(),
-               *result.cov[:, i, j].T.tolist(), strict=True)
-    pll = ["" if v != v else repr(v) for v in result.predictive_loglik.tolist()]
-    follow = ([] if result.center is None
-              else [*result.center.T.tolist(), result.recentred.astype(int).tolist()])
-    statistic = ["" if v != v else repr(v) for v in result.monitor.tolist()] if monitor else []
-    watched = [result.alarm.astype(int).tolist(), statistic] if monitor else []
-    tail = zip(result.loglik.tolist(), result.degenerate.astype(int).tolist(),
-               result.gated.astype(int).tolist(), pll, result.reinitialised.astype(int).tolist(), *watched,
-               *follow, strict=True)
-    if extras is None:
-        return [",".join(map(_field, (*a, *b))) for a, b in zip(head, tail, strict=True)]
-    return [",".join(map(_field, (*a, *x, *b))) for a, x, b in zip(head, extras, tail, strict=True)]
-
-
-def _fast_lines(result, i, j, monitor: bool = False) -> list[str]:
-    """:func:`csv_lines` without extras, formatted by orjson in one call (shortest round-trip floats,
-    as repr gives them; NaN, i.e. not known, as an empty field)."""
-    import numpy as np
-    import orjson
-
-    K = len(result.step)
-    if not K:
-        return []
-    columns = [result.step.astype(float), result.t, *result.mean.T, *result.cov[:, i, j].T, result.loglik,
-               result.degenerate.astype(float), result.gated.astype(float), result.predictive_loglik,
-               result.reinitialised.astype(float)]
-    flags = [0, len(columns) - 4, len(columns) - 3, len(columns) - 1]  # integers: step and the flags
-    if monitor:  # the innovation monitor's alarm (an integer) and statistic
-        columns += [result.alarm.astype(float), result.monitor]
-        flags.append(len(columns) - 2)
-    if result.center is not None:  # a following ball: its centre after the row, and whether it moved
-        columns += [*result.center.T, result.recentred.astype(float)]
-        flags.append(len(columns) - 1)
-    table = np.column_stack(columns)
-    rows = table.tolist()
-    for row in rows:
-        for c in flags:
-            row[c] = int(row[c])
-    text = orjson.dumps(rows).decode()
-    return text[2:-2].replace("null", "").split("],[")
-
-
-def _field(value) -> str:
-    """A CSV field: NaN (not known) as an empty field, everything else as Python writes it."""
-    return "" if value != value else str(value)
-
-
-def summary_columns(flt, state, estimate, outputs: Outputs, writer) -> list:
-    """Mode and quantile columns of one step (empty fields when degenerate); a density snapshot
-    every ``outputs.every`` steps."""
-    from yauyau.solver import summaries
-
+def summary_columns(flt, row, outputs: Outputs, writer) -> list:
+    """Mode and quantile columns of one step (a :class:`yauyau.solver.summarised.SummarisedRow`; empty
+    fields when degenerate); a density snapshot every ``outputs.every`` steps."""
     n = flt.model.n
     extra: list = []
-    healthy = not estimate.degenerate
     if outputs.mode:
-        point = summaries.mode(flt, state, estimate) if healthy else None
-        extra += [float(v) for v in point] if point is not None else [""] * n
+        extra += [float(v) for v in row.mode] if row.mode is not None else [""] * n
     if outputs.probs is not None:
-        q = summaries.quantiles(flt, state, outputs.probs, estimate) if healthy else None
-        blank = [""] * len(outputs.probs)
+        q, blank = row.quantiles, [""] * len(outputs.probs)
         for i in range(n):
             extra += [float(v) if v == v else "" for v in q[i]] if q is not None else blank
-    if writer is not None and healthy and int(estimate.step) % outputs.every == 0:
-        snapshot(flt, state, estimate, outputs, writer)
+    estimate = row.estimate
+    if writer is not None and not estimate.degenerate and int(estimate.step) % outputs.every == 0:
+        snapshot(flt, row.state, estimate, outputs, writer)
     return extra
 
 
@@ -776,28 +483,3 @@ def header(model, outputs: Outputs | None = None, follow: bool = False, monitor:
             "predictive_loglik", "reinitialised", *watched, *tail]
 
 
-def write_lines(path: str, columns: list[str], lines: list[str], field: str = "out") -> None:
-    """Write the header and the lines atomically (temporary file in the same directory, then rename); the
-    file gets the user's umask (storage.files)."""
-    from yauyau.solver.errors import InputError
-
-    target = Path(path)
-    try:
-        tmp = temporary_beside(target, ".csv")
-    except OSError as exc:
-        raise InputError(field, f"cannot write {path}: {exc}") from None
-    try:
-        with open(tmp, "w", encoding="utf-8", newline="") as out:
-            out.write(",".join(columns) + "\n")
-            for start in range(0, len(lines), 10_000):
-                out.write("\n".join(lines[start:start + 10_000]) + "\n")
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def write_csv(path: str, columns: list[str], rows: list[list], field: str = "out") -> None:
-    """Rows of values (floats as repr, NaN as an empty field), written atomically."""
-    lines = [",".join("" if isinstance(v, float) and v != v else str(v) for v in row) for row in rows]
-    write_lines(path, columns, lines, field)

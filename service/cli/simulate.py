@@ -23,7 +23,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .filter import write_csv
+from .csv_io import write_csv
 from .precompute import default_store
 
 EPILOG = """\

@@ -19,7 +19,8 @@ from yauyau.solver.errors import SpecError
 from .. import metrics
 from ..models.jobs import QUEUE_RETRY_S, PrecomputeLimit, QueueFull
 from ..problems import Problem
-from ..sessions.manager import ChunkRequest, Extras
+from ..sessions.chunks import ChunkRequest
+from ..sessions.responses import Extras
 from .density import parse_points
 from .deps import AdminOnly, JobsDep, RegistryDep, SessionsDep, SettingsDep, TenantDep
 from .live import live_response

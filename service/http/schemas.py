@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from yauyau.solver.registry import METHODS
+from yauyau.solver.registry import METHODS, POLICIES
 from yauyau.solver.spec import Prior
 
 Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
@@ -21,7 +21,7 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)  # "1", true and 1.0 are not a seq
 
 
-Policy = Literal["stop", "reinitialise"]
+Policy = Literal[POLICIES]  # type: ignore[valid-type]
 Row = list[Number | None] | None
 ROWS_DOC = ("one row of m numbers per time; null for a whole row: no observation then (the filter only "
             "predicts); null for one component: that component is missing (the others are used)")

@@ -1,6 +1,9 @@
 """The models a worker serves: listed from the store's file attributes at start-up, loaded on first
 use and kept in a bounded least-recently-used cache.
 
+A model's summary (``GET /v1/models``, ``GET /v1/models/{id}``) is the one stored in its file at
+precompute (storage/model_store.py), read by :func:`listing`, never computed again here.
+
 Start-up reads no arrays and runs no analysis, so a server is ready at once whatever the number of
 stored models.  A model is loaded (verified, compiled, its offline arrays and default filter built)
 by the first request that needs it; the filter method is the one chosen at precompute
@@ -11,6 +14,7 @@ used one is dropped (a session of a dropped model is served by loading it again)
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import threading
 from collections import OrderedDict
@@ -19,11 +23,23 @@ from pathlib import Path
 from typing import Any
 
 from yauyau.solver.filtering import Filter
-from yauyau.storage.errors import NotFound
-from yauyau.storage.model_store import ModelStore
+from yauyau.storage.errors import NotFound, StoreError
+from yauyau.storage.model_store import SUMMARY_FIELDS, ModelStore, ModelSummary
+
+from yauyau.api import load_model as load_stored
 
 log = logging.getLogger("yauyau.service")
 FILTER_VARIANTS = 16  # (method, gate) filters kept per loaded model: sessions may choose their gate
+
+
+def listing(summary: ModelSummary) -> dict[str, Any]:
+    """A model as ``GET /v1/models`` lists it: its stored summary and the method chosen at precompute;
+    an unreadable file: its id and the error."""
+    if summary.error is not None:
+        return {"id": summary.id, "error": summary.error}
+    fields = summary.to_dict()
+    return {"id": summary.id, **{key: fields[key] for key in SUMMARY_FIELDS},
+            "method": summary.extra.get("method")}
 
 
 @dataclass
@@ -32,7 +48,7 @@ class LoadedModel:
     spec: dict[str, Any]
     model: Any
     offline: Any
-    basis: int
+    listed: dict[str, Any]  # as GET /v1/models lists it (:func:`listing`)
     method: str  # chosen at precompute
     filters: OrderedDict[tuple[str, float | None], Filter] = field(default_factory=OrderedDict)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -59,23 +75,18 @@ class LoadedModel:
             return flt
 
     def summary(self) -> dict[str, Any]:
-        spec = self.model.spec
-        return {"id": self.id, "name": spec.name, "state": list(spec.state), "n": spec.n, "m": spec.m,
-                "dt": spec.discretization.dt, "radius": spec.domain.radius, "basis": self.basis,
-                "follow": spec.domain.follow, "region": spec.domain.region, "shape": spec.domain.shape,
-                "method": self.method}
+        """The model as ``GET /v1/models`` lists it (its stored summary)."""
+        return dict(self.listed)
 
 
 def load_model(store: ModelStore, model_id: str) -> LoadedModel:
-    import json
-
-    from yauyau.api import load_model as load_stored
-
     stored = load_stored(store, model_id)
+    summary = store.summary(model_id)
+    if summary.error is not None:  # the file changed since it was loaded a moment ago
+        raise StoreError("model", f"model file {model_id}: {summary.error}")
     spec_doc = json.loads(stored.model.spec.canonical_json())
     loaded = LoadedModel(id=model_id, spec=spec_doc, model=stored.model, offline=stored.offline,
-                         basis=0 if stored.offline is None else int(stored.offline.size),
-                         method=stored.method)
+                         listed=listing(summary), method=stored.method)
     loaded.filter()  # the default filter now, not inside the first chunk
     return loaded
 
@@ -108,16 +119,7 @@ class Registry:
     def summaries(self) -> list[dict[str, Any]]:
         """Every stored model, from the file attributes (no arrays read); unreadable files are listed
         with their error instead of a summary."""
-        out = []
-        for summary in self.store.list():
-            if summary.error is not None:
-                out.append({"id": summary.id, "error": summary.error})
-                continue
-            out.append({"id": summary.id, "name": summary.name, "state": summary.state, "n": summary.n,
-                        "m": summary.m, "dt": summary.dt, "radius": summary.radius, "basis": summary.basis,
-                        "follow": summary.follow, "region": summary.region, "shape": summary.shape,
-                        "method": summary.extra.get("method")})
-        return out
+        return [listing(summary) for summary in self.store.list()]
 
     def get(self, model_id: str, field_name: str = "model") -> LoadedModel:
         with self._lock:

@@ -59,6 +59,7 @@ from ..measurement import (
     resolve_times,
 )
 from ..model import Model, compile_model
+from ..registry import FORMS, PRECISIONS
 from ..spec import DensityPrior, GaussianPrior, MixturePrior, spec_from_dict
 from .batch import run_batch
 from .diagnostics import Diagnostics
@@ -78,10 +79,6 @@ from .recentring import Recentring
 from .semigroup import SpectralFlow
 from .state import YauYauState, state_from_dict
 from .translated import TranslatedOffline
-
-FORMS = ("stable", "literal")
-PRECISIONS = ("double", "single")
-
 
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 MAX_CHUNK_PIECES = 8192  # pieces filtered at once (the rest of a chunk follows, block by block)
