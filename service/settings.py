@@ -38,7 +38,7 @@ class Settings(BaseSettings):
     batch_window: float = Field(
         0.0, ge=0, le=1.0, description="seconds a worker waits for more chunks before stepping the ones it "
                                        "has together (0, the chunks already waiting, measured best: "
-                                       "docs/bench-load-windows.md)")
+                                       "bench/results/load-windows.md)")
     max_batch: int = Field(256, ge=1, le=100_000, description="most chunks stepped together in one batch")
     max_precompute_basis: int = Field(
         1000, ge=1, le=100_000, description="largest basis a POST /v1/models may precompute (413 beyond)")
@@ -68,7 +68,7 @@ class Settings(BaseSettings):
                                       "(the live page)")
     blas_threads: int = Field(
         1, ge=1, le=1024, description="BLAS threads per worker process for the online products (1: fastest "
-                                      "on a busy host, docs/bench-blas.md)")
+                                      "on a busy host, bench/results/blas.md)")
     model_cache: int = Field(
         8, ge=1, le=100_000, description="models each worker keeps loaded (least recently used dropped "
                                          "first); models load on first use")

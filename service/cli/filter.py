@@ -3,7 +3,7 @@
 The input and output formats are in EPILOG (what ``yauyau filter -h`` prints).  The stored model
 (storage.model_store) is filtered with the method of --method (default: the one chosen at precompute
 and stored with the model; no analysis runs here) in chunks of --chunk rows, with --blas-threads
-BLAS threads (default 1: docs/bench-blas.md).  Rows are the spec's ``[measurement]`` kind: increments
+BLAS threads (default 1: bench/results/blas.md).  Rows are the spec's ``[measurement]`` kind: increments
 dy (continuous) or measurements z (discrete); --increments reads regular rows (t_k = t0 + k·dt),
 --observations rows with their own times.  --gate overrides the spec's outlier gate, --on-degenerate
 says what a degenerate density does (solver/recovery.py), --lost-track when a filter that keeps gating
@@ -113,7 +113,7 @@ exit status: 0 done; 2 bad input (one line on stderr naming the field or row, no
 def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
                         help="BLAS threads of the online products (default: $YAUYAU_BLAS_THREADS or 1; one "
-                             "thread per process is faster on a busy machine, docs/bench-blas.md)")
+                             "thread per process is faster on a busy machine, bench/results/blas.md)")
 
 
 def blas_threads(requested: int | None) -> int:

@@ -5,7 +5,7 @@ settings through dependencies (service/http/deps.py).  Models are listed at star
 file attributes and loaded on first use (service/models/cache.py, a bounded cache), so the server is
 ready at once; sessions live in SQLite so that several workers share them and a restarted server
 continues where it stopped.  The online products run with ``blas_threads`` BLAS threads per worker
-(default 1, docs/bench-blas.md).  Every error is RFC 9457 ``application/problem+json``.  OpenAPI at
+(default 1, bench/results/blas.md).  Every error is RFC 9457 ``application/problem+json``.  OpenAPI at
 /docs and /openapi.json.
 """
 
@@ -138,7 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,
         # its full collections stop scanning it (measured: 1.27 -> 0.91 ms of CPU per chunk with 64
-        # concurrent streams, docs/bench-load.md).  Garbage made later is collected as before.
+        # concurrent streams, bench/results/load.md).  Garbage made later is collected as before.
         gc.freeze()
         yield
         app.state.ready = False
