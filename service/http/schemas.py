@@ -242,8 +242,8 @@ class SessionInfo(BaseModel):
 
 
 class ModelCreate(_Body):
-    spec: dict[str, Any] = Field(description="the model spec, as a spec file holds it (the fields of "
-                                             "README's spec format: name, state, drift, observation, ...)")
+    spec: dict[str, Any] = Field(description="the model spec, as a spec file holds it (the fields of the "
+                                             "spec format, docs/models.md: name, state, drift, ...)")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"spec": {"name": "ou", "state": ["x"], "drift": ["-x"], "observation": ["x"],
