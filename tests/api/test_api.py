@@ -11,16 +11,15 @@ import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.storage.errors import StoreError
 
 import yauyau
 
-ROOT = Path(__file__).resolve().parent.parent
 OU = ROOT / "examples" / "ou.toml"
 
 

@@ -11,18 +11,9 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def readme_block(heading: str, language: str = "python") -> str:
-    """The first ```language block under the README's ``## heading``."""
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split(f"\n## {heading}\n", 1)[1].split("\n## ", 1)[0]
-    match = re.search(rf"```{language}\n(.*?)```", section, re.S)
-    assert match, f"no {language} block under ## {heading}"
-    return match.group(1)
+from helpers import ROOT
+from helpers.readme import readme_block
 
 
 def test_python_example_runs_verbatim(tmp_path):

@@ -15,8 +15,9 @@ import subprocess
 import time
 
 import httpx
-from test_readme_streams import ROOT, _env, _json_objects, run_python_block
-from test_service_server import Server
+from helpers import ROOT
+from helpers.readme import env, json_objects, readme_section, run_python_block
+from helpers.server import Server
 
 SECTION = "Many streams, several hosts, models at run time"
 
@@ -40,7 +41,7 @@ def test_curl_block_adds_a_model_to_a_running_server(tmp_path):
     from yauyau.solver.spec import spec_from_dict
     from yauyau.storage.model_store import model_id
 
-    block = [b for b in re.findall(r"```sh\n(.*?)```", _section(), re.S) if "curl" in b][0]
+    block = [b for b in re.findall(r"```sh\n(.*?)```", readme_section(SECTION), re.S) if "curl" in b][0]
     spec = json.loads(re.search(r"-d '(.*?)'", block, re.S).group(1))["spec"]
     mid = model_id(spec_from_dict(spec).canonical_json())
     store = tmp_path / "store"
@@ -49,9 +50,9 @@ def test_curl_block_adds_a_model_to_a_running_server(tmp_path):
     try:
         script = block.replace("localhost:8000", f"127.0.0.1:{server.port}").replace("MID", mid)
         out = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], capture_output=True, text=True,
-                             timeout=120, env=_env())
+                             timeout=120, env=env())
         assert out.returncode == 0, out.stderr
-        started, job, page = _json_objects(out.stdout)
+        started, job, page = json_objects(out.stdout)
         assert started["id"] == mid and started["status"] in ("running", "done")
         assert job["id"] == mid and job["status"] in ("running", "done")
         assert page["sessions"] == [] and page["next"] is None and page["idle_expiry"] == 604800
@@ -63,7 +64,3 @@ def test_curl_block_adds_a_model_to_a_running_server(tmp_path):
     finally:
         server.kill()
 
-
-def _section() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split(f"\n## {SECTION}\n", 1)[1].split("\n## ", 1)[0]

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import re
 
-from test_readme_streams import ROOT, run_python_block
+from helpers import ROOT
+from helpers.atlas import reference_means
+from helpers.readme import run_python_block
 
 SECTION = "A state that travels: a ball that follows it"
 
@@ -37,9 +39,7 @@ ATLAS_SECTION = "A drift that changes along the way: an atlas of balls"
 
 
 def test_atlas_block_follows_a_drift_that_is_not_shift_invariant(tmp_path):
-    """The printed mean against the fine-grid reference of tests/test_atlas.py on the same path."""
-    from test_atlas import reference_means
-
+    """The printed mean against the fine-grid reference of tests/helpers/atlas.py on the same path."""
     import yauyau
 
     stdout = run_python_block(ATLAS_SECTION, tmp_path)

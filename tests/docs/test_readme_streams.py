@@ -4,14 +4,12 @@ the text block under it), its three commands, and its curl walk-through against 
 Truth: the power meter (examples/power_meter.toml, z = x² + v) is symmetric under x -> -x once the
 prior's mean has decayed (e^(-0.5 t), t ≈ 20), so the density must have two equal peaks at ±|x| and a
 mean of 0; the log-likelihood and the estimates are those of the independent fine-grid filter of
-tests/irregular_refs.py on the same readings (the gated glitch left out).
+tests/helpers/irregular_refs.py on the same readings (the gated glitch left out).
 """
 
 from __future__ import annotations
 
 import csv
-import json
-import os
 import re
 import shutil
 import subprocess
@@ -19,25 +17,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from irregular_refs import GridReference
-from test_readme import readme_block
-from test_service_server import Server
+from helpers import ROOT
+from helpers.irregular_refs import GridReference
+from helpers.readme import env, json_objects, readme_block, readme_section, run_python_block
+from helpers.server import Server
 
-ROOT = Path(__file__).resolve().parent.parent
 SECTION = "Real sensor streams: readings at irregular times, missing values, outliers"
-
-
-def _env():
-    return dict(os.environ, PYTHONPATH=str(ROOT), OPENBLAS_NUM_THREADS="1")
-
-
-def run_python_block(section: str, tmp_path) -> str:
-    """The README section's Python block run in ``tmp_path`` (with examples/ linked there): its stdout."""
-    (tmp_path / "examples").symlink_to(ROOT / "examples")
-    out = subprocess.run([sys.executable, "-c", readme_block(section)], cwd=tmp_path, env=_env(),
-                         capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
 
 
 def test_python_block_prints_what_the_readme_shows(tmp_path):
@@ -67,7 +52,7 @@ def test_three_commands_filter_the_readings(tmp_path):
     (tmp_path / "examples").symlink_to(ROOT / "examples")
     printed = []
     for command in commands:
-        out = subprocess.run([yauyau, *command.split()[1:]], cwd=tmp_path, env=_env(), capture_output=True,
+        out = subprocess.run([yauyau, *command.split()[1:]], cwd=tmp_path, env=env(), capture_output=True,
                              text=True, timeout=300)
         assert out.returncode == 0, (command, out.stderr[-2000:])
         printed.append(out.stdout.strip())
@@ -94,17 +79,17 @@ def test_curl_walk_through_against_a_real_server(tmp_path):
     import yauyau
 
     model_id = yauyau.precompute(ROOT / "examples" / "power_meter.toml", store)
-    walk = [b for b in re.findall(r"```sh\n(.*?)```", _section_text(), re.S) if "curl" in b][0]
+    walk = [b for b in re.findall(r"```sh\n(.*?)```", readme_section(SECTION), re.S) if "curl" in b][0]
     assert f"MODEL={model_id}" in walk
     server = Server(store, tmp_path / "sessions.sqlite3")
     try:
         script = walk.replace("localhost:8000", f"127.0.0.1:{server.port}")
         out = subprocess.run(["bash", "-c", "set -euo pipefail\n" + script], capture_output=True, text=True,
-                             timeout=120, env=_env())
+                             timeout=120, env=env())
     finally:
         server.kill()
     assert out.returncode == 0, out.stderr
-    chunk, forecast, reset = _json_objects(out.stdout)
+    chunk, forecast, reset = json_objects(out.stdout)
     assert chunk["gated"] == [2] and chunk["degenerate"] is False
     gated = chunk["estimates"][2]
     assert gated["gated"] is True and "predictive standard deviations" in gated["reason"]
@@ -115,20 +100,4 @@ def test_curl_walk_through_against_a_real_server(tmp_path):
     assert abs(forecast["estimate"]["mean"][0] - decay * chunk["estimates"][-1]["mean"][0]) < 1e-3
     assert reset["seq"] == 1 and reset["t"] == 0.16 and "last good estimate" in reset["note"]
     assert reset["estimate"]["cov"][0][0] > 3.9 * chunk["estimates"][-1]["cov"][0][0]
-
-
-def _section_text() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    return text.split(f"\n## {SECTION}\n", 1)[1].split("\n## ", 1)[0]
-
-
-def _json_objects(text: str) -> list[dict]:
-    decoder, objects, i = json.JSONDecoder(), [], 0
-    while i < len(text):
-        if text[i].isspace():
-            i += 1
-            continue
-        obj, i = decoder.raw_decode(text, i)
-        objects.append(obj)
-    return objects
 

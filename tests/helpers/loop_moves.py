@@ -1,5 +1,6 @@
-"""The loop's moves (solver/engine/recentring.py) against moves between blocks: a check shared by the tests of
-a following ball (tests/test_follow.py) and of one in a moving frame (tests/test_frame.py)."""
+"""The loop's moves (solver/engine/recentring.py) against moves between blocks: a check shared by the
+tests of a following ball (tests/solver/engine/test_follow.py) and of one in a moving frame
+(tests/solver/engine/test_frame.py)."""
 
 from __future__ import annotations
 

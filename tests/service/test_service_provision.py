@@ -16,9 +16,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import free_port
+from helpers import ROOT, free_port
 
-ROOT = Path(__file__).resolve().parent.parent
 PROVISION = [sys.executable, str(ROOT / "scripts" / "provision.py")]
 
 

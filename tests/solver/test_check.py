@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import EXAMPLES
 from yauyau.service.cli import main
 from yauyau.solver.check import resolution_check
 from yauyau.solver.errors import InputError
@@ -67,9 +68,8 @@ def test_the_check_passes_at_900_as_the_kalman_filter_says():
 
 def test_the_cli_exit_status_says_resolved_or_not(tmp_path, capsys):
     import tomllib
-    from pathlib import Path
 
-    spec = Path(__file__).resolve().parent.parent / "examples" / "cubic_sensor.toml"
+    spec = EXAMPLES / "cubic_sensor.toml"
     assert tomllib.loads(spec.read_text())["discretization"]["basis"] == 128
     assert main(["check", str(spec), "--paths", "2", "--steps", "200"]) == 0  # nonlinear: against 2x basis
     out = capsys.readouterr().out

@@ -18,18 +18,16 @@ from __future__ import annotations
 
 import ast
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.exact import wei_norman
 from yauyau.solver.methods import make_filter
 from yauyau.solver.model import compile_model
 from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.spec import spec_from_dict
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def spec(**changes):

@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 import sympy as sp
+from helpers import EXAMPLES
+from helpers.specs import dos_spec
 from yauyau.solver import SpecError, compile_model, spec_from_dict
 from yauyau.solver.analysis import analyze
 from yauyau.solver.analysis.budget import BoundReached, Budget, bounded, expand, expanded_terms
@@ -25,15 +27,6 @@ def spec(**over) -> dict:
            "discretization": {"dt": 0.01, "basis": 16}}
     doc.update(over)
     return doc
-
-
-def dos_spec(exponent: int) -> dict:
-    """The 3-D spec of the attack: h = (x + y + z + 1)**e on a tiny ball (SymPy's expand of h² blew up)."""
-    eye = [[1e-6 if i == j else 0.0 for j in range(3)] for i in range(3)]
-    return {"name": "dos", "state": ["x", "y", "z"], "drift": ["-x", "-y", "-z"],
-            "observation": [f"(x+y+z+1)**{exponent}"],
-            "initial": {"kind": "gaussian", "mean": [0.0, 0.0, 0.0], "cov": eye},
-            "domain": {"radius": 0.01}, "discretization": {"dt": 0.01, "basis": 8}}
 
 
 # -- 1. the analysis bounds an expansion before it starts ------------------------------------
@@ -211,7 +204,6 @@ def test_narrow_prior_is_refused_naming_the_resolution(cov):
 def test_outlier_is_named_as_the_cause():
     """A 10-sigma glitch on the cubic sensor degenerates the filter; the reason names the increment
     and its size (the innovation |dy - E[h]dt| / sqrt(R dt), computed here independently)."""
-    from conftest import EXAMPLES
     from yauyau.solver import load_spec
 
     model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))

@@ -1,4 +1,4 @@
-"""The irregular-time references of tests/irregular_refs.py against closed forms.
+"""The irregular-time references of tests/helpers/irregular_refs.py against closed forms.
 
 Measured agreement (fixed seeds; the grid tolerances below are about 2x these):
 * kalman_irregular vs a hand-written scalar OU recursion (both kinds, NaN rows): mean/var <= 4e-15,
@@ -19,17 +19,11 @@ Measured agreement (fixed seeds; the grid tolerances below are about 2x these):
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy import integrate, stats
-from scipy.linalg import expm, solve_continuous_lyapunov
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from irregular_refs import (  # noqa: E402
+from helpers import ROOT
+from helpers.irregular_refs import (
     GridReference,
     kalman_irregular,
     linear_prediction,
@@ -38,10 +32,11 @@ from irregular_refs import (  # noqa: E402
     random_times,
     simulate_irregular,
 )
-from yauyau.solver.model import compile_model  # noqa: E402
-from yauyau.solver.spec import load_spec, spec_from_dict  # noqa: E402
+from scipy import integrate, stats
+from scipy.linalg import expm, solve_continuous_lyapunov
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import load_spec, spec_from_dict
 
-ROOT = Path(__file__).resolve().parent.parent
 THETA = 0.5  # examples/ou.toml: dx = -theta x dt + dv, dy = x dt + dw (R = 1), prior N(1, 0.5)
 
 

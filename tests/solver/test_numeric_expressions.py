@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.errors import SpecError
 from yauyau.solver.expressions import numeric_expression, parse_expression, state_symbols, vectorize
 
-ROOT = Path(__file__).resolve().parent.parent
 CASES = [
     "x**3", "-0.2*x + y", "x*y**2 - 3.5*sin(x) + cos(y)/2", "tanh(x) + sech(y)", "atan2(y, x) + atan(x)",
     "exp(-x**2/2) / sqrt(2*pi)", "log(1 + x**2) * e", "abs(x) + sign(y) + min(x, y) - max(x, 0.5)",

@@ -7,7 +7,7 @@ Also checks the seed formulas they come from: seed 000 (3.8)–(3.10), seed 001 
 import numpy as np
 import pytest
 import sympy as sp
-from oracles import (
+from helpers.oracles import (
     benes_transition,
     benes_transition_mean,
     cubic_conditions,

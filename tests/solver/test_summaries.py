@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import EXAMPLES
+from helpers import EXAMPLES
 from scipy.optimize import brentq
 from scipy.special import ndtr
 from scipy.stats import norm

@@ -20,8 +20,8 @@ import sys
 import httpx
 import numpy as np
 import pytest
-from conftest import EXAMPLES
-from test_service_server import Server
+from helpers import EXAMPLES
+from helpers.server import Server
 from yauyau.solver.errors import InputError
 from yauyau.solver.spec import spec_from_dict
 

@@ -16,11 +16,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.spec import load_spec
 from yauyau.storage.errors import NotFound, StoreError
 from yauyau.storage.model_store import FORMAT_VERSION, ModelStore, model_id
 
-ROOT = Path(__file__).resolve().parents[1]
 SPEC = json.dumps({"name": "ou", "state": ["x"], "observation": ["x"], "drift": ["-x"],
                    "domain": {"radius": 8.0}, "discretization": {"dt": 0.01, "basis": 6}})
 

@@ -1,6 +1,6 @@
 """Session stores: exactly-once chunks, replays, gaps, retention, batches, expiry, and real
 multi-process use — each test against the embedded SQLite store and a real PostgreSQL server
-(tests/pg_server.py), the file-specific ones against SQLite alone.
+(scripts/pg_server.py), the file-specific ones against SQLite alone.
 
 The truth a chunk sequence is checked against is the sequential fold of the chunks: the state
 after chunk k holds [0, 1, ..., k] and each response records the state it was computed from.

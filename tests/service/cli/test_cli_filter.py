@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import EXAMPLES, ROOT
 from scipy.stats import norm
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec, spec_from_dict
@@ -24,7 +25,6 @@ from yauyau.solver.simulate import simulate
 
 import yauyau
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 TWO_D = {"name": "ou-2d-small", "state": ["p", "q"], "drift": ["-p", "-0.5*q"], "observation": ["p", "q"],
          "initial": {"kind": "gaussian", "mean": [0.2, -0.2], "cov": [[0.5, 0.0], [0.0, 0.5]]},
          "domain": {"radius": 5.0}, "discretization": {"dt": 0.02, "basis": 30}}
@@ -156,7 +156,7 @@ def test_filter_uses_the_stored_method_says_so_and_never_analyses(store, tmp_pat
     np.save(source, simulate(model, 5, np.random.default_rng(1)).increments)
     code = ("import sys, json; from yauyau.service.cli import main; code = main(sys.argv[1:]); "
             "print(json.dumps({'code': code, 'analysis': 'yauyau.solver.analysis' in sys.modules}))")
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(ROOT)
     out = subprocess.run([sys.executable, "-c", code, "filter", ids["ou"], "--store", str(directory),
                           "--increments", str(source), "--out", str(tmp_path / "o.csv")],
                          capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=root), timeout=120)
@@ -192,7 +192,7 @@ def test_blas_threads_of_the_hot_path(store, tmp_path, flag, threads):
     directory, ids, _ = store
     source = tmp_path / "in.csv"
     source.write_text("0.1\n")
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(ROOT)
     out = subprocess.run([sys.executable, "-c", _SPY, "filter", ids["ou"], "--store", str(directory),
                           "--increments", str(source), "--out", str(tmp_path / "o.csv"),
                           "--method", "yau-yau", *flag], capture_output=True, text=True,

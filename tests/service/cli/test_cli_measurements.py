@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import EXAMPLES
-from irregular_refs import kalman_irregular
+from helpers import EXAMPLES
+from helpers.irregular_refs import kalman_irregular
 
 import yauyau
 

@@ -17,9 +17,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import EXAMPLES, ROOT
+from helpers import EXAMPLES, ROOT
+from helpers.readme import readme_block
 from scipy.stats import norm
-from test_readme import readme_block
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, load_spec
 from yauyau.solver.simulate import simulate
@@ -180,7 +180,8 @@ def test_plot_draws_band_truth_and_heat_map(store, tmp_path):
 
 def test_degenerate_run_exits_3_and_says_from_where(store, tmp_path, capsys):
     """An increment of 1e5 with the outlier gate off (--gate 0; the default gate would reject it:
-    tests/test_cli_measurements.py) pushes the density out of the ball: exit 3, flagged from there."""
+    tests/service/cli/test_cli_measurements.py) pushes the density out of the ball: exit 3, flagged from
+    there."""
     directory, ids = store
     run = _simulate(tmp_path, "cubic_sensor", 30, seed=6)
     rows = (run / "increments.csv").read_text().splitlines()

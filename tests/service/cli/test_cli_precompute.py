@@ -11,10 +11,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.spec import load_spec
 from yauyau.storage.model_store import ModelStore, model_id
 
-ROOT = Path(__file__).resolve().parents[1]
 YAUYAU = str(Path(sys.executable).with_name("yauyau"))
 OU = (ROOT / "examples" / "ou.toml").read_text()
 

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import EXAMPLES
-from test_hardening_model import dos_spec
-from test_service_server import Server
+from helpers import EXAMPLES
+from helpers.server import ROWS, chunk, new_session, running
+from helpers.specs import dos_spec
 
 PROBLEM = "application/problem+json"
 ABS_SPEC = {"name": "range-1d", "state": ["x"], "drift": ["-0.5*x"], "observation": ["2*abs(x)"],
@@ -43,30 +43,6 @@ def is_problem(response: httpx.Response, status: int, field: str | None = None) 
     if field is not None:
         assert body["field"] == field, body
     return body
-
-
-@contextmanager
-def running(store, db, **kwargs):
-    server = Server(store, db, **kwargs)
-    log = {"stderr": ""}
-    try:
-        yield server, log
-    finally:
-        log["stderr"] = server.kill()
-
-
-def new_session(url: str, model_id: str, **body) -> str:
-    r = httpx.post(f"{url}/v1/sessions", json={"model": model_id, **body}, timeout=30)
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
-
-
-def chunk(url: str, sid: str, seq: int, rows, **extra) -> httpx.Response:
-    return httpx.post(f"{url}/v1/sessions/{sid}/observations", json={"seq": seq, "increments": rows, **extra},
-                      timeout=60)
-
-
-ROWS = [[0.01 * ((i * 7) % 5 - 2)] for i in range(50)]
 
 
 # -- 1. /v1/analyze: a hard deadline, and the chunk path is not starved ---------------------------

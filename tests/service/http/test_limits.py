@@ -19,7 +19,7 @@ import time
 
 import httpx
 import pytest
-from test_service_server import Server
+from helpers.server import Server
 
 PROBLEM = "application/problem+json"
 HALF_HEAD = b"GET /livez HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: "  # never finished

@@ -21,8 +21,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import EXAMPLES, precompute_into
-from test_service_server import Server
+from helpers import EXAMPLES, precompute_into
+from helpers.server import Server
 from yauyau.solver.model import compile_model
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec

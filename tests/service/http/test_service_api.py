@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from helpers import EXAMPLES
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 from yauyau.solver.model import compile_model
@@ -22,7 +22,6 @@ from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec
 
 PROBLEM = "application/problem+json"
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +146,7 @@ def test_chunks_are_applied_exactly_once(api):
 
 def test_far_out_observations_give_a_gated_or_degenerate_answer_not_nan(api):
     """With the outlier gate on (the default) the rows are gated; with it off the density degenerates
-    (tests/test_service_fast_path.py); either way the answer is strict JSON without NaN."""
+    (tests/service/http/test_service_fast_path.py); either way the answer is strict JSON without NaN."""
     sid = _session(api)["id"]
     r = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": [[1e8], [-1e8]]})
     assert r.status_code == 200

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from helpers import EXAMPLES
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 from yauyau.solver.model import compile_model
@@ -25,7 +26,6 @@ from yauyau.solver.spec import load_spec
 from yauyau.storage.errors import StoreError
 from yauyau.storage.session_store import SqliteSessionStore
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 AWKWARD = [5e-324, -0.0, 1.7976931348623157e308, 0.1, 1 / 3, 2.0**-1074 * 3, 123456789.12345678, 1e-310,
            9007199254740993.0, -2.2250738585072014e-308]
 

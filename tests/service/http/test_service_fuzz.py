@@ -24,7 +24,7 @@ OPERATIONS = [("GET", "/livez"), ("GET", "/readyz"), ("GET", "/v1/models"), ("GE
               ("GET", "/v1/sessions/{session_id}/view"), ("DELETE", "/v1/sessions/{session_id}"),
               ("POST", "/v1/sessions/{session_id}/reset"), ("GET", "/v1/sessions/{session_id}/forecast"),
               ("POST", "/v1/analyze")]
-# /v1/sessions/{id}/events is a stream that ends when the session does: tests/test_live_page.py
+# /v1/sessions/{id}/events is a stream that ends when the session does: tests/service/http/test_live_page.py
 # Every check is on, positive_data_acceptance (schema-valid data must get 2xx) too, except where a
 # rule the schema cannot state makes schema-valid data invalid (422 naming the field, by design): a
 # row of increments has m numbers and seq is the next one; a prior's covariance is positive

@@ -19,9 +19,9 @@ import math
 import httpx
 import numpy as np
 import pytest
-from conftest import EXAMPLES
 from fastapi.testclient import TestClient
-from test_service_server import Server
+from helpers import EXAMPLES
+from helpers.server import Server
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 from yauyau.solver.spec import load_spec, spec_from_dict

@@ -7,7 +7,7 @@ route, and never sees it listed), model creation and jobs need an admin (403).  
 server refuses a public bind, says at start that it runs without authentication, and checks the
 Host header like any server.  A session made before tenants (an old file, migrated when opened) is
 owned by no tenant.  No 5xx problem carries a server path.  The live page with tenants is in
-tests/test_live_page.py.  docs/reliability.md ("Tenants") lists what each test proves.
+tests/service/http/test_live_page.py.  docs/reliability.md ("Tenants") lists what each test proves.
 """
 
 from __future__ import annotations
@@ -19,13 +19,12 @@ import sqlite3
 import subprocess
 import sys
 import tempfile
-import uuid
 from pathlib import Path
 
 import httpx
 import pytest
-from conftest import free_port
-from test_service_server import Server
+from helpers import free_port
+from helpers.server import Server, session_db
 
 PROBLEM = "application/problem+json"
 ROWS = [[0.01 * ((i * 7) % 5 - 2)] for i in range(20)]
@@ -61,12 +60,6 @@ def problem(r: httpx.Response, status: int, field: str | None = None) -> dict:
     if field is not None:
         assert body["field"] == field, body
     return body
-
-
-def session_db(kind: str, request, tmp_path) -> str:
-    if kind == "sqlite":
-        return str(tmp_path / "sessions.sqlite3")
-    return request.getfixturevalue("postgres").database(f"t{uuid.uuid4().hex}")
 
 
 def first_event(client: httpx.Client, url: str, headers: dict) -> str:

@@ -19,15 +19,14 @@ import subprocess
 import sys
 import time
 import tomllib
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from conftest import EXAMPLES
-from test_service_server import Server
+from helpers import EXAMPLES, ROOT
+from helpers.cluster import SPEC, Cluster
+from helpers.server import Server
 
-ROOT = Path(__file__).resolve().parents[1]
 PROBLEM = "application/problem+json"
 OU = {"name": "ou", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x"],
       "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]}, "domain": {"radius": 6.0},
@@ -193,7 +192,6 @@ def test_huge_mixture_weights_filter_like_unit_weights_with_yau_hu(tmp_path):
 @pytest.mark.slow
 def test_killing_every_dask_worker_ends_precompute_in_one_line(tmp_path):
     from distributed import Client
-    from test_dask_precompute import SPEC, Cluster
 
     cluster = Cluster(tmp_path, 2)
     try:

@@ -11,6 +11,7 @@ import shutil
 
 import pytest
 from fastapi.testclient import TestClient
+from helpers import ROOT
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
@@ -91,10 +92,9 @@ def test_the_worker_runs_its_blas_with_the_configured_threads(store, tmp_path, t
     import os
     import subprocess
     import sys
-    from pathlib import Path
 
     directory, _ = store
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(ROOT)
     env = {k: v for k, v in os.environ.items()
            if not k.endswith("_NUM_THREADS") and not k.startswith("YAUYAU_")}
     args = [str(directory), str(tmp_path / "s.sqlite3"), str(threads)]

@@ -20,9 +20,9 @@ import httpx
 import numpy as np
 import orjson
 import pytest
-from conftest import EXAMPLES
 from fastapi.testclient import TestClient
-from test_service_server import Server, session_db
+from helpers import EXAMPLES
+from helpers.server import Server, session_db
 from yauyau.service.http.app import create_app
 from yauyau.service.sessions.batching import ChunkBatcher
 from yauyau.service.sessions.manager import ChunkRequest

@@ -1,5 +1,5 @@
 """Sessions over HTTP: listed a page at a time, deleted after their idle expiry by the service's
-sweeper (a real SQLite file; the store's own guarantees are in tests/test_session_store.py)."""
+sweeper (a real SQLite file; the store's own guarantees are in tests/storage/test_session_store.py)."""
 
 from __future__ import annotations
 

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import EXAMPLES, precompute_into
-from test_hardening_service import ROWS, chunk, new_session, running
+from helpers import EXAMPLES, precompute_into
+from helpers.server import ROWS, chunk, new_session, running
+from pg_server import PostgresServer
 
 _OUTSIDE_READ = """
 import sqlite3, sys
@@ -167,9 +168,6 @@ def test_a_state_edited_outside_the_service_answers_503_not_estimates(tmp_path, 
 @pytest.fixture
 def own_postgres():
     """A PostgreSQL server of this test alone (it is crashed and restarted)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
-    from pg_server import PostgresServer
-
     server = PostgresServer()
     yield server
     server.stop()

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from test_service_server import Server
+from helpers import ROOT
+from helpers.server import Server
 
-ROOT = Path(__file__).resolve().parents[1]
 GRACE = 2.0
 STARTUP = 30.0  # seconds of slack for starting the CLI and the analysis process on a loaded machine
 

@@ -1,7 +1,7 @@
 """An atlas of propagators (``[domain] region``, solver/engine/atlas.py): a following ball for a drift that is
 not shift-invariant, against a fine-grid reference.
 
-Truth: the point-mass filter of tests/irregular_refs.py (finite volumes, zero flux) on a box that holds
+Truth: the point-mass filter of tests/helpers/atlas.py (finite volumes, zero flux) on a box that holds
 the whole path, [-17.5, 72.5] with 2400 cells, exact in time (the dense exp(dt L), computed once) and
 with the same continuous-increment likelihood exp(h dy - h^2 dt / 2).  Its own error, from halving its
 cells, is ~1e-3 on these paths.  The model is f = 0.8 + 0.3 sin x, h = x, unit noises: the issue's
@@ -16,9 +16,8 @@ import json
 import h5py
 import numpy as np
 import pytest
-import scipy.linalg as sla
-from irregular_refs import GridReference
-from loop_moves import assert_loop_moves_as_blocks
+from helpers.atlas import SIN, reference_means
+from helpers.loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.atlas import MAX_CENTERS, lattice, lattice_step
@@ -33,10 +32,6 @@ from yauyau.storage.errors import StoreError
 import yauyau
 from yauyau.api import solve
 
-SIN = {"name": "sin drift", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "observation": ["x"],
-       "method": "yau-yau", "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
-       "domain": {"radius": 6.0, "follow": True, "region": [[-5.0, 60.0]]},
-       "discretization": {"dt": 0.02, "basis": 48}}
 STEPS = 3000  # t in [0, 60]
 
 
@@ -50,23 +45,6 @@ def _spec(**domain):
 def sin():
     model = compile_model(_spec())
     return model, precompute(model)
-
-
-def reference_means(model, increments, cells=2400):
-    """The fine-grid filter's posterior means (module docstring) on [-17.5, 72.5]."""
-    doc = json.loads(json.dumps(SIN))
-    doc["domain"] = {"radius": 45.0, "center": [27.5]}
-    grid = GridReference(compile_model(spec_from_dict(doc)), cells=cells, method="expm_multiply")
-    step = sla.expm(model.dt * grid.L.toarray())
-    x, hx = grid.points[:, 0], grid.hx[:, 0]
-    w, means = grid.w0.copy(), np.empty(len(increments))
-    for k, dy in enumerate(increments[:, 0]):
-        w = step @ w
-        ell = hx * dy - 0.5 * hx * hx * model.dt
-        w = w * np.exp(ell - ell.max())
-        w /= w.sum()
-        means[k] = w @ x
-    return means
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -1,4 +1,3 @@
-# ruff: noqa: F811 - the fixtures imported from test_engine are parameters here
 """Many states stepped together (solver/engine/batch.py).
 
 * Truth: a batch of OU streams (linear Gaussian) against the exact sampled-time Kalman filter, each
@@ -10,11 +9,8 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-from test_engine import cubic, ou  # noqa: F401 - the engine tests' models (OU with R != 1, cubic sensor)
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.batch import BATCH_RTOL, MAX_BATCH_BYTES
 from yauyau.solver.engine.filter import YauYauFilter
@@ -22,8 +18,6 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 @pytest.fixture(scope="module")

@@ -14,11 +14,10 @@ import json
 import os
 import subprocess
 import sys
-import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import EXAMPLES
 from yauyau.solver import compile_model, load_spec, spec_from_dict
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError, SpecError
@@ -34,27 +33,6 @@ from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.reference.pointmass import PointMassFilter
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import GaussianPrior
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
-
-def _ou_doc() -> dict:
-    doc = tomllib.loads((EXAMPLES / "ou.toml").read_text())
-    doc["diffusion"] = [[0.7]]
-    doc["observation_noise"] = [[0.5]]
-    return doc
-
-
-@pytest.fixture(scope="module")
-def ou():
-    model = compile_model(spec_from_dict(_ou_doc()))
-    return model, precompute(model)
-
-
-@pytest.fixture(scope="module")
-def cubic():
-    model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
-    return model, precompute(model)
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ Why these tolerances (measured on 300 simulated steps, dt = 0.02, three seeds):
   0.10–0.125, log-likelihood max 0.07–0.10.  Convergence (dt = 0.05, seed 5): mean rms 0.026 at
   refinement 3 (N = 500) → 0.008 at refinement 4 (N = 500), max 0.21 → 0.066, a ratio ≈ 3.2 for
   spacing halved: the O(h²) of P1, so the gaps are discretisation error, not a wrong formula (a
-  misprint in exp(hᵀR⁻¹Δy − ½hᵀR⁻¹h dt) moves the mean by O(1), see tests/test_engine.py).
+  misprint in exp(hᵀR⁻¹Δy − ½hᵀR⁻¹h dt) moves the mean by O(1), see tests/solver/engine/test_engine.py).
 """
 
 from __future__ import annotations

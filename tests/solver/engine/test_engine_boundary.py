@@ -15,17 +15,15 @@ the basis' own mass errors; the loops below with more seeds):
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import EXAMPLES
 from yauyau.solver import compile_model, load_spec, spec_from_dict
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.reference.benes import BenesFilter
 from yauyau.solver.simulate import simulate
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def _example(name: str):

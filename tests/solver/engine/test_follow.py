@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 import pytest
-from loop_moves import assert_loop_moves_as_blocks
+from helpers.loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.filter import YauYauFilter, build
@@ -74,7 +74,8 @@ def test_random_walk_with_trend_matches_the_exact_kalman_filter_over_100_units(t
     assert abs(result.loglik[-1] - exact.loglik[-1]) < 1e-3  # no move changes the log-likelihood
     # the centre follows the state: never more than the trigger distance + stray from the mean
     assert np.abs(result.mean[:, 0] - result.center[:, 0]).max() < 0.3 * 6.0
-    # the continuous-time Kalman–Bucy filter is O(dt) away (tests/test_exact_vs_engine.py: ≤ 0.01)
+    # the continuous-time Kalman–Bucy filter is O(dt) away (tests/solver/exact/test_exact_vs_engine.py:
+    # ≤ 0.01)
     bucy = KalmanBucyFilter(model)
     _, continuous = bucy.run_arrays(bucy.initial_state(), sim.increments)
     assert np.abs(result.mean[:, 0] - continuous.mean[:, 0]).max() <= 0.01

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from loop_moves import assert_loop_moves_as_blocks
-from specs import modified
+from helpers.loop_moves import assert_loop_moves_as_blocks
+from helpers.specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.filter import build
 from yauyau.solver.engine.follow import FollowingFilter

@@ -2,14 +2,14 @@
 rows, the outlier gate, recovery (solver/measurement.py, solver/engine/semigroup.py, solver/recovery.py).
 
 Truth: the exact Kalman filter at irregular times and a fine-grid point-mass filter exact in time
-(expm_multiply per gap), both in tests/irregular_refs.py and independent of the solver.
+(expm_multiply per gap), both in tests/helpers/irregular_refs.py and independent of the solver.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from irregular_refs import GridReference, kalman_irregular, random_times, simulate_irregular
+from helpers.irregular_refs import GridReference, kalman_irregular, random_times, simulate_irregular
 from yauyau.solver.engine import semigroup
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError, SpecError

@@ -20,7 +20,7 @@ import json
 import numpy as np
 import pytest
 import scipy.linalg as sla
-from specs import modified
+from helpers.specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.filter import build
 from yauyau.solver.engine.follow import FollowingFilter
@@ -161,7 +161,7 @@ def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tra
     3.8e-2 where |v̂| = 3.5 put the tail at the ball's edge along v, 6.9%).  On a round ball the gap
     halves as N doubles: basis 2000 gives a median of 1.7e-3, basis 4000 9.5e-4 (max 5.2e-3;
     docs/bench-cv-basis.md).  The issue's 1e-3 at every step is met on the posterior's ellipse
-    (``[domain] shape``, tests/test_shape.py)."""
+    (``[domain] shape``, tests/solver/offline/test_shape.py)."""
     model, offline = tracking
     flt = build(model, offline)
     assert isinstance(flt, FollowingFilter) and flt.directions == (0, 1)

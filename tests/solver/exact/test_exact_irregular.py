@@ -1,7 +1,7 @@
 """The exact filters with rows at irregular times, partly missing rows, discrete measurements and the
 outlier gate (kalman-bucy, yau-hu, yau-jia; wei-norman refuses), against independent truth:
 
-* ``kalman_irregular`` (tests/irregular_refs.py): the exact Kalman filter at irregular times (Van
+* ``kalman_irregular`` (tests/helpers/irregular_refs.py): the exact Kalman filter at irregular times (Van
   Loan predictions, the observed components only): the oracle of discrete measurements and of the
   time-sampled increment model (KalmanBucyFilter(kind="discrete"));
 * the Kalman–Bucy ODEs for (m, P, log Z) with the constant rate ẏ_o = Δy_o/τ over each gap, by
@@ -25,25 +25,20 @@ and for cumulative sums.
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.irregular_refs import kalman_irregular, linear_prediction, random_times, simulate_irregular
 from scipy.integrate import quad, solve_ivp
 from threadpoolctl import threadpool_limits
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from irregular_refs import kalman_irregular, linear_prediction, random_times, simulate_irregular  # noqa: E402
-from yauyau.solver.errors import InputError, SpecError  # noqa: E402
-from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter  # noqa: E402
-from yauyau.solver.exact.wei_norman import WeiNormanFilter  # noqa: E402
-from yauyau.solver.exact.yau_hu import YauHuFilter  # noqa: E402
-from yauyau.solver.exact.yau_jia import YauJiaFilter  # noqa: E402
-from yauyau.solver.methods import make_filter  # noqa: E402
-from yauyau.solver.model import compile_model  # noqa: E402
-from yauyau.solver.spec import spec_from_dict  # noqa: E402
+from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
+from yauyau.solver.exact.wei_norman import WeiNormanFilter
+from yauyau.solver.exact.yau_hu import YauHuFilter
+from yauyau.solver.exact.yau_jia import YauJiaFilter
+from yauyau.solver.methods import make_filter
+from yauyau.solver.model import compile_model
+from yauyau.solver.spec import spec_from_dict
 
 DT = 0.05
 # a = I (a Yau filtering system: all three filters apply), m = 2, correlated R

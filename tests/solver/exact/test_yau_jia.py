@@ -17,7 +17,8 @@ import json
 import numpy as np
 import pytest
 import sympy as sp
-from conftest import EXAMPLES
+from helpers import EXAMPLES, ROOT
+from helpers.readme import readme_block
 from scipy.linalg import expm
 from yauyau.solver.analysis import analyze
 from yauyau.solver.analysis.yau_jia import yau_jia_structure
@@ -358,8 +359,6 @@ def test_readme_yau_jia_commands_run(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-
-    from test_readme import ROOT, readme_block
 
     script = readme_block("Model specification (TOML or JSON)", "sh")
     yauyau = Path(sys.executable).parent / "yauyau"

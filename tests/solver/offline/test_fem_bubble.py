@@ -5,7 +5,7 @@ Truth, 2-D: the element's nodal quadrature |T|/20 (vertices), 2|T|/15 (edge midp
 eigenvalues of the unit disk, j_{k,1}² (Bessel zeros); a quadratic, which the element reproduces exactly;
 and the exact Kalman filter of a 2-D OU model.  3-D: the 15-node tetrahedron's weights derived here with
 SymPy from its nodal basis (17/840, 4/105, 27/280, 32/105 of |T|) and their exactness for cubics; a
-quadratic reproduced exactly; the exact Kalman filter of tests/test_engine_3d.py's model.
+quadratic reproduced exactly; the exact Kalman filter of tests/solver/engine/test_engine_3d.py's model.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Propagators e^{t L} (Fokker–Planck) and e^{t L_K} (Kolmogorov, seed 002 (5.31)) against
 exact solutions, with convergence rates under mesh refinement.
 
-Truth (tests/oracles.py, each checked symbolically in test_oracles.py):
+Truth (tests/helpers/oracles.py, each checked symbolically in test_oracles.py):
   (a) Gaussian solutions of the Kolmogorov equation with linear drift and quadratic potential
       (Riccati ODEs, seed 000 Thm 3.2 / seed 001 Thm 4.2);
   (b) seed 003's cubic-sensor solution u = exp(x⁴/12 − x²/2 + t/2) (f = −x, h = −x³/3);
@@ -18,8 +18,8 @@ nodes; SDIRK2 is O(τ²) in time.
 """
 
 import numpy as np
-import oracles
 import pytest
+from helpers import oracles
 from scipy.sparse.linalg import expm_multiply
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.exact.riccati import gaussian_to_terms

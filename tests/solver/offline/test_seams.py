@@ -9,10 +9,9 @@ sine basis of the interval, orthonormalised in the quadrature inner product.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import SpecError
 from yauyau.solver.model import compile_model
@@ -21,8 +20,6 @@ from yauyau.solver.offline.pipeline import OfflineArrays, precompute
 from yauyau.solver.reference.kalman import DiscreteKalmanFilter
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import DiscretisationSpec, ModelSpec, ProblemSpec, load_spec
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_one_problem_two_discretisations():

@@ -18,7 +18,8 @@ import json
 import numpy as np
 import pytest
 import scipy.linalg as sla
-from specs import modified
+from helpers import EXAMPLES
+from helpers.specs import modified
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.filter import build
 from yauyau.solver.engine.follow import FollowingFilter
@@ -203,11 +204,10 @@ def test_constant_velocity_tracking_on_the_posterior_ellipse_matches_kalman_to_1
 
 def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_path, capsys):
     """``yauyau precompute`` of the example spec (shape = "posterior"), then ``yauyau models`` (--json)."""
-    from pathlib import Path
 
     from yauyau.service.cli import main
 
-    example = Path(__file__).resolve().parent.parent / "examples" / "constant_velocity.toml"
+    example = EXAMPLES / "constant_velocity.toml"
     doc = modified(yauyau.load_spec(example).model_dump(mode="json"), discretization={"basis": 120})
     spec_file = tmp_path / "cv.json"
     spec_file.write_text(json.dumps(doc))
