@@ -15,6 +15,7 @@ import subprocess
 import time
 
 import httpx
+import pytest
 from helpers import ROOT
 from helpers.readme import env, json_objects, readme_section, run_python_block
 from helpers.server import Server
@@ -36,6 +37,7 @@ def test_python_block_matches_the_kalman_filter(tmp_path):
     assert t == 2.0 and abs(mean - ref[-1].mean[0]) < 1e-3 and abs(var / ref[-1].cov[0, 0] - 1) < 0.01
 
 
+@pytest.mark.service
 def test_curl_block_adds_a_model_to_a_running_server(tmp_path):
     assert shutil.which("curl"), "curl is needed (python3 dev.py test installs it)"
     from yauyau.solver.spec import spec_from_dict

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from helpers import ROOT
 from helpers.irregular_refs import GridReference
 from helpers.readme import env, json_objects, readme_block, readme_section, run_python_block
@@ -73,6 +74,7 @@ def test_three_commands_filter_the_readings(tmp_path):
     assert np.max(np.abs(means - truth.mean[:, 0])) < 0.01
 
 
+@pytest.mark.service
 def test_curl_walk_through_against_a_real_server(tmp_path):
     assert shutil.which("curl"), "curl is needed (python3 dev.py test installs it)"
     store = tmp_path / "store"

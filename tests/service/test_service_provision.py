@@ -18,6 +18,8 @@ import httpx
 import pytest
 from helpers import ROOT, free_port
 
+pytestmark = pytest.mark.service  # a real `yauyau serve` process
+
 PROVISION = [sys.executable, str(ROOT / "scripts" / "provision.py")]
 
 

@@ -349,6 +349,7 @@ def _metric(url, name) -> float:
     return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name + " "))
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_silent_wrong_answers_over_http(store, tmp_path):
     """A real server: the lost track (rows degenerate with the reason; a reset recovers), t0 and times

@@ -33,7 +33,7 @@ def append_seq(seq: int, delay: float = 0.0):
     return compute
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def store(request, tmp_path: Path):
     """A fresh store of each kind: a SQLite file, or a new database on the test PostgreSQL server."""
     if request.param == "sqlite":

@@ -68,6 +68,7 @@ def test_analysis_process_is_killed_at_its_deadline():
     assert not done.stopped and done.report["recommendation"]["method"] == "yau-yau"
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_analyze_requests_keep_their_deadline_and_leave_chunks_alone(tmp_path, example_store):
     store, ids = example_store
@@ -119,6 +120,7 @@ def test_analyze_requests_keep_their_deadline_and_leave_chunks_alone(tmp_path, e
 
 
 # -- 2. abs, sign, min, max end to end ---------------------------------------------------------
+@pytest.mark.service
 def test_nonsmooth_model_precomputes_filters_serves_and_analyses(tmp_path):
     spec = tmp_path / "range.json"
     spec.write_text(json.dumps(ABS_SPEC))
@@ -139,6 +141,7 @@ def test_nonsmooth_model_precomputes_filters_serves_and_analyses(tmp_path):
 
 
 # -- 3, 4, 9. overflowing constants, huge mixture weights, narrow priors -------------------------
+@pytest.mark.service
 def test_overflows_weights_and_narrow_priors_over_http_and_cli(tmp_path, example_store):
     store, ids = example_store
     bad = tmp_path / "bad.json"
@@ -203,6 +206,7 @@ def fill(directory: Path) -> Path:
     return filler
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_disk_full_answers_503_stores_nothing_and_resumes(tmp_path, example_store):
     store, ids = example_store
@@ -246,6 +250,7 @@ def _overwrite_wal(db: Path) -> None:
         fh.write(os.urandom(size))
 
 
+@pytest.mark.service
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", [_remove, _truncate, _overwrite_wal])
 def test_damaged_database_stops_acknowledging_and_fails_readiness(tmp_path, example_store, damage):
@@ -272,6 +277,7 @@ def test_damaged_database_stops_acknowledging_and_fails_readiness(tmp_path, exam
 
 
 # -- 7. two workers, keep-alive: no delayed-ACK stall ---------------------------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_two_workers_answer_keep_alive_requests_without_the_40_ms_stall(tmp_path, example_store):
     store, ids = example_store
@@ -289,6 +295,7 @@ def test_two_workers_answer_keep_alive_requests_without_the_40_ms_stall(tmp_path
 
 
 # -- 10. strictness over HTTP ------------------------------------------------------------------
+@pytest.mark.service
 def test_strict_requests(tmp_path, example_store):
     store, ids = example_store
     with running(store, tmp_path / "s.sqlite3") as (server, _), httpx.Client(timeout=60) as client:
@@ -364,6 +371,7 @@ def test_read_only_store_says_what_to_do(tmp_path, example_store):
     assert "read-only" in result.stderr
 
 
+@pytest.mark.service
 def test_models_listing_marks_a_swapped_file(tmp_path):
     store = tmp_path / "store"
     ids = []

@@ -81,6 +81,7 @@ def _closed_by_server(sock: socket.socket) -> bool:
 
 
 # -- 1. connections: a cap per worker and a deadline for the request head --------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_half_open_connections_leave_the_server_answering(tmp_path, example_store):
     """5 000 sockets that send half a request head against a worker limited to 4 096 descriptors: the
@@ -127,6 +128,7 @@ def _closed_within(sock: socket.socket, seconds: float) -> bool:
     return False
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_a_request_head_that_stalls_is_closed_at_the_header_timeout(tmp_path, example_store):
     """A connection that sends nothing, one that sends half a head, and a kept-alive one that starts its
@@ -153,6 +155,7 @@ def test_a_request_head_that_stalls_is_closed_at_the_header_timeout(tmp_path, ex
     assert len(warnings) <= 2 and "Traceback" not in stderr, stderr  # a line every 10 s, not a connection
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_at_the_cap_with_every_connection_busy_a_newcomer_gets_503(tmp_path, example_store):
     """max_connections = 3 held by three /events listeners (requests that last): a fourth connection is
@@ -237,6 +240,7 @@ class _Watch:
         return self.most
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_precompute_jobs_wait_in_a_bounded_queue(tmp_path):
     """max_jobs = 2, max_queued_jobs = 3, seven distinct specs posted at once: two processes run (never
@@ -331,6 +335,7 @@ class _Listener:
         self.client.close()
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_events_listeners_are_capped_per_session_and_per_worker(tmp_path, example_store):
     """max_session_listeners = 2, max_listeners = 3: a third listener of a session gets 429, a fourth
@@ -405,6 +410,7 @@ def _is_rate_problem(response: httpx.Response, setting: str, period: float) -> i
     return retry
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_session_creation_past_its_burst_is_429_until_retry_after(tmp_path, example_store):
     """rate_sessions = 0.2/s with a burst of 3: three creations (after refused ones, which cost no
@@ -430,6 +436,7 @@ def test_session_creation_past_its_burst_is_429_until_retry_after(tmp_path, exam
         server.kill()
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_requests_past_their_burst_are_429_until_retry_after(tmp_path, example_store):
     """rate_requests = 0.5/s with a burst of 6: /v1 requests beyond are 429 with Retry-After while the
@@ -449,6 +456,7 @@ def test_requests_past_their_burst_are_429_until_retry_after(tmp_path, example_s
         server.kill()
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_rates_are_kept_per_tenant(tmp_path, example_store):
     """With a tenants file each tenant has its own buckets, though all come from one address:

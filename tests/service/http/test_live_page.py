@@ -27,6 +27,8 @@ from yauyau.solver.model import compile_model
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec
 
+pytestmark = pytest.mark.service  # a real `yauyau serve` process
+
 CHROMIUM = os.environ.get("YAUYAU_CHROMIUM", "/usr/bin/chromium")
 CHROMEDRIVER = os.environ.get("YAUYAU_CHROMEDRIVER", "/usr/bin/chromedriver")
 
@@ -115,6 +117,7 @@ def _open_page(browser, server, model: str, **options):
     return client, sid
 
 
+@pytest.mark.browser
 def test_page_follows_a_1d_stream(browser, server, tmp_path):
     client, sid = _open_page(browser, server, "cubic_sensor", gate=0)  # the gate off: 1e6 degenerates
     before = _canvas(browser)
@@ -143,6 +146,7 @@ def test_page_follows_a_1d_stream(browser, server, tmp_path):
     _wait(browser, lambda d: "deleted" in d.find_element("id", "status").text, "the deleted status")
 
 
+@pytest.mark.browser
 def test_page_draws_a_2d_heat_map_and_ellipse(browser, server, tmp_path):
     client, sid = _open_page(browser, server, "range_2d")
     rows = _increments("range_2d", 60, seed=3)
@@ -206,6 +210,7 @@ def _csp_violations(driver) -> list[str]:
     return [e["message"] for e in driver.get_log("browser") if "Content Security Policy" in e["message"]]
 
 
+@pytest.mark.browser
 def test_page_with_tenants_asks_the_token_once_and_keeps_it_out_of_urls(browser, tenant_server, tmp_path):
     srv, ids, tokens = tenant_server
     alice = {"Authorization": f"Bearer {tokens['alice']}"}

@@ -453,6 +453,7 @@ def test_forecast_is_the_exact_prediction_and_changes_nothing(api):
 
 
 # -- 5. options kept by a real server across a restart ----------------------------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_options_survive_a_restart_of_a_real_server(models, tmp_path):
     """Two sessions with their own options; the server is SIGKILLed and restarted with two workers

@@ -85,8 +85,9 @@ SESSION_ROUTES = [
 ]
 
 
+@pytest.mark.service
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+@pytest.mark.parametrize("kind", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_a_session_is_its_tenants_alone(example_store, tenants, tmp_path, request, kind):
     store, ids = example_store
     path, tokens = tenants
@@ -159,8 +160,9 @@ def _unauthenticated(client: httpx.Client) -> None:
     problem(client.get("/v1/sessions/whatever/view"), 401)  # not a browser: problem+json
 
 
+@pytest.mark.service
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+@pytest.mark.parametrize("kind", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_sessions_of_an_old_store_are_owned_by_no_tenant(example_store, tenants, tmp_path, request, kind):
     """A session made before tenants (its store without the owner column) is migrated when the store
     is opened: owned by no tenant, visible without tenants, invisible to every tenant."""
@@ -289,6 +291,7 @@ def test_insecure_bind_is_the_operators_choice():
 
 
 # -- the Host header ----------------------------------------------------------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_host_header_must_name_this_server(example_store, tmp_path):
     store, ids = example_store
@@ -318,6 +321,7 @@ def test_host_header_must_name_this_server(example_store, tmp_path):
 
 
 # -- no server path in a 5xx ----------------------------------------------------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_no_server_path_in_503_problems(example_store, tmp_path):
     store, ids = example_store

@@ -47,6 +47,7 @@ def wait_for_job(url: str, job: dict, timeout: float = 240.0) -> dict:
 
 
 # -- a model of more than three states over HTTP ----------------------------------------------------
+@pytest.mark.service
 @pytest.mark.slow
 def test_the_4d_example_is_accepted_over_http_and_its_job_completes(tmp_path):
     store = tmp_path / "store"
@@ -104,6 +105,7 @@ def test_an_uncomputable_spec_is_refused_by_precompute_naming_the_field(tmp_path
     assert not list((tmp_path / "store").glob("*.h5"))
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_uncomputable_specs_are_refused_over_http_before_any_job(tmp_path):
     store = tmp_path / "store"

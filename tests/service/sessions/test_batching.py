@@ -124,7 +124,8 @@ def test_observe_many_answers_as_each_chunk_alone(api):
     assert orjson.loads(bad[1])["step"] == 85
 
 
-@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+@pytest.mark.service
+@pytest.mark.parametrize("kind", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_concurrent_streams_on_real_servers_match_kalman_and_are_batched(example_store, tmp_path, request,
                                                                          kind):
     """SQLite: one server.  PostgreSQL: two servers on different ports (two hosts) sharing the

@@ -21,6 +21,8 @@ from yauyau.solver.model import compile_model
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import load_spec
 
+pytestmark = pytest.mark.service  # a real `yauyau serve` process
+
 CHUNK = 50
 CHUNKS = 8
 
@@ -36,7 +38,7 @@ def _post_chunk(client, url, sid, seq, rows):
     return r.json()
 
 
-@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+@pytest.mark.parametrize("kind", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store, tmp_path, request, kind):
     """SQLite: the restarted server has two workers sharing the file.  PostgreSQL: two servers on
     different ports (two hosts) share the database, and the client alternates between them."""

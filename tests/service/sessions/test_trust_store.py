@@ -18,6 +18,8 @@ from helpers import EXAMPLES, precompute_into
 from helpers.server import ROWS, chunk, new_session, running
 from pg_server import PostgresServer
 
+pytestmark = pytest.mark.service  # a real `yauyau serve` process
+
 _OUTSIDE_READ = """
 import sqlite3, sys
 db = sqlite3.connect(sys.argv[1])
@@ -183,6 +185,7 @@ def _eventually(call, timeout: float = 60.0):
         time.sleep(0.2)
 
 
+@pytest.mark.postgres
 @pytest.mark.slow
 def test_postgres_acknowledged_chunks_survive_a_database_crash(tmp_path, example_store, own_postgres):
     """The test server commits asynchronously (synchronous_commit = off, as many tuned servers do): a
@@ -204,6 +207,7 @@ def test_postgres_acknowledged_chunks_survive_a_database_crash(tmp_path, example
             assert r.status_code == 200 and r.json()["next_seq"] == 5, r.text
 
 
+@pytest.mark.postgres
 @pytest.mark.slow
 def test_postgres_down_is_answered_within_the_connect_timeout(tmp_path, example_store, own_postgres):
     """With the database down, a request waited 30 s for the pool before its 503; now it is answered

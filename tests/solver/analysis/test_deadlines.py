@@ -91,6 +91,7 @@ def test_precompute_auto_stores_the_general_engine_within_the_time_limit(tmp_pat
     assert yauyau.load_model(store, done.stdout.strip().splitlines()[-1]).method == "yau-yau"
 
 
+@pytest.mark.service
 @pytest.mark.slow
 def test_a_posted_model_job_keeps_the_analysis_time_limit(tmp_path):
     """POST /v1/models on a real server: the job's analysis is stopped at its setting
