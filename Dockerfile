@@ -1,6 +1,6 @@
 # yauyau: the Yau-Yau real-time nonlinear filter as an HTTP service.
 # Build stage: install into a virtual environment and precompute the bundled example models
-# (scripts/provision.py, the same steps `python3 dev.py serve` and tests/test_service_provision.py run).
+# (scripts/provision.py, the same steps `python3 dev.py serve` and tests/service/test_service_provision.py run).
 FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 PYTHONDONTWRITEBYTECODE=1
 WORKDIR /src

@@ -38,7 +38,7 @@ def serve(args: list[str]) -> int:
 
 def test(args: list[str]) -> int:
     provision.install(VENV, editable=True, extras=EXTRAS)
-    provision.browser()  # Debian's chromium + chromedriver for tests/test_live_page.py
+    provision.browser()  # Debian's chromium + chromedriver for tests/service/http/test_live_page.py
     provision.postgres()  # Debian's PostgreSQL server for the shared session store's tests
     # the whole suite runs its files in parallel, one per core (pytest-xdist; a file's tests stay together,
     # so its module fixtures are built once); arguments given replace that

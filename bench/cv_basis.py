@@ -2,7 +2,7 @@
 
     python -m bench.cv_basis [--quick]     # writes bench/results/cv-basis.md
 
-The model of bench/psd.py and tests/test_psd.py: f = (v, −0.2v), a = diag(0, 1), h = p, R = 1,
+The model of bench/psd.py and tests/solver/engine/test_psd.py: f = (v, −0.2v), a = diag(0, 1), h = p, R = 1,
 dt = 0.01, prior N(0, I), SUPG (the default for this diffusion) on a following ball of radius 8 that
 rides the frame of ċ = (c_v, −0.2c_v); then radius 6.5, P1 SUPG against P2 + bubble with the consistent
 mass.  5000 steps (t = 0..50, the target travels ~50 units), seed 1,

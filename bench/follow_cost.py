@@ -10,9 +10,10 @@ travelling target.
    (solver/engine/frame.py) and only has to hold the posterior.
 2. A travelling target: a 2-D random walk with trend f = (1, 0.5), a = I, h = x, the same steps and seeds
    (it travels ~11 units, and the random walk ±3 more).  Truth: the exact Kalman filter of the sampled
-   model.  The following ball has the radius that holds the posterior (6, as in tests/test_follow.py);
-   the fixed ball is fitted to the runs after the fact, which no user can do: the smallest ball around
-   the box of both runs' Kalman means that keeps the following ball's margin (its radius) around them.
+   model.  The following ball has the radius that holds the posterior (6, as in
+   tests/solver/engine/test_follow.py); the fixed ball is fitted to the runs after the fact, which no
+   user can do: the smallest ball around the box of both runs' Kalman means that keeps the following
+   ball's margin (its radius) around them.
    Both use element = "bubble" (P1 at N = 300 misses the gap on the following ball: 0.1).
 
 For each ball the basis grows until the worst mean gap over both runs is ≤ 0.01; the cheapest of each

@@ -17,7 +17,7 @@
    (flow.scales, the per-step modal products) alone.  Each chunk also runs once on a simulated path,
    to say where the engine could not resolve it.
 2. Accuracy at irregular times (1-D cubic sensor, continuous and discrete, 5 seeds × 500 steps): the
-   gap |E[x] − E_ref[x]| to a fine-grid point-mass filter exact in time (tests/irregular_refs.py
+   gap |E[x] − E_ref[x]| to a fine-grid point-mass filter exact in time (tests/helpers/irregular_refs.py
    ``GridReference``: 1024 cells, e^{τL} per gap, increments over long gaps in the engine's pieces),
    for the example's discretization and one twice as fine.
 3. Discrete readings against the `particles` library's bootstrap filter (N. Chopin, 10k particles) on
@@ -244,13 +244,13 @@ def _breakdown(flt: YauYauFilter, times: np.ndarray) -> dict[str, float]:
 
 # -- 2./3. accuracy and the particles peer ---------------------------------------------------------
 def grid_reference(model: Model):
-    """tests/irregular_refs.py's GridReference (1024 cells, exact in time over each gap)."""
+    """tests/helpers/irregular_refs.py's GridReference (1024 cells, exact in time over each gap)."""
     tests = str(ROOT / "tests")
     if tests not in sys.path:
         sys.path.insert(0, tests)
-    from irregular_refs import GridReference
+    from helpers.irregular_refs import GridReference
 
-    return GridReference(model), "GridReference (tests/irregular_refs.py, 1024 cells)"
+    return GridReference(model), "GridReference (tests/helpers/irregular_refs.py, 1024 cells)"
 
 
 def _datasets(case: Case, kind: str, seeds: int, steps: int, mean_gap: float):

@@ -13,8 +13,8 @@ bench/peer_range_only.py, one subprocess per seed, interleaved with our runs so 
 same machine load.  Gap: |E[x] − E_ref[x]| averaged over steps, coordinates and seeds.  Cost: ms per
 observation, median over seeds, one BLAS thread.  Then the dimension: n = 2, 4, 6 (1-, 2-, 3-D
 constant velocity with a range sensor √(1 + |p|²) / |p| / |p|), cost per observation and gap to a
-10⁵-particle reference.  Last, the 2-D ring posterior of tests/test_yau_jia.py: gap to the point-mass
-reference and cost by the number of components and the splits allowed per step.  Writes
+10⁵-particle reference.  Last, the 2-D ring posterior of tests/solver/exact/test_yau_jia.py: gap to the
+point-mass reference and cost by the number of components and the splits allowed per step.  Writes
 bench/results/yau-jia.md.
 """
 
@@ -123,7 +123,8 @@ def cv_model(dims: int):
 
 
 def ring_model():
-    """The 2-D model of tests/test_yau_jia.py: a damped rotation seen through the range √(1 + |x|²)."""
+    """The 2-D model of tests/solver/exact/test_yau_jia.py: a damped rotation seen through the range
+    √(1 + |x|²)."""
     doc = {"name": "ring-2d", "state": ["x1", "x2"], "drift": ["-0.5*x1 + x2", "-x1 - 0.5*x2"],
            "observation": ["sqrt(1 + x1**2 + x2**2)"], "method": "yau-jia",
            "initial": {"kind": "gaussian", "mean": [1.0, 0.5], "cov": [[0.5, 0.0], [0.0, 0.5]]},
@@ -229,7 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                   "few dozen calls vectorised over 10^4 particles; below 8 components the fixed part "
                   "(about 0.45 ms) dominates.  Closing it needs a fused (compiled) step, not fewer "
                   "components."]
-    lines += ["", f"2-D ring posterior (tests/test_yau_jia.py's model, {2 if args.quick else 5} seeds x "
+    lines += ["", "2-D ring posterior (tests/solver/exact/test_yau_jia.py's model, "
+              f"{2 if args.quick else 5} seeds x "
               f"{300 if args.quick else 1000} steps): max gap of the mean to the point-mass reference "
               "(worst seed, and mean over seeds) and cost, by the cap on components and the splits "
               "allowed per step:", "", "| components | splits per step | worst gap | mean gap | "

@@ -1,15 +1,13 @@
-"""Shared fixtures: a model store with precomputed example models, free loopback ports."""
+"""Shared fixtures: a model store with precomputed example models, a PostgreSQL server; the order of
+the files.  What tests import (paths, ports, servers, references) is in tests/helpers/."""
 
 from __future__ import annotations
 
-import socket
-import sys
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
-EXAMPLES = ROOT / "examples"
+from helpers import EXAMPLES, precompute_into
+from pg_server import PostgresServer
 
 
 def pytest_collection_modifyitems(config, items):
@@ -29,13 +27,6 @@ def _testclient_host():
         yield
 
 
-def precompute_into(store: Path, spec_path: Path) -> str:
-    """Solve the offline stage of an example spec and save it (method chosen once); returns the id."""
-    import yauyau
-
-    return yauyau.precompute(spec_path, store)
-
-
 @pytest.fixture(scope="session")
 def example_store(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     """A store holding the 1-D examples (cubic sensor, Ornstein–Uhlenbeck): (dir, {name: id})."""
@@ -44,19 +35,10 @@ def example_store(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     return store, ids
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def postgres():
-    """A real PostgreSQL server for the session (tests/pg_server.py); ``database(name)`` gives a fresh
+    """A real PostgreSQL server for the session (scripts/pg_server.py); ``database(name)`` gives a fresh
     database's DSN."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from pg_server import PostgresServer
-
     server = PostgresServer()
     yield server
     server.stop()
