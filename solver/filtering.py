@@ -302,7 +302,8 @@ class ChunkedFilter:
     model: Any
     """The compiled model the filter was built for (solver/model.Model)."""
 
-    follows: ClassVar[bool] = False  # the engine on a following ball (solver/engine/follow.py) says True
+    follows: ClassVar[bool] = False
+    """Whether the domain ball follows the state (the engine's FollowingFilter says True)."""
     gate_override: float | None = None
     """The gate set for this filter (``with_gate``; None: the spec's ``[measurement] gate``)."""
 

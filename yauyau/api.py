@@ -41,7 +41,8 @@ from .storage.model_store import ModelStore
 if TYPE_CHECKING:  # types only: at run time these modules load when a function first needs them
     from .solver.analysis.report import AnalysisReport
     from .solver.model import Model
-    from .solver.offline.pipeline import OfflineModel, Progress
+    from .solver.offline.jobs import Progress
+    from .solver.offline.pipeline import OfflineModel
     from .solver.simulate import Simulation
     from .solver.watch import LostTrack, Watch, WatchSettings
 

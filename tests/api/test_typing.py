@@ -28,7 +28,7 @@ from yauyau.solver.spec import spec_from_dict
 
 from yauyau.api import OnlineFilter, Solved, StoredFilterModel
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_mypy_passes_on_the_public_api():
