@@ -107,16 +107,16 @@ BROWSER = {"/usr/bin/chromium": "chromium", "/usr/bin/chromedriver": "chromium-d
 
 
 def browser() -> None:
-    """Debian's chromium and chromedriver for the live-page test (tests/test_live_page.py) and curl for
-    the walk-throughs of docs/ (tests/test_readme_streams.py): installed with apt-get when missing and
-    this runs as root; otherwise say what to install (the test then fails with the reason; it never
-    skips)."""
+    """Debian's chromium and chromedriver for the live-page test (tests/service/http/test_live_page.py)
+    and curl for the walk-throughs of docs/ (tests/docs/test_readme_streams.py): installed with apt-get
+    when missing and this runs as root; otherwise say what to install (the test then fails with the
+    reason; it never skips)."""
     missing = [package for path, package in BROWSER.items() if not Path(path).exists()]
     _apt_install(missing, "the browser test")
 
 
 def postgres() -> None:
-    """Debian's PostgreSQL server for the tests of the shared session store (tests/pg_server.py starts
+    """Debian's PostgreSQL server for the tests of the shared session store (scripts/pg_server.py starts
     one in a temporary directory): installed with apt-get when missing, as :func:`browser` does."""
     import glob
     import shutil

@@ -200,8 +200,8 @@ class Discretization(Strict):
     bench/results/engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
     their positive lumped mass instead of P1 (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at
-    the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
-    Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
+    the same cost, tests/solver/offline/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is
+    how the Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
     "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or
     "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent
     mass; P1 elements in 2-D and 3-D).  For noise on some coordinates only, "consistent" on the bubble

@@ -13,7 +13,7 @@ and substitute σ = e^{φ} v in the observation-free Kolmogorov equation (4.8)
 
 (a = R = I: V = Σh² + Δφ + |∇φ|² + 2∇φ·(f − ∇φ), the seed's (4.2)).  When V = xᵀQx + qᵀx + q0 the
 equation maps exp(xᵀAx + Bᵀx + C) to itself with (derived here, checked by SymPy in
-tests/test_yau_jia.py)
+tests/solver/exact/test_yau_jia.py)
 
     A' = 2AaA − AL − LᵀA − ½Q,   B' = 2AaB − LᵀB − 2Aℓ − ½q,
     C' = tr(aA) + ½BᵀaB − ℓᵀB − ½q0 − tr L                                   ((4.14)–(4.16) at a = I)

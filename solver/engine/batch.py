@@ -19,8 +19,8 @@ so a result is that of stepping the state alone up to rounding: the products sum
 (BLAS gemm against gemv), which changes the last bits of a step.  Measured over chunks of up to 250
 rows of the cubic sensor: covariances within 1e-11 relative in double precision and 1.4e-3 in single
 (where the single loop itself is 3e-3 from double), means within 4e-13 and 8e-5 (``BATCH_RTOL``,
-tested in tests/test_batch.py).  A decision that sits on its threshold to within that rounding (the
-gate, a degeneracy check) can go either way, as it can between two BLAS builds.
+tested in tests/solver/engine/test_batch.py).  A decision that sits on its threshold to within that
+rounding (the gate, a degeneracy check) can go either way, as it can between two BLAS builds.
 
 What the loop does not batch runs alone through ``run_arrays``, with the identical answer it always
 had: the literal form, irregular ``times`` (each gap its own operator), a degenerate state, and a

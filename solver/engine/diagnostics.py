@@ -9,7 +9,7 @@ Read on the pre-projection nodal density σ_k of each step (after the hot loop, 
   the next Fokker–Planck flow, ∫ e^{dt L} Π σ_k / ∫σ_k (= mass lost through ∂B_R, the FP flow
   conserving mass otherwise), less the basis' own mass errors (|projection mass change| and
   κ × the negative part of σ_k); a leak above ``LEAK_RATE``·dt is flagged (thresholds measured in
-  tests/test_engine_boundary.py's docstring).
+  tests/solver/engine/test_engine_boundary.py's docstring).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ has solutions u(x, t) = exp(−xᵀA(t)x − Bᵀ(t)x − C(t)) (A symmetric) wh
     B' = q − 2Ad − (Dᵀ + 2Aa)B
     C' = r + tr D + tr(aA) − ½BᵀaB − dᵀB
 
-(derived by substitution; tests/test_oracles.py checks it with SymPy).  This is seed 000
+(derived by substitution; tests/solver/test_oracles.py checks it with SymPy).  This is seed 000
 Theorem 3.2, (3.8)–(3.10), and seed 001 Theorem 4.2, (4.14)–(4.16), up to sign conventions:
 the seeds write u = exp(+xᵀAx + Bᵀx + C) and put the potential with the opposite sign.
 

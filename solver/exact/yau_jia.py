@@ -132,7 +132,7 @@ class _Sensor:
 
 def default_components(n: int) -> int:
     """The default cap on the mixture: 64 in 1-D, 128 in 2-D (a ring-shaped posterior: at 32 and 64
-    the worst of 20 seeds × 1000 steps missed 0.01, at 128 it is 0.0066; tests/test_yau_jia.py),
+    the worst of 20 seeds × 1000 steps missed 0.01, at 128 it is 0.0066; tests/solver/exact/test_yau_jia.py),
     32 from 3-D on, where each component costs O(n³) and 32 already beat 10k particles 8× in gap."""
     return MAX_COMPONENTS.get(n, 32)
 

@@ -14,7 +14,7 @@ centroid, weights |T|/20, 2|T|/15, 9|T|/20) and for P2 plus the cubic face bubbl
 interior bubble on tetrahedra (``element = "bubble"`` in 3-D, the 15-node degree-2 mass-lumped
 tetrahedron of Chin-Joe-Kong, Mulder and Van Veldhuizen, J. Eng. Math. 35, 1999: nodes at the
 vertices, edge midpoints, face centroids and centroid, weights 17|T|/840, 4|T|/105, 27|T|/280,
-32|T|/105, exact for cubics; tests/test_fem_bubble.py derives the weights with SymPy)
+32|T|/105, exact for cubics; tests/solver/offline/test_fem_bubble.py derives the weights with SymPy)
 gives positive quadrature weights, so pointwise products at the nodes are exact in the discrete L²
 inner product.  scikit-fem's P2+bubble triangle is hierarchical (the bubble is added to the P2
 functions), so every matrix is taken to the nodal (Lagrange) basis ψ = φ P⁻¹, P_ij = φ_j(x_i):
