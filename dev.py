@@ -1,8 +1,16 @@
 #!/usr/bin/env python3
 """Developer entry point; needs only python3.
 
-    python3 dev.py serve   # venv + install, precompute the bundled examples if missing, serve on :8000
-    python3 dev.py test    # venv + install (with test tools, the test browser and PostgreSQL), run the tests
+    python3 dev.py serve          # venv + install, precompute the bundled examples if missing, serve on :8000
+    python3 dev.py test           # venv + install (with test tools, the test browser and PostgreSQL), run
+                                  # every test (what CI runs)
+    python3 dev.py test --fast    # the fast tier: no test marked slow, service (a real `yauyau serve`),
+                                  # browser or postgres; under 3 minutes on 2 cores
+    python3 dev.py test tests/solver/test_spec.py -x   # what you name, in one process
+
+Both tiers run the test files in parallel, one per core (pytest-xdist, ``-n auto --dist loadfile``);
+``--fast`` may be followed by more pytest arguments, anything else replaces the defaults.  The markers
+are declared in pyproject.toml ([tool.pytest.ini_options]).
 
 The virtual environment is ``.venv`` beside this file (``YAUYAU_VENV`` overrides); pip runs again
 only when pyproject.toml changed.  The steps are those of scripts/provision.py, which the
@@ -36,14 +44,20 @@ def serve(args: list[str]) -> int:
     return 0  # not reached: serve replaces this process
 
 
+PARALLEL = ["-n", "auto", "--dist", "loadfile"]
+FAST = ["-m", "not slow and not service and not browser and not postgres"]
+
+
 def test(args: list[str]) -> int:
+    fast = args[:1] == ["--fast"]
     provision.install(VENV, editable=True, extras=EXTRAS)
-    provision.browser()  # Debian's chromium + chromedriver for tests/service/http/test_live_page.py
-    provision.postgres()  # Debian's PostgreSQL server for the shared session store's tests
-    # the whole suite runs its files in parallel, one per core (pytest-xdist; a file's tests stay together,
-    # so its module fixtures are built once); arguments given replace that
-    command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q",
-               *(args or ["-n", "auto", "--dist", "loadfile"])]
+    if not fast:  # the fast tier needs neither
+        provision.browser()  # Debian's chromium + chromedriver for tests/service/http/test_live_page.py
+        provision.postgres()  # Debian's PostgreSQL server for the shared session store's tests
+    # the files run in parallel, one per core (pytest-xdist; a file's tests stay together, so its module
+    # fixtures are built once); arguments given replace that, except after --fast
+    chosen = [*FAST, *PARALLEL, *args[1:]] if fast else (args or PARALLEL)
+    command = [str(provision.venv_bin(VENV, "python")), "-m", "pytest", "-q", *chosen]
     return subprocess.run(command, cwd=ROOT).returncode
 
 

@@ -42,6 +42,7 @@ def test_every_public_name_resolves_and_import_is_light():
         yauyau.no_such_name  # noqa: B018
 
 
+@pytest.mark.slow
 def test_precompute_stores_the_chosen_method_once(ou_store):
     store, mid = ou_store
     loaded = yauyau.load_model(store, mid)

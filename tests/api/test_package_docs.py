@@ -15,7 +15,8 @@ import sys
 import textwrap
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+import pytest
+from helpers import ROOT
 
 
 def _env() -> dict[str, str]:
@@ -51,6 +52,7 @@ def test_docstring_table_names_every_public_name():
         assert re.search(rf"^{group}\n-+$", doc, re.M), group
 
 
+@pytest.mark.slow
 def test_docstring_example_runs(tmp_path):
     doc = _package()["doc"]
     block = re.search(r"^Example[^\n]*::\n\n((?: {4}[^\n]*\n)+)", doc, re.M)

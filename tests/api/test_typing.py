@@ -17,10 +17,10 @@ import inspect
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ROOT
 from yauyau.solver.exact.wei_norman import WeiNormanFilter
 from yauyau.solver.filtering import ChunkedFilter, ChunkResult, Estimate, Filter, FilterState, MarginalFilter
 from yauyau.solver.model import compile_model
@@ -28,9 +28,8 @@ from yauyau.solver.spec import spec_from_dict
 
 from yauyau.api import OnlineFilter, Solved, StoredFilterModel
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
+@pytest.mark.slow
 def test_mypy_passes_on_the_public_api():
     if importlib.util.find_spec("mypy") is None:
         pytest.skip("mypy is not installed (it comes with the test extra: pip install -e '.[test]')")

@@ -12,9 +12,10 @@ are known.
 from __future__ import annotations
 
 import importlib.util
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+import pytest
+from helpers import ROOT
+
 MAX_LINES = 600
 
 
@@ -45,6 +46,7 @@ def test_the_analysis_finds_a_known_circle_and_crossing(tmp_path):
     assert crossings == [("yauyau.solver.c", "yauyau.solver.b", "_hidden", 1)]
 
 
+@pytest.mark.slow
 def test_no_circles_and_no_private_crossings():
     graph_tool = load_import_graph()
     known = graph_tool.modules()

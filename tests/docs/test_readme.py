@@ -18,6 +18,8 @@ import pytest
 from helpers import ROOT
 from helpers.readme import readme_block
 
+pytestmark = pytest.mark.slow  # every test here takes seconds of CPU: the full run only
+
 
 def test_python_example_runs_verbatim(tmp_path):
     """From a directory that holds no examples/: the spec comes from the package (yauyau.examples)."""

@@ -20,6 +20,8 @@ from helpers import ROOT
 from helpers.readme import doc_section, env, json_objects, run_python_block
 from helpers.server import Server
 
+pytestmark = pytest.mark.slow  # every test here takes seconds of CPU: the full run only
+
 PAGE = "docs/service.md"
 SECTION = "Many streams, several hosts, models at run time"
 

@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from helpers import ROOT
 from helpers.atlas import reference_means
 from helpers.readme import run_python_block
+
+pytestmark = pytest.mark.slow  # every test here takes seconds of CPU: the full run only
 
 PAGE = "docs/models.md"
 SECTION = "A state that travels: a ball that follows it"

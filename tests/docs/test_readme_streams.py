@@ -24,6 +24,8 @@ from helpers.irregular_refs import GridReference
 from helpers.readme import env, json_objects, readme_block, readme_section, run_python_block
 from helpers.server import Server
 
+pytestmark = pytest.mark.slow  # every test here takes seconds of CPU: the full run only
+
 PAGE = "docs/measurements.md"
 SECTION = "Readings at irregular times, missing values, outliers"
 

@@ -44,6 +44,7 @@ def _against_kalman(basis, seeds=(101, 102, 103)):
     return float(np.mean(np.concatenate(gaps))), bad
 
 
+@pytest.mark.slow
 def test_the_check_predicts_the_bias_at_400_and_suggests_a_basis_that_passes():
     report = resolution_check(_spec(400))
     low = report.requested
@@ -59,6 +60,7 @@ def test_the_check_predicts_the_bias_at_400_and_suggests_a_basis_that_passes():
     assert gap_suggested <= report.target and bad_suggested == 0
 
 
+@pytest.mark.slow
 def test_the_check_passes_at_900_as_the_kalman_filter_says():
     report = resolution_check(_spec(900), suggest=True)
     assert report.requested.ok and len(report.trials) == 1 and report.suggested == 900
@@ -80,6 +82,7 @@ def test_the_cli_exit_status_says_resolved_or_not(tmp_path, capsys):
     assert main(["check", str(spec), "--paths", "0"]) == 2
 
 
+@pytest.mark.slow
 def test_precompute_warns_when_the_exact_filter_shows_the_basis_is_too_small(tmp_path, capsys):
     import json
 
@@ -100,6 +103,7 @@ ATLAS = {"name": "sin drift", "state": ["x"], "drift": ["0.8 + 0.3*sin(x)"], "ob
          "discretization": {"dt": 0.02, "basis": 4}}
 
 
+@pytest.mark.slow
 def test_a_reference_that_degenerates_is_refined_or_judges_nothing():
     """Basis 4 on the atlas: the engine at 8 degenerates on ~40% of the steps, so the reference is the
     engine at 16; a suggested basis is judged against twice its own (before, basis 12 'passed' against
@@ -117,6 +121,7 @@ def test_a_reference_that_degenerates_is_refined_or_judges_nothing():
     assert "the reference itself degenerates" in coarse.render()
 
 
+@pytest.mark.slow
 def test_the_report_bounds_the_degenerate_rate_and_says_how_much_of_the_region_the_paths_crossed():
     """A pass on short paths is not a pass on a long run: with no degenerate step in n the report gives
     the rule of three's bound 3/n; on an atlas it says which part of domain.region the paths crossed

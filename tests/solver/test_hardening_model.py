@@ -49,6 +49,7 @@ def test_expand_refuses_a_blow_up_without_expanding():
         expand((X + Y + Z + 1) ** 64)  # 47 905 terms: minutes of sp.expand
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("exponent", [24, 32])
 def test_analysis_of_the_attack_spec_stays_within_its_limit(exponent):
     """It ran 99.5 s against a 10 s limit: one sp.expand of (x+y+z+1)**30 (5456 terms) between two

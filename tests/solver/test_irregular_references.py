@@ -123,6 +123,7 @@ def scalar_kalman(rows, times, kind, theta, mu, a, H, h0, R, m0, P0):
     return np.array(out_m), np.array(out_P), np.array(out_l)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
 def test_kalman_matches_scalar_recursion(kind):
     rng = np.random.default_rng(1)
@@ -178,6 +179,7 @@ def test_grid_generator_and_methods(ou_model, ou_grid):
     assert np.abs(fast.predictive_loglik - slow.predictive_loglik).max() < 1e-9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, tol", [("discrete", (1e-4, 4e-4, 1.2e-4)),
                                        ("continuous", (1e-4, 4e-4, 1.2e-4))])
 def test_grid_ou(ou_model, ou_grid, kind, tol):
@@ -204,6 +206,7 @@ def test_grid_extreme_row_does_not_underflow(ou_grid):
     assert g.mean[0, 0] > 7.5  # the posterior sits at the box edge (x = 8)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind, tol", [("discrete", (6e-3, 2.5e-2, 7e-3)),
                                        ("continuous", (6e-3, 1.4e-2, 1.5e-2))])
 def test_grid_2d_missing_components(kind, tol):
@@ -225,6 +228,7 @@ def test_grid_2d_missing_components(kind, tol):
     assert dm < tol[0] and dv < tol[1] and dl < tol[2]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("observation, R, row", [
     (["x"], [[0.3]], [4.0]),
     (["x", "0.5*x"], [[0.3, 0.1], [0.1, 0.6]], [4.0, np.nan]),  # marginal of the observed component
@@ -273,6 +277,7 @@ def test_random_times():
     assert np.unique(gaps).size == gaps.size
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
 def test_simulator_innovations_are_standard(ou_model, kind):
     """Rows simulated from the OU model give Kalman innovations with unit variance (χ² check)."""
@@ -295,6 +300,7 @@ def test_simulator_innovations_are_standard(ou_model, kind):
     assert abs(chi2.mean() - 1) < 4 * math.sqrt(2 / K)
 
 
+@pytest.mark.slow
 def test_simulator_student_t_noise(ou_model):
     """Discrete Student-t rows: z − h(x) has variance R ν/(ν − 2) and the t distribution."""
     rng = np.random.default_rng(7)

@@ -54,6 +54,7 @@ def test_numeric_builder_refuses_what_sympy_refuses(text, message):
     assert err.value.field == "drift[0]"
 
 
+@pytest.mark.slow
 def test_a_stored_model_filters_without_sympy(tmp_path):
     import yauyau
 

@@ -40,6 +40,7 @@ def _open(store, name, method=None):
     return spec, (lambda m=method, **options: api.open_filter(store, mid, method=m, **options))
 
 
+@pytest.mark.slow
 def test_ou_quantiles_are_the_normal_quantiles(store):
     spec, opener = _open(store, "ou.toml")
     kb, yh, yy = opener("kalman-bucy"), opener("yau-hu"), opener("yau-yau")
@@ -65,6 +66,7 @@ def _benes_cdf(x, mu, P):
 
 # Yau–Hu solves the continuous-time filter exactly; against the time-sampled recursion its variance
 # differs by ≈0.01 (an O(dt) model difference, not the quantile inversion: its mean is within 3e-3).
+@pytest.mark.slow
 @pytest.mark.parametrize("method, tol", [("yau-yau", 2e-3), ("yau-hu", 1.5e-2)])
 def test_benes_quantiles_match_the_exact_density(store, method, tol):
     spec, opener = _open(store, "benes.toml")
@@ -92,6 +94,7 @@ def _quadratic_spec():
         "domain": {"radius": 5.0}, "discretization": {"dt": 0.01, "basis": 128}})
 
 
+@pytest.mark.slow
 def test_mode_sits_on_the_taller_peak_of_the_reference(store):
     spec = _quadratic_spec()
     mid = api.precompute(spec, store)
@@ -127,6 +130,7 @@ def test_gaussian_mode_is_the_mean_and_degenerate_has_none(store):
     assert np.isnan(yy.quantiles([0.5])).all()
 
 
+@pytest.mark.slow
 def test_a_summarised_run_gives_each_row_the_normal_quantiles_and_none_once_degenerate(store):
     """solver/summarised.py, the one path of ``yauyau filter --quantiles/--mode`` and of a session chunk
     that asks for them: row by row, the Yau–Hu filter's quantiles are the normal quantiles of the exact

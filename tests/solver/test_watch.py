@@ -76,6 +76,7 @@ def lost_reason_is_actionable(reason: str) -> None:
 
 
 # -- lost track ----------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_state_outside_the_ball_is_lost_track_not_healthy_estimates(store):
     """The attack: OU on radius 7, increments of x = 12, on_degenerate = reinitialise.  It restarted on
     every row (1 128 restarts in 2 000 rows) and answered estimates inside the ball flagged healthy."""
@@ -108,6 +109,7 @@ def test_a_state_outside_the_ball_is_lost_track_not_healthy_estimates(store):
     assert flt.lost is None and not flt.run(held_at(0.0, 200)).degenerate.any()
 
 
+@pytest.mark.slow
 def test_a_run_of_gated_rows_is_lost_track_on_a_filter_without_a_ball(store):
     """Kalman–Bucy has no ball: a sensor that jumps to readings of 12 is gated row after row (the filter
     only predicts) and its estimates stay near 0: after 20 consecutive gated rows it has lost track."""
@@ -129,6 +131,7 @@ def test_a_run_of_gated_rows_is_lost_track_on_a_filter_without_a_ball(store):
     assert result.gated.sum() == 38 and not result.degenerate.any() and flt.lost is None
 
 
+@pytest.mark.slow
 def test_the_same_model_with_the_state_inside_the_ball_is_not_flagged(store):
     directory, ids = store
     for rows in (held_at(3.0, 2000), yauyau.simulate(spec_from_dict(OU7), 2000, seed=4).increments):
@@ -138,6 +141,7 @@ def test_the_same_model_with_the_state_inside_the_ball_is_not_flagged(store):
         assert flt.lost is None
 
 
+@pytest.mark.slow
 def test_filter_command_exits_3_naming_the_domain_when_the_state_leaves_the_ball(store, tmp_path):
     directory, ids = store
     source = tmp_path / "dy.csv"
@@ -160,6 +164,7 @@ def test_filter_command_exits_3_naming_the_domain_when_the_state_leaves_the_ball
     assert run.returncode == 0, run.stderr
 
 
+@pytest.mark.slow
 def test_check_fails_a_spec_whose_paths_leave_the_ball(tmp_path):
     """A drift that pushes out (x grows like e^(t/2)) on a ball of radius 6: simulated paths cross the rim."""
     spec = tmp_path / "outward.json"
@@ -176,6 +181,7 @@ def test_check_fails_a_spec_whose_paths_leave_the_ball(tmp_path):
 
 
 # -- time below the float spacing -------------------------------------------------------------------
+@pytest.mark.slow
 def test_times_whose_steps_floats_cannot_hold_are_refused_in_the_library(store):
     directory, ids = store
     for t0 in (1e16, 1e308, -1e16):
@@ -195,6 +201,7 @@ def test_times_whose_steps_floats_cannot_hold_are_refused_in_the_library(store):
     assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(1e6 + 9.0, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_times_below_the_float_spacing_over_the_command_line(store, tmp_path):
     directory, ids = store
     source = tmp_path / "dy.csv"
@@ -217,6 +224,7 @@ def test_times_below_the_float_spacing_over_the_command_line(store, tmp_path):
 
 
 # -- the innovation monitor -------------------------------------------------------------------------
+@pytest.mark.slow
 def test_monitor_raises_the_alarm_on_a_biased_sensor(store):
     """The 0.33 bias case: the power meter's readings 0.33 low.  Before, nothing flagged it (the gate
     passes every row); now the alarm comes within the bound, on the side of the bias."""
@@ -239,6 +247,7 @@ def test_monitor_raises_the_alarm_on_a_biased_sensor(store):
     assert np.mean(result.mean[:first, 0] - sim.states[1:first + 1, 0]) > 0.2  # the wrong answer it flags
 
 
+@pytest.mark.slow
 def test_monitor_stays_quiet_on_healthy_streams(store):
     """Rows simulated from the model itself: 10 000 of the power meter, 20 000 of the OU sensor, 5 000 of
     the engine on the OU ball: no alarm.  At 1e9 healthy rows per false alarm the chance of
@@ -269,6 +278,7 @@ def test_monitor_false_alarm_rate_matches_its_setting():
         assert 0.5 * target < rows / alarm.sum() < 2.0 * target, (target, alarm.sum())
 
 
+@pytest.mark.slow
 def test_monitor_columns_on_the_command_line_only_when_it_is_on(store, tmp_path):
     """`yauyau filter --monitor 1e9` on the power meter reading 0.33 low: the columns alarm and monitor,
     an alarm row at +-1, and stderr naming the first; without --monitor the columns of the filter
@@ -307,6 +317,7 @@ def test_monitor_columns_on_the_command_line_only_when_it_is_on(store, tmp_path)
     assert "innovation monitor: no alarm (1,000,000,000 healthy rows per false alarm)" in run.stderr
 
 
+@pytest.mark.slow
 def test_monitor_state_round_trips_and_continues(store):
     """Half a biased stream, the state through JSON into a new filter, the other half: the same alarms and
     statistic as one uninterrupted run, bit for bit (the charts' sums are exact)."""
@@ -435,6 +446,7 @@ def test_silent_wrong_answers_over_http(store, tmp_path):
         server.kill()
 
 
+@pytest.mark.slow
 def test_bundled_examples_keep_their_model_ids(tmp_path):
     """The new [measurement] monitor is left out of a spec's id where it has its default (off); a spec
     that sets it gets its monitor in every filter opened on it."""

@@ -127,6 +127,7 @@ def test_flipped_byte_inside_dataset_data_is_refused(store: ModelStore):
     assert err.value.field == "model" and "Traceback" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_every_single_bit_flip_is_refused_or_harmless(store: ModelStore):
     """Flip one bit anywhere (400 seeded positions): load refuses, or returns the original exactly.
 

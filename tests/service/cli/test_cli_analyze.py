@@ -35,6 +35,7 @@ observation = ["x1"]
 """ + PRIOR_AND_GRID
 
 
+@pytest.mark.slow
 def test_text_report_of_the_seed004_example(tmp_path):
     spec = tmp_path / "seed004.toml"
     spec.write_text(SEED004)
@@ -55,6 +56,7 @@ def test_json_report_of_the_ou_example():
     assert data["conditions"]["linear"]["holds"] is True
 
 
+@pytest.mark.slow
 def test_cubic_sensor_with_small_bound_does_not_close():
     done = yauyau(str(ROOT / "examples" / "cubic_sensor.toml"), "--max-depth", "2", "--json")
     assert done.returncode == 0, done.stderr
@@ -138,6 +140,7 @@ YAU_JIA = ("Filtering Problem with Nonlinear Observations and Drift Terms Equal 
            "plus Affine Vector Field")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("example, method, cited", [
     ("ou.toml", "kalman-bucy", None),
     ("benes.toml", "yau-hu",
@@ -159,6 +162,7 @@ def test_text_report_names_the_papers_not_the_seeds(example, method, cited):
         assert cited in out
 
 
+@pytest.mark.slow
 def test_text_report_of_the_non_maximal_rank_example_cites_theorem_1(tmp_path):
     spec = tmp_path / "example.toml"
     spec.write_text(SEED004.replace("seed004-example", "non-maximal-rank-example"))
@@ -170,6 +174,7 @@ def test_text_report_of_the_non_maximal_rank_example_cites_theorem_1(tmp_path):
     assert "Shi et al. (2017) class, items:" in done.stdout
 
 
+@pytest.mark.slow
 def test_json_report_lists_the_references(tmp_path):
     spec = tmp_path / "example.toml"
     spec.write_text(SEED004.replace("seed004-example", "non-maximal-rank-example"))
@@ -206,6 +211,7 @@ def test_service_report_is_the_same_report_with_references(tmp_path):
     assert data["recommendation"]["method"] == "yau-hu" and YAU_LAI in data["recommendation"]["reason"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("example, words", [
     ("ou.toml", ["linear with Gaussian noise", "Kalman-Bucy filter is exact", "cheaper per observation"]),
     ("benes.toml", ["Yau filtering system", "ordinary differential equations"]),

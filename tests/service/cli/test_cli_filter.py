@@ -57,6 +57,7 @@ def _read(out: Path) -> tuple[list[str], np.ndarray]:
     return rows[0], np.array([[float(v) if v else np.nan for v in r] for r in rows[1:]])
 
 
+@pytest.mark.slow
 def test_filter_csv_round_trip_matches_kalman(store, tmp_path):
     _, _, model = store
     dy = simulate(model, 120, np.random.default_rng(21)).increments
@@ -145,6 +146,7 @@ def test_header_of_text_is_skipped_and_rows_keep_their_steps(store, tmp_path):
     assert code == 0 and table.shape[0] == 2 and list(table[:, 0]) == [1.0, 2.0]
 
 
+@pytest.mark.slow
 def test_filter_uses_the_stored_method_says_so_and_never_analyses(store, tmp_path):
     """The method is chosen at precompute: `yauyau filter` prints it and does not load the analysis."""
     import json
@@ -258,6 +260,7 @@ def cubic():
     return model, precompute(model)
 
 
+@pytest.mark.slow
 def test_make_filter_methods(store, cubic):
     _, _, ou = store
     model, offline = cubic
@@ -273,6 +276,7 @@ def test_make_filter_methods(store, cubic):
         assert err.value.field == "method"
 
 
+@pytest.mark.slow
 def test_auto_picks_the_exact_yau_hu_filter_for_benes():
     """Beneš (f = tanh x, h = x, a = 1) is a Yau filtering system (seed 000): exact filter, no offline."""
     model = compile_model(load_spec(EXAMPLES / "benes.toml"))

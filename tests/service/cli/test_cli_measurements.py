@@ -135,6 +135,7 @@ def _printed_command(stderr: str, store, name: str, out: Path, command: str = "f
     return [str(out) if w == "OUT.csv" else w for w in words[1:]]
 
 
+@pytest.mark.slow
 def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(store, specs, tmp_path):
     sim = tmp_path / "sim"
     done = _run("simulate", specs["ou_discrete"], "--steps", 400, "--seed", 3, "--mean-gap", 0.05,
@@ -190,6 +191,7 @@ def test_discrete_measurements_at_random_times_match_the_exact_kalman_recursion(
     np.testing.assert_array_equal(result.gated, table[:, 6].astype(bool))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["kalman-bucy", "yau-hu", "wei-norman"])
 def test_exact_methods_take_timed_measurements_exactly_or_refuse_in_one_line(store, specs, tmp_path, method):
     """An exact filter either takes discrete measurements at random times (then it must be the exact
@@ -211,6 +213,7 @@ def test_exact_methods_take_timed_measurements_exactly_or_refuse_in_one_line(sto
     assert np.abs(table[:, 2] - mean).max() < 1e-3 and np.abs(table[:, 3] / var - 1).max() < 0.01
 
 
+@pytest.mark.slow
 def test_default_t0_is_the_first_observation_and_an_earlier_one_propagates(store, tmp_path):
     rng = np.random.default_rng(8)
     times = 2.0 + np.concatenate([[0.0], np.cumsum(rng.exponential(0.1, 59))])
@@ -238,6 +241,7 @@ def test_default_t0_is_the_first_observation_and_an_earlier_one_propagates(store
     assert np.abs(first[None] - first[1.5]).min() > 0.02  # the two priors' times do make a difference
 
 
+@pytest.mark.slow
 def test_partly_missing_components_are_marginalised(store, specs, tmp_path):
     sim = tmp_path / "sim"
     done = _run("simulate", specs["ou_two"], "--steps", 300, "--seed", 11, "--out", sim)
@@ -266,6 +270,7 @@ def test_partly_missing_components_are_marginalised(store, specs, tmp_path):
     assert np.array_equal(np.isnan(got), np.isnan(z).all(axis=1))  # empty only where nothing is observed
 
 
+@pytest.mark.slow
 def test_a_1000_sigma_outlier_is_gated_and_later_rows_are_healthy(store, specs, tmp_path):
     sim = tmp_path / "sim"
     assert _run("simulate", specs["ou_discrete"], "--steps", 300, "--seed", 5, "--mean-gap", 0.05,
@@ -298,6 +303,7 @@ def test_a_1000_sigma_outlier_is_gated_and_later_rows_are_healthy(store, specs, 
     assert gaps[0] < 1e-3 and gaps[1] < 0.01 and gaps[2] < 1e-3
 
 
+@pytest.mark.slow
 def test_reinitialise_continues_where_stop_exits_3_and_the_gate_only_predicts(store, tmp_path):
     """cubic_sensor, one increment of 1e5 at step 13 (row 12)."""
     sim = tmp_path / "sim"
@@ -362,6 +368,7 @@ def test_reinitialise_continues_where_stop_exits_3_and_the_gate_only_predicts(st
     assert seen["again"]["purple"] > 10 and seen["again"]["orange"] == 0, seen
 
 
+@pytest.mark.slow
 def test_reinitialise_gives_the_same_rows_in_any_chunking(store, tmp_path):
     """--on-degenerate reinitialise over chunks of 5 rows, and row by row (--quantiles), gives the rows
     of one chunk: the state goes on from chunk to chunk (steps 1..K, no restart at a chunk's end)."""
@@ -388,6 +395,7 @@ def test_reinitialise_gives_the_same_rows_in_any_chunking(store, tmp_path):
         np.testing.assert_allclose(tables[name], tables["one"], rtol=1e-12, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow
 def test_continuous_increments_at_random_times(store, tmp_path):
     sim = tmp_path / "sim"
     done = _run("simulate", EXAMPLES / "ou.toml", "--steps", 300, "--seed", 5, "--mean-gap", 0.02,
@@ -433,6 +441,7 @@ BAD_INPUT = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_INPUT))
 def test_bad_input_exits_2_in_one_line_naming_the_row_and_writes_nothing(store, tmp_path, case):
     name, content, extra, field, words = BAD_INPUT[case]

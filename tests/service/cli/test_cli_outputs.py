@@ -50,6 +50,7 @@ def _png(path: Path) -> np.ndarray:
     return matplotlib.image.imread(path)
 
 
+@pytest.mark.slow
 def test_three_commands_reproduce_the_printed_output(tmp_path):
     (tmp_path / "examples").symlink_to(EXAMPLES)
     commands = [line for line in readme_block(HEADING, "sh", PAGE).splitlines() if line.strip()]
@@ -112,6 +113,7 @@ def test_simulate_writes_what_filter_reads_and_is_reproducible(tmp_path):
     np.testing.assert_array_equal(inc, sim.increments)
 
 
+@pytest.mark.slow
 def test_quantile_and_mode_columns_against_the_normal_posterior(store, tmp_path):
     directory, ids = store
     run = _simulate(tmp_path, "ou", 300, seed=2)
@@ -129,6 +131,7 @@ def test_quantile_and_mode_columns_against_the_normal_posterior(store, tmp_path)
     assert np.abs(table[:, 4] - kb[:, 2]).max() < 1e-3  # the mode of a normal is its mean
 
 
+@pytest.mark.slow
 def test_density_file_is_cf_style_and_integrates_to_one(store, tmp_path):
     directory, ids = store
     run = _simulate(tmp_path, "range_2d", 40, seed=3)
@@ -158,6 +161,7 @@ def test_density_file_is_cf_style_and_integrates_to_one(store, tmp_path):
             assert mean == pytest.approx(table[39, 2 + i], abs=0.02)
 
 
+@pytest.mark.slow
 def test_plot_draws_band_truth_and_heat_map(store, tmp_path):
     directory, ids = store
     run = _simulate(tmp_path, "cubic_sensor", 200, seed=5)
@@ -180,9 +184,11 @@ def test_plot_draws_band_truth_and_heat_map(store, tmp_path):
     assert svg.read_text().lstrip().startswith("<?xml")
 
 
+@pytest.mark.slow
 def test_degenerate_run_exits_3_and_says_from_where(store, tmp_path, capsys):
     """An increment of 1e5 with the outlier gate off (--gate 0; the default gate would reject it:
-    tests/test_cli_measurements.py) pushes the density out of the ball: exit 3, flagged from there."""
+    tests/service/cli/test_cli_measurements.py) pushes the density out of the ball: exit 3, flagged from
+    there."""
     directory, ids = store
     run = _simulate(tmp_path, "cubic_sensor", 30, seed=6)
     rows = (run / "increments.csv").read_text().splitlines()
@@ -202,6 +208,7 @@ def test_degenerate_run_exits_3_and_says_from_where(store, tmp_path, capsys):
     assert not table[:, columns.index("gated")].any() and not table[:, columns.index("reinitialised")].any()
 
 
+@pytest.mark.slow
 def test_cumulative_observations_are_recognised(store, tmp_path, capsys):
     directory, ids = store
     for name in ("cubic_sensor", "ou", "range_2d"):
@@ -219,6 +226,7 @@ def test_cumulative_observations_are_recognised(store, tmp_path, capsys):
         assert "looks like the cumulative observation" in err and "numpy.diff" in err, (name, err)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra, field", [
     (["--quantiles", "0.5,1.5"], "quantiles"), (["--quantiles", "a"], "quantiles"),
     (["--quantiles", "0.5,0.5"], "quantiles"), (["--density", "d.csv"], "density"),
@@ -253,6 +261,7 @@ def test_simulate_and_plot_errors_exit_2(tmp_path, capsys, argv, field):
     assert f"error: {field}" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_progress_bar_on_request(store, tmp_path, capsys):
     directory, ids = store
     run = _simulate(tmp_path, "ou", 50)
@@ -282,6 +291,7 @@ def test_version_is_the_distribution_version():
     assert (done.returncode, done.stdout, done.stderr) == (0, f"yauyau {version}\n", "")
 
 
+@pytest.mark.slow
 def test_output_files_get_the_users_umask(store, tmp_path):
     """Under umask 022 every file the commands write for the user is 0644, as open() would make it (the
     temporary files they were renamed from were mkstemp's 0600): simulate --out, filter --out and

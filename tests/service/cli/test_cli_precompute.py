@@ -30,6 +30,7 @@ def small_ou(tmp_path: Path, basis: int = 6) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_precompute_prints_id_last_and_models_lists_it(tmp_path: Path):
     spec_path, store = small_ou(tmp_path), tmp_path / "store"
     done = yauyau("precompute", str(spec_path), "--store", str(store))
@@ -55,6 +56,7 @@ def test_precompute_prints_id_last_and_models_lists_it(tmp_path: Path):
     assert text.returncode == 0 and mid in text.stdout and "ornstein-uhlenbeck" in text.stdout
 
 
+@pytest.mark.slow
 def test_force_recomputes_and_replaces_with_compress(tmp_path: Path):
     spec_path, store = small_ou(tmp_path, basis=4), tmp_path / "store"
     first = yauyau("precompute", str(spec_path), "--store", str(store), "--quiet", "--workers", "1")

@@ -384,6 +384,7 @@ def _raw(port: int, request: bytes) -> bytes:
     return data
 
 
+@pytest.mark.slow
 def test_read_only_store_says_what_to_do(tmp_path, example_store):
     store, _ = example_store
     with tmpfs(tmp_path / "ro", "8m") as ro:
@@ -419,6 +420,7 @@ def test_models_listing_marks_a_swapped_file(tmp_path):
 SESSIONS = 300  # docs/reliability.md's figures: SESSIONS = 1000 (88.5 MB, 44.9 MB after deleting half)
 
 
+@pytest.mark.slow
 def test_retained_responses_are_bounded_and_deletes_give_space_back(tmp_path):
     """SESSIONS sessions x 10 chunks of ~8.4 KB responses (100 observations each): before, 256 kept
     per session and deleting half of 1 000 left the file at 96.4 MB; now at most 16 and 256 KiB per

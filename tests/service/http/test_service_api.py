@@ -219,6 +219,7 @@ def test_analyze(api):
     _problem(api.post("/v1/analyze", json={**spec, "drift": ["__import__('os')"]}), 422, "drift[0]")
 
 
+@pytest.mark.slow
 def test_analyze_takes_the_body_of_post_models(api):
     """{"spec": ...}, as POST /v1/models takes it, besides the bare spec: OU is linear, so both recommend
     the Kalman–Bucy filter (exact for it); a field at fault is named spec.<field>, as POST /v1/models does."""

@@ -17,6 +17,8 @@ from schemathesis.specs.openapi.checks import positive_data_acceptance
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
+pytestmark = pytest.mark.slow  # every test here takes seconds of CPU: the full run only
+
 EXAMPLES = 50  # per operation, mode and path-parameter choice: bounded, derandomized (was 8)
 OPERATIONS = [("GET", "/livez"), ("GET", "/readyz"), ("GET", "/v1/models"), ("GET", "/v1/models/{model_id}"),
               ("POST", "/v1/sessions"), ("POST", "/v1/sessions/{session_id}/observations"),

@@ -135,6 +135,7 @@ def _random_times(rng, K, low=0.02, high=0.6, start=0.0):
 
 
 # -- 1. discrete measurements at random times -----------------------------------------------------
+@pytest.mark.slow
 def test_discrete_measurements_at_random_times_match_the_engine_and_the_exact_kalman_filter(api):
     rng = np.random.default_rng(5)
     K = 60

@@ -245,6 +245,7 @@ def test_a_public_bind_without_tenants_is_refused(example_store, tmp_path):
 HASH, OTHER = "ab" * 32, "cd" * 32
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text, names", [
     ('[[tenant]]\nname = "alice"\ntoken_sha256 = "' + HASH[:63] + '"\n', ["alice", "token_sha256", "64"]),
     ('[[tenant]]\nname = "alice"\ntoken_sha256 = "' + "g" * 64 + '"\n', ["alice", "token_sha256"]),

@@ -162,6 +162,7 @@ def test_the_rules_leave_stiff_but_solvable_drifts_alone():
 
 
 # -- mixture weights that overflow their sum -----------------------------------------------------------
+@pytest.mark.slow
 def test_huge_mixture_weights_filter_like_unit_weights_with_yau_hu(tmp_path):
     """examples/ou.toml with a two-component mixture prior: ``auto`` chooses Yau-Hu (the prior is not
     Gaussian); weights [1e308, 1e308] are [0.5, 0.5], as the engine takes them."""

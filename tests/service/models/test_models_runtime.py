@@ -47,6 +47,7 @@ def _wait(api, url, timeout=120.0):
     raise AssertionError(f"job {url} still running after {timeout} s")
 
 
+@pytest.mark.slow
 def test_a_spec_posted_is_precomputed_in_the_background_and_served(api):
     expected = model_id(spec_from_dict(SPEC).canonical_json())
     first = api.post("/v1/models", json={"spec": SPEC})

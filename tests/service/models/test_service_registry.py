@@ -11,7 +11,7 @@ import shutil
 
 import pytest
 from fastapi.testclient import TestClient
-from helpers import ROOT
+from helpers import EXAMPLES, ROOT
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
 
@@ -53,7 +53,6 @@ def test_the_listing_and_the_detail_show_the_summary_stored_at_precompute(tmp_pa
     """GET /v1/models and GET /v1/models/{id} show the summary the file holds (computed once, when it
     was written: storage/model_store.py), not one computed again from the model: a file whose stored
     summary names the model otherwise is shown with that name by both."""
-    from helpers import EXAMPLES
     from yauyau.storage import model_store
 
     computed = model_store.spec_summary

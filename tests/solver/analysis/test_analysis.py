@@ -230,6 +230,7 @@ def test_cubic_sensor_does_not_close_within_the_bound():
     assert report.method == "yau-yau"
 
 
+@pytest.mark.slow
 def test_recommendations():
     assert analyze(make(["x"], ["-0.5*x"], ["x"])).method == "kalman-bucy"
     benes = make(["x"], ["tanh(x)"], ["x"], prior={"kind": "mixture", "weights": [0.5, 0.5],
@@ -281,6 +282,7 @@ def test_nasty_model_stops_at_the_time_limit_and_says_so():
     assert report.method == "yau-yau"
 
 
+@pytest.mark.slow
 def test_nasty_model_stops_at_the_expression_size_cap():
     report = analyze(make(*NASTY), time_limit=None, max_size=1000)
     assert report.algebra.stopped_by == "expression size 1000" and not report.algebra.closed

@@ -59,6 +59,7 @@ def assert_bounded(report: dict, limit: float) -> None:
             or report["estimation_algebra"]["stopped_by"] == f"time {limit:g} s"), report
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("limit, extra", [
     (2.0, []),
     # depth 1: the conditions and the algebra end early, so the report is tidied with time left: on
@@ -74,6 +75,7 @@ def test_analyze_keeps_its_time_limit_on_the_attack_spec(tmp_path, limit, extra)
     assert report["estimation_algebra"]["closed"] is False
 
 
+@pytest.mark.slow
 def test_precompute_auto_stores_the_general_engine_within_the_time_limit(tmp_path):
     limit = 20.0
     store = tmp_path / "store"
@@ -113,6 +115,7 @@ def test_a_posted_model_job_keeps_the_analysis_time_limit(tmp_path):
         server.kill()
 
 
+@pytest.mark.slow
 def test_the_library_precompute_keeps_its_time_limit_in_a_script_without_a_main_guard(tmp_path):
     """yauyau.precompute from a plain script (no ``if __name__ == "__main__"``): the analysis process
     (a fork of the script, or a fresh Python) does not run the script again, as a spawned one would."""

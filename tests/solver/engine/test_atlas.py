@@ -47,6 +47,7 @@ def sin():
     return model, precompute(model)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_drift_that_is_not_shift_invariant_matches_the_fine_grid_over_the_whole_path(sin, seed):
     model, offline = sin
@@ -67,6 +68,7 @@ def test_a_drift_that_is_not_shift_invariant_matches_the_fine_grid_over_the_whol
     assert np.abs(result.mean[:, 0] - result.center[:, 0]).max() < 0.3 * 6.0
 
 
+@pytest.mark.slow
 def test_the_fixed_ball_of_the_same_radius_cannot_follow(sin):
     model, _ = sin
     fixed = compile_model(spec_from_dict({**SIN, "domain": {"radius": 6.0}}))
@@ -93,6 +95,7 @@ def test_the_lattice_covers_the_region_in_whole_elements(sin):
     assert a.basis is b.basis and np.allclose(b.nodes - a.nodes, centers[-1] - centers[0])
 
 
+@pytest.mark.slow
 def test_leaving_the_region_is_a_degenerate_step_with_its_reason(sin):
     model = compile_model(_spec(region=[[-5.0, 20.0]]))
     flt = build(model, precompute(model))
@@ -110,6 +113,7 @@ def test_leaving_the_region_is_a_degenerate_step_with_its_reason(sin):
     assert np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
 
 
+@pytest.mark.slow
 def test_a_state_that_left_the_region_is_not_re_initialised_at_the_model_prior(sin):
     """on_degenerate = "reinitialise" cannot restart a ball that left its region (a prior around the last
     estimate lies outside it too, and the model's prior describes t = 0, ~20 units behind): the rows stay
@@ -135,6 +139,7 @@ def test_a_state_that_left_the_region_is_not_re_initialised_at_the_model_prior(s
     assert info.value.field == "from"
 
 
+@pytest.mark.slow
 def test_a_stored_atlas_is_read_one_centre_at_a_time_and_checked(tmp_path):
     spec = _spec()
     model_id = yauyau.precompute(spec, tmp_path)
@@ -179,6 +184,7 @@ def test_a_bad_region_names_the_field_and_the_fix(domain, field, words):
     assert caught.value.field == field and words in caught.value.message
 
 
+@pytest.mark.slow
 def test_follow_without_a_region_says_to_declare_one_and_a_prior_outside_is_refused():
     doc = json.loads(json.dumps(SIN))
     del doc["domain"]["region"]
@@ -214,6 +220,7 @@ def test_a_spec_whose_prior_is_outside_the_region_is_refused_and_nothing_is_stor
     assert "Traceback" not in err and not list(store.glob("*.h5"))
 
 
+@pytest.mark.slow
 def test_the_cli_precomputes_and_filters_an_atlas(tmp_path, capsys):
     spec_file = tmp_path / "sin.json"
     spec_file.write_text(_spec().canonical_json())
@@ -240,6 +247,7 @@ def test_the_cli_precomputes_and_filters_an_atlas(tmp_path, capsys):
     assert float(rows[-1]["center_x"]) > 5
 
 
+@pytest.mark.slow
 def test_in_2d_the_lattice_runs_along_the_coordinates_the_drift_depends_on_only():
     """f = (0.8 + 0.3 sin x, 0.5): a lattice along x; along y the centre's ball moves by translation and
     shares that centre's stored propagator (SymPy finds y shift-invariant)."""
@@ -268,6 +276,7 @@ def test_in_2d_the_lattice_runs_along_the_coordinates_the_drift_depends_on_only(
     assert np.allclose(engine.nodes, offline.atlas.offline(k).nodes + [0.0, center[1]])
 
 
+@pytest.mark.slow
 def test_a_session_over_http_carries_the_centre_and_ends_at_the_region_with_its_reason(tmp_path):
     """The service: rows carry "center" (and "recentred": true where the ball moved), the stored state
     keeps the centre between chunks (the same means as one run in this process), and a path that
@@ -338,6 +347,7 @@ def test_the_loops_propagator_at_a_centre_is_the_one_stored_for_it(sin):
         assert flt.propagator_at(offline.atlas.center(7)) is flt._atlas_engine(7).propagator
 
 
+@pytest.mark.slow
 def test_a_precomputed_atlas_goes_to_the_store_centre_by_centre_and_is_never_all_in_memory(sin, tmp_path):
     """Truth: the atlas solved in memory (the fixture).  Streamed, each centre reaches the sink once,
     bit for bit the same, and the solve keeps none of them: its peak of traced memory is below the

@@ -53,6 +53,7 @@ def _assert_same(alone, together, precision="double"):
         np.testing.assert_allclose(s2.loglik, s1.loglik, rtol=rtol, atol=rtol)
 
 
+@pytest.mark.slow
 def test_a_batch_of_ou_streams_matches_the_exact_kalman_filter(ou):
     model, offline = ou
     engine = YauYauFilter(model, offline)
@@ -71,6 +72,7 @@ def test_a_batch_of_ou_streams_matches_the_exact_kalman_filter(ou):
         assert state.step == len(chunk) and not result.degenerate.any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("precision", ["double", "single"])
 def test_the_batch_is_each_state_stepped_alone(cubic, precision):
     model, offline = cubic
@@ -94,6 +96,7 @@ def test_the_batch_is_each_state_stepped_alone(cubic, precision):
     _assert_same([engine.run_arrays(s, c) for (s, _), c in zip(alone, chunks, strict=True)], again, precision)
 
 
+@pytest.mark.slow
 def test_degenerate_states_and_irregular_times_run_alone_with_the_same_answer(cubic):
     model, offline = cubic
     engine = YauYauFilter(model, offline, gate=0)  # no gate: an impossible row degenerates
@@ -111,6 +114,7 @@ def test_degenerate_states_and_irregular_times_run_alone_with_the_same_answer(cu
                  engine.run_batch([s for s, _ in together], next_chunks))
 
 
+@pytest.mark.slow
 def test_a_2d_batch_is_each_state_stepped_alone(plane):
     model, offline = plane
     engine = YauYauFilter(model, offline)

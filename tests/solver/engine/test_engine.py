@@ -76,6 +76,7 @@ def _literal_exact(model, dy):
     return np.array(means), np.array(variances), np.array(logliks)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form, precision, exact", [("stable", "double", _kalman),
                                                      ("stable", "single", _kalman),
                                                      ("literal", "double", _literal_exact)])
@@ -164,6 +165,7 @@ def test_prior_override_and_initial_moments(ou):
 
 
 # -- Beneš: exact density ------------------------------------------------------------------------
+@pytest.mark.slow
 def test_benes_density_matches_exact_filter(benes):
     model, offline = benes
     sim = simulate(model, 250, np.random.default_rng(5))
@@ -185,6 +187,7 @@ def test_benes_density_matches_exact_filter(benes):
 
 
 # -- cubic sensor: fine-grid reference -----------------------------------------------------------
+@pytest.mark.slow
 def test_cubic_sensor_matches_point_mass_reference(cubic):
     model, offline = cubic
     (_, _, estimates), (_, _, ref) = _run_side_by_side(model, offline, PointMassFilter(model), 400, 3)
@@ -329,6 +332,7 @@ print(json.dumps({"mean": result.mean.tolist(), "loglik": result.loglik.tolist()
 """
 
 
+@pytest.mark.slow
 def test_a_restarted_process_continues_bit_identically(cubic, tmp_path):
     """A stored state continued in a fresh process (other BLAS thread count) = the uninterrupted run."""
     model, offline = cubic

@@ -58,6 +58,7 @@ def _gaps(model, offline, increments):
     return ours, ref
 
 
+@pytest.mark.slow
 def test_3d_linear_model_matches_discrete_kalman(linear_3d):
     model, offline = linear_3d
     increments = simulate(model, STEPS, np.random.default_rng(5)).increments

@@ -64,6 +64,7 @@ def test_leak_of_the_first_dirichlet_mode_is_its_exact_decay():
     assert abs(yy.diagnostics.boundary_leak(centred, centred @ yy.weights)[0]) < 1e-6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 3, 4])
 def test_benes_leaving_the_ball_is_flagged_before_the_estimates_go_wrong(benes, seed):
     model, offline = benes
@@ -92,6 +93,7 @@ def _unflagged_means(yy: YauYauFilter, dy: np.ndarray) -> np.ndarray:
     return yy.moments(sigma, masses)[0][:, 0]
 
 
+@pytest.mark.slow
 def test_flagged_benes_run_is_the_same_in_chunks_and_after_a_restart(benes):
     model, offline = benes
     dy = simulate(model, 1000, np.random.default_rng(0)).increments
@@ -108,6 +110,7 @@ def test_flagged_benes_run_is_the_same_in_chunks_and_after_a_restart(benes):
     assert state.to_dict() == whole.to_dict()
 
 
+@pytest.mark.slow
 def test_single_precision_flags_benes_like_double(benes):
     model, offline = benes
     dy = simulate(model, 1000, np.random.default_rng(1)).increments
@@ -120,6 +123,7 @@ def test_single_precision_flags_benes_like_double(benes):
     assert abs(flagged[0] - flagged[1]) <= 2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("example, steps, seeds", [("cubic_sensor.toml", 1000, (0, 1, 2, 5)),
                                                    ("ou.toml", 1000, (0, 1)),
                                                    ("benes.toml", 300, (0, 1, 2, 3, 4))])
@@ -134,6 +138,7 @@ def test_healthy_runs_are_not_flagged(example, steps, seeds):
             assert np.max(np.abs(result.mean[:, 0] - _benes_means(model, dy))) < 2e-3
 
 
+@pytest.mark.slow
 def test_two_dimensional_range_example_is_not_flagged():
     model, offline = _example("range_2d.toml")
     yy = YauYauFilter(model, offline)

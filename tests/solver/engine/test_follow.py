@@ -54,6 +54,7 @@ def _run(flt, rows, chunk):
     return state, concat_results(parts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [3, 4])
 def test_random_walk_with_trend_matches_the_exact_kalman_filter_over_100_units(trend, seed):
     model, offline = trend
@@ -81,6 +82,7 @@ def test_random_walk_with_trend_matches_the_exact_kalman_filter_over_100_units(t
     assert np.abs(result.mean[:, 0] - continuous.mean[:, 0]).max() <= 0.01
 
 
+@pytest.mark.slow
 def test_a_fixed_ball_loses_the_same_state(trend):
     model = compile_model(_spec(follow=False))
     flt = make_filter(model, precompute(model), "yau-yau")
@@ -112,6 +114,7 @@ def test_a_move_carries_the_density_and_keeps_the_log_likelihood(trend):
     assert abs(mean - before.mean[0]) < 1e-5 and abs(var - before.cov[0, 0]) < 1e-5
 
 
+@pytest.mark.slow
 def test_a_state_round_trips_through_json_with_its_centre(trend):
     model, offline = trend
     flt = build(model, offline)
@@ -142,6 +145,7 @@ def test_the_ball_starts_around_the_prior_and_the_density_is_where_the_state_is(
     assert q[0][0] == pytest.approx(40.0, abs=1e-3)
 
 
+@pytest.mark.slow
 def test_the_mode_of_a_following_ball_is_where_the_ball_is(trend):
     """The posterior is Gaussian (Kalman), so its mode is its mean.  The mode is read off the nodes of
     the ball where the state is (before 2026-11-24 it was read off the home ball's nodes: 0.456 for a
@@ -197,6 +201,7 @@ def test_constant_velocity_moves_only_the_position():
     assert compile_model(spec_from_dict(doc)).shift_directions == (0,)
 
 
+@pytest.mark.slow
 def test_the_cli_writes_the_centre_and_the_moves(tmp_path):
     store = tmp_path / "store"
     spec = _spec()
@@ -215,6 +220,7 @@ def test_the_cli_writes_the_centre_and_the_moves(tmp_path):
                  str(tmp_path / "o2.csv"), "--density", str(tmp_path / "d.h5")]) == 2
 
 
+@pytest.mark.slow
 def test_a_restart_row_has_the_ball_centre_and_the_csv_keeps_its_columns(tmp_path):
     """on_degenerate = "reinitialise" on a following ball: the restart row carries the new ball's centre
     (the broadened prior's, flagged recentred), so the result keeps its centre column and every CSV row
@@ -282,6 +288,7 @@ def test_in_2d_a_following_ball_has_a_lattice_mesh_and_its_moves_do_not_blur():
     assert np.allclose(flt.snapped(start.center, [0.3, 0.2]), [step, 0.0])  # follow snaps to the lattice
 
 
+@pytest.mark.slow
 def test_in_2d_with_the_bubble_element_the_following_ball_stays_near_kalman():
     """A 2-D random walk with trend (1, 0.5) over t = 0..50 (50 and 25 units: 8 and 4 radii) on the
     lattice mesh with element = "bubble", basis 600: measured 3.1e-3 in the mean and 0.45% in the
@@ -304,6 +311,7 @@ def test_in_2d_with_the_bubble_element_the_following_ball_stays_near_kalman():
     assert gap <= 5e-3 and var <= 0.01
 
 
+@pytest.mark.slow
 def test_a_stream_of_single_rows_moves_as_often_as_one_chunk(trend):
     """Rows posted one at a time (a live stream) must not move the ball on the noise of a one-row
     velocity: about as many moves as one chunk of the same rows, and the same estimates to within the
@@ -320,6 +328,7 @@ def test_a_stream_of_single_rows_moves_as_often_as_one_chunk(trend):
     assert np.abs(single.mean - exact.mean).max() <= 1e-3 and not single.degenerate.any()
 
 
+@pytest.mark.slow
 def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(trend):
     """``run_until(..., rule)`` (what a following ball uses instead of running a strayed block
     again): the chunk ends after the rows the rule keeps; result and state are those of the shorter
@@ -370,6 +379,7 @@ def test_an_engine_told_to_stop_ends_its_chunk_there_as_a_shorter_chunk_would(tr
     assert runs["rule"][1] < runs["again"][1], (runs["rule"][1], runs["again"][1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("window", [None, 3])
 def test_a_move_inside_the_loop_is_the_move_between_blocks(trend, window, monkeypatch):
     """The engine's loop re-centres the ball itself (solver/engine/recentring.py): the same as a block that
@@ -485,6 +495,7 @@ def test_h_read_off_a_move_is_h_at_the_new_nodes():
         np.testing.assert_allclose(h, model.h(flt.home.nodes + target), rtol=0, atol=1e-13)
 
 
+@pytest.mark.slow
 def test_precompute_says_when_follow_has_no_effect(tmp_path, capsys):
     """method auto on a linear-Gaussian model chooses the exact Kalman–Bucy filter, which has no ball:
     precompute says follow does nothing there and how to get it (before, it was silently ignored)."""

@@ -80,6 +80,7 @@ def test_the_frame_flow_is_the_closed_form_of_the_ode():
     np.testing.assert_allclose(turns, np.column_stack([np.cos(angle), -np.sin(angle)]), rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_linear_growth_rides_the_frame_and_matches_the_exact_kalman_filter(growth):
     """Measured: mean gap 2.4e-4, variance error 0.09%, ~36 moves over 3000 steps."""
     model, offline = growth
@@ -103,6 +104,7 @@ def test_linear_growth_rides_the_frame_and_matches_the_exact_kalman_filter(growt
     assert np.abs(result.mean[:, 0] - result.center[:, 0]).max() < 0.5 * model.radius
 
 
+@pytest.mark.slow
 def test_without_the_frame_a_plain_translation_would_be_wrong(growth):
     """The stored propagator is the frame's (drift 0.1(x − c₀)): moving the ball without the frame's
     ODE loses the state: the independent check that the frame is what makes the run right."""
@@ -117,6 +119,7 @@ def test_without_the_frame_a_plain_translation_would_be_wrong(growth):
     assert result.degenerate.any() or np.abs(result.mean[good, 0] - exact.mean[good, 0]).max() > 0.05
 
 
+@pytest.mark.slow
 def test_irregular_times_and_missing_rows_ride_the_same_frame(growth):
     """Gaps drawn in [0.5, 2.2]·dt (not multiples of dt: the frame's flow and the propagator over each
     gap, no pieces) and missing rows, against the exact discrete Kalman filter at the same times.
@@ -141,6 +144,7 @@ def test_irregular_times_and_missing_rows_ride_the_same_frame(growth):
     assert gap <= 1e-3 and var <= 0.01
 
 
+@pytest.mark.slow
 def test_chunks_and_the_stored_file_give_the_same_run(growth, tmp_path):
     model, offline = growth
     spec = spec_from_dict(GROWTH)
@@ -210,6 +214,7 @@ def test_a_degenerate_frame_says_why_keeps_its_centre_and_restarts():
     assert hit.degenerate[120] and f"is {sigmas:.3g} standard deviations" in hit.reason, (sigmas, hit.reason)
 
 
+@pytest.mark.slow
 def test_in_the_frame_a_move_inside_the_loop_is_the_move_between_blocks(growth):
     """The loop's moves (solver/engine/recentring.py) ride the frame too: the same estimates and state, to
     rounding, as blocks that end where the loop moved, FollowingFilter.recentre and the next block

@@ -67,6 +67,7 @@ def _ou_kalman(model, rows, times, kind):
 
 
 # -- linear: the exact Kalman filter at irregular times ---------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
 def test_ou_at_random_times_matches_the_exact_kalman_filter(kind):
     """Exponential gaps of mean dt with 5% of them 10× longer: mean ≤ 1e-3, variance ≤ 1%."""
@@ -86,6 +87,7 @@ def test_ou_at_random_times_matches_the_exact_kalman_filter(kind):
         assert result.loglik[-1] == pytest.approx(exact.loglik[-1], abs=1e-2)
 
 
+@pytest.mark.slow
 def test_times_at_the_regular_grid_agree_with_the_stored_propagator():
     """Times k·dt through the spectral flow e^{τA} vs the stored propagator over dt: two
     discretisations of the same flow (projected generator vs finite elements then projection)."""
@@ -102,6 +104,7 @@ def test_times_at_the_regular_grid_agree_with_the_stored_propagator():
 
 
 # -- nonlinear sensors: the fine-grid reference ----------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("doc, kind", [(CUBIC_FINE, "discrete"), (QUADRATIC, "discrete"),
                                        (CUBIC, "continuous"), (QUADRATIC, "continuous")])
 def test_nonlinear_sensors_at_random_times_match_the_fine_grid(doc, kind):
@@ -122,6 +125,7 @@ def test_nonlinear_sensors_at_random_times_match_the_fine_grid(doc, kind):
     assert worst <= 0.01
 
 
+@pytest.mark.slow
 def test_student_t_sensor_matches_the_fine_grid():
     flt = _engine(CUBIC_FINE, kind="discrete", likelihood="student-t", dof=3.0)
     rng = np.random.default_rng(5)
@@ -133,6 +137,7 @@ def test_student_t_sensor_matches_the_fine_grid():
     assert gap <= 0.01 and np.max(np.abs(result.predictive_loglik - truth.predictive_loglik)) <= 0.02
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
 def test_partly_missing_rows_drop_only_the_missing_component(kind):
     flt = _engine(TWO_SENSORS, kind=kind)
@@ -152,6 +157,7 @@ def test_partly_missing_rows_drop_only_the_missing_component(kind):
 
 
 # -- the gate ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_gate_threshold_is_k_standard_deviations():
     from scipy.stats import chi2, norm
 
@@ -161,6 +167,7 @@ def test_gate_threshold_is_k_standard_deviations():
     assert standard_score(gate_threshold(6.0, 3), 3) == pytest.approx(6.0, rel=1e-8)
 
 
+@pytest.mark.slow
 def test_gate_score_of_a_linear_model_is_the_innovation_mahalanobis_distance():
     """For a Gaussian prediction the gate's d² is νᵀS⁻¹ν exactly: an outlier at 7 predictive sd."""
     flt = _engine(OU, kind="discrete")
@@ -182,6 +189,7 @@ def test_gate_score_of_a_linear_model_is_the_innovation_mahalanobis_distance():
     assert "7 predictive standard deviations" in result.row_reason(150, 6.0)
 
 
+@pytest.mark.slow
 def test_one_1000_sigma_outlier_and_missing_components_stay_healthy():
     """The issue's proof: one 1000σ outlier and 5% of rows with one component missing: no degenerate
     step, and within 20 observations the mean is back within 0.01 of the reference run without it."""
@@ -202,6 +210,7 @@ def test_one_1000_sigma_outlier_and_missing_components_stay_healthy():
     print(f"outlier at row 150: back within 0.01 of the reference at row {recovered}")
 
 
+@pytest.mark.slow
 def test_increments_over_long_gaps_come_in_pieces_and_are_gated_whole():
     """Gaps of mean 5 dt: an increment over τ is filtered in ⌈τ/(2 dt) − ¼⌉ pieces (y linear over the
     gap), as the exact Kalman–Bucy filter takes it — against the Kalman filter of the same pieces; a
@@ -237,6 +246,7 @@ def test_gate_off_lets_the_outlier_through():
     assert result.gated.tolist() == [False, True, False] and not state.degenerate
 
 
+@pytest.mark.slow
 def test_healthy_data_pass_the_gate():
     """10 seeds × 500 discrete steps of the cubic sensor (a heavy-tailed prediction at the start)."""
     flt = _engine(CUBIC_FINE, kind="discrete")
@@ -280,6 +290,7 @@ def test_first_row_may_be_at_the_prior_time_but_later_times_must_move_on():
         assert err.value.field == "times[0]"
 
 
+@pytest.mark.slow
 def test_chunks_at_irregular_times_continue_where_the_last_ended():
     flt = _engine(QUADRATIC, kind="continuous")
     rng = np.random.default_rng(8)
@@ -317,6 +328,7 @@ def test_predict_forecasts_without_changing_the_state():
     assert err.value.field == "t"
 
 
+@pytest.mark.slow
 def test_ill_conditioned_generators_use_the_exact_exponential(monkeypatch):
     """Above MAX_CONDITION the flow is expm(τA) per gap: the same numbers as the modal form."""
     flt = _engine(QUADRATIC, kind="discrete")
@@ -333,6 +345,7 @@ def test_ill_conditioned_generators_use_the_exact_exponential(monkeypatch):
 
 
 # -- recovery ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_degenerate_filter_reinitialises_and_tracks_again():
     """Gate off, one increment of 1e5 on the cubic sensor: "stop" stays degenerate; "reinitialise"
     starts again around the last good estimate and is back on the reference within 50 steps."""
@@ -408,6 +421,7 @@ def test_a_gate_is_a_cheap_copy_sharing_the_engine():
     assert other.observation.gate == 3.0 and flt.observation.gate == 6.0
 
 
+@pytest.mark.slow
 def test_huge_gaps_and_long_chunks_of_increments_stay_bounded(monkeypatch):
     """A gap of 1e6 dt is at most MAX_PIECES pieces; a chunk's pieces go through in blocks of
     MAX_CHUNK_PIECES rows: the same numbers as one block."""

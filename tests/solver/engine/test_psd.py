@@ -119,6 +119,7 @@ def predicted():
     return out
 
 
+@pytest.mark.slow
 def test_supg_predicts_the_exact_moments_and_rings_less_than_plain_galerkin(predicted):
     """Measured (N = 600, Q = 1250): SUPG mean 2.0e-3 and covariance 1.5% from exact, min/max of the
     density −4e-3; plain Galerkin (lumped) 8e-4 and 0.8%, but its density rings to −2.2e-2 of its
@@ -154,6 +155,7 @@ def _against_kalman(model, flt, increments):
     return result, exact, gap, var
 
 
+@pytest.mark.slow
 def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tracking):
     """Over t = 0..50 the target travels 50 units (six radii).  f = (v, −0.2v) is affine, so the ball
     rides the frame of ċ = (c_v, −0.2c_v) and moves along p and v (solver/engine/frame.py).  Measured: mean
@@ -177,6 +179,7 @@ def test_constant_velocity_tracking_follows_the_target_and_stays_near_kalman(tra
     assert abs(result.loglik[-1] - exact.loglik[-1]) < 0.05
 
 
+@pytest.mark.slow
 def test_the_bubble_element_with_the_consistent_mass_tracks_closer_to_kalman_at_the_same_cost():
     """The path above on P2 + bubble with the consistent mass (``scheme = "consistent"``), radius 6.5,
     N = 1000 (Q = 2129: the cost per observation of P1's Q = 2093).  Measured: gap median 3.8e-4, 90%
@@ -222,6 +225,7 @@ def _grid_reference(model, increments, p_box, cells_p, v_box, cells_v):
     return means
 
 
+@pytest.mark.slow
 def test_a_nonlinear_sensor_against_a_fine_grid_reference():
     """h = atan(p/5) (a bearing-like sensor) with R = 0.01: the target drifts from p = −8, v ≈ 3 over
     t = 0..8 (17 units, twice the radius 8 of the following ball); the engine's mean against the
@@ -248,6 +252,7 @@ def test_a_nonlinear_sensor_against_a_fine_grid_reference():
 
 
 # -- the seams ------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_precompute_stores_and_reopens_a_semi_definite_model(tmp_path):
     """Once refused by the engine ("must be positive definite"); the stored file has the stabilised
     generator, so irregular times work too."""
@@ -266,6 +271,7 @@ def test_precompute_stores_and_reopens_a_semi_definite_model(tmp_path):
 
 
 # -- the method chosen when the spec names none ----------------------------------------------------
+@pytest.mark.slow
 def test_the_analysis_of_a_semi_definite_diffusion_says_eta_is_not_defined():
     """η = fᵀa⁻¹f + div f + hᵀR⁻¹h needs a⁻¹: with a = diag(0, 1) it is not defined, so (C3) fails and the
     Yau–Hu filter is not offered.  The model is linear with a Gaussian prior, and the Kalman–Bucy filter
@@ -283,6 +289,7 @@ def test_the_analysis_of_a_semi_definite_diffusion_says_eta_is_not_defined():
     assert nonlinear.conditions["eta_quadratic"].holds is False and nonlinear.method == "yau-yau"
 
 
+@pytest.mark.slow
 def test_a_semi_definite_spec_without_method_precomputes_from_the_cli(tmp_path, capsys):
     """`yauyau precompute` on the constant-velocity spec with no `method`: the analysis chooses, exit 0."""
     from yauyau.service.cli import main

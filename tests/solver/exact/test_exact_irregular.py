@@ -135,6 +135,7 @@ def _close(result, mean, cov, atol=1e-10):
 
 
 # -- kalman-bucy ---------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("spec, coeffs", [(LINEAR, LIN), (CROSS, CROSS_M)], ids=["a=I", "cross-diffusion"])
 def test_kalman_bucy_discrete_measurements_equal_the_irregular_kalman_oracle(spec, coeffs):
     rows, times = _data(spec, "discrete", 300, 1)
@@ -168,6 +169,7 @@ def test_kalman_bucy_discrete_measurements_at_regular_times_and_partial_rows():
     np.testing.assert_allclose(result.t, times, rtol=1e-15)
 
 
+@pytest.mark.slow
 def test_sampled_increment_model_equals_the_oracle_of_continuous_rows():
     # KalmanBucyFilter(kind="discrete") is the time-sampled model dy = H x(t_k) τ + h0 τ + N(0, Rτ),
     # exactly kalman_irregular's continuous kind; its log-likelihood is relative to N(dy; 0, Rτ)
@@ -182,6 +184,7 @@ def test_sampled_increment_model_equals_the_oracle_of_continuous_rows():
     np.testing.assert_allclose(result.loglik_increment, np.nan_to_num(girsanov), rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec, coeffs", [(LINEAR, LIN), (CROSS, CROSS_M)], ids=["a=I", "cross-diffusion"])
 def test_kalman_bucy_continuous_irregular_increments_solve_the_kalman_bucy_odes(spec, coeffs):
     rows, times = _data(spec, "continuous", 200, 4)
@@ -255,6 +258,7 @@ def _predicted_row(coeffs, rows, times, k, index):
     return rows[k, index] - H @ mean - c["h0"][index], H @ cov @ H.T + R
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["kalman-bucy", "yau-hu"])
 def test_a_1000_sigma_outlier_is_gated_and_the_rest_is_the_oracle_without_it(method):
     rows, times = _data(LINEAR, "discrete", 150, 6)
@@ -289,6 +293,7 @@ def test_a_1000_sigma_outlier_is_gated_and_the_rest_is_the_oracle_without_it(met
     assert not result.gated.any() and abs(result.mean[60, 0] - truth.mean[60, 0]) > 1.0
 
 
+@pytest.mark.slow
 def test_continuous_outlier_is_gated_in_any_chunking():
     rows, times = _data(LINEAR, "continuous", 120, 7)
     tau = times[45] - times[44]
@@ -313,6 +318,7 @@ def test_continuous_outlier_is_gated_in_any_chunking():
 
 
 # -- yau-hu ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_yau_hu_on_a_linear_model_at_irregular_times_is_exact():
     rows, times = _data(LINEAR, "continuous", 150, 8)
     yh = YauHuFilter(_model(LINEAR))
@@ -387,6 +393,7 @@ def _benes_start(filt):
                                  "C": [C]})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["yau-hu", "yau-jia"])
 def test_benes_at_irregular_times_equals_the_closed_form(method):
     cls = YauHuFilter if method == "yau-hu" else YauJiaFilter
@@ -409,6 +416,7 @@ def test_benes_at_irregular_times_equals_the_closed_form(method):
 
 
 # -- yau-jia -------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_yau_jia_on_a_linear_model_at_irregular_times_is_exact():
     rows, times = _data(LINEAR, "continuous", 120, 12, missing=0.0)
     rows[50] = [rows[50, 0] + 1000.0 * math.sqrt(0.5 * (times[50] - times[49])), rows[50, 1]]

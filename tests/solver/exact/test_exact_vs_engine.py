@@ -70,6 +70,7 @@ def test_discrete_kalman_is_the_engine_time_discretisation():
     assert mean < 1e-5 and cov < 1e-5 and loglik < 1e-5, (mean, cov, loglik)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", ["examples/ou.toml", "examples/benes.toml"])
 def test_continuous_filters_agree_with_the_engine_to_first_order_in_dt(path):
     models, increments, engine = _case(path)

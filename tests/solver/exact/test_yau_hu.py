@@ -44,6 +44,7 @@ def _theorem31_residual(F, ell, h, eta_coeffs, half_b_term=True):
     return sp.simplify((res / sp.exp(-c - a * xi + F.subs(x, xi + b))).rewrite(sp.exp))
 
 
+@pytest.mark.slow
 def test_theorem31_linear_and_benes_symbolically():
     d1, d0, c1, c0 = sp.symbols("d1 d0 c1 c0", real=True)
     ell, h = d1 * x + d0, c1 * x + c0
@@ -54,6 +55,7 @@ def test_theorem31_linear_and_benes_symbolically():
     assert _theorem31_residual(sp.log(sp.cosh(x)), sp.Integer(0), h, (c1**2, 2 * c1 * c0, 1 + c0**2)) == 0
 
 
+@pytest.mark.slow
 def test_example33_c_equation_misprint():
     # seed 000 Example 3.3: ℓ = x + 1, h = x + 1, η = 2x² + x + 9/4 (η1 = 1); the printed c' has
     # "+ b(t)" where (3.5) gives ½η1 b = ½b.  On a model with η1 ≠ 0 (same ℓ, h, F = −x/4) the
@@ -128,6 +130,7 @@ def test_linear_model_equals_kalman_bucy_including_loglik_and_missing_rows():
     assert yh.estimate(again).mean == pytest.approx(e1[-1].mean)
 
 
+@pytest.mark.slow
 def test_conditions_are_checked_and_name_the_field():
     base = {"name": "bad", "state": ["x"], "drift": ["tanh(x)"], "observation": ["x"],
             "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
@@ -193,6 +196,7 @@ def _in_pieces(filt, increments, sizes):
     return state, cat
 
 
+@pytest.mark.slow
 def test_benes_past_the_settled_riccati_path_in_any_chunking():
     # 1100 observed steps at dt = 0.01 (the cached schedule settles after ~850): one chunk, one-row
     # chunks (the scalar path) and odd chunks agree to rounding and with the closed-form posterior

@@ -155,6 +155,7 @@ def test_outside_the_class_is_refused_naming_the_condition(drift, observation, d
         YauJiaFilter(model)
 
 
+@pytest.mark.slow
 def test_analysis_recommends_yau_jia_for_the_class():
     report = analyze(compile_model(load_spec(EXAMPLES / "yau_jia_1d.toml")))
     assert report.method == "yau-jia" and report.conditions["yau_jia"].holds is True
@@ -193,6 +194,7 @@ def _gap_to_point_mass(model, seeds, steps):
     return np.array(gaps)
 
 
+@pytest.mark.slow
 def test_1d_nonlinear_sensor_against_the_point_mass_reference():
     """f = −x, h = √(1 + x²) (h² = 1 + x²): mean gap ≤ 0.01 over 10 seeds × 1000 steps."""
     gaps = _gap_to_point_mass(compile_model(load_spec(EXAMPLES / "yau_jia_1d.toml")), 10, 1000)
@@ -288,6 +290,7 @@ def test_4d_range_only_tracking_against_a_million_particles():
 
 
 # -- the seams ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_mesh_free_precompute_open_filter_and_bit_exact_chunked_restarts(tmp_path):
     mid = precompute(EXAMPLES / "range_only_4d.toml", tmp_path)
     from yauyau.api import load_model
@@ -353,6 +356,7 @@ def test_cli_and_http_session_run_the_4d_model(tmp_path):
     assert np.allclose(last["mean"], direct[-1].mean, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_docs_yau_jia_commands_run(tmp_path):
     """docs/models.md's two yau-jia commands, as printed (the store redirected to a temporary directory)."""
     import shlex

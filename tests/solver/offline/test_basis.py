@@ -126,6 +126,7 @@ def ball_dirichlet_spectrum(radius, count):
     return np.sort(values)[:count]
 
 
+@pytest.mark.slow
 def test_lanczos_ball_spectrum_converges_and_matches_the_dense_solve(monkeypatch):
     """Above DENSE_NODES the basis comes from shift-invert Lanczos: forced here on meshes the dense
     solve also handles.  The 17 lowest eigenvalues (full multiplets l = 0, 1, 2, 3 and the second
@@ -155,6 +156,7 @@ def test_lanczos_ball_spectrum_converges_and_matches_the_dense_solve(monkeypatch
     assert np.all(errors[0] / errors[1] > 3.0), errors[0] / errors[1]
 
 
+@pytest.mark.slow
 def test_node_counts_of_the_refined_balls_are_those_built():
     """The node table a service checks before it accepts a precompute (fem.planned_nodes) against
     the meshes themselves, up to the finest 3-D ball (beyond the dense eigensolver)."""

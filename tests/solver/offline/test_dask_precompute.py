@@ -45,6 +45,7 @@ def _same_arrays(path: Path, model_id: str, expected: dict) -> None:
         assert arrays[name].dtype == value.dtype and np.array_equal(arrays[name], value), name
 
 
+@pytest.mark.slow
 def test_the_cli_on_a_running_cluster_writes_the_same_arrays(cluster, local, tmp_path, capsys):
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec_from_dict(SPEC).canonical_json())
@@ -57,6 +58,7 @@ def test_the_cli_on_a_running_cluster_writes_the_same_arrays(cluster, local, tmp
     assert attrs["scheduler"] == cluster.address and "workers" not in attrs  # not the unused --workers
 
 
+@pytest.mark.slow
 def test_a_worker_killed_during_the_solves_changes_nothing(cluster, local, tmp_path):
     killed = []
 
@@ -72,6 +74,7 @@ def test_a_worker_killed_during_the_solves_changes_nothing(cluster, local, tmp_p
     _same_arrays(tmp_path / "store", model_id, local)
 
 
+@pytest.mark.slow
 def test_a_block_whose_future_is_cancelled_is_solved_again(cluster, local, tmp_path):
     """What a worker's death can also do: the scheduler gives up a block's key instead of computing it
     again (seen once in CI).  Here one pending block is cancelled outright from the progress callback;
@@ -96,6 +99,7 @@ def test_a_block_whose_future_is_cancelled_is_solved_again(cluster, local, tmp_p
     _same_arrays(tmp_path / "store", model_id, local)
 
 
+@pytest.mark.slow
 def test_a_local_cluster_of_two_workers_writes_the_same_arrays(local, tmp_path):
     model_id = yauyau.precompute(spec_from_dict(SPEC), tmp_path / "store", workers=2)
     _same_arrays(tmp_path / "store", model_id, local)
@@ -128,6 +132,7 @@ def _every_row(path: Path, model_id: str) -> tuple[dict, dict]:
     return stored.arrays, rows
 
 
+@pytest.mark.slow
 def test_an_atlas_on_a_running_cluster_is_the_same_file_also_with_a_worker_killed(cluster, tmp_path):
     """The atlas's solves (69 centres x 2 column blocks) as tasks on the cluster; one worker dies."""
     local_id = yauyau.precompute(spec_from_dict(ATLAS), tmp_path / "local", workers=1)
@@ -151,6 +156,7 @@ def test_an_atlas_on_a_running_cluster_is_the_same_file_also_with_a_worker_kille
             assert np.array_equal(got[name], value), name
 
 
+@pytest.mark.slow
 def test_a_script_without_the_main_guard_is_told_why_its_local_workers_did_not_start(tmp_path):
     """Local workers import the calling script again (spawn): without ``if __name__ == "__main__":`` they
     cannot start.  The error names ``workers`` and the fix, not an unreachable scheduler "None"."""

@@ -74,6 +74,7 @@ def _eigen_error(order: int, rings: int) -> float:
     return float(np.abs(lam / exact - 1).max())
 
 
+@pytest.mark.slow
 def test_disk_eigenvalues_converge_and_beat_p1_on_the_same_mesh():
     """The polygonal boundary keeps both elements second order in h; the bubble element's constant is
     ~10x smaller (measured 0.0122, 0.0029 at 4, 8 rings; P1 0.111, 0.029)."""
@@ -82,6 +83,7 @@ def test_disk_eigenvalues_converge_and_beat_p1_on_the_same_mesh():
     assert _eigen_error(1, 8) > 5 * fine
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("order, bound", [(2, 0.015), (1, 0.08)])  # 2: bubble, 1: the P1 default
 def test_a_2d_ou_filter_against_kalman_at_the_default_basis(order, bound):
     """Basis 300, the default mesh: P2+bubble 0.011 from Kalman (Q = 613), P1 0.058 (Q = 631)."""
@@ -172,6 +174,7 @@ def test_tetrahedron_lumped_weights_are_mulders_positive_quadrature_exact_for_cu
     assert not np.isclose(weights @ quartic(x), gauss, rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_3d_bubble_interpolation_reproduces_quadratics_and_the_basis_is_orthonormal():
     doc = {"name": "ou3", "state": ["x", "y", "z"], "drift": ["-x", "-y", "-z"], "observation": ["x"],
            "method": "yau-yau", "domain": {"radius": 3.0},
@@ -209,6 +212,7 @@ def test_3d_bubble_beyond_three_refinements_is_refused_by_name_before_any_mesh()
     assert fem.planned_nodes(spec_from_dict(doc)) == fem.BALL_INTERIOR_BUBBLE[2]  # the first with ≥ 2N nodes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n, element", [(2, "lagrange"), (2, "bubble"), (3, "lagrange"), (3, "bubble")])
 def test_the_interpolation_matrix_is_scikit_fems_own_evaluation(n, element):
     """``OfflineModel.interpolation_matrix`` (what a move carries with) against scikit-fem's element

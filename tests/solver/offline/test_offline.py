@@ -52,6 +52,7 @@ def test_round_trip(disk):
     np.testing.assert_array_equal(again.evaluate_basis(pts), disk.evaluate_basis(pts))
 
 
+@pytest.mark.slow
 def test_workers_give_the_same_arrays(disk):
     progress = []
     two = precompute(disk.model, workers=2, progress=lambda done, total: progress.append((done, total)))

@@ -122,6 +122,7 @@ def test_kolmogorov_anisotropic_diffusion_and_noise_2d():
     assert errors[1] < 4e-3 and 3.0 < errors[0] / errors[1] < 5.0, errors
 
 
+@pytest.mark.slow
 def test_fokker_planck_gaussian_3d_ball():
     """3-D OU Fokker–Planck on the refined ball.  P1 is O(h²), but refinement 3 has only 8 cells
     across the radius for a Gaussian of std ≈ 0.7: the measured ratio 3 → 4 is 2.6 (pre-asymptotic;

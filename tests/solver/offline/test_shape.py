@@ -202,6 +202,7 @@ def test_constant_velocity_tracking_on_the_posterior_ellipse_matches_kalman_to_1
     assert abs(result.loglik[-1] - exact.loglik[-1]) < 0.01
 
 
+@pytest.mark.slow
 def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_path, capsys):
     """``yauyau precompute`` of the example spec (shape = "posterior"), then ``yauyau models`` (--json)."""
 
@@ -222,6 +223,7 @@ def test_the_cli_precomputes_a_posterior_shaped_spec_and_lists_its_shape(tmp_pat
     assert header[at:].split()[:2] == ["domain", "follow"] and row[at:].split()[:2] == ["posterior", "yes"]
 
 
+@pytest.mark.slow
 def test_a_shaped_model_is_stored_and_reopened(tmp_path):
     """Precompute into the store, reopen, filter: the file keeps the ellipse's mesh, and the reopened
     filter follows and matches the exact Kalman filter as closely as the spec's resolution allows."""
