@@ -87,7 +87,7 @@ def test_benes_leaving_the_ball_is_flagged_before_the_estimates_go_wrong(benes, 
 def _unflagged_means(yy: YauYauFilter, dy: np.ndarray) -> np.ndarray:
     """Means of the hot loop with no plausibility check at all (what the engine used to return)."""
     start = yy.initial_state()
-    keys, _, log_factor, top, _ = yy._factors(dy, np.full(len(dy), yy.model.dt))
+    keys, _, log_factor, top, _ = yy.factors(dy, np.full(len(dy), yy.model.dt))
     sigma, masses, *_ = yy.propagate(np.append(start.coefficients, start.mass), log_factor, top,
                                       (keys == 0).tolist(), None, None)
     return yy.moments(sigma, masses)[0][:, 0]
