@@ -2,7 +2,8 @@
 
 The runner itself is the solver's (yauyau.solver.analysis.isolated, which ``yauyau analyze``, precompute
 and the precompute jobs use too): here it forks each analysis from a forkserver that has SymPy and the
-analysis loaded (~20 ms), kills it ``analyze_grace`` seconds after its time limit and answers the
+analysis loaded (~20 ms; the forkserver itself starts with the application, in the background:
+:func:`warm_analysis`), kills it ``analyze_grace`` seconds after its time limit and answers the
 bounded report (what was not decided by then undecided, the general engine recommended unless the
 conditions it decided say otherwise).  At most ``analyze_concurrency`` analyses run per worker; a
 request that finds them all busy waits for a slot no longer than its own limit and then gets 503 with
@@ -15,9 +16,18 @@ import threading
 
 from yauyau.solver.analysis.isolated import AnalysisBusy, AnalysisRunner
 
-__all__ = ["AnalysisBusy", "AnalysisRunner", "analysis_runner"]
+__all__ = ["AnalysisBusy", "AnalysisRunner", "analysis_runner", "warm_analysis"]
 
 _RUNNER_LOCK = threading.Lock()
+
+
+def warm_analysis(app) -> threading.Thread:
+    """Make the application's runner and start its forkserver in the background (a daemon thread), so
+    the first POST /v1/analyze is answered within its limit plus grace like the others, not after the
+    forkserver's imports; the chunk path does not wait for it."""
+    thread = threading.Thread(target=lambda: analysis_runner(app).warm(), name="analysis-warm", daemon=True)
+    thread.start()
+    return thread
 
 
 def analysis_runner(app) -> AnalysisRunner:

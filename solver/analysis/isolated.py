@@ -156,6 +156,14 @@ class AnalysisRunner:
             self._context = multiprocessing.get_context("forkserver")
             self._context.set_forkserver_preload(_PRELOAD)
 
+    def warm(self) -> None:
+        """Start the forkserver now (it imports SymPy and the analysis: seconds), so that the first
+        :meth:`run` does not pay it inside its time limit; nothing for the other starts."""
+        if self.start == "forkserver":
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+
     def run(self, spec_doc: dict[str, Any], time_limit: float, **bounds: Any) -> Analysis:
         if self._slots is not None and not self._slots.acquire(timeout=time_limit):
             raise AnalysisBusy(f"all analysis slots stayed busy for {time_limit:g} s")

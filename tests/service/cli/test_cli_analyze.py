@@ -130,6 +130,33 @@ def test_service_answers_the_nasty_model_within_its_setting(tmp_path):
     assert "drift" in bad.json()["field"]
 
 
+def test_the_service_starts_the_analysis_forkserver_with_itself(tmp_path):
+    """The first POST /v1/analyze used to start the forkserver (SymPy's imports, seconds) inside its own
+    limit plus grace: the application's start-up now starts it in the background, so by the time the
+    start-up's thread is done a forkserver process runs and the first analysis forks from it."""
+    from multiprocessing import forkserver
+    from pathlib import Path
+
+    from fastapi.testclient import TestClient
+    from yauyau.service.http.app import create_app
+    from yauyau.service.settings import Settings
+
+    settings = Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3", analyze_time_limit=5.0)
+    app = create_app(settings)
+    with TestClient(app, raise_server_exceptions=False) as api:
+        app.state.analysis_warm.join(120)
+        assert not app.state.analysis_warm.is_alive()
+        pid = forkserver._forkserver._forkserver_pid  # the standard library's: no public accessor
+        assert pid is not None and "forkserver" in Path(f"/proc/{pid}/cmdline").read_text()
+        import tomllib
+
+        spec = tomllib.loads((ROOT / "examples" / "ou.toml").read_text())
+        r = api.post("/v1/analyze", json={"spec": spec})
+        assert r.status_code == 200, r.text
+        report = r.json()
+        assert report["recommendation"]["method"] == "kalman-bucy" and "not computed" not in r.text, report
+
+
 # ---------------------------------------------------------------------------------------------
 # the output names the papers (title, authors, theorem), never the internal seed numbers
 # ---------------------------------------------------------------------------------------------
