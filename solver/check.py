@@ -21,11 +21,16 @@ report names the fix (``domain.follow = true``, a larger ``domain.radius``; a wi
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import InputError, SpecError
+
+if TYPE_CHECKING:  # types only
+    from .model import Model
+    from .offline.pipeline import OfflineArrays
+    from .spec import ModelSpec
 
 DEFAULT_TARGET = 0.05
 SCALES = (1.5, 2.0, 3.0)  # bases tried, relative to the spec's, when it fails
@@ -142,8 +147,9 @@ class CheckReport:
         return [line]
 
 
-def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
-                     target: float = DEFAULT_TARGET, suggest: bool = True, offline: Any = None,
+def resolution_check(spec: ModelSpec, paths: int = 4, steps: int = 300, seed: int = 0,
+                     target: float = DEFAULT_TARGET, suggest: bool = True,
+                     offline: OfflineArrays | None = None,
                      exact_only: bool = False) -> CheckReport | None:
     """The check of the module docstring for a :class:`ModelSpec` (the general engine's discretisation).
     ``offline``: the spec's own offline arrays when they exist (not computed again).  ``exact_only``:
@@ -188,7 +194,7 @@ def resolution_check(spec: Any, paths: int = 4, steps: int = 300, seed: int = 0,
     return report
 
 
-def _leaving(model: Any, data: list) -> tuple[float, int | None, str]:
+def _leaving(model: Model, data: list) -> tuple[float, int | None, str]:
     """(fraction of the paths whose state leaves the domain, the first step where one does, the domain in
     words with the fix): the fixed ball (or ellipsoid), or the region of a following ball (none without
     a region: the ball goes where the state goes)."""
@@ -213,7 +219,7 @@ def _leaving(model: Any, data: list) -> tuple[float, int | None, str]:
     return float(np.mean(left)), first, where
 
 
-def _engine_spec(spec: Any, basis: int) -> Any:
+def _engine_spec(spec: ModelSpec, basis: int) -> ModelSpec:
     from .spec import spec_from_dict
 
     doc = spec.model_dump(mode="json")
@@ -224,7 +230,7 @@ def _engine_spec(spec: Any, basis: int) -> Any:
     return spec_from_dict(doc)
 
 
-def _filter(spec: Any, basis: int, offline: Any = None):
+def _filter(spec: ModelSpec, basis: int, offline: OfflineArrays | None = None):
     """The general engine at ``basis`` (on a following ball with ``[domain] follow``)."""
     from .engine.filter import build
     from .model import compile_model
@@ -234,7 +240,7 @@ def _filter(spec: Any, basis: int, offline: Any = None):
     return build(model, offline if offline is not None else precompute(model))
 
 
-def _kalman(model: Any):
+def _kalman(model: Model):
     """The exact discrete Kalman filter of a linear model with a Gaussian prior and increments, else None."""
     from .reference.kalman import DiscreteKalmanFilter
 
@@ -246,7 +252,7 @@ def _kalman(model: Any):
         return None
 
 
-def _truth(spec: Any, model: Any, data: list, fine: int) -> tuple[list, str, float, int]:
+def _truth(spec: ModelSpec, model: Model, data: list, fine: int) -> tuple[list, str, float, int]:
     """Per path (means (K, n), degenerate (K,)) of the truth, its name, the fraction of its own
     degenerate steps and its basis (an engine's): the exact Kalman filter, else the engine at basis
     ``fine`` — or at twice that, when ``fine`` degenerates on some step (then the gaps would be measured
@@ -276,7 +282,8 @@ def _truth(spec: Any, model: Any, data: list, fine: int) -> tuple[list, str, flo
     return out, name, wrong, basis
 
 
-def _trial(spec: Any, basis: int, data: list, truth: list, target: float, offline: Any = None,
+def _trial(spec: ModelSpec, basis: int, data: list, truth: list, target: float,
+           offline: OfflineArrays | None = None,
            wrong: float = 0.0) -> Trial:
     """``basis`` filtered on the paths against ``truth``; it passes only where the truth has no degenerate
     step (``wrong``: their fraction)."""

@@ -357,7 +357,8 @@ def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping
     return evaluate
 
 
-def numeric_many(functions: Sequence[Callable[[np.ndarray], np.ndarray]]):
+def numeric_many(
+        functions: Sequence[Callable[[np.ndarray], np.ndarray]]) -> Callable[[np.ndarray], np.ndarray]:
     """Stack one-expression functions: points X (P, n) -> (P, len(functions))."""
 
     def evaluate(X: np.ndarray) -> np.ndarray:

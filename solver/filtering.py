@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Protocol, Self, TypeVar, runtime_checkable
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import InputError
 from .measurement import Observation, check_gate, check_spacing
@@ -340,11 +341,12 @@ class ChunkedFilter:
         return new_state, result.estimates(self.gate)[0]
 
     def run(self, state: State, increments: np.ndarray,
-            times: Any | None = None) -> tuple[State, list[Estimate]]:
+            times: ArrayLike | None = None) -> tuple[State, list[Estimate]]:
         new_state, result = self.run_arrays(state, increments, times)
         return new_state, result.estimates(self.gate)
 
-    def run_batch(self, states: list[State], chunks: list[Any], times: list[Any] | None = None,
+    def run_batch(self, states: list[State], chunks: list[ArrayLike],
+                  times: list[ArrayLike | None] | None = None,
                   return_exceptions: bool = False) -> list[tuple[State, ChunkResult] | InputError]:
         """``run_arrays`` for many states of this model: [(new state, ChunkResult)] (solver/engine/batch.py;
         the Yau–Yau engine steps them together, other filters one after another)."""
@@ -363,15 +365,17 @@ class ChunkedFilter:
         return self.step(state, None, t)
 
 
-def run_batch_alone(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
+def run_batch_alone(engine: Any, states: list[Any], chunks: list[ArrayLike],
+                    times: list[ArrayLike | None] | None = None,
                     return_exceptions: bool = False) -> list[tuple[Any, ChunkResult] | InputError]:
     """The contract of ``run_batch`` (solver/engine/batch.py), one ``run_arrays`` per item (any filter)."""
     return per_item(states, chunks, times, return_exceptions,
                     lambda i, state, chunk, chunk_times: engine.run_arrays(state, chunk, chunk_times))
 
 
-def per_item(states: list[Any], chunks: list[Any], times: list[Any] | None, return_exceptions: bool,
-             item: Any) -> list[Any]:
+def per_item(states: list[Any], chunks: list[ArrayLike], times: list[ArrayLike | None] | None,
+             return_exceptions: bool,
+             item: Callable[[int, Any, ArrayLike, ArrayLike | None], Any]) -> list[Any]:
     """``item(i, state, chunk, times)`` for every i; a refused item's InputError in its place
     (``return_exceptions``) or raised naming it (``chunks[i]…``)."""
     if len(states) != len(chunks):
@@ -390,7 +394,7 @@ def per_item(states: list[Any], chunks: list[Any], times: list[Any] | None, retu
     return out
 
 
-def one_row(row: Any | None, m: int, field: str) -> np.ndarray:
+def one_row(row: ArrayLike | None, m: int, field: str) -> np.ndarray:
     """A single row (m numbers, NaN: missing; None: no observation) as a (1, m) chunk; InputError
     naming ``field`` when it is not numbers (its width is checked with the chunk)."""
     if row is None:
@@ -421,7 +425,7 @@ def at_time(state: State, t0: float) -> State:
     return dataclasses.replace(state, t=t0)
 
 
-def chunk_clock(state: FilterState, K: int, dt: float, times: Any,
+def chunk_clock(state: FilterState, K: int, dt: float, times: ArrayLike | None,
                 taus: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(steps (K,), times (K,)) of a chunk: the given times, else one dt apart (on the grid k·dt
     while the state is on it, as the regular filters always were)."""
@@ -435,7 +439,7 @@ def chunk_clock(state: FilterState, K: int, dt: float, times: Any,
     return steps, state.t + dt * np.arange(1, K + 1)
 
 
-def refuse_form(method: str, rows: np.ndarray, times: Any | None, model: Any, *, times_ok: bool = False,
+def refuse_form(method: str, rows: np.ndarray, times: ArrayLike | None, model: Any, *, times_ok: bool = False,
                 discrete_ok: bool = False, partial_ok: bool = False) -> None:
     """InputError naming what ``method`` cannot take: irregular ``times``, discrete measurements or a
     partly missing row (the methods that take everything never call this)."""
@@ -485,7 +489,7 @@ def observed(increment: np.ndarray | None, m: int) -> np.ndarray | None:
     return None if np.isnan(row).all() else row
 
 
-def check_increments(increments: Any, m: int, field: str = "increments") -> np.ndarray:
+def check_increments(increments: ArrayLike, m: int, field: str = "increments") -> np.ndarray:
     """Validate a chunk of increments: shape (K, m) of finite floats or whole-row NaN (missing).
 
     Raises :class:`InputError` naming the field (and row) at fault.

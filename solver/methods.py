@@ -11,7 +11,7 @@ allows them.  ``auto`` asks the estimation-algebra analysis (solver/analysis/) o
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from .errors import SpecError
 from .measurement import check_gate
@@ -20,6 +20,7 @@ from .registry import AUTO, METHODS, REGISTRY, check_method
 if TYPE_CHECKING:
     from .filtering import Filter
     from .model import Model
+    from .offline.pipeline import OfflineArrays
 
 __all__ = ["METHODS", "choose_method", "make_filter", "resolve_method"]
 
@@ -31,7 +32,7 @@ def _checked(method: str) -> str:
         raise SpecError("method", str(exc)) from None
 
 
-def choose_method(model: "Model", method: str | None = None, *, offline: Any | None = None,
+def choose_method(model: "Model", method: str | None = None, *, offline: OfflineArrays | None = None,
                   time_limit: float | None = 60.0, grace: float | None = None) -> tuple[str, str]:
     """The concrete method for ``model`` and why: the argument, else the spec's; ``auto`` runs the
     estimation-algebra analysis in a process of its own, killed ``grace`` seconds (default 2) after
@@ -74,7 +75,7 @@ def resolve_method(model: "Model", method: str | None = None) -> str:
     return choose_method(model, method)[0]
 
 
-def make_filter(model: "Model", offline: Any | None = None, method: str | None = None,
+def make_filter(model: "Model", offline: OfflineArrays | None = None, method: str | None = None,
                 form: str = "stable", precision: str | None = None, gate: float | None = None) -> "Filter":
     """A filter for ``model`` by registry name (``auto``: the analysis chooses, now).  ``offline``
     (the precomputed arrays, solver.offline.OfflineArrays) is needed by the methods that say so;

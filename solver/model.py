@@ -33,6 +33,7 @@ from .spec_tables import DensityPrior, GaussianPrior, MixturePrior, mixture_weig
 
 if TYPE_CHECKING:
     import sympy as sp
+    from numpy.typing import ArrayLike
 
 Points = Callable[[np.ndarray], np.ndarray]
 
@@ -165,7 +166,7 @@ class Model:
         """|L⁻¹(x − c)| of offsets x − c (P, n): below ``radius`` inside the domain."""
         return np.linalg.norm(self.unshaped(offsets), axis=-1)
 
-    def translated(self, center: Any) -> "Model":
+    def translated(self, center: ArrayLike) -> "Model":
         """The same model on the ball moved to ``center`` (the numpy functions shared)."""
         domain = self.spec.domain.model_copy(update={"center": [float(c) for c in center]})
         spec = self.spec.model_copy(update={"domain": domain})

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +33,11 @@ from .errors import InputError, SpecError
 from .filtering import ChunkResult, Estimate, concat_results, slice_result
 from .registry import DEFAULT_POLICY, POLICIES
 from .spec import spec_from_dict
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from .filtering import Filter, FilterState
 
 BROADEN = 2.0  # the restart's standard deviations: the last good ones times this
 FIT = 4.5  # ... but on a ball at most R/FIT (N(0, (R/4.5)²) leaves 7e-6 of its mass beyond R)
@@ -44,7 +49,7 @@ def check_policy(policy: Any, field: str = "on_degenerate") -> str:
     return policy
 
 
-def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
+def broadened_prior(flt: Filter, estimate: Estimate) -> dict[str, Any]:
     """N(m, BROADEN²·P + s²I) around the last good estimate (m, P); s the node spacing of a mesh
     (the finest feature the engine resolves), else 1e-6 of the state's scale.  On a ball of radius R
     each variance is at most (R/FIT)², unless P's own is larger (on an ellipsoid, in its coordinates
@@ -73,7 +78,7 @@ def broadened_prior(flt: Any, estimate: Estimate) -> dict[str, Any]:
     return {"kind": "gaussian", "mean": mean.tolist(), "cov": (0.5 * (cov + cov.T)).tolist()}
 
 
-def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
+def restart(flt: Filter, state: FilterState, prior: Any | None = None) -> FilterState:
     """The filter started again at ``state``'s step and time from ``prior`` (a spec prior or its dict;
     None: the model's), the log-likelihood carried on."""
     if not getattr(flt, "restartable", True):
@@ -92,7 +97,7 @@ def restart(flt: Any, state: Any, prior: Any | None = None) -> Any:
     return dataclasses.replace(new, **fields)
 
 
-def restart_from_last(flt: Any, state: Any) -> tuple[Any, str]:
+def restart_from_last(flt: Filter, state: FilterState) -> tuple[FilterState, str]:
     """Start again around the last good estimate; if that prior does not fit the filter (e.g. too
     close to the ball's rim), from the model's own prior — not on a ball that follows the state, where
     :class:`NoRestart` says why.  (new state, what was done)."""
@@ -121,8 +126,9 @@ class NoRestart(InputError):
         self.reason = message
 
 
-def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = None,
-                    policy: str = DEFAULT_POLICY, tracker: Any | None = None) -> tuple[Any, ChunkResult]:
+def run_with_policy(flt: Filter, state: FilterState, rows: np.ndarray, times: ArrayLike | None = None,
+                    policy: str = DEFAULT_POLICY,
+                    tracker: Any | None = None) -> tuple[FilterState, ChunkResult]:  # watch.Tracker: circle
     """``flt.run_arrays`` under an ``on_degenerate`` policy (module docstring).  ``tracker``
     (solver/watch.py) is told of each restart before it happens; when it answers a reason (the filter
     has lost track), the filter does not restart: it stays degenerate from that row with the reason."""
@@ -177,21 +183,21 @@ def run_with_policy(flt: Any, state: Any, rows: np.ndarray, times: Any | None = 
     return state, concat_results(parts)
 
 
-def _restart_note(flt, state, reason, before: bool = False) -> tuple[Any, str]:
+def _restart_note(flt, state, reason, before: bool = False) -> tuple[FilterState, str]:
     new_state, how = restart_from_last(flt, state)
     if before:  # the state came degenerate from an earlier chunk: the restart precedes this row
         return new_state, f"the filter was degenerate ({reason}); {how} before this row, which was used"
     return new_state, f"the filter degenerated ({reason}); {how}; this row's observation was not used"
 
 
-def _degenerate_at(state: Any, result: ChunkResult, k: int) -> Any:
+def _degenerate_at(state: FilterState, result: ChunkResult, k: int) -> FilterState:
     """The degenerate state as of row k (its last good estimate is what the restart broadens)."""
     loglik = float(result.loglik[k - 1]) if k else float(state.last.loglik if hasattr(state, "last")
                                                          else state.loglik)
     return dataclasses.replace(state, step=int(result.step[k]), t=float(result.t[k]), loglik=loglik)
 
 
-def _restart_row(flt: Any, state: Any, note: str) -> ChunkResult:
+def _restart_row(flt: Filter, state: FilterState, note: str) -> ChunkResult:
     """A one-row result: the restarted state's estimate, flagged reinitialised."""
     e = flt.estimate(state)
     n = len(e.mean)

@@ -29,7 +29,7 @@ import math
 import re
 import tomllib
 from pathlib import Path
-from typing import Any, get_args
+from typing import TYPE_CHECKING, Any, get_args
 
 import numpy as np
 from pydantic import (
@@ -63,6 +63,12 @@ from .spec_tables import (  # noqa: F401  (the tables, also importable from here
     finite_or_raise,
     singular,
 )
+
+if TYPE_CHECKING:  # types only
+    from collections.abc import Callable
+
+    Points = Callable[[np.ndarray], np.ndarray]  # as solver/model.py
+
 
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}\Z")
 MAX_SPEC_BYTES = 64 * 1024
@@ -262,7 +268,7 @@ class ModelSpec(Strict):
     def center(self) -> np.ndarray:
         return np.zeros(self.n) if self.domain.center is None else np.asarray(self.domain.center, float)
 
-    def numeric(self) -> tuple[Any, Any, Any]:
+    def numeric(self) -> tuple[Points, Points, Points | None]:
         """f, h and the density prior (or None) as numpy functions of points (P, n), built once from the
         checked expressions (SymPy-free) and checked finite on the domain ball; SpecError names the
         expression at fault."""
@@ -286,7 +292,7 @@ class ModelSpec(Strict):
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 
-def _numeric_functions(spec: ModelSpec) -> tuple[Any, Any, Any]:
+def _numeric_functions(spec: ModelSpec) -> tuple[Points, Points, Points | None]:
     states = {name: i for i, name in enumerate(spec.state)}
     params = dict(spec.parameters)
     f = numeric_many([numeric_expression(e, states, params, f"drift[{i}]") for i, e in enumerate(spec.drift)])

@@ -21,11 +21,14 @@ quantiles of each marginal p_i(x_i) = ∫ p(x) dx_{≠i} are what a user reads.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import InputError
+
+if TYPE_CHECKING:  # types only
+    from .filtering import Estimate, Filter, FilterState
 
 FIRST_PASS_POINTS = {1: 513, 2: 257, 3: 129}  # per dimension n: the grid over the support
 SECOND_PASS_POINTS = 257  # over the bracket, when the first grid is coarse for the posterior
@@ -57,7 +60,7 @@ def check_probabilities(probs: Any, field: str = "quantiles") -> np.ndarray:
     return arr
 
 
-def is_gaussian(flt: Any) -> bool:
+def is_gaussian(flt: Filter) -> bool:
     """Whether the filter's density is exactly N(mean, cov)."""
     from .gaussian import GaussianFilter
 
@@ -79,7 +82,7 @@ def quantiles_from_marginal(grid: np.ndarray, values: np.ndarray, probs: np.ndar
     return np.interp(probs, cdf[keep], grid[keep])
 
 
-def support(flt: Any, state: Any, estimate: Any, variable: int) -> tuple[float, float]:
+def support(flt: Filter, state: FilterState, estimate: Estimate, variable: int) -> tuple[float, float]:
     """An interval holding the marginal of ``variable``: the engine's ball, else ±12 sd."""
     model = flt.model
     if getattr(flt, "method", None) == "yau-yau":
@@ -91,8 +94,8 @@ def support(flt: Any, state: Any, estimate: Any, variable: int) -> tuple[float, 
     return mean - GAUSSIAN_SUPPORT_SD * sd, mean + GAUSSIAN_SUPPORT_SD * sd
 
 
-def marginal(flt: Any, state: Any, variable: int, grid: np.ndarray,
-             estimate: Any | None = None) -> np.ndarray:
+def marginal(flt: Filter, state: FilterState, variable: int, grid: np.ndarray,
+             estimate: Estimate | None = None) -> np.ndarray:
     """The marginal density of ``variable`` at ``grid``: the filter's own, or by quadrature over a
     box of ±12 sd around the mean."""
     from .filtering import marginal_by_quadrature
@@ -106,8 +109,8 @@ def marginal(flt: Any, state: Any, variable: int, grid: np.ndarray,
                                   bounds[:, 0], bounds[:, 1], resolution=48)
 
 
-def quantiles(flt: Any, state: Any, probs: Sequence[float] | np.ndarray,
-              estimate: Any | None = None) -> np.ndarray:
+def quantiles(flt: Filter, state: FilterState, probs: Sequence[float] | np.ndarray,
+              estimate: Estimate | None = None) -> np.ndarray:
     """Marginal quantiles (n, len(probs)) of the filter's density in ``state``."""
     from scipy.special import ndtri
 
@@ -146,7 +149,7 @@ def quantiles(flt: Any, state: Any, probs: Sequence[float] | np.ndarray,
     return out
 
 
-def summarise(flt: Any, state: Any, estimate: Any, want_mode: bool = False,
+def summarise(flt: Filter, state: FilterState, estimate: Estimate, want_mode: bool = False,
               probs: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(mode (n,), marginal quantiles (n, len(probs))) of the density in ``state`` whose estimate is
     ``estimate``: each None when not asked for (``want_mode`` false, ``probs`` None) or when the
@@ -158,7 +161,7 @@ def summarise(flt: Any, state: Any, estimate: Any, want_mode: bool = False,
 
 
 # -- the mode -------------------------------------------------------------------------------------
-def mode(flt: Any, state: Any, estimate: Any | None = None) -> np.ndarray | None:
+def mode(flt: Filter, state: FilterState, estimate: Estimate | None = None) -> np.ndarray | None:
     """The MAP point of the filter's density in ``state`` (None when degenerate)."""
     estimate = flt.estimate(state) if estimate is None else estimate
     if bool(getattr(state, "degenerate", False)):
@@ -171,7 +174,7 @@ def mode(flt: Any, state: Any, estimate: Any | None = None) -> np.ndarray | None
     return _search_mode(flt, state, estimate)
 
 
-def _refine_on_nodes(flt: Any, state: Any) -> np.ndarray:
+def _refine_on_nodes(flt: Filter, state: FilterState) -> np.ndarray:
     """The tallest node, moved to the vertex of a quadratic fitted to log σ at its nearest nodes."""
     from scipy.spatial import cKDTree
 
@@ -205,7 +208,7 @@ def _refine_on_nodes(flt: Any, state: Any) -> np.ndarray:
     return nodes[top] + step
 
 
-def _search_mode(flt: Any, state: Any, estimate: Any) -> np.ndarray:
+def _search_mode(flt: Filter, state: FilterState, estimate: Estimate) -> np.ndarray:
     """Grid search over ±6 sd, then Nelder–Mead on −log p from the best grid point."""
     from scipy.optimize import minimize
 
@@ -233,13 +236,14 @@ def _simplex(start: np.ndarray, step: np.ndarray) -> np.ndarray:
 
 
 # -- densities on grids -----------------------------------------------------------------------------
-def density_axes(flt: Any, state: Any, points: int, estimate: Any | None = None) -> list[np.ndarray]:
+def density_axes(flt: Filter, state: FilterState, points: int,
+                 estimate: Estimate | None = None) -> list[np.ndarray]:
     """One grid per state variable over the density's support (the ball for the engine)."""
     estimate = flt.estimate(state) if estimate is None else estimate
     return [np.linspace(*support(flt, state, estimate, i), points) for i in range(flt.model.n)]
 
 
-def joint_on_grid(flt: Any, state: Any, axes: list[np.ndarray]) -> np.ndarray:
+def joint_on_grid(flt: Filter, state: FilterState, axes: list[np.ndarray]) -> np.ndarray:
     """The normalised joint density on the product grid of ``axes`` (shape (len(a) for a in axes))."""
     mesh = np.meshgrid(*axes, indexing="ij")
     points = np.stack([m.ravel() for m in mesh], axis=1)
@@ -247,8 +251,8 @@ def joint_on_grid(flt: Any, state: Any, axes: list[np.ndarray]) -> np.ndarray:
     return np.where(np.isfinite(values), np.maximum(values, 0.0), 0.0).reshape(mesh[0].shape)
 
 
-def marginals_on_grid(flt: Any, state: Any, axes: list[np.ndarray], estimate: Any | None = None
-                      ) -> list[np.ndarray]:
+def marginals_on_grid(flt: Filter, state: FilterState, axes: list[np.ndarray],
+                      estimate: Estimate | None = None) -> list[np.ndarray]:
     """Each variable's marginal density on its own axis."""
     out = []
     for i, axis in enumerate(axes):

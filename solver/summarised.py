@@ -11,13 +11,18 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .filtering import ChunkResult, Estimate
 from .summaries import summarise
 from .watch import Watch, WatchSettings, watched_run
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from .filtering import Filter, FilterState
 
 
 @dataclass(frozen=True, slots=True)
@@ -26,7 +31,7 @@ class SummarisedRow:
     ``estimate``, the ``mode`` (n,) and the ``quantiles`` (n, len(probs)) of the density after it
     (None: not asked for, or degenerate)."""
 
-    state: Any
+    state: FilterState
     watch: Watch
     result: ChunkResult
     estimate: Estimate
@@ -34,14 +39,15 @@ class SummarisedRow:
     quantiles: np.ndarray | None
 
 
-def gate_of(flt: Any) -> float | None:
+def gate_of(flt: Filter) -> float | None:
     """The filter's outlier gate in predictive standard deviations (None: a method without one)."""
     gate = getattr(flt, "gate", None)
     return None if gate is None else float(gate)
 
 
-def summarised_rows(flt: Any, state: Any, watch: Watch, rows: np.ndarray, times: Any | None = None,
-                    policy: str = "stop", settings: WatchSettings | None = None, *, mode: bool = False,
+def summarised_rows(flt: Filter, state: FilterState, watch: Watch, rows: np.ndarray,
+                    times: ArrayLike | None = None, policy: str = "stop",
+                    settings: WatchSettings | None = None, *, mode: bool = False,
                     probs: np.ndarray | None = None) -> Iterator[SummarisedRow]:
     """The rows (K, m) run one at a time from ``state`` and ``watch`` (``times`` (K,) or None: regular)
     under the degenerate-density ``policy`` and the watch ``settings``, each with the mode (``mode``)

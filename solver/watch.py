@@ -52,7 +52,7 @@ import math
 import numbers
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -61,6 +61,12 @@ from .filtering import ChunkResult, chunk_clock
 from .measurement import check_rows, resolve_times
 from .recovery import run_with_policy
 from .spec import MONITOR_DEFAULT  # 0: the monitor is off unless a session or the spec sets it
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from .filtering import Filter, FilterState, State
+    from .model import Model
 
 LOST_GATED = 20  # consecutive gated rows: lost track
 LOST_RESTARTS = 3  # ... or this many restarts (on_degenerate = reinitialise)
@@ -145,7 +151,7 @@ class WatchSettings:
     monitor: float = MONITOR_DEFAULT
 
 
-def settings_for(flt: Any, lost_track: Any = None, monitor: Any = None) -> WatchSettings:
+def settings_for(flt: Filter, lost_track: Any = None, monitor: Any = None) -> WatchSettings:
     """The settings of a filter: ``lost_track`` (None: the defaults) and ``monitor`` (None: the spec's
     ``[measurement] monitor``, off unless set)."""
     chosen = check_monitor(monitor)
@@ -224,7 +230,7 @@ def split_state(data: Any) -> tuple[Any, Watch]:
     return data, Watch()
 
 
-def join_state(state: Any, watch: Watch) -> dict[str, Any]:
+def join_state(state: FilterState, watch: Watch) -> dict[str, Any]:
     """The filter state's dict with the watch in it (what a session stores)."""
     out = state.to_dict()
     out["watch"] = watch.to_dict()
@@ -236,7 +242,7 @@ class Tracker:
     """Counts restarts while a chunk runs (:func:`solver.recovery.run_with_policy` asks it before each):
     :meth:`restarted` returns the lost-track reason when this restart is one too many."""
 
-    def __init__(self, flt: Any, watch: Watch, lost: LostTrack):
+    def __init__(self, flt: Filter, watch: Watch, lost: LostTrack):
         self.flt = flt
         self.rule = lost
         self.restarts = list(watch.restarts)
@@ -253,9 +259,9 @@ class Tracker:
         return self.reason
 
 
-def watched_run(flt: Any, state: Any, watch: Watch, rows: Any, times: Any | None = None,
-                policy: str = "stop",
-                settings: WatchSettings | None = None) -> tuple[Any, Watch, ChunkResult]:
+def watched_run(flt: Filter, state: FilterState, watch: Watch, rows: ArrayLike,
+                times: ArrayLike | None = None, policy: str = "stop",
+                settings: WatchSettings | None = None) -> tuple[FilterState, Watch, ChunkResult]:
     """``run_with_policy`` (solver/recovery.py) with the watch: (new state, new watch, result).  A
     filter that has lost track answers degenerate rows (its last estimate, the reason) and computes
     nothing until it is reset."""
@@ -269,8 +275,9 @@ def watched_run(flt: Any, state: Any, watch: Watch, rows: Any, times: Any | None
     return settle(flt, before, state, watch, result, np.asarray(rows, dtype=float), settings, tracker)
 
 
-def settle(flt: Any, before: Any, state: Any, watch: Watch, result: ChunkResult, rows: np.ndarray,
-           settings: WatchSettings, tracker: Tracker | None = None) -> tuple[Any, Watch, ChunkResult]:
+def settle(flt: Filter, before: FilterState, state: FilterState, watch: Watch, result: ChunkResult,
+           rows: np.ndarray, settings: WatchSettings,
+           tracker: Tracker | None = None) -> tuple[FilterState, Watch, ChunkResult]:
     """The watch over a chunk already run from ``before`` to ``state``: the runs of gated rows and the
     restarts (lost track), and the innovation monitor.  (new state, new watch, result with the
     ``alarm`` and ``monitor`` columns and the lost rows flagged)."""
@@ -319,7 +326,7 @@ def _gated_runs(result: ChunkResult, rows: np.ndarray, run: int, rule: LostTrack
     return run, None, None
 
 
-def lost_reason(flt: Any, what: str) -> str:
+def lost_reason(flt: Filter, what: str) -> str:
     """The lost-track reason: what happened and, for a filter on a ball, the domain and the fix."""
     head = f"lost track: {what}; the estimates no longer follow the state"
     model = flt.model
@@ -348,14 +355,15 @@ def _degenerate_from(result: ChunkResult, k: int, reason: str) -> ChunkResult:
     return dataclasses.replace(result, degenerate=flags, reason=result.reason if earlier else reason)
 
 
-def _marked(state: Any, reason: str) -> Any:
+def _marked(state: State, reason: str) -> State:
     """The state flagged degenerate for ``reason`` (its estimate is kept: what the held rows repeat)."""
     fields = {f.name for f in dataclasses.fields(state)}
     changes = {name: value for name, value in (("degenerate", True), ("reason", reason)) if name in fields}
     return dataclasses.replace(state, **changes)
 
 
-def hold(flt: Any, state: Any, rows: Any, times: Any | None, reason: str) -> tuple[Any, ChunkResult]:
+def hold(flt: Filter, state: FilterState, rows: ArrayLike, times: ArrayLike | None,
+         reason: str) -> tuple[FilterState, ChunkResult]:
     """A chunk through a filter that lost track: each row degenerate with ``reason``, repeating the
     filter's estimate; the state moves to the chunk's last time and computes nothing."""
     model = flt.model
@@ -381,7 +389,7 @@ def hold(flt: Any, state: Any, rows: Any, times: Any | None, reason: str) -> tup
 
 
 # -- the innovation monitor ---------------------------------------------------------------------------
-def innovation_scores(flt: Any, before: Any, result: ChunkResult, rows: np.ndarray) -> np.ndarray:
+def innovation_scores(flt: Filter, before: FilterState, result: ChunkResult, rows: np.ndarray) -> np.ndarray:
     """The normal scores z (K, m) of the rows' innovations (module docstring); NaN where a row or
     component is not scored.  Written for few array operations (a chunk of the 1-D engine costs about
     a tenth of its filtering): every row is computed, then the rows not to score are blanked."""
@@ -411,7 +419,7 @@ def innovation_scores(flt: Any, before: Any, result: ChunkResult, rows: np.ndarr
     return z
 
 
-def _predicted_h_1d(model: Any, mean: np.ndarray, var: np.ndarray,
+def _predicted_h_1d(model: Model, mean: np.ndarray, var: np.ndarray,
                     taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """E[h] and the diagonal of Cov[h] (K, m) at each row's time for a 1-D state, with the three points
     m, m ± √(3P) (weights 2/3, 1/6, 1/6).  Increments: under the previous row's posterior (E[h] moves by
@@ -439,7 +447,7 @@ def _predicted_h_1d(model: Any, mean: np.ndarray, var: np.ndarray,
     return h_mean.reshape(K, -1), h_var.reshape(K, -1)
 
 
-def _euler_1d(model: Any, mean: np.ndarray, var: np.ndarray, h: np.ndarray, a: float):
+def _euler_1d(model: Model, mean: np.ndarray, var: np.ndarray, h: np.ndarray, a: float):
     """One Euler step of length h (K,) of the 1-D moment equations (three unscented points)."""
     root = np.sqrt(3.0 * np.maximum(var, 0.0))
     f = np.asarray(model.f(np.concatenate([mean, mean + root, mean - root])[:, None]), dtype=float)
@@ -462,7 +470,7 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndar
     return mean[:, None, :] + offsets, weights
 
 
-def predicted_moments(model: Any, mean: np.ndarray, cov: np.ndarray,
+def predicted_moments(model: Model, mean: np.ndarray, cov: np.ndarray,
                       taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance carried over each gap τ_k by Euler steps of at most dt of the moment
     equations ṁ = E f, Ṗ = E[(x − m) fᵀ] + E[f (x − m)ᵀ] + a (unscented expectations)."""
@@ -483,7 +491,7 @@ def predicted_moments(model: Any, mean: np.ndarray, cov: np.ndarray,
     return mean, cov
 
 
-def _predicted_h(model: Any, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _predicted_h(model: Model, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """E[h] and the diagonal of Cov[h] (K, m) under N(mean, cov) (unscented)."""
     points, weights = sigma_points(mean, cov)
     K, p, n = points.shape
@@ -493,7 +501,7 @@ def _predicted_h(model: Any, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndar
     return h_mean, np.einsum("p,kpj,kpj->kj", weights, spread, spread)
 
 
-def _standardised(model: Any, h_mean: np.ndarray, h_var: np.ndarray, rows: np.ndarray,
+def _standardised(model: Model, h_mean: np.ndarray, h_var: np.ndarray, rows: np.ndarray,
                   taus: np.ndarray) -> np.ndarray:
     """z (K, m) of the rows: (y − κE[h]) / √(κ²Var[h] + S₀) (module docstring)."""
     spec = model.spec.measurement

@@ -41,9 +41,13 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from ..errors import SpecError
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
+    from ..spec import ModelSpec
 
 DEFAULT_GRACE = 2.0  # seconds past the time limit before the analysis process is killed
 STARTUP_LIMIT = 60.0  # seconds a child may take to start (its imports: SymPy) before it is killed
@@ -301,7 +305,7 @@ class _SubprocessChild:
 _ONE_SHOT = AnalysisRunner()
 
 
-def analyze_isolated(model: Any, time_limit: float, *, grace: float = DEFAULT_GRACE,
+def analyze_isolated(model: Model | ModelSpec, time_limit: float, *, grace: float = DEFAULT_GRACE,
                      **bounds: Any) -> Analysis:
     """:func:`analyze` of ``model`` (a compiled Model or a ModelSpec) in a child process killed
     ``grace`` seconds after ``time_limit``: the report (or the bounded one) within that, plus the

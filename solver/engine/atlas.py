@@ -28,11 +28,18 @@ import dataclasses
 import itertools
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import SpecError
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
+
+Key = TypeVar("Key")
+Kept = TypeVar("Kept")
 
 MAX_CENTERS = 4096  # a larger atlas is refused with its count (raise follow_distance or shrink the region)
 CACHE = 32  # centres kept in memory at once (lazily loaded from the file)
@@ -92,7 +99,7 @@ class Lattice:
         return bool(np.any(x < self.region[:, 0]) or np.any(x > self.region[:, 1]))
 
 
-def needs_atlas(model: Any) -> bool:
+def needs_atlas(model: Model) -> bool:
     """``[domain] follow`` with a region, and a drift that depends on some coordinate the ball moves
     along and is not affine: the propagator differs from ball to ball."""
     domain = model.spec.domain
@@ -100,7 +107,7 @@ def needs_atlas(model: Any) -> bool:
                 and model.affine_drift is None)  # an affine drift rides a moving frame (engine/frame.py)
 
 
-def lattice(model: Any, element: float | None = None) -> Lattice:
+def lattice(model: Model, element: float | None = None) -> Lattice:
     """The atlas lattice of ``model`` (module docstring); ``element``: the 1-D element length."""
     domain = model.spec.domain
     region = np.asarray(domain.region, dtype=float)
@@ -120,7 +127,7 @@ def lattice(model: Any, element: float | None = None) -> Lattice:
     return found
 
 
-def move_step(mesh_points: Any, n: int, center: Any = None,
+def move_step(mesh_points: ArrayLike | None, n: int, center: ArrayLike | None = None,
               radius: float | None = None) -> float | None:
     """The step by which a ball may move so that its nodes meet the old ones: 1-D the element length
     of the uniform interval mesh (points (1, Np)); 2-D the step of a lattice mesh (fem.lattice_disk_mesh,
@@ -138,7 +145,7 @@ def move_step(mesh_points: Any, n: int, center: Any = None,
     return float(steps.mean()) if np.allclose(steps, steps.mean(), rtol=1e-9) else None
 
 
-def lattice_step(mesh_points: Any, center: Any, radius: float) -> float | None:
+def lattice_step(mesh_points: ArrayLike, center: ArrayLike, radius: float) -> float | None:
     """The step s of a lattice mesh: every vertex within R/2 of the centre is c + s·(integers), s
     fitted by least squares; None when the vertices are not such a lattice (the 2-D rings)."""
     points = np.asarray(mesh_points, dtype=float).T - np.asarray(center, dtype=float)
@@ -152,7 +159,7 @@ def lattice_step(mesh_points: Any, center: Any, radius: float) -> float | None:
     return step if np.allclose(near, k * step, rtol=0, atol=1e-9 * radius) else None
 
 
-def kept(cache: OrderedDict, key: Any, make: Callable[[], Any], limit: int) -> Any:
+def kept(cache: OrderedDict[Key, Kept], key: Key, make: Callable[[], Kept], limit: int) -> Kept:
     """``cache[key]``, made by ``make()`` when missing; the least recently used beyond ``limit`` go."""
     found = cache.get(key)
     if found is None:
@@ -211,12 +218,12 @@ class Atlas:
         return c
 
 
-def model_lattice(model: Any, mesh_points: Any) -> Lattice:
+def model_lattice(model: Model, mesh_points: ArrayLike | None) -> Lattice:
     """The atlas lattice of ``model`` on a mesh with these points (its move step)."""
     return lattice(model, _step(model, mesh_points))
 
 
-def _step(model: Any, mesh_points: Any) -> float | None:
+def _step(model: Model, mesh_points: ArrayLike | None) -> float | None:
     return move_step(mesh_points, model.n, model.center, model.radius)
 
 

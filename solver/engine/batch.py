@@ -31,12 +31,20 @@ the loop drops the state at that step and it is rerun alone from the start of it
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..filtering import chunk_clock, per_item
 from ..measurement import check_first_gap, check_rows, resolve_times
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..errors import InputError
+    from ..filtering import ChunkResult
+    from .gate import Prepared
+    from .state import YauYauState
 
 BATCH_RTOL = {"double": 1e-10, "single": 5e-3}  # relative, against stepping alone (module docstring)
 MAX_BATCH_BYTES = 64 << 20  # per array of nodal values (steps × states × nodes) held at once
@@ -47,22 +55,23 @@ class _Member:
     """One state of the batch on the fast path."""
 
     index: int  # in the caller's list
-    state: Any
+    state: YauYauState
     rows: np.ndarray
     steps: np.ndarray
     times: np.ndarray
-    ready: Any  # engine.gate.Prepared, while its group runs
+    ready: Prepared | None  # while its group runs
 
 
-def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
-              return_exceptions: bool = False) -> list[Any]:
+def run_batch(engine: Any, states: list[YauYauState], chunks: list[ArrayLike],
+              times: list[ArrayLike | None] | None = None,
+              return_exceptions: bool = False) -> list[tuple[YauYauState, ChunkResult] | InputError]:
     """Advance ``states[i]`` over ``chunks[i]`` (at ``times[i]``, or one dt apart) for every i:
     [(new state, ChunkResult)], as ``engine.run_arrays`` would give one by one.
 
     ``return_exceptions``: an item whose input is refused gives its :class:`InputError` in its place
     (the other items are unaffected); else the first such error is raised, naming the item
     (``chunks[i]…``)."""
-    def item(i: int, state: Any, chunk: Any, chunk_times: Any) -> Any:
+    def item(i: int, state: YauYauState, chunk: ArrayLike, chunk_times: ArrayLike | None) -> Any:
         member = _fast_member(engine, i, state, chunk, chunk_times)
         return engine.run_arrays(state, chunk, chunk_times) if member is None else member
 
@@ -82,7 +91,8 @@ def run_batch(engine: Any, states: list[Any], chunks: list[Any], times: list[Any
     return out
 
 
-def _fast_member(engine: Any, index: int, state: Any, chunk: Any, chunk_times: Any) -> _Member | None:
+def _fast_member(engine: Any, index: int, state: YauYauState, chunk: ArrayLike,
+                 chunk_times: ArrayLike | None) -> _Member | None:
     """The item made ready for the batched loop, or None when it runs alone (module docstring)."""
     model, obs = engine.model, engine.observation
     rows = check_rows(chunk, model.m, "observations" if obs.discrete else "increments")

@@ -9,10 +9,14 @@ home ball translated, the carry by one offset depends on the offset only: it is 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sps
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
+    from ..offline.pipeline import OfflineModel
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,14 +32,14 @@ class Carry:
     others: np.ndarray  # the new nodes that are not old ones (``rest`` and those outside the old ball)
 
     @classmethod
-    def build(cls, home: Any, center: np.ndarray, radius: float, offset: np.ndarray,
+    def build(cls, home: OfflineModel, center: np.ndarray, radius: float, offset: np.ndarray,
               tree: Any) -> "Carry":
         """On the home ball (nodes ``home.nodes`` around ``center``, ``tree`` their KD-tree): where its
         nodes moved by ``offset`` land, as :func:`carried_at` finds it."""
         return cls.build_many(home, center, radius, np.asarray(offset, dtype=float)[None, :], tree)[0]
 
     @classmethod
-    def build_many(cls, home: Any, center: np.ndarray, radius: float, offsets: np.ndarray,
+    def build_many(cls, home: OfflineModel, center: np.ndarray, radius: float, offsets: np.ndarray,
                    tree: Any) -> list["Carry"]:
         """:meth:`build` for every row of ``offsets`` (M, n) at once: one search of the landing nodes
         and one interpolation matrix for all of them (a carry alone pays both calls' fixed cost)."""
@@ -85,8 +89,8 @@ def carried_at(old: Any, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any, radius: float,
-             model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: np.ndarray, radius: float,
+             model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where ``points`` land on the ball of ``nodes`` (``tree``: their KD-tree) around ``center``: a
     node at each point (where one is: the rest get an arbitrary valid index), the points inside the ball
     that are nodes (read off), and those inside that are not (interpolated).  The sphere itself counts
@@ -103,7 +107,7 @@ def landing(tree: Any, nodes: np.ndarray, points: np.ndarray, center: Any, radiu
 
 
 
-def unshaped_points(model: Any, mesh_points: Any) -> Any:
+def unshaped_points(model: Model, mesh_points: np.ndarray | None) -> np.ndarray | None:
     """Mesh points (n, Np) of an ellipsoid in the ball's coordinates, c + L⁻¹(p − c) (where its lattice
     is the ball's); the ball's as they are."""
     if mesh_points is None or model.shape is None:

@@ -14,9 +14,12 @@ Read on the pre-projection nodal density σ_k of each step (after the hot loop, 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
 
 RIM_FRACTION = 0.5  # of the mass within one element of ∂B_R: degenerate
 # Boundary leak (fraction of the mass per unit time) beyond which the Dirichlet wall shows in the
@@ -41,8 +44,8 @@ OUTLIER_SIGMAS = 5.0  # an increment this many standard deviations off is named 
 class Diagnostics:
     """The checks of one engine (its nodes, weights, projector and Fokker–Planck propagator)."""
 
-    def __init__(self, model: Any, nodes: np.ndarray, weights: np.ndarray, projector: np.ndarray,
-                 offline: Any, h_nodes: np.ndarray):
+    def __init__(self, model: Model, nodes: np.ndarray, weights: np.ndarray, projector: np.ndarray,
+                 offline: Any, h_nodes: np.ndarray):  # OfflineArrays (offline/pipeline.py imports this)
         self.dt = model.dt
         self.weights = weights
         self._rim = rim_nodes(model.unshaped(nodes - model.center), 0.0, model.radius)

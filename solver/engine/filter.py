@@ -39,9 +39,10 @@ import copy
 import dataclasses
 import math
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import InputError, SpecError
 from ..filtering import (
@@ -63,7 +64,7 @@ from ..registry import FORMS, PRECISIONS
 from ..spec import DensityPrior, GaussianPrior, MixturePrior, spec_from_dict
 from .batch import run_batch
 from .diagnostics import Diagnostics
-from .finish import finish
+from .finish import Until, finish
 from .gate import Gate, Prepared
 from .kernel import (
     ARITHMETIC,
@@ -80,6 +81,14 @@ from .semigroup import SpectralFlow
 from .state import YauYauState, state_from_dict
 from .translated import TranslatedOffline
 
+if TYPE_CHECKING:  # types only
+    from ..offline.pipeline import OfflineArrays
+    from .follow import FollowingFilter
+    from .frame import AffineFrame
+
+    # (follower, velocity, moves): a ball that moves inside the loop (solver/engine/recentring.py)
+    Follow = tuple[FollowingFilter, np.ndarray | None, list[tuple[int, np.ndarray]]]
+
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 MAX_CHUNK_PIECES = 8192  # pieces filtered at once (the rest of a chunk follows, block by block)
 
@@ -95,7 +104,7 @@ class YauYauFilter(ChunkedFilter):
 
     method = "yau-yau"
 
-    def __init__(self, model: Model, offline: Any, form: str = "stable", precision: str = "double",
+    def __init__(self, model: Model, offline: OfflineArrays, form: str = "stable", precision: str = "double",
                  gate: float | None = None):
         if form not in FORMS:
             raise SpecError("form", f"must be one of {', '.join(FORMS)}, got {form!r}")
@@ -125,9 +134,10 @@ class YauYauFilter(ChunkedFilter):
         self._pairs = [(i, j) for i in range(model.n) for j in range(i, model.n)]
         self._features = moment_features(self.weights, self.nodes, self._pairs)
         self.diagnostics = Diagnostics(model, self.nodes, self.weights, projector, offline, h_nodes)
-        self.frame = None  # solver/engine/frame.py: the ball rides ċ = Ac + b (set by framed())
+        # solver/engine/frame.py: the ball rides ċ = Ac + b (set by framed())
+        self.frame: AffineFrame | None = None
 
-    def framed(self, frame: Any) -> "YauYauFilter":
+    def framed(self, frame: AffineFrame) -> "YauYauFilter":
         """This engine in a frame moving with the mean's ODE (solver/engine/frame.py): each step's nodes are
         these nodes moved by c_k − c₀, c_k the frame's centre after the step (from the state's
         ``center``); the stored propagator must be the frame's (f(x) − f(c₀))."""
@@ -151,7 +161,7 @@ class YauYauFilter(ChunkedFilter):
         points = (self.nodes[None, :, :] + shifts[:, None, :]).reshape(K * Q, n)
         return np.asarray(self.model.h(points), dtype=float).reshape(K, Q, -1)
 
-    def centred_at(self, center: Any) -> "YauYauFilter":
+    def centred_at(self, center: ArrayLike) -> "YauYauFilter":
         """This engine on the ball translated to ``center`` (solver/engine/follow.py): the same basis,
         projector and propagators (shared, not copied), the observation and the moments at the
         translated nodes.  Right where the Fokker–Planck operator is invariant under the move (f does
@@ -275,7 +285,7 @@ class YauYauFilter(ChunkedFilter):
         return self._chunk(state, increments, times)
 
     def run_until(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None,
-                  until: Any) -> tuple[YauYauState, ChunkResult]:
+                  until: Until | None) -> tuple[YauYauState, ChunkResult]:
         """:meth:`run_arrays` for a ball that follows the state (solver/engine/follow.py): ``until(mean,
         centers)``, given the rows' means (K, n) and, in a moving frame, their centres (else None), is
         the number j ≥ 1 of rows to keep, or None for all.  The chunk then ends after row j − 1: the
@@ -283,8 +293,9 @@ class YauYauFilter(ChunkedFilter):
         the chunk had been j rows long.  Rows over long gaps (filtered in pieces) always run whole."""
         return self._chunk(state, increments, times, until=until)
 
-    def run_moving(self, state: YauYauState, increments: np.ndarray, follower: Any, velocity: Any,
-                   moves: list) -> tuple[YauYauState, ChunkResult]:
+    def run_moving(self, state: YauYauState, increments: np.ndarray, follower: FollowingFilter,
+                   velocity: np.ndarray | None,
+                   moves: list[tuple[int, np.ndarray]]) -> tuple[YauYauState, ChunkResult]:
         """Regular rows on a ball that moves inside the loop (solver/engine/recentring.py; ``moves``
         gets (row, new centre) per move): ``state.center`` is the ball's centre, the result has each
         row's, and the chunk may end early (after a row the loop could not move from: the caller
@@ -292,7 +303,8 @@ class YauYauFilter(ChunkedFilter):
         return self._chunk(state, increments, None, follow=(follower, velocity, moves))
 
     def _chunk(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None = None,
-               until: Any = None, follow: Any = None) -> tuple[YauYauState, ChunkResult]:
+               until: Until | None = None,
+               follow: Follow | None = None) -> tuple[YauYauState, ChunkResult]:
         model, obs = self.model, self.observation
         rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
         K = rows.shape[0]
@@ -321,15 +333,16 @@ class YauYauFilter(ChunkedFilter):
             start = stop
         return state, concat_results(parts)
 
-    def run_batch(self, states: list[YauYauState], chunks: list[Any], times: list[Any] | None = None,
-                  return_exceptions: bool = False) -> list[Any]:
+    def run_batch(self, states: list[YauYauState], chunks: list[ArrayLike],
+                  times: list[ArrayLike | None] | None = None,
+                  return_exceptions: bool = False) -> list[tuple[YauYauState, ChunkResult] | InputError]:
         """Many states through their chunks together, one matrix–matrix product per step (engine/batch.py):
         [(new state, ChunkResult)] as ``run_arrays`` gives one by one, up to rounding."""
         return run_batch(self, states, chunks, times, return_exceptions)
 
     def run_rows(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-             taus: np.ndarray | None, gating: bool, until: Any = None,
-             follow: Any = None) -> tuple[YauYauState, ChunkResult]:
+             taus: np.ndarray | None, gating: bool, until: Until | None = None,
+             follow: Follow | None = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
         ready = self.prepare(state, rows, taus, gating, follow)
         loop = self.propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
@@ -337,7 +350,7 @@ class YauYauFilter(ChunkedFilter):
         return self.finish(state, rows, steps, times, taus, ready, *loop, until=until)
 
     def propagate(self, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray, skip: list[bool],
-                  gate: Gate | None, taus: np.ndarray | None = None, moving: Any = None):
+                  gate: Gate | None, taus: np.ndarray | None = None, moving: Recentring | None = None):
         """The hot loop of the chunk's kind (solver/engine/loops.py): (σ_k, ∫σ_k, carried, done, reason).
         ``carried`` is [coefficients, ∫σ] (N+1,); ``skip`` the rows that only predict."""
         if moving is not None:
@@ -350,14 +363,14 @@ class YauYauFilter(ChunkedFilter):
 
     def finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
                taus: np.ndarray | None, ready: Prepared, sigma, masses, carried, done: int,
-               reason: str | None, until: Any = None) -> tuple[YauYauState, ChunkResult]:
+               reason: str | None, until: Until | None = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk's estimates, checks and new state from what the hot loop left
         (solver/engine/finish.py)."""
         return finish(self, state, rows, steps, times, taus, ready, sigma, masses, carried, done, reason,
                       until)
 
     def prepare(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None,
-                 gating: bool, follow: Any = None) -> Prepared:
+                 gating: bool, follow: Follow | None = None) -> Prepared:
         """What the hot loop needs of a chunk: the update factors, the gate, the carried vector (on a
         ball that moves in the loop, the factors come a window at a time: solver/engine/recentring.py)."""
         obs = self.observation
@@ -556,7 +569,7 @@ def _check_offline_shapes(nodes, weights, projector, offline, n: int) -> None:
         raise SpecError("offline.weights", "quadrature weights must be positive")
 
 
-def build(model: Model, offline: Any, form: str = "stable", precision: str = "double",
+def build(model: Model, offline: OfflineArrays, form: str = "stable", precision: str = "double",
           gate: float | None = None, **_: Any) -> YauYauFilter:
     """The registry's constructor (solver/registry.py); ``[domain] follow``: on a ball that follows the
     state (solver/engine/follow.py)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,9 @@ from ..measurement import standard_score
 from .gate import Prepared
 from .kernel import FACTOR_OVERFLOWS, stack_results
 from .state import YauYauState
+
+# ``until(means, centers)``: the rows of a chunk to keep (None: all), solver/engine/follow.py
+Until = Callable[[np.ndarray, np.ndarray | None], int | None]
 
 
 @dataclass
@@ -52,7 +56,7 @@ class Outcome:
 
 def finish(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
            taus: np.ndarray | None, ready: Prepared, sigma, masses, carried, done: int,
-           reason: str | None, until: Any = None) -> tuple[YauYauState, ChunkResult]:
+           reason: str | None, until: Until | None = None) -> tuple[YauYauState, ChunkResult]:
     """The chunk's estimates, checks and new state from what the hot loop left (``sigma``: the
     nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last)."""
     out = Outcome(rows, steps, times, sigma, masses, carried, done, reason, shifts=ready.shifts,
@@ -94,7 +98,7 @@ def weigh_gate(out: Outcome, ready: Prepared) -> None:
             out.pll[k] = gate.attempted.get(k, -math.inf)
 
 
-def cut(engine: Any, out: Outcome, ready: Prepared, taus: np.ndarray | None, until: Any) -> None:
+def cut(engine: Any, out: Outcome, ready: Prepared, taus: np.ndarray | None, until: Until | None) -> None:
     """End the chunk after row j − 1 where ``until(mean, centres)`` says so, or where a ball moving in
     the loop could not move on: the state is then the one the loop carried there, bit for bit."""
     shifts = out.shifts

@@ -41,17 +41,22 @@ from __future__ import annotations
 
 import dataclasses
 from collections import OrderedDict
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike, DTypeLike
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkedFilter, ChunkResult, concat_results, run_batch_alone
+from ..filtering import ChunkedFilter, ChunkResult, Estimate, concat_results, run_batch_alone
 from ..measurement import check_rows
 from .atlas import kept, move_step, needs_atlas
 from .carry import Carry, carried_at, unshaped_points
 from .frame import affine_frame
 from .kernel import with_zero_column
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
+    from .state import YauYauState
 
 SHELL = 0.9  # |x − c| > SHELL·R is the outer shell whose mass the trigger reads
 STRAY = 0.1  # of R beyond follow_distance: a block whose mean strays further runs again, shorter
@@ -65,7 +70,7 @@ CARRIES = 64  # carries kept, one per move offset in mesh steps (index arrays an
 LEAD = 0.5
 
 
-def check_follow(model: Any, form: str = "stable") -> tuple[int, ...]:
+def check_follow(model: Model, form: str = "stable") -> tuple[int, ...]:
     """The directions the ball may move along (every one with ``[domain] region``: an atlas,
     solver/engine/atlas.py); SpecError when follow cannot apply."""
     directions = model.shift_directions
@@ -92,7 +97,7 @@ class FollowingFilter(ChunkedFilter):
     method = "yau-yau"
     follows = True
 
-    def __init__(self, engine: Any):
+    def __init__(self, engine: Any):  # YauYauFilter (engine/filter.py imports this module)
         self.home = engine
         self.model = engine.model
         self.directions = check_follow(engine.model, engine.form)
@@ -119,12 +124,12 @@ class FollowingFilter(ChunkedFilter):
                                              "they were solved): precompute the spec again")
         self._shell = engine.model.ball_distance(engine.nodes - self.home_center) > SHELL * self.radius
         self.frame = affine_frame(engine.model) if self.atlas is None else None
-        self._framed: OrderedDict[Any, Any] = OrderedDict()
+        self._framed: OrderedDict[float | None, Any] = OrderedDict()
         self._carries: OrderedDict[tuple, Carry] = OrderedDict()
         self._table = self._carry_table() if self._lattice else {}
         # moves inside the engine's loop (engine/recentring.py): a kept carry for every move by whole steps
         self.moves_in_loop = bool(self._lattice)
-        self._watch: dict[Any, tuple[np.ndarray, np.ndarray]] = {}
+        self._watch: dict[DTypeLike, tuple[np.ndarray, np.ndarray]] = {}
         self._h: OrderedDict[tuple, tuple[np.ndarray, dict]] = OrderedDict()
 
     def runner(self, center: np.ndarray) -> Any:
@@ -164,7 +169,7 @@ class FollowingFilter(ChunkedFilter):
 
         return kept(self._bases, k, make, CACHE)
 
-    def ball_center(self, state: Any) -> np.ndarray:
+    def ball_center(self, state: YauYauState) -> np.ndarray:
         return np.asarray(state.center, dtype=float)
 
     def snapped(self, center: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -195,7 +200,7 @@ class FollowingFilter(ChunkedFilter):
                 "again")
 
     # -- states ---------------------------------------------------------------------------------------
-    def initial_state(self, prior: Any | None = None) -> Any:
+    def initial_state(self, prior: Any | None = None) -> YauYauState:
         """The prior on the ball centred at its mean along the shift directions."""
         start = self.home_center
         mean = _prior_mean(self.home, prior)
@@ -208,7 +213,7 @@ class FollowingFilter(ChunkedFilter):
         state = self.engine(start).initial_state(prior)
         return dataclasses.replace(state, center=start)
 
-    def state_from_dict(self, data: dict[str, Any]) -> Any:
+    def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         state = self.home.state_from_dict(data)
         center = data.get("center")
         try:
@@ -222,25 +227,26 @@ class FollowingFilter(ChunkedFilter):
             raise InputError("state.center", f"{_point(center)} is not a centre of this model's atlas")
         return dataclasses.replace(state, center=center)
 
-    def estimate(self, state: Any) -> Any:
+    def estimate(self, state: YauYauState) -> Estimate:
         return self.home.estimate(state)
 
-    def density(self, state: Any, points: np.ndarray) -> np.ndarray:
+    def density(self, state: YauYauState, points: np.ndarray) -> np.ndarray:
         return self.engine(state.center).density(state, points)
 
-    def centred(self, state: Any) -> Any:
+    def centred(self, state: YauYauState) -> Any:
         """The engine of the ball where ``state`` is: its ``nodes`` are those of ``nodal_density``."""
         return self.engine(state.center)
 
-    def nodal_density(self, state: Any) -> np.ndarray:
+    def nodal_density(self, state: YauYauState) -> np.ndarray:
         return self.centred(state).nodal_density(state)
 
-    def marginal(self, state: Any, var_index: int, grid: np.ndarray, resolution: int = 64) -> np.ndarray:
+    def marginal(self, state: YauYauState, var_index: int, grid: np.ndarray,
+                 resolution: int = 64) -> np.ndarray:
         return self.engine(state.center).marginal(state, var_index, grid, resolution)
 
     # -- stepping -------------------------------------------------------------------------------------
-    def run_arrays(self, state: Any, increments: np.ndarray,
-                   times: Any | None = None) -> tuple[Any, ChunkResult]:
+    def run_arrays(self, state: YauYauState, increments: np.ndarray,
+                   times: ArrayLike | None = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk in blocks, re-centring between them (module docstring)."""
         rows = check_rows(increments, self.model.m,
                           "observations" if self.observation.discrete else "increments")
@@ -295,7 +301,7 @@ class FollowingFilter(ChunkedFilter):
                 break
         return state, concat_results(parts)
 
-    def _run_moving(self, state: Any, rows: np.ndarray) -> tuple[Any, ChunkResult]:
+    def _run_moving(self, state: YauYauState, rows: np.ndarray) -> tuple[YauYauState, ChunkResult]:
         """The chunk through the loop of the home engine (or the frame's), which re-centres the ball itself
         (solver/engine/recentring.py); between passes (where the loop could not move on) the block logic's
         re-centre, or its degenerate reason."""
@@ -328,7 +334,8 @@ class FollowingFilter(ChunkedFilter):
                 break
         return state, concat_results(parts)
 
-    def _stay(self, state: Any, rows: np.ndarray, times: Any, parts: list) -> Any:
+    def _stay(self, state: YauYauState, rows: np.ndarray, times: np.ndarray | None,
+              parts: list[ChunkResult]) -> YauYauState:
         """A degenerate state through the rest of the chunk (its result appended to ``parts``)."""
         new, part = self.runner(state.center).run_arrays(state, rows, times)
         parts.append(_with_centers(part, state.center))
@@ -369,7 +376,7 @@ class FollowingFilter(ChunkedFilter):
 
         return kept(self._h, tuple(float(c) for c in center), make, CACHE)
 
-    def watch_arrays(self, dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+    def watch_arrays(self, dtype: DTypeLike) -> tuple[np.ndarray, np.ndarray]:
         """For a loop that moves the ball (solver/engine/recentring.py), in the loop's precision: the home
         engine's projector with the trigger's rows w·(x − c)_i along the shift directions (on an
         ellipsoid w·(L⁻¹(x − c))_i: the loop reads the mean in the ball's coordinates) and w on the
@@ -384,8 +391,9 @@ class FollowingFilter(ChunkedFilter):
                                           with_zero_column(home.offline.basis, dtype))
         return found
 
-    def run_batch(self, states: list[Any], chunks: list[Any], times: list[Any] | None = None,
-                  return_exceptions: bool = False) -> list[Any]:
+    def run_batch(self, states: list[YauYauState], chunks: list[ArrayLike],
+                  times: list[ArrayLike | None] | None = None,
+                  return_exceptions: bool = False) -> list[tuple[YauYauState, ChunkResult] | InputError]:
         return run_batch_alone(self, states, chunks, times, return_exceptions)
 
     def _block_for(self, velocity: np.ndarray, jitter: float) -> int:
@@ -401,7 +409,7 @@ class FollowingFilter(ChunkedFilter):
             return MAX_BLOCK
         return int(np.clip(root * root, MIN_BLOCK, MAX_BLOCK))
 
-    def _placed(self, state: Any, center: np.ndarray) -> Any:
+    def _placed(self, state: YauYauState, center: np.ndarray) -> YauYauState:
         """The engine's new state with the centre it was computed on (engine states do not carry it;
         in a moving frame the engine's state has the frame's centre after its last row)."""
         if self.frame is not None and state.center is not None:
@@ -426,7 +434,7 @@ class FollowingFilter(ChunkedFilter):
         far = np.flatnonzero(~(gap <= self.stray))
         return int(far[0]) if len(far) else None
 
-    def _maybe_recentre(self, state: Any, travel: np.ndarray) -> Any:
+    def _maybe_recentre(self, state: YauYauState, travel: np.ndarray) -> YauYauState:
         """Re-centre when the mean is beyond the trigger distance, or will be by the end of the next
         block (``travel``: its expected move over that block), or when the outer shell holds too much
         mass; the new centre leads the mean by half the expected travel."""
@@ -453,7 +461,7 @@ class FollowingFilter(ChunkedFilter):
             return state
         return self.recentre(state, target)
 
-    def recentre(self, state: Any, center: np.ndarray) -> Any:
+    def recentre(self, state: YauYauState, center: np.ndarray) -> YauYauState:
         """The state carried onto the ball around ``center``: the old expansion at the new nodes (0
         outside the old ball), projected; ∫σ of the carried density is the new mass."""
         new = self.engine(center)
@@ -468,13 +476,13 @@ class FollowingFilter(ChunkedFilter):
         coefficients = np.asarray(new.offline.projector) @ carried
         return dataclasses.replace(state, coefficients=coefficients, mass=mass, center=np.array(center))
 
-    def moved_mass(self, state: Any, center: np.ndarray) -> float:
+    def moved_mass(self, state: YauYauState, center: np.ndarray) -> float:
         """The fraction of ∫σ a move onto ``center`` would leave outside the new ball."""
         new = self.engine(center)
         carried, before = self._carried_to(state, new)
         return 1.0 - float(new.weights @ carried) / before
 
-    def _carried_to(self, state: Any, new: Any) -> tuple[np.ndarray, float]:
+    def _carried_to(self, state: YauYauState, new: Any) -> tuple[np.ndarray, float]:
         """The state's density at ``new``'s nodes, and its ∫σ on the old ball."""
         center = np.asarray(state.center, dtype=float)
         nodal = self.home.nodal_density(state)  # the basis is the same on every ball

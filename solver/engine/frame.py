@@ -20,9 +20,12 @@ translation of solver/engine/follow.py is used, so its stored arrays are unchang
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
 
 SEGMENT = 256  # rows of a regular path computed from one start (powers of e^{Aτ} kept per τ)
 
@@ -89,7 +92,7 @@ class AffineFrame:
                 self._powers[tau] = found
         return found
 
-    def drift(self, f: Any):
+    def drift(self, f: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
         """The stored propagator's drift x ↦ f(x) − f(c₀) (= A(x − c₀))."""
         offset = self.offset
 
@@ -99,7 +102,7 @@ class AffineFrame:
         return framed
 
 
-def affine_frame(model: Any) -> AffineFrame | None:
+def affine_frame(model: Model) -> AffineFrame | None:
     """The moving frame of a ``[domain] follow`` model whose drift is affine but depends on some
     coordinate (else None: no follow, a nonlinear drift, or a drift invariant along every one)."""
     domain = model.spec.domain
@@ -112,7 +115,7 @@ def affine_frame(model: Any) -> AffineFrame | None:
     return AffineFrame(A=A, b=b, origin=np.asarray(model.center, dtype=float))
 
 
-def drift_of(model: Any):
+def drift_of(model: Model) -> Callable[[np.ndarray], np.ndarray]:
     """The drift the offline stage solves with: f, or f(x) − f(c₀) in a moving frame."""
     frame = affine_frame(model)
     return model.f if frame is None else frame.drift(model.f)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, DTypeLike
 from scipy.linalg.blas import dgemv, sgemv
 
 from ..filtering import ChunkResult, Estimate
@@ -68,7 +69,7 @@ def project(arith: Arithmetic, projection: np.ndarray, sigma: np.ndarray, out: n
     return out.item(mass_index)
 
 
-def with_zero_column(propagator: Any, dtype: Any) -> np.ndarray:
+def with_zero_column(propagator: ArrayLike, dtype: DTypeLike) -> np.ndarray:
     """A propagator (Q×N) with a zero column for ∫σ, in Fortran order (gemv reads it without a copy)."""
     matrix = np.asarray(propagator, dtype=float)
     return np.asfortranarray(np.hstack([matrix, np.zeros((matrix.shape[0], 1))]), dtype=dtype)
@@ -101,7 +102,7 @@ def moments(sigma: np.ndarray, mass: np.ndarray, features: np.ndarray, pairs: li
     return first, cov, mode
 
 
-def log_mean_factor(weights: np.ndarray, s: Any, log_factor_row: np.ndarray) -> float:
+def log_mean_factor(weights: np.ndarray, s: ArrayLike, log_factor_row: np.ndarray) -> float:
     """log Σ_q w_q s_q e_q over the nodes where s > 0 (e relative to its maximum), by log-sum-exp: what
     the hot loop's log ∫σ would be for a factor too small to sum directly (−inf: nothing left)."""
     s = np.asarray(s, dtype=float)
@@ -115,7 +116,7 @@ def log_mean_factor(weights: np.ndarray, s: Any, log_factor_row: np.ndarray) -> 
     return top + math.log(float(np.exp(terms - top).sum()))
 
 
-def rescue(arith: Arithmetic, weights: np.ndarray, s: Any, log_factor: np.ndarray, top: np.ndarray,
+def rescue(arith: Arithmetic, weights: np.ndarray, s: ArrayLike, log_factor: np.ndarray, top: np.ndarray,
            missing: bool, k: int, row: np.ndarray) -> tuple[float, str | None]:
     """Step k again in log scale when ∫σ under/overflows (s: the propagated nodal values): writes
     ``row``, may shift top[k]; (∫σ, None) or (0, the reason the step cannot be taken)."""

@@ -18,12 +18,16 @@ overflows, or an observed row whose cheap gate bound is over its threshold, take
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from .gate import Gate
 from .kernel import NO_MASS_AFTER_UPDATE, NO_MASS_ON_BALL, log_mean_factor, observe, predict, project, rescue
+
+if TYPE_CHECKING:  # types only
+    from .recentring import Recentring
+    from .semigroup import SpectralFlow
 
 Result = tuple[np.ndarray, np.ndarray, np.ndarray, int, "str | None"]
 
@@ -126,8 +130,8 @@ class _ModalScale:
     """e^{τ_kΛ} on the modal coefficients of the carried vector, in place: real rates, then the complex
     pairs (views on both buffers, swapped with them)."""
 
-    def __init__(self, flow: Any, taus: np.ndarray, carried: np.ndarray, following: np.ndarray, N: int,
-                 dtype: Any):
+    def __init__(self, flow: SpectralFlow, taus: np.ndarray, carried: np.ndarray, following: np.ndarray,
+                 N: int, dtype: type):
         r = flow.r
         self.real_scale, self.pair_scale = (list(part) for part in flow.scales(taus))  # row views made once
         self.pairs = flow.pair_rates.size > 0
@@ -147,7 +151,7 @@ class _ModalScale:
 
 
 def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
-                skip: list[bool], gate: Gate | None, moving: Any) -> Result:
+                skip: list[bool], gate: Gate | None, moving: Recentring) -> Result:
     """Rows one dt apart on a ball that moves inside the loop (solver/engine/recentring.py): the carried
     vector holds the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer
     shell's Σwσ); past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean."""

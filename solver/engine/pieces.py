@@ -7,7 +7,7 @@ seed 002 (5.35) freezes x over each piece only).  The gate judges whole rows, no
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from ..filtering import ChunkResult
 from ..measurement import standard_score
 from .gate import Gate
 from .kernel import log_mean_factor
+
+if TYPE_CHECKING:  # types only
+    from .state import YauYauState
 
 PIECE = 2.0  # an increment over a gap longer than (PIECE + 1/4)·dt is filtered in pieces of about PIECE·dt
 MAX_PIECES = 64  # pieces of one increment at most (a longer gap gets longer pieces)
@@ -32,8 +35,8 @@ def row_pieces(engine: Any, rows: np.ndarray, taus: np.ndarray | None) -> np.nda
     return count.astype(int) if count.max() > 1 else None
 
 
-def run_in_pieces(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-              taus: np.ndarray, pieces: np.ndarray) -> tuple[Any, ChunkResult]:
+def run_in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+              taus: np.ndarray, pieces: np.ndarray) -> tuple[YauYauState, ChunkResult]:
     """Increments over long gaps, each in ``pieces[k]`` equal pieces of its gap and of its increment
     (y taken linear over the gap, as the exact filters do: the factor of seed 002 (5.35) freezes x
     over each piece only).  The gate judges whole rows: a chunk runs without it, then again with
@@ -74,7 +77,7 @@ def run_in_pieces(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, 
                                   center=None if sub.center is None else sub.center[last])
 
 
-def first_rejected(engine: Any, state: Any, data, times, taus, ll, terms, keys, degenerate,
+def first_rejected(engine: Any, state: YauYauState, data, times, taus, ll, terms, keys, degenerate,
                rejected: dict) -> int | None:
     """The first row over the gate (recorded in ``rejected``: its d² and log E_pred[e]), or None.
     The bound g first; the exact score predicts the state to the row (rare: rows over the bound)."""

@@ -28,9 +28,14 @@ solver/engine/follow.py then re-centres or reports the degenerate reason.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # types only
+    from ..measurement import RowTerms
+    from .follow import FollowingFilter
+    from .state import YauYauState
 
 QUIET = 16  # rows without a new trigger after one whose snapped centre is the current one
 FIRST_WINDOW = 64  # rows between moves assumed before a move is seen (the lead, the first window)
@@ -46,9 +51,9 @@ class Recentring:
     ``velocity``: the mean's drift per row so far (None: not known; no lead in a moving frame);
     ``moves``: a list that gets (row, new centre) for every move after a row."""
 
-    def __init__(self, engine: Any, follower: Any, state: Any, rows: np.ndarray, gaps: np.ndarray,
-                 keys: np.ndarray, terms: Any, missing: np.ndarray, velocity: np.ndarray | None,
-                 moves: list):
+    def __init__(self, engine: Any, follower: FollowingFilter, state: YauYauState, rows: np.ndarray,
+                 gaps: np.ndarray, keys: np.ndarray, terms: RowTerms, missing: np.ndarray,
+                 velocity: np.ndarray | None, moves: list[tuple[int, np.ndarray]]):
         self.engine, self.follower, self.frame = engine, follower, engine.frame
         self.rows, self.gaps, self.keys, self.terms, self.missing = rows, gaps, keys, terms, missing
         K, Q = len(rows), len(engine.nodes)

@@ -7,17 +7,28 @@ move (solver/engine/follow.py).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..offline.pipeline import check_points
 
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..offline.pipeline import OfflineModel
+
 
 class TranslatedOffline:
     """The offline arrays of B_R(c₀) seen on B_R(c₀ + shift): nodes moved, everything else shared."""
 
-    def __init__(self, home: Any, shift: np.ndarray, home_center: np.ndarray):
+    weights: np.ndarray  # the home's (set in __init__, with the rest of OfflineArrays)
+    basis: np.ndarray
+    projector: np.ndarray
+    propagator_fp: np.ndarray
+    propagator_k: np.ndarray
+
+    def __init__(self, home: OfflineModel, shift: np.ndarray, home_center: np.ndarray):
         self.home, self.shift = home, np.asarray(shift, dtype=float)
         self.home_center = np.asarray(home_center, dtype=float)
         self.nodes = np.asarray(home.nodes) + self.shift
@@ -28,16 +39,16 @@ class TranslatedOffline:
     def size(self) -> int:
         return self.basis.shape[1]
 
-    def _points(self, points: Any) -> np.ndarray:
+    def _points(self, points: ArrayLike) -> np.ndarray:
         return check_points(points, self.nodes.shape[1]) - self.shift
 
-    def evaluate_basis(self, points: Any) -> np.ndarray:
+    def evaluate_basis(self, points: ArrayLike) -> np.ndarray:
         return self.home.evaluate_basis(self._points(points))
 
-    def interpolate(self, nodal: np.ndarray, points: Any) -> np.ndarray:
+    def interpolate(self, nodal: np.ndarray, points: ArrayLike) -> np.ndarray:
         return self.home.interpolate(nodal, self._points(points))
 
-    def interpolation_matrix(self, points: Any) -> Any:
+    def interpolation_matrix(self, points: ArrayLike) -> Any:
         return self.home.interpolation_matrix(self._points(points))
 
     def fokker_planck_generator(self) -> np.ndarray:

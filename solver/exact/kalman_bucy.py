@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import astuple, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -94,6 +94,11 @@ from .schedule import (
     gated_chunk,
     regular_gaps,
 )
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..offline.pipeline import OfflineArrays
 
 KINDS = ("continuous", "discrete")  # the constructor's increment model: "discrete" = the sampled model
 
@@ -159,7 +164,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
 
     # -- Filter protocol -----------------------------------------------------------------
     def run_arrays(self, state: GaussianState, increments: np.ndarray,
-                   times: Any = None) -> tuple[GaussianState, "ChunkResult"]:
+                   times: ArrayLike | None = None) -> tuple[GaussianState, "ChunkResult"]:
         """Advance over a chunk (K, m) of rows (NaN: a missing component; a NaN row: prediction only)
         at ``times`` (absolute, strictly increasing) or one dt apart; estimates as arrays."""
         model = self.model
@@ -468,6 +473,7 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
         return means[1:], cov, np.where(missing, 0.0, ll)
 
 
-def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> KalmanBucyFilter:
+def build(model: Model, offline: OfflineArrays | None = None, gate: float | None = None,
+          **_: Any) -> KalmanBucyFilter:
     """The registry's constructor (solver/registry.py)."""
     return KalmanBucyFilter(model, gate=gate)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.linalg
@@ -43,6 +43,11 @@ from ..expressions import vectorize
 from ..filtering import ChunkResult, Estimate, chunk_clock, refuse_form
 from ..measurement import check_rows
 from ..model import Model
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..offline.pipeline import OfflineModel
 
 DEFAULT_POINTS_PER_AXIS = {1: 801, 2: 161, 3: 61}
 FLOW_CACHE_BYTES = 256 * 2**20  # log e^{tL0}σ0 at the nodes, kept for the first steps up to this size
@@ -313,7 +318,7 @@ class WeiNormanFilter:
         return new, result.estimates()[0]
 
     def run(self, state: WeiNormanState, increments: np.ndarray,
-            times: Any = None) -> tuple[WeiNormanState, list[Estimate]]:
+            times: ArrayLike | None = None) -> tuple[WeiNormanState, list[Estimate]]:
         new, result = self.run_arrays(state, increments, times)
         return new, result.estimates()
 
@@ -325,7 +330,7 @@ class WeiNormanFilter:
                               "forecast without observations; use method yau-yau")
 
     def run_arrays(self, state: WeiNormanState, increments: np.ndarray,
-                   times: Any = None) -> tuple[WeiNormanState, ChunkResult]:
+                   times: ArrayLike | None = None) -> tuple[WeiNormanState, ChunkResult]:
         """Advance over a chunk (K, m) of increments; estimates as arrays (the engine's ChunkResult)."""
         dy = check_rows(increments, self.model.m)
         refuse_form(self.method, dy, times, self.model, partial_ok=True)  # irregular times, discrete rows
@@ -447,7 +452,7 @@ class KolmogorovFlow:
     Thread-safe: one flow serves every session of a model.
     """
 
-    def __init__(self, offline: Any, cache_bytes: int | None = None):
+    def __init__(self, offline: OfflineModel, cache_bytes: int | None = None):
         self.offline = offline
         self.model = offline.model
         self.nodes, self.weights = offline.nodes, offline.weights  # the filter's default quadrature
@@ -491,11 +496,11 @@ class KolmogorovFlow:
             return vector
 
 
-def kolmogorov_flow_from_offline(offline) -> KolmogorovFlow:
+def kolmogorov_flow_from_offline(offline: OfflineModel) -> KolmogorovFlow:
     """e^{t L0} σ0 from the stored Kolmogorov propagator (see :class:`KolmogorovFlow`)."""
     return KolmogorovFlow(offline)
 
 
-def build(model: Model, offline: Any, **_: Any) -> WeiNormanFilter:
+def build(model: Model, offline: OfflineModel, **_: Any) -> WeiNormanFilter:
     """The registry's constructor (solver/registry.py): the Kolmogorov flow from the stored arrays."""
     return WeiNormanFilter(model, kolmogorov_flow_from_offline(offline))

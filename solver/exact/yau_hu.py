@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import sympy as sp
@@ -83,6 +83,11 @@ from .schedule import (
 )
 from .yau_hu_step import StepKit, YauHuStep, schedule_coefficients
 from .yau_system import yau_system
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..offline.pipeline import OfflineArrays
 
 
 @dataclass(frozen=True)
@@ -201,7 +206,7 @@ class YauHuFilter(ChunkedFilter):
 
     # -- Filter protocol -----------------------------------------------------------------
     def run_arrays(self, state: YauHuState, increments: np.ndarray,
-                   times: Any = None) -> tuple[YauHuState, "ChunkResult"]:
+                   times: ArrayLike | None = None) -> tuple[YauHuState, "ChunkResult"]:
         """Advance over a chunk (K, m) of rows (NaN: a missing component; a NaN row: prediction only)
         at ``times`` (absolute, strictly increasing) or one dt apart; estimates as arrays.
 
@@ -575,6 +580,7 @@ def _one_row_result(state: YauHuState, step: int, t: float, mean: float, var: fl
                                  predictive_loglik=np.array([pll]), gate=gate)
 
 
-def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauHuFilter:
+def build(model: Model, offline: OfflineArrays | None = None, gate: float | None = None,
+          **_: Any) -> YauHuFilter:
     """The registry's constructor (solver/registry.py)."""
     return YauHuFilter(model, gate=gate)

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import sympy as sp
@@ -80,6 +80,11 @@ from .riccati import (
 )
 from .schedule import BoundedCache, regular_gaps
 from .yau_system import exponential_sum
+
+if TYPE_CHECKING:  # types only
+    from numpy.typing import ArrayLike
+
+    from ..offline.pipeline import OfflineArrays
 
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
@@ -374,7 +379,7 @@ class YauJiaFilter(ChunkedFilter):
 
     # -- Filter protocol ---------------------------------------------------------------------
     def run_arrays(self, state: YauJiaState, increments: np.ndarray,
-                   times: Any = None) -> tuple[YauJiaState, ChunkResult]:
+                   times: ArrayLike | None = None) -> tuple[YauJiaState, ChunkResult]:
         """Advance over a chunk (K, m) of increments (a NaN row: prediction only) at ``times``
         (absolute, strictly increasing) or one dt apart.  A gap longer than the flow's accuracy
         allows is taken in pieces (riccati.gap_pieces), each with its share of the linear path and
@@ -515,6 +520,7 @@ class YauJiaFilter(ChunkedFilter):
         return mixture_state_from_dict(YauJiaState, data, self.model.n, "yau-jia")
 
 
-def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauJiaFilter:
+def build(model: Model, offline: OfflineArrays | None = None, gate: float | None = None,
+          **_: Any) -> YauJiaFilter:
     """The registry's constructor (solver/registry.py)."""
     return YauJiaFilter(model, gate=gate)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import uuid
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from ..engine.atlas import Atlas, Lattice, Sink, model_lattice, point_label
 from ..engine.semigroup import galerkin_generator
 from ..errors import InputError, SpecError
 from .jobs import Job, check_stable, propagate_jobs
+
+if TYPE_CHECKING:  # types only
+    from ..model import Model
 
 
 @dataclass(frozen=True)
@@ -30,8 +33,8 @@ class AtlasArrays:
         return {"propagator_fp": self.propagator_fp[k], "generator": self.generator[k]}
 
 
-def solve_atlas(model: Any, disc: Any, phi: Any, space: Callable[[Any], Any], grid: Lattice, workers: int = 1,
-                progress: Callable[[int, int], None] | None = None,
+def solve_atlas(model: Model, disc: Any, phi: Any, space: Callable[[Any], Any], grid: Lattice,
+                workers: int = 1, progress: Callable[[int, int], None] | None = None,
                 scheduler: str | None = None, sink: Sink | None = None) -> AtlasArrays | None:
     """The propagator e^{dt L_c}φ_k and generator of every lattice centre c (module docstring), the
     home ball's basis ``phi`` on each; the solves as Dask tasks (offline/distributed.py).  With ``sink``

@@ -29,7 +29,7 @@ from __future__ import annotations
 import multiprocessing
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -40,6 +40,11 @@ from ..errors import InputError, SpecError
 from ..model import Model
 from .atlas import attach_solved, attach_stored, model_lattice, solve_atlas
 from .jobs import Job, Progress, check_stable, propagate_all
+
+if TYPE_CHECKING:  # types only
+    from ..engine.atlas import Atlas, Sink
+    from .basis import OrthonormalBasis
+    from .fem import FESpace
 
 ARRAY_NAMES = ("mesh_points", "mesh_cells", "nodes", "weights", "basis", "projector",
                "propagator_fp", "propagator_k", "eigenvalues", "node_index", "element_order")
@@ -100,15 +105,15 @@ def finite_element_space(model: Model) -> Discretisation:
                           arrays=arrays, mass=ops.mass)
 
 
-def dirichlet_eigenbasis(disc: Discretisation, size: int):
+def dirichlet_eigenbasis(disc: Discretisation, size: int) -> OrthonormalBasis:
     """The default basis: the ``size`` lowest Dirichlet eigenfunctions of −½div(a∇) (offline/basis.py)."""
     from .basis import eigenbasis
 
     return eigenbasis(disc.half_stiffness, disc.weights, size)
 
 
-def sdirk_propagators(disc: Discretisation, basis: Any, dt: float, substeps: int, workers: int = 1,
-                      progress: Progress | None = None,
+def sdirk_propagators(disc: Discretisation, basis: OrthonormalBasis, dt: float, substeps: int,
+                      workers: int = 1, progress: Progress | None = None,
                       scheduler: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The default propagators: Alexander's L-stable SDIRK2 over dt (solver/offline/propagator.py), the
     column blocks as Dask tasks (``scheduler``: a running cluster's address; else ``workers``
@@ -137,8 +142,8 @@ class OfflineModel:
     node_index: np.ndarray
     element_order: np.ndarray
     generator: np.ndarray | None = None  # (N, N) Galerkin Fokker–Planck generator Φᵀ K Φ (semigroup.py)
-    atlas: Any | None = field(default=None, repr=False)  # solver/atlas.Atlas: [domain] region
-    _space: Any | None = field(default=None, repr=False)  # fem.FESpace, built on first use
+    atlas: Atlas | None = field(default=None, repr=False)  # solver/engine/atlas.py: [domain] region
+    _space: FESpace | None = field(default=None, repr=False)  # built on first use
     _tree: Any | None = field(default=None, repr=False)  # scipy.spatial.cKDTree of the cells
 
     @property
@@ -247,7 +252,7 @@ class OfflineModel:
         return sps.csr_matrix((values[kept], (rows[kept], column[dofs[kept]])), shape=(len(X), Q))
 
     @property
-    def space(self) -> Any:
+    def space(self) -> FESpace:
         from . import fem
 
         if self._space is None:
@@ -289,7 +294,7 @@ def _check_shapes(model: Model, a: dict[str, np.ndarray]) -> None:
         raise InputError("arrays.weights", "must be positive")
 
 
-def _check_frame(model: Model, stored: Any) -> None:
+def _check_frame(model: Model, stored: np.ndarray | None) -> None:
     """A moving frame's arrays must be the frame's: a file solved before frames (with f itself) is
     the same only where f(c₀) = 0."""
 
@@ -307,9 +312,9 @@ def _check_frame(model: Model, stored: Any) -> None:
 # -- precompute ---------------------------------------------------------------------------------
 def precompute(model: Model, workers: int = 1, progress: Progress | None = None, *,
                space: Callable[[Model], Discretisation] = finite_element_space,
-               basis: Callable[[Discretisation, int], Any] = dirichlet_eigenbasis,
+               basis: Callable[[Discretisation, int], OrthonormalBasis] = dirichlet_eigenbasis,
                propagators: Callable[..., tuple[np.ndarray, np.ndarray]] = sdirk_propagators,
-               scheduler: str | None = None, atlas_sink: Any | None = None) -> OfflineModel:
+               scheduler: str | None = None, atlas_sink: Sink | None = None) -> OfflineModel:
     """Nodes, basis and propagators of ``model`` (seed 002 §5 offline stage), from the three builders;
     the propagators' solves on ``workers`` local processes or the Dask cluster at ``scheduler``
     (solver/offline/distributed.py).  ``atlas_sink(k, K, rows)``: an atlas's centres go there as they are
