@@ -217,14 +217,26 @@ def gate_reason(score: float, gate: float | None = None) -> str:
 class FilterState(Protocol):
     """What every filter state has: where it is, the carried log-likelihood, its health."""
 
-    step: int
-    """The number of rows taken (0: the prior)."""
-    t: float
-    """The state's time."""
-    loglik: float
-    """The log-likelihood carried along (log of the normaliser ratio)."""
-    degenerate: bool
-    """The filter could not resolve a step: it stays so until restarted."""
+    # read-only members: the states are frozen dataclasses (a settable member would not match them)
+    @property
+    def step(self) -> int:
+        """The number of rows taken (0: the prior)."""
+        ...
+
+    @property
+    def t(self) -> float:
+        """The state's time."""
+        ...
+
+    @property
+    def loglik(self) -> float:
+        """The log-likelihood carried along (log of the normaliser ratio)."""
+        ...
+
+    @property
+    def degenerate(self) -> bool:
+        """The filter could not resolve a step: it stays so until restarted."""
+        ...
 
     def to_dict(self) -> dict[str, Any]:
         """The state as JSON-safe data (the filter's ``state_from_dict`` reads it back, exactly)."""
