@@ -39,6 +39,7 @@ from pydantic import (
     model_validator,
 )
 
+from .defaults import default_element, stored_discretization
 from .errors import SpecError
 from .expressions import RESERVED_NAMES
 from .registry import METHODS, check_method  # noqa: F401  (METHODS: the spec's choices, re-exported)
@@ -219,24 +220,26 @@ class Domain(_Strict):
 class Discretization(_Strict):
     """Time step and resolution of the offline stage.
 
-    ``basis`` is N, the number of L²(B_R)-orthonormal basis functions.  ``mesh`` is the
-    number of elements across the radius in 1-D, of rings in 2-D, of refinements of the ball in 3-D
-    (at most 5: 41727 nodes, a Lanczos basis) (None: chosen from N and n).  ``order`` is the
-    polynomial degree of the finite elements.  ``substeps`` splits dt for the offline time
-    integration.  ``precision`` is the floating point of the online engine's two matrix-vector
-    products per observation: "single" halves their memory traffic (the speed-up is measured in
-    docs/bench-engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
-    stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
-    their positive lumped mass instead of P1 (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at
-    the same cost, tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is how the
-    Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
-    "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or
-    "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent
-    mass; P1 elements in 2-D and 3-D).  For noise on some coordinates only, "consistent" on the bubble
-    element is the closest to the exact filter at a given cost (docs/bench-cv-basis.md).  Left out, it
-    is "supg" where the diffusion is only positive semi-definite (noise on some coordinates: the
-    operator is hypoelliptic and plain Galerkin rings along the drift, docs/bench-psd.md) and "galerkin"
-    otherwise.
+    ``basis`` is N, the number of L²(B_R)-orthonormal basis functions.  ``mesh`` is the number of elements
+    across the radius in 1-D, of rings in 2-D, of refinements of the ball in 3-D (at most 5: 41727 nodes,
+    a Lanczos basis) (None: chosen from N and n, solver/offline/fem.py).  ``order`` is the polynomial
+    degree of the finite elements.  ``substeps`` splits dt for the offline time integration.
+    ``precision`` is the floating point of the online engine's two matrix-vector products per observation:
+    "single" halves their memory traffic (the speed-up is measured in docs/bench-engine.md) at a relative
+    rounding of ~1e-7 per step; moments, log-likelihood and the stored state stay in double.  ``element =
+    "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with their positive lumped mass instead of P1
+    (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at the same cost,
+    tests/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  Left out, ``element`` is chosen per
+    dimension by measurement (solver/defaults.py): "bubble" in 3-D where ``mesh`` is left out too, order
+    is 2 and the scheme not "supg" (on a following ball the ball refined three times), "lagrange"
+    otherwise.  ``scheme`` is how the Fokker–Planck operator is discretised: "galerkin" (plain Galerkin
+    with the lumped mass), "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 +
+    bubble: measured in 2-D) or "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along
+    the drift, consistent mass; P1 elements in 2-D and 3-D).  For noise on some coordinates only,
+    "consistent" on the bubble element is the closest to the exact filter at a given cost
+    (docs/bench-cv-basis.md).  Left out, it is "supg" where the diffusion is only positive semi-definite
+    (noise on some coordinates: the operator is hypoelliptic and plain Galerkin rings along the drift,
+    docs/bench-psd.md) and "galerkin" otherwise.
     """
 
     dt: float = Field(gt=0, le=10.0)
@@ -245,7 +248,7 @@ class Discretization(_Strict):
     order: Literal[1, 2] = 2
     substeps: int = Field(default=8, ge=1, le=1000)
     precision: Literal["double", "single"] = "double"
-    element: Literal["lagrange", "bubble"] = "lagrange"
+    element: Literal["lagrange", "bubble"] | None = None  # None: by dimension (ModelSpec.element)
     scheme: Literal["galerkin", "consistent", "supg"] | None = None
 
 
@@ -402,6 +405,13 @@ class ModelSpec(_Strict):
             return self.discretization.scheme
         return "supg" if singular(self.diffusion_matrix()) else "galerkin"
 
+    def element(self) -> str:
+        """``[discretization] element``, or where left out the one measured for the dimension
+        (solver/defaults.py)."""
+        if self.discretization.element is not None:
+            return self.discretization.element
+        return default_element(self.n, self.discretization.order, self.scheme(), self.discretization.mesh)
+
     # -- the two parts -------------------------------------------------------------------
     @property
     def problem(self) -> ProblemSpec:
@@ -459,8 +469,7 @@ class ModelSpec(_Strict):
         elif self.measurement.monitor == MONITOR_DEFAULT:  # added later: ids of specs from before it stay
             del data["measurement"]["monitor"]
         data["domain"] = self.domain.stored()
-        if self.discretization.element == "lagrange":  # the default: ids of specs from before it stay
-            del data["discretization"]["element"]
+        stored_discretization(self, data["discretization"])  # the defaults by dimension, written out
         if self.discretization.scheme is None:  # chosen from the diffusion: ids from before it stay
             del data["discretization"]["scheme"]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))
