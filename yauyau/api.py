@@ -16,11 +16,13 @@ A filter of :mod:`yauyau.solver` is a function of (state, data) (the ``Filter`` 
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from .solver.check import coarser_than_measured
 from .solver.errors import InputError, SpecError
 from .solver.filtering import Estimate, marginal_by_quadrature
 from .solver.methods import choose_method
@@ -139,7 +141,9 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
     ``time_limit`` seconds, wall clock: its process is killed ``analysis_grace`` seconds (default 2)
     later and the general engine is chosen unless what it had decided names an exact filter), and
     stored with its reason; :func:`open_filter` reads it back.  A model
-    already in the store is verified and kept unless ``force``.
+    already in the store is verified and kept unless ``force``.  A mesh coarser than the measured
+    default of the spec's dimension is warned about (a ``UserWarning`` naming the field and the fix)
+    before the solve.
     """
     from .storage.errors import StoreError
     from .storage.model_store import model_id
@@ -154,6 +158,9 @@ def precompute(spec: ModelSpec | str | os.PathLike, store: ModelStore | str | os
             return mid
         except StoreError:
             pass  # unusable file: compute it again
+    coarse = coarser_than_measured(spec)
+    if coarse is not None:
+        warnings.warn(f"{coarse[0]}: {coarse[1]}", UserWarning, stacklevel=2)
     return save_solved(store, spec, workers=workers, time_limit=time_limit, progress=progress,
                        scheduler=scheduler, analysis_grace=analysis_grace)[0]
 
@@ -195,8 +202,6 @@ def load_model(store: ModelStore | str | os.PathLike, model_id: str) -> StoredFi
                OfflineModel.from_arrays(model, stored.arrays, lazy=stored.lazy))
     method, reason = stored.attrs.get("method"), stored.attrs.get("method_reason", "")
     if not method:
-        import warnings
-
         warnings.warn(f"model {model_id} was saved without a method: choosing it now (yauyau.precompute "
                       "stores it)", stacklevel=2)
         method, reason = choose_method(model, offline=offline)
