@@ -34,6 +34,7 @@ TOPICS = [
     ("engine_revision", "bench-engine-revision.md"),
     ("cli_speed", "bench-cli.md"),
     ("default_mesh", "bench-default-mesh.md"),
+    ("default_3d", "bench-default-3d.md"),
     ("load", "bench-load.md"),
     ("load_2d", "bench-load-2d.md"),
     ("load_stores", "bench-load-stores.md"),
