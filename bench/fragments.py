@@ -36,6 +36,7 @@ FRAGMENTS = [
     ("engine_revision", "engine-revision.md"),
     ("cli_speed", "cli.md"),
     ("default_mesh", "default-mesh.md"),
+    ("default_3d", "default-3d.md"),
     ("load", "load.md"),
     ("load_2d", "load-2d.md"),
     ("load_stores", "load-stores.md"),

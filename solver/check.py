@@ -25,7 +25,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .defaults import FOLLOW_REFINEMENTS, P1_REFINEMENTS
 from .errors import InputError, SpecError
+from .registry import mesh_free
 
 if TYPE_CHECKING:  # types only
     from .model import Model
@@ -192,6 +194,38 @@ def resolution_check(spec: ModelSpec, paths: int = 4, steps: int = 300, seed: in
             if trial.ok or wrong:
                 break
     return report
+
+
+def coarser_than_measured(spec: ModelSpec) -> tuple[str, str] | None:
+    """(field, message naming the fix) when ``spec``'s 3-D mesh is one measured farther from the exact
+    filter than the default (solver/defaults.py, bench/results/default-3d.md): P1 on fewer than
+    ``P1_REFINEMENTS`` refinements of the ball, or P2 + bubbles on a following ball refined fewer than
+    ``FOLLOW_REFINEMENTS`` times; else None.  The rule ``yauyau precompute`` warns with before it solves
+    (no path is filtered, as the check would)."""
+    from .offline.fem import effective_order, interior_count, mesh_resolution  # scikit-fem: with a mesh only
+
+    if len(spec.state) != 3 or mesh_free(spec):
+        return None
+    disc, element = spec.discretization, spec.element()
+    refinements = mesh_resolution(spec)
+    if effective_order(3, disc.order, element) == 1 and refinements < P1_REFINEMENTS:
+        nodes, better = interior_count(3, 1, refinements), interior_count(3, 1, P1_REFINEMENTS)
+        if spec.scheme() == "supg":  # the stabilised scheme is built on P1: its finer ball
+            field, fix = "discretization.mesh", f"set mesh = {P1_REFINEMENTS} ({better} nodes)"
+        else:
+            field = ("discretization.mesh" if disc.mesh is not None else "discretization.order"
+                     if disc.order != 2 else "discretization.element")
+            fix = ("leave mesh and element out" + (" with order = 2" if disc.order != 2 else "")
+                   + f" (P2 + bubbles) or set mesh = {P1_REFINEMENTS}")
+        return field, (f"P1 on {nodes} mesh nodes is measured farther from the exact filter than P2 + "
+                       f"bubbles in 3-D (docs/benchmarks.md): {fix}, or see `yauyau check`")
+    if element == "bubble" and spec.domain.follow and refinements < FOLLOW_REFINEMENTS:
+        nodes = interior_count(3, 2, refinements)
+        return "discretization.mesh", (
+            f"P2 + bubbles on {nodes} mesh nodes is measured farther from the exact filter on a following "
+            f"3-D ball than on the ball refined {FOLLOW_REFINEMENTS} times (docs/benchmarks.md): leave "
+            f"mesh out or set mesh = {FOLLOW_REFINEMENTS}, or see `yauyau check`")
+    return None
 
 
 def _leaving(model: Model, data: list) -> tuple[float, int | None, str]:

@@ -41,6 +41,7 @@ from pydantic import (
     model_validator,
 )
 
+from .defaults import default_element, stored_discretization
 from .errors import SpecError
 from .expressions import RESERVED_NAMES, numeric_expression, numeric_many
 from .registry import METHODS, check_method  # noqa: F401  (METHODS: the spec's choices, re-exported)
@@ -228,6 +229,13 @@ class ModelSpec(Strict):
             return self.discretization.scheme
         return "supg" if singular(self.diffusion_matrix()) else "galerkin"
 
+    def element(self) -> str:
+        """``[discretization] element``, or where left out the one measured for the dimension
+        (solver/defaults.py)."""
+        if self.discretization.element is not None:
+            return self.discretization.element
+        return default_element(self.n, self.discretization.order, self.scheme(), self.discretization.mesh)
+
     # -- the two parts -------------------------------------------------------------------
     @property
     def problem(self) -> ProblemSpec:
@@ -285,8 +293,7 @@ class ModelSpec(Strict):
         elif self.measurement.monitor == MONITOR_DEFAULT:  # added later: ids of specs from before it stay
             del data["measurement"]["monitor"]
         data["domain"] = self.domain.stored()
-        if self.discretization.element == "lagrange":  # the default: ids of specs from before it stay
-            del data["discretization"]["element"]
+        stored_discretization(self, data["discretization"])  # the defaults by dimension, written out
         if self.discretization.scheme is None:  # chosen from the diffusion: ids from before it stay
             del data["discretization"]["scheme"]
         return json.dumps(data, sort_keys=True, separators=(",", ":"))

@@ -200,7 +200,10 @@ class Discretization(Strict):
     bench/results/engine.md) at a relative rounding of ~1e-7 per step; moments, log-likelihood and the
     stored state stay in double.  ``element = "bubble"`` (2-D or 3-D, order 2): P2 plus bubbles with
     their positive lumped mass instead of P1 (solver/offline/fem.py; in 2-D ~5x closer to the exact filter at
-    the same cost, tests/solver/offline/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  ``scheme`` is
+    the same cost, tests/solver/offline/test_fem_bubble.py; in 3-D ``mesh`` is at most 3).  Left out,
+    ``element`` is chosen per dimension by measurement (solver/defaults.py): "bubble" in 3-D where
+    ``mesh`` is left out too, order is 2 and the scheme not "supg" (on a following ball the ball refined
+    three times), "lagrange" otherwise.  ``scheme`` is
     how the Fokker–Planck operator is discretised: "galerkin" (plain Galerkin with the lumped mass),
     "consistent" (Galerkin with the consistent mass, 2-D and 3-D, P1 or P2 + bubble: measured in 2-D) or
     "supg" (streamline-upwind Petrov–Galerkin: the test functions tilted along the drift, consistent
@@ -217,7 +220,7 @@ class Discretization(Strict):
     order: Literal[1, 2] = 2
     substeps: int = Field(default=8, ge=1, le=1000)
     precision: Literal["double", "single"] = "double"
-    element: Literal["lagrange", "bubble"] = "lagrange"
+    element: Literal["lagrange", "bubble"] | None = None  # None: by dimension (ModelSpec.element)
     scheme: Literal["galerkin", "consistent", "supg"] | None = None
 
 

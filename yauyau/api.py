@@ -17,6 +17,7 @@ A filter of :mod:`yauyau.solver` is a function of (state, data) (the ``Filter`` 
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .solver.check import coarser_than_measured
 from .solver.errors import InputError, SpecError
 from .solver.filtering import (
     ChunkResult,
@@ -171,7 +173,9 @@ def precompute(spec: ModelSpec | PathArg, store: ModelStore | PathArg, *,
     ``time_limit`` seconds, wall clock: its process is killed ``analysis_grace`` seconds (default 2)
     later and the general engine is chosen unless what it had decided names an exact filter), and
     stored with its reason; :func:`open_filter` reads it back.  A model
-    already in the store is verified and kept unless ``force``.
+    already in the store is verified and kept unless ``force``.  A mesh coarser than the measured
+    default of the spec's dimension is warned about (a ``UserWarning`` naming the field and the fix)
+    before the solve.
     """
     from .storage.errors import StoreError
     from .storage.model_store import model_id
@@ -186,6 +190,9 @@ def precompute(spec: ModelSpec | PathArg, store: ModelStore | PathArg, *,
             return mid
         except StoreError:
             pass  # unusable file: compute it again
+    coarse = coarser_than_measured(spec)
+    if coarse is not None:
+        warnings.warn(f"{coarse[0]}: {coarse[1]}", UserWarning, stacklevel=2)
     return save_solved(store, spec, workers=workers, time_limit=time_limit, progress=progress,
                        scheduler=scheduler, analysis_grace=analysis_grace)[0]
 
@@ -233,8 +240,6 @@ def load_model(store: ModelStore | PathArg, model_id: str) -> StoredFilterModel:
                OfflineModel.from_arrays(model, stored.arrays, lazy=stored.lazy))
     method, reason = stored.attrs.get("method"), stored.attrs.get("method_reason", "")
     if not method:
-        import warnings
-
         warnings.warn(f"model {model_id} was saved without a method: choosing it now (yauyau.precompute "
                       "stores it)", stacklevel=2)
         method, reason = choose_method(model, offline=offline)

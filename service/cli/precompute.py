@@ -8,7 +8,8 @@ bound) and the choice and its reason are stored in the file, so `yauyau filter` 
 never analyse again.  The model id is the LAST line of
 stdout (the only one); messages and the progress bar go to stderr.  The bar is shown only when
 stderr is a terminal and --quiet is not given.  An id already in the store is not recomputed (its
-file is verified) unless --force.
+file is verified) unless --force.  A mesh coarser than the measured default of the spec's dimension
+(solver/defaults.py) is warned about before the solve, naming the field and the fix.
 """
 
 from __future__ import annotations
@@ -100,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
         print(mid)
         return 0
 
+    _warn_if_coarse(args, spec)
     total = spec.discretization.basis
     with _progress_bar(args, total) as bar:
         def progress(done: int, of: int) -> None:
@@ -121,6 +123,16 @@ def run(args: argparse.Namespace) -> int:
     _warn_if_unresolved(args, spec, solved)
     print(saved)
     return 0
+
+
+def _warn_if_coarse(args: argparse.Namespace, spec) -> None:
+    """Before the solve: one line when the mesh is coarser than the measured default of the spec's
+    dimension (solver/check.py ``coarser_than_measured``, a rule: nothing is filtered)."""
+    from yauyau.solver.check import coarser_than_measured  # lazy, as every import here: a fast CLI start
+
+    coarse = coarser_than_measured(spec)
+    if coarse is not None:
+        _say(args, f"warning: {coarse[0]}: {coarse[1]}")
 
 
 def _warn_if_unresolved(args: argparse.Namespace, spec, solved) -> None:

@@ -93,7 +93,8 @@ class Jobs:
         nodes = planned_nodes(spec)
         if nodes > self.max_nodes:
             raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
-                                  f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES)")
+                                  f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES): set a coarser "
+                                  "mesh, or run `yauyau precompute` on the spec into the service's store")
         model = compile_model(spec)  # the expressions parse and are finite: a 4xx now, not a failed job
         check_computable(model)  # a radius, diffusion or drift beyond a double's precision: 422 now
         centres = _atlas_centres(model)

@@ -50,12 +50,11 @@ def check_computable(model) -> None:
 def element_width(model) -> tuple[float, np.ndarray]:
     """The smallest distance between two mesh nodes of the model's domain (the ball of its radius,
     mapped by its shape), and the unit ball's nodes it was measured on."""
-    from .fem import default_resolution, effective_order
+    from .fem import effective_order, mesh_resolution
 
-    spec = model.spec.discretization
-    order = effective_order(model.n, spec.order, spec.element)
-    resolution = spec.mesh or default_resolution(model.n, order, spec.basis)
-    unit_width, nodes = _unit_mesh(model.n, resolution, order, bool(model.spec.domain.follow))
+    spec = model.spec
+    order = effective_order(model.n, spec.discretization.order, spec.element())
+    unit_width, nodes = _unit_mesh(model.n, mesh_resolution(spec), order, bool(spec.domain.follow))
     squeeze = 1.0 if model.shape is None else float(np.linalg.svd(model.shape, compute_uv=False).min())
     return model.radius * unit_width * squeeze, nodes
 

@@ -50,6 +50,7 @@ from skfem import (
 )
 from skfem.helpers import dot, grad
 
+from ..defaults import default_refinements
 from ..errors import SpecError
 from .basis import DENSE_NODES
 
@@ -224,6 +225,19 @@ def default_resolution(n: int, order: int, size: int) -> int:
     return resolution
 
 
+def mesh_resolution(spec, size: int | None = None) -> int:
+    """The mesh of ``spec`` (a ModelSpec) for ``size`` basis functions (default: its basis): its own, or
+    where left out the one measured for its dimension, element and ball (solver/defaults.py), else the
+    smallest with about NODES_PER_MODE · N nodes (:func:`default_resolution`)."""
+    disc, n = spec.discretization, len(spec.state)
+    if disc.mesh is not None:
+        return disc.mesh
+    element = spec.element()
+    fixed = default_refinements(n, element, bool(spec.domain.follow))
+    return fixed or default_resolution(n, effective_order(n, disc.order, element),
+                                       disc.basis if size is None else size)
+
+
 def planned_nodes(spec) -> int:
     """How many interior nodes the spec's discretisation will have (no mesh is built): what a service
     checks against its limit before it accepts a precompute.  A mesh-free spec (more than three state
@@ -233,9 +247,8 @@ def planned_nodes(spec) -> int:
     if mesh_free(spec):
         return 0
     n = len(spec.state)
-    order = effective_order(n, spec.discretization.order, spec.discretization.element)
-    resolution = spec.discretization.mesh or default_resolution(n, order, spec.discretization.basis)
-    return interior_count(n, order, resolution)
+    order = effective_order(n, spec.discretization.order, spec.element())
+    return interior_count(n, order, mesh_resolution(spec))
 
 
 def build(n: int, center: np.ndarray, radius: float, resolution: int, order: int,
@@ -262,7 +275,7 @@ def discretise(model, size: int | None = None) -> FESpace:
     """The discretisation of ``model``'s ball; checks there are at least N interior DOFs."""
     spec = model.spec.discretization
     size = spec.basis if size is None else size
-    order = effective_order(model.n, spec.order, spec.element)
+    order = effective_order(model.n, spec.order, model.spec.element())
     if model.n == 3 and spec.mesh is not None and spec.mesh > max(BALL_INTERIOR):
         raise SpecError("discretization.mesh",
                         f"in 3-D mesh counts refinements of the ball, at most {max(BALL_INTERIOR)}")
@@ -270,18 +283,18 @@ def discretise(model, size: int | None = None) -> FESpace:
         raise SpecError("discretization.mesh", "in 3-D the P2 + bubbles element allows at most "
                         f"{MAX_BUBBLE_REFINEMENTS} refinements ({BALL_INTERIOR_BUBBLE[3]} nodes); "
                         "finer balls are for element = \"lagrange\"")
-    resolution = spec.mesh or default_resolution(model.n, order, size)
-    nodes = interior_count(model.n, order, resolution)
+    cells = mesh_resolution(model.spec, size)
+    nodes = interior_count(model.n, order, cells)
     if nodes > MAX_NODES:
         field = "discretization.mesh" if spec.mesh else "discretization.basis"
         raise SpecError(field, f"needs {nodes} mesh nodes, more than the {MAX_NODES} allowed; "
                                "use a smaller basis or mesh")
-    disc = build(model.n, model.center, model.radius, resolution, order,
+    disc = build(model.n, model.center, model.radius, cells, order,
                  lattice=bool(model.spec.domain.follow), shape=model.shape)
     if len(disc.interior) < size:
         raise SpecError("discretization.basis",
                         f"{size} basis functions need at least as many interior mesh nodes; "
-                        f"mesh={resolution} gives {len(disc.interior)}")
+                        f"mesh={cells} gives {len(disc.interior)}")
     return disc
 
 
