@@ -88,8 +88,9 @@ def render(rows: dict, shape: tuple[int, int], repeats: int) -> str:
               f"busy process beside it {busy:.2f}×.  Each step is two matrix-vector products of a few MB: "
               "split over threads they pay a hand-off per product, and when another process holds a core "
               "the split waits for it — the normal state of a service host or of several filters side by "
-              "side.  `yauyau filter` and `yauyau serve` therefore run the hot path with one BLAS thread "
-              "per process by default (threadpoolctl; `--blas-threads N` or `YAUYAU_BLAS_THREADS`): "
+              "side.  `yauyau filter`, `yauyau serve` and `yauyau.open_filter` therefore run the hot path "
+              "with one BLAS thread per process by default (threadpoolctl; `--blas-threads N`, "
+              "`open_filter(..., blas_threads=N)` (0: leave BLAS as it is) or `YAUYAU_BLAS_THREADS`): "
               "scale with processes (`--workers`), and raise the threads only on a machine kept idle.", ""]
     return "\n".join(lines)
 

@@ -251,7 +251,7 @@ def open_filter(store: ModelStore | PathArg, model_id: str, method: str | None =
                 prior: Any | None = None, form: str = "stable", precision: str | None = None,
                 gate: float | None = None, on_degenerate: str = "stop", t0: float = 0.0,
                 lost_track: LostTrack | dict[str, int] | None = None,
-                monitor: float | None = None) -> OnlineFilter:
+                monitor: float | None = None, blas_threads: int | None = None) -> OnlineFilter:
     """A ready-to-step filter of a stored model.
 
     ``method`` overrides the one chosen at precompute (``yau-yau``, ``kalman-bucy``, ...; an exact
@@ -262,9 +262,16 @@ def open_filter(store: ModelStore | PathArg, model_id: str, method: str | None =
     broadened prior around the last good estimate, yauyau.solver.recovery).  ``lost_track`` (a dict of
     ``gated``, ``restarts``, ``window``; None: the defaults) says when a filter that keeps gating or
     restarting has lost track, and ``monitor`` sets the innovation monitor (healthy rows per false
-    alarm; 0: off; None: the spec's ``[measurement] monitor``): yauyau.solver.watch.
+    alarm; 0: off; None: the spec's ``[measurement] monitor``): yauyau.solver.watch.  ``blas_threads``
+    limits this process's BLAS to that many threads (threadpoolctl), as ``yauyau filter`` and ``yauyau
+    serve`` do: None is ``$YAUYAU_BLAS_THREADS`` or 1 (one thread per process is the faster on a
+    machine doing anything else, bench/results/blas.md), 0 leaves BLAS as the process has it.
     """
+    from .solver.blas import blas_threads as thread_count
+    from .solver.blas import limit_process_blas
     from .solver.methods import make_filter
+
+    threads = thread_count(blas_threads, allow_keep=True)  # bad input refused before anything is read
 
     if not isinstance(model_id, str):
         raise InputError("model_id", "must be a model id (a string; yauyau models lists them)")
@@ -273,8 +280,10 @@ def open_filter(store: ModelStore | PathArg, model_id: str, method: str | None =
         raise SpecError("method", "auto is resolved at precompute; name a method or leave it out")
     flt = make_filter(loaded.model, loaded.offline, method or loaded.method, form=form, precision=precision,
                       gate=gate)
-    return OnlineFilter(flt, prior=prior, on_degenerate=on_degenerate, t0=t0, lost_track=lost_track,
-                        monitor=monitor)
+    online = OnlineFilter(flt, prior=prior, on_degenerate=on_degenerate, t0=t0, lost_track=lost_track,
+                          monitor=monitor)
+    limit_process_blas(threads)
+    return online
 
 
 def simulate(spec: ModelSpec | PathArg | Model, steps: int, seed: int | None = 0,

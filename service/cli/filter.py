@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 
+from yauyau.solver.blas import blas_threads
 from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, DEFAULT_POLICY, FORMS, METHODS, POLICIES, PRECISIONS
 
@@ -114,20 +114,6 @@ def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blas-threads", type=int, default=None, metavar="N",
                         help="BLAS threads of the online products (default: $YAUYAU_BLAS_THREADS or 1; one "
                              "thread per process is faster on a busy machine, bench/results/blas.md)")
-
-
-def blas_threads(requested: int | None) -> int:
-    """The BLAS thread count: the flag, else $YAUYAU_BLAS_THREADS, else 1."""
-
-    if requested is None:
-        text = os.environ.get("YAUYAU_BLAS_THREADS", "1")
-        try:
-            requested = int(text)
-        except ValueError:
-            raise InputError("YAUYAU_BLAS_THREADS", f"must be a positive integer, got {text!r}") from None
-    if requested < 1 or requested > 1024:
-        raise InputError("blas_threads", "must be a positive integer (at most 1024)")
-    return requested
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

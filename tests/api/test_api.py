@@ -158,3 +158,50 @@ def test_examples_ship_with_the_package():
     with pytest.raises(SpecError) as err:
         yauyau.examples.path("cubic")
     assert err.value.field == "example" and "cubic_sensor" in err.value.message
+
+
+BLAS_PROBE = """
+import json, sys, yauyau
+import numpy, scipy.linalg  # noqa: F401  (their BLAS loaded before, to be seen unchanged or not)
+from threadpoolctl import threadpool_info
+kwargs = json.loads(sys.argv[3])
+before = sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+try:
+    yauyau.open_filter(sys.argv[1], sys.argv[2], **kwargs)
+except yauyau.InputError as error:
+    print(json.dumps({"error": [error.field, str(error)]}))
+    raise SystemExit(0)
+after = sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+print(json.dumps({"before": before, "after": after}))
+"""
+
+
+def _blas_after_open(store, mid, env_threads=None, **kwargs):
+    import os
+
+    env = {k: v for k, v in os.environ.items()
+           if not k.endswith("_NUM_THREADS") and k != "YAUYAU_BLAS_THREADS"}
+    if env_threads is not None:
+        env["YAUYAU_BLAS_THREADS"] = env_threads
+    done = subprocess.run([sys.executable, "-c", BLAS_PROBE, str(store), mid, json.dumps(kwargs)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_open_filter_runs_blas_on_one_thread_unless_asked(ou_store):
+    """Issue 37 item 3: the library, like the CLI and the service, limits BLAS to one thread per process
+    by default (bench/results/blas.md: the default threads are 1.5x slower beside one busy process);
+    blas_threads= or $YAUYAU_BLAS_THREADS raise it, 0 leaves BLAS as the process has it, and a bad
+    count is refused naming the field (fresh processes: OpenBLAS starts with a thread per core)."""
+    store, mid = ou_store
+    assert _blas_after_open(store, mid)["after"] == [1]
+    assert _blas_after_open(store, mid, blas_threads=3)["after"] == [3]
+    assert _blas_after_open(store, mid, env_threads="2")["after"] == [2]
+    assert _blas_after_open(store, mid, env_threads="2", blas_threads=1)["after"] == [1]  # the argument wins
+    kept = _blas_after_open(store, mid, blas_threads=0)
+    assert kept["after"] == kept["before"]
+    assert _blas_after_open(store, mid, blas_threads=-1)["error"][0] == "blas_threads"
+    assert _blas_after_open(store, mid, blas_threads=2.5)["error"][0] == "blas_threads"
+    field, message = _blas_after_open(store, mid, env_threads="many")["error"]
+    assert field == "YAUYAU_BLAS_THREADS" and "'many'" in message
