@@ -52,13 +52,13 @@ class Trial:
 
 @dataclass
 class CheckReport:
-    truth: str  # the reference, in words (``reference`` in to_dict and render)
+    reference: str  # the filter compared with, in words
     target: float
     paths: int
     steps: int
     trials: list[Trial] = field(default_factory=list)
-    truth_rmse: float = float("nan")
-    truth_degenerate: float = 0.0  # fraction of the reference's own degenerate steps (then nothing passes)
+    reference_rmse: float = float("nan")
+    reference_degenerate: float = 0.0  # the reference's own degenerate steps (then nothing passes)
     region: list[list[float]] | None = None  # [domain] region of a following ball
     covered: list[list[float]] | None = None  # the simulated states' range along each variable
     left: float = 0.0  # fraction of the simulated paths whose state leaves the domain (ball or region)
@@ -87,19 +87,20 @@ class CheckReport:
         return min(passing) if passing else None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"reference": self.truth, "target": self.target, "paths": self.paths, "steps": self.steps,
+        return {"reference": self.reference, "target": self.target, "paths": self.paths, "steps": self.steps,
                 "ok": self.ok, "resolved": self.requested.ok, "left_domain": self.left,
                 "domain": self.domain, "left_at_step": self.left_at, "suggested_basis": self.suggested,
-                "reference_rmse": self.truth_rmse,
-                "reference_degenerate": self.truth_degenerate, "degenerate_rate_bound": self.rate_bound,
+                "reference_rmse": self.reference_rmse,
+                "reference_degenerate": self.reference_degenerate, "degenerate_rate_bound": self.rate_bound,
                 "region": self.region, "covered": self.covered, "trials": [t.__dict__ for t in self.trials]}
 
     def render(self) -> str:
         r = self.requested
         lines = [f"resolution check: {self.paths} simulated paths of {self.steps} steps, "
-                 f"reference: {self.truth}",
+                 f"reference: {self.reference}",
                  f"  basis {r.basis} ({r.nodes} nodes): mean gap {r.mean_gap:.3g}, largest {r.max_gap:.3g}, "
-                 f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} (reference {self.truth_rmse:.3g})"]
+                 f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} "
+                 f"(reference {self.reference_rmse:.3g})"]
         lines += self._left()
         if r.ok:
             lines.append(f"  {'OK' if self.ok else 'resolved'}: the mean gap is within the target "
@@ -110,9 +111,9 @@ class CheckReport:
             lines += self._coverage()
             return "\n".join(lines)
         lines.append(f"  NOT RESOLVED: the target is a mean gap <= {self.target:g} with no degenerate step")
-        if self.truth_degenerate:
-            lines.append(f"  the reference itself degenerates on {self.truth_degenerate:.1%} of the steps: "
-                         "no basis can be judged against it")
+        if self.reference_degenerate:
+            lines.append(f"  the reference itself degenerates on {self.reference_degenerate:.1%} of the "
+                         "steps: no basis can be judged against it")
         for t in self.trials[1:]:
             versus = f" (against {t.against})" if t.against else ""
             lines.append(f"  basis {t.basis} ({t.nodes} nodes): mean gap {t.mean_gap:.3g}, degenerate "
@@ -169,24 +170,24 @@ def resolution_check(spec: ModelSpec, paths: int = 4, steps: int = 300, seed: in
         return None
     rng = np.random.default_rng(seed)
     data = [simulate(model, steps, rng) for _ in range(paths)]
-    truth, name, wrong, finest = _truth(spec, model, data, 2 * spec.discretization.basis)
-    report = CheckReport(truth=name, target=target, paths=paths, steps=steps,
-                         truth_rmse=_rmse([t[0] for t in truth], data), truth_degenerate=wrong)
+    refs, name, wrong, finest = _reference(spec, model, data, 2 * spec.discretization.basis)
+    report = CheckReport(reference=name, target=target, paths=paths, steps=steps,
+                         reference_rmse=_rmse([t[0] for t in refs], data), reference_degenerate=wrong)
     if spec.domain.follow and spec.domain.region is not None:
         states = np.concatenate([d.states for d in data])
         report.region = [[float(lo), float(hi)] for lo, hi in spec.domain.region]
         report.covered = [[float(lo), float(hi)]
                           for lo, hi in zip(states.min(axis=0), states.max(axis=0), strict=True)]
     report.left, report.left_at, report.domain = _leaving(model, data)
-    report.trials.append(_trial(spec, spec.discretization.basis, data, truth, target, offline, wrong))
+    report.trials.append(_trial(spec, spec.discretization.basis, data, refs, target, offline, wrong))
     if suggest and not report.requested.ok and not wrong and not report.left:  # the domain first
         for scale in SCALES:
             basis = int(round(spec.discretization.basis * scale))
             against = ""
             try:
                 if finest and 2 * basis > finest:  # an engine reference: at twice the trial's basis
-                    truth, against, wrong, finest = _truth(spec, model, data, 2 * basis)
-                trial = _trial(spec, basis, data, truth, target, None, wrong)
+                    refs, against, wrong, finest = _reference(spec, model, data, 2 * basis)
+                trial = _trial(spec, basis, data, refs, target, None, wrong)
             except SpecError:  # more nodes than the eigensolver takes: stop here
                 break
             trial.against = against
@@ -286,8 +287,8 @@ def _kalman(model: Model):
         return None
 
 
-def _truth(spec: ModelSpec, model: Model, data: list, fine: int) -> tuple[list, str, float, int]:
-    """Per path (means (K, n), degenerate (K,)) of the truth, its name, the fraction of its own
+def _reference(spec: ModelSpec, model: Model, data: list, fine: int) -> tuple[list, str, float, int]:
+    """Per path (means (K, n), degenerate (K,)) of the reference, its name, the fraction of its own
     degenerate steps and its basis (an engine's): the exact Kalman filter, else the engine at basis
     ``fine`` — or at twice that, when ``fine`` degenerates on some step (then the gaps would be measured
     on the other steps only)."""
@@ -316,14 +317,14 @@ def _truth(spec: ModelSpec, model: Model, data: list, fine: int) -> tuple[list, 
     return out, name, wrong, basis
 
 
-def _trial(spec: ModelSpec, basis: int, data: list, truth: list, target: float,
+def _trial(spec: ModelSpec, basis: int, data: list, refs: list, target: float,
            offline: OfflineArrays | None = None,
            wrong: float = 0.0) -> Trial:
-    """``basis`` filtered on the paths against ``truth``; it passes only where the truth has no degenerate
+    """``basis`` filtered on the paths against ``refs``; it passes only where the reference has no degenerate
     step (``wrong``: their fraction)."""
     engine = _filter(spec, basis, offline)
     gaps, worst, degenerate, total, means = [], 0.0, 0, 0, []
-    for sim, (ref, ref_bad) in zip(data, truth, strict=True):
+    for sim, (ref, ref_bad) in zip(data, refs, strict=True):
         _, result = engine.run_arrays(engine.initial_state(), sim.rows)
         good = ~ref_bad
         gap = np.max(np.abs(result.mean - ref), axis=1)[good]

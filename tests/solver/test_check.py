@@ -54,8 +54,8 @@ def test_the_check_predicts_the_bias_at_400_and_suggests_a_basis_that_passes():
     report = resolution_check(_spec(400))
     low = report.requested
     assert not low.ok and low.degenerate > 0.1 and low.mean_gap > 0.1
-    assert low.rmse > 1.5 * report.truth_rmse  # biased: far from what the optimal filter achieves
-    assert "NOT RESOLVED" in report.render() and "Kalman" in report.truth
+    assert low.rmse > 1.5 * report.reference_rmse  # biased: far from what the optimal filter achieves
+    assert "NOT RESOLVED" in report.render() and "Kalman" in report.reference
     suggested = report.suggested
     assert suggested is not None and 400 < suggested <= 1200
     # the truth, on paths the check never saw: 400 is off, the suggestion is not
@@ -115,13 +115,13 @@ def test_a_reference_that_degenerates_is_refined_or_judges_nothing():
     the degenerate basis 8, its gaps taken over the steps where 8 still worked).  From basis 2 the
     references 4 and 8 both degenerate: then nothing passes and nothing is suggested."""
     report = resolution_check(spec_from_dict(ATLAS), paths=2, steps=200)
-    assert "basis 16" in report.truth and report.truth_degenerate == 0.0
+    assert "basis 16" in report.reference and report.reference_degenerate == 0.0
     assert not report.requested.ok and report.suggested is not None
     passing = [t for t in report.trials if t.ok]
-    assert passing and all(f"basis {2 * t.basis} " in (t.against or report.truth) for t in passing)
+    assert passing and all(f"basis {2 * t.basis} " in (t.against or report.reference) for t in passing)
     coarse = resolution_check(spec_from_dict({**ATLAS, "discretization": {"dt": 0.02, "basis": 2}}),
                               paths=2, steps=200)
-    assert "basis 8" in coarse.truth and coarse.truth_degenerate > 0.1
+    assert "basis 8" in coarse.reference and coarse.reference_degenerate > 0.1
     assert coarse.suggested is None and len(coarse.trials) == 1
     assert "the reference itself degenerates" in coarse.render()
 
@@ -157,8 +157,8 @@ def test_check_help_explains_the_report_and_the_exit_status(capsys):
 
 def test_the_json_report_names_its_reference():
     trial = Trial(basis=8, nodes=9, mean_gap=0.01, max_gap=0.02, degenerate=0.0, rmse=0.3, ok=True)
-    report = CheckReport(truth="the exact Kalman filter (the model is linear)", target=0.05, paths=1,
-                         steps=10, trials=[trial], truth_rmse=0.29)
+    report = CheckReport(reference="the exact Kalman filter (the model is linear)", target=0.05, paths=1,
+                         steps=10, trials=[trial], reference_rmse=0.29)
     shown = report.to_dict()
     assert shown["reference"].startswith("the exact Kalman") and shown["reference_rmse"] == 0.29
     assert not [key for key in shown if "truth" in key]
