@@ -138,4 +138,13 @@ def run_modal(start, stop, propagator, projection, carried, following, mass, fac
     return stop
 
 
+@_jit
+def products(rows, propagator, projection, carried, following, row):
+    """Only the two products of each row, ``rows`` times (bench/compiled_kernels.py: the BLAS floor)."""
+    ints, scalars = _buffers(propagator)
+    for _ in range(rows):
+        _gemv(1.0, propagator, carried, row, ints, scalars)
+        _gemv(1.0, projection, row, following, ints, scalars)
+
+
 numba.config.CACHE_DIR = _previous_cache_dir
