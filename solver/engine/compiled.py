@@ -1,6 +1,8 @@
 """The engine's row loops compiled by numba: whole chunks without Python between the rows.
 
-The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/engine/jit.py): each loop runs rows
+The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/engine/jit.py) for regular rows,
+irregular rows (modal scaling, or a nodal flow per run of equal gaps) and a ball that moves inside the
+loop (:func:`run_moving`: it also stops after a row whose trigger fires).  Each loop runs rows
 ``start ≤ k < stop`` of a chunk — s = P[c, ∫σ]/∫σ, σ = s ⊙ e_k on observed rows, [c, ∫σ] = Πσ — and
 returns the first row it did not finish: ``stop``, or a row whose ∫σ is outside (tiny, huge) or
 under the gate's floor.  That row's products are done (σ_k in ``sigma[k]``, the propagated values of an
@@ -136,6 +138,40 @@ def run_modal(start, stop, propagator, projection, carried, following, mass, fac
         mass = new_mass
         carried, following = following, carried
     return stop
+
+
+@_jit
+def _strayed(carried, mass, first, d, reach, shell_limit):
+    """loops.py's trigger: the shell's Σwσ (carried[first + d]) over limit·∫σ, or an offset Σw(x − c)_iσ
+    (carried[first:first + d]) beyond ±reach·∫σ, compared in double as there."""
+    if float(carried[first + d]) > shell_limit * mass:
+        return True
+    for i in range(first, first + d):
+        if not -reach * mass <= float(carried[i]) <= reach * mass:
+            return True
+    return False
+
+
+@_jit
+def run_moving(start, stop, propagator, observing, projection, carried, following, mass, factor, observed,
+               floors, sigma, scratch, masses, tiny, huge, d, reach, shell_limit, quiet, last):
+    """Rows start..stop−1 on a ball that moves (loop_moving: the carried vector holds the trigger's d
+    offsets and the shell's mass after ∫σ).  Returns (row, strayed): the row it stopped at as
+    :func:`run_rows` does, or (k + 1, True) after a row k ≠ ``last``, k ≥ ``quiet``, whose trigger
+    fired (the driver moves the ball)."""
+    ints, scalars = _buffers(propagator)
+    first = propagator.shape[1]
+    for k in range(start, stop):
+        new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
+                        sigma, scratch, ints, scalars)
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < floors[k]:
+            return k, False
+        mass = new_mass
+        carried, following = following, carried
+        if d > 0 and k != last and k >= quiet and _strayed(carried, mass, first, d, reach, shell_limit):
+            return k + 1, True
+    return stop, False
 
 
 @_jit

@@ -14,10 +14,11 @@ number of good steps and why the loop stopped early (None: it did not).  A step 
 overflows, or an observed row whose cheap gate bound is over its threshold, takes the slow path
 (:func:`slow_step`: log scale, the exact gate score).
 
-Where numba is (``YAUYAU_KERNEL``, solver/engine/jit.py), the regular and the irregular loops run
-their rows in the compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow
-path: :func:`run_compiled` takes that row's slow step here and re-enters at the next row (the same
-numbers bit for bit; the loops below stay the reference, ``YAUYAU_KERNEL=numpy``).
+Where numba is (``YAUYAU_KERNEL``, solver/engine/jit.py), the three loops run their rows in the
+compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow path (or, on a
+moving ball, after a row whose trigger fired): :func:`run_compiled` and :func:`moving_compiled` take
+that row's slow step (or the move, or the next window of factors) here and re-enter at the next row —
+the same numbers bit for bit; the Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
 """
 
 from __future__ import annotations
@@ -240,15 +241,19 @@ def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: n
     """Rows one dt apart on a ball that moves inside the loop (solver/engine/recentring.py): the carried
     vector holds the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer
     shell's Σwσ); past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean."""
-    rows = Rows(engine, moving.factor, log_factor, top, skip, gate, compiled=False)
+    rows = Rows(engine, moving.factor, log_factor, top, skip, gate)
     N, K = engine.N, len(log_factor)
-    step = rows.step
-    moving.observed, moving.floors = rows.observed, rows.floors
+    # the windows write the rows' floors and mark impossible rows unobserved: where the loop reads them
+    moving.observed, moving.floors = ((rows.observed_array, rows.floor_array) if rows.compiled
+                                      else (rows.observed, rows.floors))
+    carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
+    carried, following = carried.copy(), np.empty_like(carried)
+    if rows.compiled:
+        return moving_compiled(rows, moving, carried, following)
     P, P_observe = engine.propagator, engine.observation_propagator
     if moving.predict is not None:  # an atlas centre's propagator
         P = P_observe = moving.predict
-    carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
-    carried, following = carried.copy(), np.empty_like(carried)
+    step = rows.step
     watch, shell = tuple(range(N + 1, N + 1 + moving.d)), N + 1 + moving.d
     reach, shell_limit = moving.reach, moving.shell_limit
     mass, next_window = carried.item(N), 0
@@ -272,6 +277,63 @@ def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: n
             next_window = moving.window(k + 1)
             if moving.predict is not None:
                 P = P_observe = moving.predict
+    return rows.result(K, carried)
+
+
+def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.ndarray) -> Result:
+    """:func:`loop_moving` with the rows between windows, slow steps and moves in the compiled loop
+    (solver/engine/compiled.py ``run_moving``); the windows, slow steps and moves in Python, as there."""
+    from . import compiled  # numba: imported on the first chunk
+
+    engine = rows.engine
+    N, K, d = engine.N, len(rows.factor), moving.d
+    tiny, huge = engine.arith.tiny, engine.arith.huge
+    watch, shell = tuple(range(N + 1, N + 1 + d)), N + 1 + d
+    P, P_observe = engine.propagator, engine.observation_propagator
+    if moving.predict is not None:  # an atlas centre's propagator
+        P = P_observe = moving.predict
+    P, P_observe, projection = (np.asfortranarray(m) for m in (P, P_observe, moving.project))
+    masses, sigma, scratch, observed = rows.masses, rows.sigma, rows.scratch, rows.observed_array
+    mass, next_window, k = carried.item(N), 0, 0
+    while k < K:
+        if k == next_window:  # the update factors of the next rows at the ball's centre
+            next_window = moving.window(k)
+        stop = K if next_window < 0 else next_window
+        j, strayed = compiled.run_moving(k, stop, P, P_observe, projection, carried, following, mass,
+                                         rows.factor, observed, rows.floor_array, sigma, scratch, masses,
+                                         tiny, huge, d, moving.reach, moving.shell_limit, moving.quiet, K - 1)
+        if (j - k) % 2:  # the compiled loop swapped the buffers after each row it finished
+            carried, following = following, carried
+        if j > k:
+            mass = float(masses[j - 1])
+        if j == stop and not strayed:
+            k = stop
+            continue
+        if not strayed:  # row j through the slow path, then the trigger as after any row
+            seen = bool(observed[j])
+            s = scratch if seen else sigma[j]
+            new_mass, rows.reason = slow_step(engine, j, float(masses[j]), s, sigma[j], seen, rows.log_factor,
+                                              rows.top, rows.gate, projection, following)
+            masses[j] = mass = new_mass
+            if rows.reason is not None:
+                return rows.result(j, carried)
+            carried, following = following, carried
+            j += 1
+            if not watch or j - 1 == K - 1 or j - 1 < moving.quiet \
+                    or not _strayed(carried, mass, watch, moving.reach, shell, moving.shell_limit):
+                k = j
+                continue
+        moved = moving.move(j - 1, carried, following, mass)  # row j − 1's trigger fired
+        if moved is None:  # the loop cannot move on: the chunk ends after row j − 1
+            moving.stopped = j
+            return rows.result(j, carried)
+        if moved > 0.0:
+            mass = moved
+            carried, following = following, carried
+            next_window = moving.window(j)
+            if moving.predict is not None:
+                P = P_observe = np.asfortranarray(moving.predict)
+        k = j
     return rows.result(K, carried)
 
 

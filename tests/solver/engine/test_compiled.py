@@ -3,7 +3,8 @@
 Every bundled example through the general engine (small bases), in double and single precision:
 regular rows, irregular times (modal, and the nodal flow of an ill-conditioned generator), missing
 and partly missing rows, a gated outlier, a row that takes the slow path in the middle (log-scale
-rescue) and one that makes the filter degenerate.  ``YAUYAU_KERNEL`` picks the path on each chunk.
+rescue) and one that makes the filter degenerate, a ball that moves inside the loop (an atlas's too).
+``YAUYAU_KERNEL`` picks the path on each chunk.
 A read-only ``YAUYAU_CACHE_DIR`` warns once and compiles in memory.
 """
 
@@ -86,8 +87,7 @@ def _same(numpy_run, compiled_run) -> None:
 
 def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=None) -> tuple:
     """Both paths on the same rows: the same results and state, the same rows through the slow path.
-    Returns (the result, the slow path's (row, reason or None), the rows given to the compiled loops:
-    a ball that moves inside the loop runs the Python loop_moving)."""
+    Returns (the result, the slow path's (row, reason or None), the rows given to the compiled loops)."""
     slow: list = []
     original = loops.slow_step
 
@@ -104,6 +104,13 @@ def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=N
         return run_compiled(rows, start, stop, *args, **kwargs)
 
     monkeypatch.setattr(loops, "run_compiled", run_counted)
+    moving_compiled = loops.moving_compiled
+
+    def moving_counted(rows, *args, **kwargs):
+        compiled_rows.append(len(rows.factor))
+        return moving_compiled(rows, *args, **kwargs)
+
+    monkeypatch.setattr(loops, "moving_compiled", moving_counted)
     numpy_run = _run(monkeypatch, "numpy", model, offline, precision, rows, times, gate, tiny)
     numpy_slow = list(slow)
     slow.clear()
@@ -117,10 +124,12 @@ def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=N
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("name", [*BASES, "two_sensors"])
 def test_compiled_rows_are_the_numpy_rows(monkeypatch, name, precision):
-    """Regular and irregular (modal) rows with a missing row, partly missing rows and a gated outlier."""
+    """Regular and irregular (modal) rows with a missing row, partly missing rows and a gated outlier
+    (the examples with a ball that follows the state: regular rows on a ball that moves in the loop)."""
     model, offline = _offline(name)
     regular = model.dt * np.arange(1, K + 1)
-    result, slow, _ = _both(monkeypatch, model, offline, precision, _rows(model, regular, 1), None)
+    result, slow, compiled = _both(monkeypatch, model, offline, precision, _rows(model, regular, 1), None)
+    assert compiled >= K
     if name in GATED:
         assert (K // 3, None) in slow and result.gated is not None and result.gated[K // 3], slow
     irregular = random_times(np.random.default_rng(2), K, model.dt)
@@ -129,6 +138,18 @@ def test_compiled_rows_are_the_numpy_rows(monkeypatch, name, precision):
     assert compiled >= K
     if name in GATED:  # long gaps run in pieces: the outlier's row is another row of the loop
         assert slow and result.gated is not None and result.gated.any(), slow
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", ["random_walk_trend", "sin_drift_atlas", "constant_velocity"])
+def test_a_ball_that_moves_inside_the_compiled_loop(monkeypatch, name, precision):
+    """A state that travels: the compiled loop stops where the trigger fires, the ball moves in Python
+    (an atlas: onto another centre's propagator) and the loop goes on, as the numpy loop does."""
+    model, offline = _offline(name)
+    times = model.dt * np.arange(1, 6 * K + 1)
+    _, rows = simulate_irregular(model, times, model.spec.measurement.kind, np.random.default_rng(8))
+    result, _, compiled = _both(monkeypatch, model, offline, precision, rows, None)
+    assert compiled >= len(rows) and result.recentred is not None and result.recentred.any()
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
