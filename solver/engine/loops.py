@@ -182,7 +182,7 @@ def run_compiled(rows: Rows, start: int, stop: int, matrices: tuple[np.ndarray, 
             mass = float(masses[j - 1])
         if j == stop:
             break
-        observed = rows.observed[j]
+        observed = bool(rows.observed_array[j])  # as the compiled loop read it
         new_mass, rows.reason = slow_step(engine, j, float(masses[j]), scratch if observed else sigma[j],
                                           sigma[j], observed, rows.log_factor, rows.top, rows.gate,
                                           projection, following)
