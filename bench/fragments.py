@@ -27,6 +27,7 @@ FRAGMENTS = [
     ("precompute", "precompute.md"),
     ("storage", "storage.md"),
     ("engine_speed", "engine.md"),
+    ("compiled_kernels", "compiled.md"),
     ("blas_threads", "blas.md"),
     ("engine_batch", "engine-batch.md"),
     ("filters", "filters.md"),

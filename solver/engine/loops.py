@@ -13,6 +13,12 @@ each relative to a unit-mass σ_{k−1}), their ∫σ_k, the carried vector [c, 
 number of good steps and why the loop stopped early (None: it did not).  A step whose ∫σ under- or
 overflows, or an observed row whose cheap gate bound is over its threshold, takes the slow path
 (:func:`slow_step`: log scale, the exact gate score).
+
+Where numba is (``YAUYAU_KERNEL``, solver/engine/jit.py), the three loops run their rows in the
+compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow path (or, on a
+moving ball, after a row whose trigger fired): :func:`run_compiled` and :func:`moving_compiled` take
+that row's slow step (or the move, or the next window of factors) here and re-enter at the next row —
+the same numbers bit for bit; the Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from . import jit
 from .gate import Gate
 from .kernel import NO_MASS_AFTER_UPDATE, NO_MASS_ON_BALL, log_mean_factor, observe, predict, project, rescue
 
@@ -36,16 +43,24 @@ class Rows:
     """What the loops share: the chunk's buffers, its factors and gate, and one step of the kernel."""
 
     def __init__(self, engine: Any, factor: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
-                 skip: list[bool], gate: Gate | None):
+                 skip: list[bool], gate: Gate | None, compiled: bool = True):
         K, Q = log_factor.shape
         dtype = engine.arith.dtype
+        self.engine, self.factor, self.log_factor, self.top, self.gate = engine, factor, log_factor, top, gate
         self.sigma = np.empty((K, Q), dtype=dtype)
-        self.masses = [0.0] * K
+        self.scratch = np.empty(Q, dtype=dtype)
+        self.masses: Any = [0.0] * K
         self.observed = [not m for m in skip]
         # the gate's bound g = bias − 2(log ∫σ + top) ≤ threshold is ∫σ ≥ floor: one comparison a step
         self.floors = [0.0] * K if gate is None else gate.floors(top, skip)
         self.reason: str | None = None
-        self.step = _stepper(engine, self, factor, log_factor, top, gate)
+        self.compiled = compiled and K > 0 and jit.enabled()
+        if self.compiled:  # the compiled loops' arguments: arrays
+            self.masses = np.zeros(K)
+            self.observed_array = np.array(self.observed, dtype=bool)
+            self.floor_array = np.array(self.floors, dtype=float)
+        else:
+            self.step = _stepper(engine, self, factor, log_factor, top, gate)
 
     def result(self, done: int, carried: np.ndarray) -> Result:
         return self.sigma, np.array(self.masses[:done]), carried.copy(), done, self.reason
@@ -57,7 +72,7 @@ def _stepper(engine: Any, rows: Rows, factor: np.ndarray, log_factor: np.ndarray
     ``following`` (a closure: the hot loop reads its constants from cells, not attributes)."""
     arith, N = engine.arith, engine.N
     tiny, huge = arith.tiny, arith.huge
-    scratch = np.empty(log_factor.shape[1], dtype=arith.dtype)
+    scratch = rows.scratch
     sigma_rows, factors, observed, floors, masses = (list(rows.sigma), list(factor), rows.observed,
                                                      rows.floors, rows.masses)
 
@@ -83,10 +98,14 @@ def loop_regular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_facto
                  top: np.ndarray, skip: list[bool], gate: Gate | None) -> Result:
     """Rows one dt apart, two BLAS calls a step."""
     rows = Rows(engine, factor, log_factor, top, skip, gate)
-    step, P, projection = rows.step, engine.propagator, engine.projection
-    P_observe = engine.observation_propagator
+    P, P_observe, projection = engine.propagator, engine.observation_propagator, engine.projection
     carried, following = carried.copy(), np.empty_like(carried)  # two buffers, alternately each
     mass = carried.item(engine.N)
+    if rows.compiled:
+        k, carried, _, _ = run_compiled(rows, 0, len(factor), (P, P_observe, projection), carried, following,
+                                        mass)
+        return rows.result(k, carried)
+    step = rows.step
     for k in range(len(factor)):
         mass = step(k, P, P_observe, projection, carried, following, mass)
         if rows.reason is not None:
@@ -99,55 +118,126 @@ def loop_irregular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_fac
                    top: np.ndarray, skip: list[bool], gate: Gate | None, taus: np.ndarray) -> Result:
     """Rows at any times: the flow e^{τA} of each gap (solver/engine/semigroup.py), modal where the
     generator's eigenbasis is well conditioned (a diagonal scaling before the products), else nodal."""
-    rows, flow, N = Rows(engine, factor, log_factor, top, skip, gate), engine.flow, engine.N
-    step = rows.step
+    rows, flow, N, K = Rows(engine, factor, log_factor, top, skip, gate), engine.flow, engine.N, len(factor)
     if flow.exact:  # ill-conditioned: Φe^{τA} at the nodes, one matrix a gap
         carried, following = carried.copy(), np.empty_like(carried)
         mass = carried.item(N)
-        for k in range(len(factor)):
+        if rows.compiled:  # a compiled run of rows per run of equal gaps
+            start = 0
+            for stop in [*(np.flatnonzero(np.diff(taus)) + 1).tolist(), K]:
+                P = flow.nodal_flow(taus[start])
+                k, carried, following, mass = run_compiled(rows, start, stop, (P, P, engine.projection),
+                                                           carried, following, mass)
+                if rows.reason is not None:
+                    return rows.result(k, carried)
+                start = stop
+            return rows.result(K, carried)
+        for k in range(K):
             P = flow.nodal_flow(taus[k])
-            mass = step(k, P, P, engine.projection, carried, following, mass)
+            mass = rows.step(k, P, P, engine.projection, carried, following, mass)
             if rows.reason is not None:
                 return rows.result(k, carried)
             carried, following = following, carried
-        return rows.result(len(factor), carried)
+        return rows.result(K, carried)
     carried = carried.copy()
     carried[:N] = flow.to_modal(carried[:N].astype(float))
     carried, following = carried.copy(), np.empty_like(carried)
-    scale = _ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
+    scale = ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
     mass = carried.item(N)
-    for k in range(len(factor)):
+    if rows.compiled:
+        k, carried, _, _ = run_compiled(rows, 0, K, (flow.B, flow.B, flow.C), carried, following, mass,
+                                        scale.compiled())
+        return rows.result(k, carried)
+    for k in range(K):
         scale.apply(k)
-        mass = step(k, flow.B, flow.B, flow.C, carried, following, mass)
+        mass = rows.step(k, flow.B, flow.B, flow.C, carried, following, mass)
         if rows.reason is not None:
             return rows.result(k, carried)
         carried, following = following, carried
         scale.swap()
-    return rows.result(len(factor), carried)
+    return rows.result(K, carried)
 
 
-class _ModalScale:
-    """e^{τ_kΛ} on the modal coefficients of the carried vector, in place: real rates, then the complex
-    pairs (views on both buffers, swapped with them)."""
+def run_compiled(rows: Rows, start: int, stop: int, matrices: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 carried: np.ndarray, following: np.ndarray, mass: float,
+                 scales: tuple[np.ndarray, ...] | None = None):
+    """Rows start..stop−1 in the compiled loops (solver/engine/compiled.py: ``matrices`` = (P, P for
+    observed rows, Π), ``scales`` the modal scaling, else None), each row that needs it through
+    :func:`slow_step` here.  Returns (the row it stopped at: ``stop``, or the row whose slow step
+    failed with ``rows.reason``; carried; following; ∫σ)."""
+    from . import compiled  # numba: imported on the first chunk
+
+    engine = rows.engine
+    tiny, huge = engine.arith.tiny, engine.arith.huge
+    P, P_observe, projection = (np.asfortranarray(matrix) for matrix in matrices)  # stored so: no copy
+    masses, sigma, scratch = rows.masses, rows.sigma, rows.scratch
+    k = start
+    while k < stop:
+        if scales is None:
+            j = compiled.run_rows(k, stop, P, P_observe, projection, carried, following, mass, rows.factor,
+                                  rows.observed_array, rows.floor_array, sigma, scratch, masses, tiny, huge)
+        else:
+            j = compiled.run_modal(k, stop, P, projection, carried, following, mass, rows.factor,
+                                   rows.observed_array, rows.floor_array, sigma, scratch, masses, tiny, huge,
+                                   *scales)
+        if (j - k) % 2:  # the compiled loop swapped the buffers after each row it finished
+            carried, following = following, carried
+        if j > k:
+            mass = float(masses[j - 1])
+        if j == stop:
+            break
+        observed = bool(rows.observed_array[j])  # as the compiled loop read it
+        new_mass, rows.reason = slow_step(engine, j, float(masses[j]), scratch if observed else sigma[j],
+                                          sigma[j], observed, rows.log_factor, rows.top, rows.gate,
+                                          projection, following)
+        masses[j] = new_mass
+        if rows.reason is not None:
+            return j, carried, following, mass
+        mass = new_mass
+        carried, following = following, carried
+        k = j + 1
+    return stop, carried, following, mass
+
+
+class ModalScale:
+    """e^{τ_kΛ} on the modal coefficients of the carried vector, in place: real rates, then each complex
+    pair (u, w) ← u·(Re z, Im z) + w·(−Im z, Re z) — real products and sums (numpy's complex product
+    may fuse them, by CPU), the operations of the compiled loop (views on both buffers, swapped with
+    them)."""
 
     def __init__(self, flow: SpectralFlow, taus: np.ndarray, carried: np.ndarray, following: np.ndarray,
                  N: int, dtype: type):
         r = flow.r
-        self.real_scale, self.pair_scale = (list(part) for part in flow.scales(taus))  # row views made once
+        real, pairs = flow.scales(taus)
+        self.real = real
+        self.first = np.ascontiguousarray(np.stack([pairs.real, pairs.imag], axis=-1), dtype=dtype)
+        self.second = np.ascontiguousarray(np.stack([-pairs.imag, pairs.real], axis=-1), dtype=dtype)
+        self.real_scale, self.first_rows, self.second_rows = list(real), list(self.first), list(self.second)
         self.pairs = flow.pair_rates.size > 0
-        cdtype = np.complex64 if dtype == np.float32 else np.complex128
+        p = pairs.shape[1]
         self.real_c, self.real_f = carried[:r], following[:r]
-        self.pair_c, self.pair_f = ((carried[r:N].view(cdtype), following[r:N].view(cdtype)) if self.pairs
-                                    else (None, None))
+        self.pair_c, self.pair_f = carried[r:N].reshape(p, 2), following[r:N].reshape(p, 2)
+        self.u_c, self.u_f = carried[r:N:2, None], following[r:N:2, None]
+        self.w_c, self.w_f = carried[r + 1:N:2, None], following[r + 1:N:2, None]
+        self.terms = (np.empty((p, 2), dtype=dtype), np.empty((p, 2), dtype=dtype))
+
+    def compiled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The scaling as the compiled loop takes it: real (K, r), pairs' first and second (K, p, 2)."""
+        return self.real, self.first, self.second
 
     def apply(self, k: int) -> None:
         np.multiply(self.real_c, self.real_scale[k], out=self.real_c)
         if self.pairs:
-            np.multiply(self.pair_c, self.pair_scale[k], out=self.pair_c)
+            first, second = self.terms
+            np.multiply(self.u_c, self.first_rows[k], out=first)
+            np.multiply(self.w_c, self.second_rows[k], out=second)
+            np.add(first, second, out=self.pair_c)
 
     def swap(self) -> None:
         self.real_c, self.real_f = self.real_f, self.real_c
         self.pair_c, self.pair_f = self.pair_f, self.pair_c
+        self.u_c, self.u_f = self.u_f, self.u_c
+        self.w_c, self.w_f = self.w_f, self.w_c
 
 
 def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
@@ -155,14 +245,19 @@ def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: n
     """Rows one dt apart on a ball that moves inside the loop (solver/engine/recentring.py): the carried
     vector holds the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer
     shell's Σwσ); past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean."""
-    rows, N, K = Rows(engine, moving.factor, log_factor, top, skip, gate), engine.N, len(log_factor)
-    step = rows.step
-    moving.observed, moving.floors = rows.observed, rows.floors
+    rows = Rows(engine, moving.factor, log_factor, top, skip, gate)
+    N, K = engine.N, len(log_factor)
+    # the windows write the rows' floors and mark impossible rows unobserved: where the loop reads them
+    moving.observed, moving.floors = ((rows.observed_array, rows.floor_array) if rows.compiled
+                                      else (rows.observed, rows.floors))
+    carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
+    carried, following = carried.copy(), np.empty_like(carried)
+    if rows.compiled:
+        return moving_compiled(rows, moving, carried, following)
     P, P_observe = engine.propagator, engine.observation_propagator
     if moving.predict is not None:  # an atlas centre's propagator
         P = P_observe = moving.predict
-    carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
-    carried, following = carried.copy(), np.empty_like(carried)
+    step = rows.step
     watch, shell = tuple(range(N + 1, N + 1 + moving.d)), N + 1 + moving.d
     reach, shell_limit = moving.reach, moving.shell_limit
     mass, next_window = carried.item(N), 0
@@ -186,6 +281,63 @@ def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: n
             next_window = moving.window(k + 1)
             if moving.predict is not None:
                 P = P_observe = moving.predict
+    return rows.result(K, carried)
+
+
+def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.ndarray) -> Result:
+    """:func:`loop_moving` with the rows between windows, slow steps and moves in the compiled loop
+    (solver/engine/compiled.py ``run_moving``); the windows, slow steps and moves in Python, as there."""
+    from . import compiled  # numba: imported on the first chunk
+
+    engine = rows.engine
+    N, K, d = engine.N, len(rows.factor), moving.d
+    tiny, huge = engine.arith.tiny, engine.arith.huge
+    watch, shell = tuple(range(N + 1, N + 1 + d)), N + 1 + d
+    P, P_observe = engine.propagator, engine.observation_propagator
+    if moving.predict is not None:  # an atlas centre's propagator
+        P = P_observe = moving.predict
+    P, P_observe, projection = (np.asfortranarray(m) for m in (P, P_observe, moving.project))
+    masses, sigma, scratch, observed = rows.masses, rows.sigma, rows.scratch, rows.observed_array
+    mass, next_window, k = carried.item(N), 0, 0
+    while k < K:
+        if k == next_window:  # the update factors of the next rows at the ball's centre
+            next_window = moving.window(k)
+        stop = K if next_window < 0 else next_window
+        j, strayed = compiled.run_moving(k, stop, P, P_observe, projection, carried, following, mass,
+                                         rows.factor, observed, rows.floor_array, sigma, scratch, masses,
+                                         tiny, huge, d, moving.reach, moving.shell_limit, moving.quiet, K - 1)
+        if (j - k) % 2:  # the compiled loop swapped the buffers after each row it finished
+            carried, following = following, carried
+        if j > k:
+            mass = float(masses[j - 1])
+        if j == stop and not strayed:
+            k = stop
+            continue
+        if not strayed:  # row j through the slow path, then the trigger as after any row
+            seen = bool(observed[j])
+            s = scratch if seen else sigma[j]
+            new_mass, rows.reason = slow_step(engine, j, float(masses[j]), s, sigma[j], seen, rows.log_factor,
+                                              rows.top, rows.gate, projection, following)
+            masses[j] = mass = new_mass
+            if rows.reason is not None:
+                return rows.result(j, carried)
+            carried, following = following, carried
+            j += 1
+            if not watch or j - 1 == K - 1 or j - 1 < moving.quiet \
+                    or not _strayed(carried, mass, watch, moving.reach, shell, moving.shell_limit):
+                k = j
+                continue
+        moved = moving.move(j - 1, carried, following, mass)  # row j − 1's trigger fired
+        if moved is None:  # the loop cannot move on: the chunk ends after row j − 1
+            moving.stopped = j
+            return rows.result(j, carried)
+        if moved > 0.0:
+            mass = moved
+            carried, following = following, carried
+            next_window = moving.window(j)
+            if moving.predict is not None:
+                P = P_observe = np.asfortranarray(moving.predict)
+        k = j
     return rows.result(K, carried)
 
 

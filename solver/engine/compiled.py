@@ -1,0 +1,186 @@
+"""The engine's row loops compiled by numba: whole chunks without Python between the rows.
+
+The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/engine/jit.py) for regular rows,
+irregular rows (modal scaling, or a nodal flow per run of equal gaps) and a ball that moves inside the
+loop (:func:`run_moving`: it also stops after a row whose trigger fires).  Each loop runs rows
+``start ≤ k < stop`` of a chunk — s = P[c, ∫σ]/∫σ, σ = s ⊙ e_k on observed rows, [c, ∫σ] = Πσ — and
+returns the first row it did not finish: ``stop``, or a row whose ∫σ is outside (tiny, huge) or
+under the gate's floor.  That row's products are done (σ_k in ``sigma[k]``, the propagated values of an
+observed row in ``scratch``, Πσ_k in the buffer that was ``following`` and its ∫σ in ``masses[k]``);
+the Python driver (solver/engine/loops.py) takes its slow step with the tested Python code and
+re-enters at the next row.  The carried vector alternates between the two buffers as in the Python
+loops: after j rows it is in ``following`` when j is odd.
+
+The products call the very BLAS ``dgemv``/``sgemv`` that scipy.linalg.blas calls on the numpy path
+(scipy.linalg.cython_blas, by address: the results are bit-identical), and the elementwise products
+are single IEEE operations (numba does not contract them into FMAs), so both paths give the same
+numbers.  Importing this module imports numba; solver/engine/loops.py does so on first use only.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from llvmlite import binding as llvm
+from numba import types
+from numba.extending import get_cython_function_address
+
+from .jit import writable_cache_dir
+
+TRANS_N = ord("N")
+
+
+def _bind(name: str):
+    """BLAS ``name`` of scipy.linalg.cython_blas as an external symbol: the compiled code refers to it
+    by name (registered again in each process), so numba can cache it on disk."""
+    symbol = f"yauyau_cython_blas_{name}"
+    llvm.add_symbol(symbol, get_cython_function_address("scipy.linalg.cython_blas", name))
+    return types.ExternalFunction(symbol, types.void(*[types.voidptr] * 11))
+
+
+_dgemv = _bind("dgemv")
+_sgemv = _bind("sgemv")
+
+CACHE_DIR = writable_cache_dir()
+# numba picks a function's cache directory when it is decorated: ours, then numba's own setting back
+_previous_cache_dir = numba.config.CACHE_DIR
+if CACHE_DIR is not None:
+    numba.config.CACHE_DIR = str(CACHE_DIR)
+_jit = numba.njit(cache=CACHE_DIR is not None, nogil=True)
+
+
+@_jit
+def _gemv(alpha, matrix, x, y, ints, scalars):
+    """y = alpha · matrix · x[:n] for a Fortran-ordered matrix (m, n): gemv('N') as scipy calls it
+    (``ints`` = [ord('N'), m, n, 1], ``scalars`` = [alpha, beta] in the matrix's dtype)."""
+    ints[1] = matrix.shape[0]
+    ints[2] = matrix.shape[1]
+    scalars[0] = alpha
+    scalars[1] = 0.0
+    trans, m, n, inc = ints[0:1].ctypes, ints[1:2].ctypes, ints[2:3].ctypes, ints[3:4].ctypes
+    if scalars.itemsize == 4:
+        _sgemv(trans, m, n, scalars[0:1].ctypes, matrix.ctypes, m, x.ctypes, inc, scalars[1:2].ctypes,
+               y.ctypes, inc)
+    else:
+        _dgemv(trans, m, n, scalars[0:1].ctypes, matrix.ctypes, m, x.ctypes, inc, scalars[1:2].ctypes,
+               y.ctypes, inc)
+
+
+@_jit
+def _row(k, propagator, observing, projection, carried, following, mass, factor, observed, sigma,
+         scratch, ints, scalars):
+    """Row k (kernel.py's observe or predict, then project): returns ∫σ_k (following[N])."""
+    row = sigma[k]
+    if observed[k]:
+        _gemv(1.0 / mass, observing, carried, scratch, ints, scalars)
+        e = factor[k]
+        for q in range(row.shape[0]):
+            row[q] = scratch[q] * e[q]
+    else:
+        _gemv(1.0 / mass, propagator, carried, row, ints, scalars)
+    _gemv(1.0, projection, row, following, ints, scalars)
+    return float(following[propagator.shape[1] - 1])
+
+
+@_jit
+def _buffers(matrix):
+    ints = np.empty(4, np.int32)
+    ints[0] = TRANS_N
+    ints[3] = 1
+    return ints, np.empty(2, matrix.dtype)
+
+
+@_jit
+def run_rows(start, stop, propagator, observing, projection, carried, following, mass, factor, observed,
+             floors, sigma, scratch, masses, tiny, huge):
+    """Rows start..stop−1 with the same propagators (loop_regular; loop_irregular's nodal flow over a
+    run of equal gaps).  Returns the row it stopped at (``stop``: all done)."""
+    ints, scalars = _buffers(propagator)
+    for k in range(start, stop):
+        new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
+                        sigma, scratch, ints, scalars)
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < floors[k]:
+            return k
+        mass = new_mass
+        carried, following = following, carried
+    return stop
+
+
+@_jit
+def _scale_modal(carried, real_scale, pair_first, pair_second):
+    """e^{τΛ} on the modal coefficients in place: the real modes, then each pair (u, w) ←
+    (u·a + w·b) with a = (Re z, Im z), b = (−Im z, Re z) (loops.py's ModalScale, the same operations)."""
+    r = real_scale.shape[0]
+    for i in range(r):
+        carried[i] = carried[i] * real_scale[i]
+    for j in range(pair_first.shape[0]):
+        u = carried[r + 2 * j]
+        w = carried[r + 2 * j + 1]
+        carried[r + 2 * j] = u * pair_first[j, 0] + w * pair_second[j, 0]
+        carried[r + 2 * j + 1] = u * pair_first[j, 1] + w * pair_second[j, 1]
+
+
+@_jit
+def run_modal(start, stop, propagator, projection, carried, following, mass, factor, observed, floors,
+              sigma, scratch, masses, tiny, huge, real_scale, pair_first, pair_second):
+    """Rows start..stop−1 at any times in modal coordinates (loop_irregular): each row scales the carried
+    coefficients by e^{τ_kΛ} (``real_scale`` (K, r), the pairs' ``pair_first``/``pair_second`` (K, p, 2))
+    before the two products.  Returns the row it stopped at (``stop``: all done)."""
+    ints, scalars = _buffers(propagator)
+    for k in range(start, stop):
+        _scale_modal(carried, real_scale[k], pair_first[k], pair_second[k])
+        new_mass = _row(k, propagator, propagator, projection, carried, following, mass, factor, observed,
+                        sigma, scratch, ints, scalars)
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < floors[k]:
+            return k
+        mass = new_mass
+        carried, following = following, carried
+    return stop
+
+
+@_jit
+def _strayed(carried, mass, first, d, reach, shell_limit):
+    """loops.py's trigger: the shell's Σwσ (carried[first + d]) over limit·∫σ, or an offset Σw(x − c)_iσ
+    (carried[first:first + d]) beyond ±reach·∫σ, compared in double as there."""
+    if float(carried[first + d]) > shell_limit * mass:
+        return True
+    for i in range(first, first + d):
+        if not -reach * mass <= float(carried[i]) <= reach * mass:
+            return True
+    return False
+
+
+@_jit
+def run_moving(start, stop, propagator, observing, projection, carried, following, mass, factor, observed,
+               floors, sigma, scratch, masses, tiny, huge, d, reach, shell_limit, quiet, last):
+    """Rows start..stop−1 on a ball that moves (loop_moving: the carried vector holds the trigger's d
+    offsets and the shell's mass after ∫σ).  Returns (row, strayed): the row it stopped at as
+    :func:`run_rows` does, or (k + 1, True) after a row k ≠ ``last``, k ≥ ``quiet``, whose trigger
+    fired (the driver moves the ball)."""
+    ints, scalars = _buffers(propagator)
+    first = propagator.shape[1]
+    for k in range(start, stop):
+        new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
+                        sigma, scratch, ints, scalars)
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < floors[k]:
+            return k, False
+        mass = new_mass
+        carried, following = following, carried
+        if d > 0 and k != last and k >= quiet and _strayed(carried, mass, first, d, reach, shell_limit):
+            return k + 1, True
+    return stop, False
+
+
+@_jit
+def products(rows, propagator, projection, carried, following, row):
+    """Only the two products of each row, ``rows`` times (bench/compiled_kernels.py: the BLAS floor)."""
+    ints, scalars = _buffers(propagator)
+    for _ in range(rows):
+        _gemv(1.0, propagator, carried, row, ints, scalars)
+        _gemv(1.0, projection, row, following, ints, scalars)
+
+
+numba.config.CACHE_DIR = _previous_cache_dir

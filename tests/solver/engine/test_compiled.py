@@ -1,0 +1,233 @@
+"""The compiled row loops (solver/engine/compiled.py) give the numpy path's numbers bit for bit.
+
+Every bundled example through the general engine (small bases), in double and single precision:
+regular rows, irregular times (modal, and the nodal flow of an ill-conditioned generator), missing
+and partly missing rows, a gated outlier, a row that takes the slow path in the middle (log-scale
+rescue) and one that makes the filter degenerate, a ball that moves inside the loop (an atlas's too).
+``YAUYAU_KERNEL`` picks the path on each chunk.
+A read-only ``YAUYAU_CACHE_DIR`` warns once and compiles in memory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from helpers import EXAMPLES, ROOT
+from helpers.irregular_refs import random_times, simulate_irregular
+from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver.engine import jit, loops, semigroup
+from yauyau.solver.methods import make_filter
+from yauyau.solver.offline.pipeline import precompute
+
+pytest.importorskip("numba")
+
+# the examples the general engine runs (the others' methods forced to it), with a small basis each
+BASES = {"benes": 32, "constant_velocity": 60, "cubic_sensor": 32, "ou": 32, "power_meter": 32,
+         "random_walk_trend": 32, "range_2d": 60, "sin_drift_atlas": 32, "yau_jia_1d": 32}
+TWO_SENSORS = {"name": "two-sensors", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x**2", "x"],
+               "observation_noise": [[0.5, 0.1], [0.1, 1.0]],
+               "initial": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]},
+               "domain": {"radius": 6.0}, "discretization": {"dt": 0.01, "basis": 32}}
+# at these bases the gate rejects the 30-sd outlier of these models (the others accept it in the slow
+# path, degenerate on it or pass it under the cheap bound: the same on both paths)
+GATED = {"benes", "constant_velocity", "random_walk_trend", "sin_drift_atlas", "two_sensors"}
+K = 120
+_OFFLINE: dict = {}
+
+
+def _model(name: str):
+    if name == "two_sensors":
+        return compile_model(spec_from_dict(TWO_SENSORS))
+    spec = load_spec(EXAMPLES / f"{name}.toml")
+    small = spec.discretization.model_copy(update={"basis": BASES[name]})
+    return compile_model(spec.model_copy(update={"discretization": small}))
+
+
+def _offline(name: str):
+    if name not in _OFFLINE:
+        model = _model(name)
+        _OFFLINE[name] = model, precompute(model)
+    return _OFFLINE[name]
+
+
+def _rows(model, times: np.ndarray, seed: int) -> np.ndarray:
+    kind = model.spec.measurement.kind
+    _, rows = simulate_irregular(model, times, kind, np.random.default_rng(seed))
+    rows[10] = np.nan  # a missing row
+    if model.m > 1:
+        rows[20:40:3, 0] = np.nan  # partly missing rows
+    gap = times[K // 3] - times[K // 3 - 1] if kind == "continuous" else 1.0
+    rows[K // 3] = rows[K // 3] + 30.0 * np.sqrt(gap)  # an outlier: ~30 noise sd
+    return rows
+
+
+def _run(monkeypatch, kernel: str, model, offline, precision: str, rows, times, gate=None, tiny=None):
+    monkeypatch.setenv("YAUYAU_KERNEL", kernel)
+    flt = make_filter(model, offline, "yau-yau", precision=precision, gate=gate)
+    if tiny is not None:  # more rows through the log-scale rescue
+        flt.arith = dataclasses.replace(flt.arith, tiny=tiny)
+    return flt.run_arrays(flt.initial_state(), rows, times)
+
+
+def _same(numpy_run, compiled_run) -> None:
+    (state_a, result_a), (state_b, result_b) = numpy_run, compiled_run
+    for field in dataclasses.fields(result_a):
+        a, b = getattr(result_a, field.name), getattr(result_b, field.name)
+        if isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), field.name
+        else:
+            assert a == b, field.name
+    assert state_a.to_dict() == state_b.to_dict()
+
+
+def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=None) -> tuple:
+    """Both paths on the same rows: the same results and state, the same rows through the slow path.
+    Returns (the result, the slow path's (row, reason or None), the rows given to the compiled loops)."""
+    slow: list = []
+    original = loops.slow_step
+
+    def counted(*args, **kwargs):
+        new_mass, reason = original(*args, **kwargs)
+        slow.append((args[1], reason))
+        return new_mass, reason
+
+    monkeypatch.setattr(loops, "slow_step", counted)
+    compiled_rows, run_compiled = [], loops.run_compiled
+
+    def run_counted(rows, start, stop, *args, **kwargs):
+        compiled_rows.append(stop - start)
+        return run_compiled(rows, start, stop, *args, **kwargs)
+
+    monkeypatch.setattr(loops, "run_compiled", run_counted)
+    moving_compiled = loops.moving_compiled
+
+    def moving_counted(rows, *args, **kwargs):
+        compiled_rows.append(len(rows.factor))
+        return moving_compiled(rows, *args, **kwargs)
+
+    monkeypatch.setattr(loops, "moving_compiled", moving_counted)
+    numpy_run = _run(monkeypatch, "numpy", model, offline, precision, rows, times, gate, tiny)
+    numpy_slow = list(slow)
+    slow.clear()
+    assert not compiled_rows
+    compiled_run = _run(monkeypatch, "compiled", model, offline, precision, rows, times, gate, tiny)
+    _same(numpy_run, compiled_run)
+    assert slow == numpy_slow
+    return numpy_run[1], slow, sum(compiled_rows)
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", [*BASES, "two_sensors"])
+def test_compiled_rows_are_the_numpy_rows(monkeypatch, name, precision):
+    """Regular and irregular (modal) rows with a missing row, partly missing rows and a gated outlier
+    (the examples with a ball that follows the state: regular rows on a ball that moves in the loop)."""
+    model, offline = _offline(name)
+    regular = model.dt * np.arange(1, K + 1)
+    result, slow, compiled = _both(monkeypatch, model, offline, precision, _rows(model, regular, 1), None)
+    assert compiled >= K
+    if name in GATED:
+        assert (K // 3, None) in slow and result.gated is not None and result.gated[K // 3], slow
+    irregular = random_times(np.random.default_rng(2), K, model.dt)
+    rows = _rows(model, irregular, 3)
+    result, slow, compiled = _both(monkeypatch, model, offline, precision, rows, irregular)
+    assert compiled >= K
+    if name in GATED:  # long gaps run in pieces: the outlier's row is another row of the loop
+        assert slow and result.gated is not None and result.gated.any(), slow
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", ["random_walk_trend", "sin_drift_atlas", "constant_velocity"])
+def test_a_ball_that_moves_inside_the_compiled_loop(monkeypatch, name, precision):
+    """A state that travels: the compiled loop stops where the trigger fires, the ball moves in Python
+    (an atlas: onto another centre's propagator) and the loop goes on, as the numpy loop does."""
+    model, offline = _offline(name)
+    times = model.dt * np.arange(1, 6 * K + 1)
+    _, rows = simulate_irregular(model, times, model.spec.measurement.kind, np.random.default_rng(8))
+    result, _, compiled = _both(monkeypatch, model, offline, precision, rows, None)
+    assert compiled >= len(rows) and result.recentred is not None and result.recentred.any()
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", ["cubic_sensor", "power_meter", "two_sensors"])
+def test_the_nodal_flow_of_an_ill_conditioned_generator(monkeypatch, name, precision):
+    """Above MAX_CONDITION each gap's flow is a nodal matrix: runs of equal gaps and single gaps."""
+    model, offline = _offline(name)
+    monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
+    gaps = np.random.default_rng(4).choice([1.0, 2.0, 3.5], size=K) * model.dt
+    gaps[50:70] = 1.5 * model.dt  # a longer run of equal gaps
+    times = np.cumsum(gaps)
+    _, slow, compiled = _both(monkeypatch, model, offline, precision, _rows(model, times, 5), times)
+    assert compiled and slow  # the outlier's row: rejected, accepted or degenerate, the same on both paths
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("irregular", [False, True])
+def test_rescued_rows_in_the_middle_and_a_degenerate_row(monkeypatch, precision, irregular):
+    """Gate off.  With ``tiny`` raised to 0.5, every row whose ∫σ is under it takes the log-scale rescue
+    and succeeds: the compiled loop stops there and re-enters at the next row.  An impossible
+    increment later makes the rest of the chunk degenerate, the same on both paths."""
+    model, offline = _offline("cubic_sensor")
+    regular = model.dt * np.arange(1, K + 1)
+    times = random_times(np.random.default_rng(6), K, model.dt) if irregular else regular
+    rows, given = _rows(model, times, 7), times if irregular else None
+    rows[K // 3] = 0.0
+    result, slow, compiled = _both(monkeypatch, model, offline, precision, rows, given, gate=0.0, tiny=0.5)
+    assert compiled >= K and len(slow) >= 5 and all(reason is None for _, reason in slow)
+    assert not result.degenerate.any()
+    rows[90] = 1e6
+    result, slow, _ = _both(monkeypatch, model, offline, precision, rows, given, gate=0.0)
+    assert slow[-1][1] is not None and result.degenerate[90:].all() and not result.degenerate[:90].any()
+
+
+def test_the_kernel_switch(monkeypatch):
+    monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
+    assert not jit.enabled()
+    monkeypatch.setenv("YAUYAU_KERNEL", "compiled")
+    assert jit.enabled()
+    monkeypatch.delenv("YAUYAU_KERNEL")
+    assert jit.enabled()  # numba is installed
+    monkeypatch.setenv("YAUYAU_KERNEL", "fortran")
+    with pytest.raises(ValueError, match="YAUYAU_KERNEL"):
+        jit.enabled()
+    monkeypatch.setenv("YAUYAU_CACHE_DIR", "/somewhere/numba")
+    assert str(jit.cache_dir()) == "/somewhere/numba"
+
+
+SCRIPT = """
+import warnings
+import numpy as np
+from yauyau.solver import compile_model, load_spec
+from yauyau.solver.offline.pipeline import precompute
+from yauyau.solver.engine.filter import YauYauFilter
+import sys
+assert "numba" not in sys.modules  # imported by the first chunk only
+spec = load_spec({path!r})
+spec = spec.model_copy(update={{"discretization": spec.discretization.model_copy(update={{"basis": 24}})}})
+model = compile_model(spec)
+flt = YauYauFilter(model, precompute(model))
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    for _ in range(3):
+        _, result = flt.run_arrays(flt.initial_state(), np.zeros((20, 1)))
+assert "numba" in sys.modules and not result.degenerate.any()
+messages = [str(w.message) for w in caught if "cache directory" in str(w.message)]
+print(len(messages), messages[0] if messages else "")
+"""
+
+
+def test_an_unwritable_cache_directory_warns_once_and_compiles_in_memory(tmp_path):
+    """A cache directory that cannot be made (under a file: read-only even for root)."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    cache = blocker / "numba"
+    env = dict(os.environ, YAUYAU_CACHE_DIR=str(cache), YAUYAU_KERNEL="compiled", OPENBLAS_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", SCRIPT.format(path=str(EXAMPLES / "cubic_sensor.toml"))],
+                          env=env, capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr
+    count, message = done.stdout.strip().split(" ", 1)
+    assert count == "1" and str(cache) in message and "in memory" in message
