@@ -98,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
     store, mid = ModelStore(args.store, compress_floats=args.compress), model_id(spec_json)
     store.ensure_writable()  # fail before the (long) computation, not after
     if _already_stored(args, store, mid):
+        _warm_kernels(args)
         print(mid)
         return 0
 
@@ -121,8 +122,21 @@ def run(args: argparse.Namespace) -> int:
     _say(args, f"stored '{spec.name}' ({what}, {solved.seconds:.1f} s, "
                f"{size / 1e6:.2f} MB) as {store.path(saved)}")
     _warn_if_unresolved(args, spec, solved)
+    _warm_kernels(args)
     print(saved)
     return 0
+
+
+def _warm_kernels(args: argparse.Namespace) -> None:
+    """Compile the engine's row loops into numba's on-disk cache (or load them from it), so that
+    ``yauyau filter`` and the service do not compile them on their first chunk; say what it cost."""
+    from yauyau.solver.engine.jit import cache_dir
+    from yauyau.solver.warm import warm_kernels
+
+    seconds = warm_kernels()
+    if seconds is not None:
+        _say(args, f"row loops compiled or loaded from numba's cache in {seconds:.1f} s ({cache_dir()}; "
+                   "YAUYAU_CACHE_DIR)")
 
 
 def _warn_if_coarse(args: argparse.Namespace, spec) -> None:

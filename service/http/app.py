@@ -23,7 +23,6 @@ from fastapi.openapi.utils import get_openapi
 from yauyau import __version__
 
 from .. import metrics
-from ..models.analysis import warm_analysis
 from ..models.cache import Registry
 from ..models.jobs import Jobs
 from ..problems import hide_paths, install_handlers
@@ -136,7 +135,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               settings.analyze_grace, max_jobs=settings.max_jobs,
                               max_queued=settings.max_queued_jobs)
         app.state.ready = True
-        app.state.analysis_warm = warm_analysis(app)  # the forkserver's imports now, not in a request
+        from ..models.analysis import warm_analysis  # lazy: the analysis (SymPy) loads in its thread
+
+        app.state.analysis_warm = warm_analysis(app)  # forkserver, row loops: now, not in a request
         sweeper = _Sweeper(sessions, settings.session_sweep)
         # What start-up made lives as long as the process: moved out of the cyclic collector's reach,
         # its full collections stop scanning it (measured: 1.27 -> 0.91 ms of CPU per chunk with 64

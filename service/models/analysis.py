@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 
 from yauyau.solver.analysis.isolated import AnalysisBusy, AnalysisRunner
+from yauyau.solver.warm import warm_kernels
 
 __all__ = ["AnalysisBusy", "AnalysisRunner", "analysis_runner", "warm_analysis"]
 
@@ -22,10 +23,16 @@ _RUNNER_LOCK = threading.Lock()
 
 
 def warm_analysis(app) -> threading.Thread:
-    """Make the application's runner and start its forkserver in the background (a daemon thread), so
+    """In the background (a daemon thread): make the application's runner and start its forkserver, so
     the first POST /v1/analyze is answered within its limit plus grace like the others, not after the
-    forkserver's imports; the chunk path does not wait for it."""
-    thread = threading.Thread(target=lambda: analysis_runner(app).warm(), name="analysis-warm", daemon=True)
+    forkserver's imports; then make the engine's compiled row loops ready (solver/warm.py: about 0.5-2 s
+    with numba's cache filled, which ``yauyau precompute`` does), so no chunk compiles them.  Readiness
+    does not wait for it: a chunk in the first seconds after start-up may."""
+    def warm() -> None:
+        analysis_runner(app).warm()
+        warm_kernels()  # the engine's compiled row loops: numba's import and cache, not in a chunk
+
+    thread = threading.Thread(target=warm, name="warm-up", daemon=True)
     thread.start()
     return thread
 

@@ -1,0 +1,52 @@
+"""Compile (or load from numba's cache) the engine's row loops before the first real chunk.
+
+The compiled loops (solver/engine/compiled.py) are compiled on first use, per argument type: about 4 s
+the first time on a machine, about 0.7 s in each later process (numba's import and its on-disk cache,
+solver/engine/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
+(which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
+1-D filter through every compiled loop (regular, irregular, a moving ball), in double and single
+precision: the same calls, with the same array types, as any model's chunks.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .engine import jit
+
+_TOY = {"name": "warm-up", "state": ["x"], "drift": ["-x"], "observation": ["x"],
+        "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[0.5]]},
+        "domain": {"radius": 4.0}, "discretization": {"dt": 0.05, "basis": 8}, "method": "yau-yau"}
+_DONE: list[float] = []
+
+
+def warm_kernels() -> float | None:
+    """Seconds it took to make the compiled loops ready in this process (0 when they already were);
+    None where they are off (``YAUYAU_KERNEL=numpy`` or no numba)."""
+    if not jit.enabled():
+        return None
+    if _DONE:
+        return 0.0
+    from .methods import make_filter
+    from .model import compile_model
+    from .offline.pipeline import precompute
+    from .spec import spec_from_dict
+
+    started = time.perf_counter()
+    rows = np.zeros((4, 1))
+    times = np.array([0.05, 0.12, 0.2, 0.31])
+    for follow in (False, True):
+        domain = {"radius": 4.0, "follow": True} if follow else {"radius": 4.0}
+        drift = ["1"] if follow else ["-x"]  # a following ball needs a shift-invariant or affine drift
+        model = compile_model(spec_from_dict({**_TOY, "domain": domain, "drift": drift}))
+        offline = precompute(model)
+        for precision in ("double", "single"):
+            flt = make_filter(model, offline, "yau-yau", precision=precision)
+            state = flt.initial_state()
+            flt.run_arrays(state, rows)
+            if not follow:
+                flt.run_arrays(state, rows, times)
+    _DONE.append(time.perf_counter() - started)
+    return _DONE[0]

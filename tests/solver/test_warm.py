@@ -1,0 +1,60 @@
+"""solver/warm.py: after :func:`warm_kernels` no chunk compiles — the first chunk of every bundled
+kind of model (1-D and 2-D, regular and irregular rows, a following ball; double and single precision)
+finds its compiled loops already typed for its arrays (numba's signatures do not grow).  Each case in a
+fresh process, since a process keeps what it compiled."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from helpers import ROOT
+
+pytest.importorskip("numba")
+
+PROBE = """
+import json, sys
+import numpy as np
+from yauyau.solver import compile_model, load_spec
+from yauyau.solver.engine import compiled
+from yauyau.solver.methods import make_filter
+from yauyau.solver.offline.pipeline import precompute
+from yauyau.solver.warm import warm_kernels
+
+spec = load_spec(sys.argv[1])
+spec = spec.model_copy(update={"discretization": spec.discretization.model_copy(update={"basis": 24})})
+model = compile_model(spec)
+offline = precompute(model)
+seconds = warm_kernels()
+count = lambda: sum(len(getattr(compiled, f).signatures) for f in ("run_rows", "run_modal", "run_moving"))
+warmed = count()
+for precision in ("double", "single"):
+    flt = make_filter(model, offline, "yau-yau", precision=precision)
+    rows = np.zeros((6, len(spec.observation)))
+    flt.run_arrays(flt.initial_state(), rows)
+    if not spec.domain.follow:
+        flt.run_arrays(flt.initial_state(), rows, spec.discretization.dt * np.array([1, 2.5, 3, 4.2, 6, 7]))
+print(json.dumps({"seconds": seconds, "warmed": warmed, "after": count(), "again": warm_kernels()}))
+"""
+
+
+@pytest.mark.parametrize("example", ["cubic_sensor", "range_2d", "random_walk_trend"])
+def test_no_chunk_compiles_after_the_warm_up(example, tmp_path):
+    env = dict(os.environ, YAUYAU_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("YAUYAU_KERNEL", None)
+    done = subprocess.run([sys.executable, "-c", PROBE, str(ROOT / "examples" / f"{example}.toml")],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["seconds"] > 0 and out["again"] == 0.0
+    assert out["warmed"] == 6 and out["after"] == out["warmed"]  # 3 loops x (double, single): nothing new
+
+
+def test_the_warm_up_is_off_with_the_numpy_kernel(monkeypatch):
+    from yauyau.solver.warm import warm_kernels
+
+    monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
+    assert warm_kernels() is None
