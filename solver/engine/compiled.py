@@ -1,7 +1,8 @@
 """The engine's row loops compiled by numba: whole chunks without Python between the rows.
 
 The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/engine/jit.py) for regular rows,
-irregular rows (modal scaling, or a nodal flow per run of equal gaps) and a ball that moves inside the
+irregular rows (modal scaling, the Schur form's tables: :func:`run_schur`, or a nodal flow per run of
+equal gaps) and a ball that moves inside the
 loop (:func:`run_moving`: it also stops after a row whose trigger fires).  Each loop runs rows
 ``start ≤ k < stop`` of a chunk — s = P[c, ∫σ]/∫σ, σ = s ⊙ e_k on observed rows, [c, ∫σ] = Πσ — and
 returns the first row it did not finish: ``stop``, or a row whose ∫σ is outside (tiny, huge) or
@@ -30,16 +31,19 @@ from .jit import writable_cache_dir
 TRANS_N = ord("N")
 
 
-def _bind(name: str):
+def _bind(name: str, arguments: int = 11):
     """BLAS ``name`` of scipy.linalg.cython_blas as an external symbol: the compiled code refers to it
     by name (registered again in each process), so numba can cache it on disk."""
     symbol = f"yauyau_cython_blas_{name}"
     llvm.add_symbol(symbol, get_cython_function_address("scipy.linalg.cython_blas", name))
-    return types.ExternalFunction(symbol, types.void(*[types.voidptr] * 11))
+    return types.ExternalFunction(symbol, types.void(*[types.voidptr] * arguments))
 
 
 _dgemv = _bind("dgemv")
 _sgemv = _bind("sgemv")
+_dtrmv = _bind("dtrmv", 8)
+_strmv = _bind("strmv", 8)
+UPPER, NON_UNIT = ord("U"), ord("N")
 
 CACHE_DIR = writable_cache_dir()
 # numba picks a function's cache directory when it is decorated: ours, then numba's own setting back
@@ -64,6 +68,25 @@ def _gemv(alpha, matrix, x, y, ints, scalars):
     else:
         _dgemv(trans, m, n, scalars[0:1].ctypes, matrix.ctypes, m, x.ctypes, inc, scalars[1:2].ctypes,
                y.ctypes, inc)
+
+
+@_jit
+def _product(matrix, row, lower, subs, w, saved, ints, scalars):
+    """w ← M w in place for a quasi-upper-triangular M: trmv('U', 'N', 'N') as scipy calls it, then the
+    2×2 blocks' subdiagonal terms (powers.py's SchurPowers.product: ``subs[row]`` are M's entries)."""
+    before = lower.size
+    for j in range(before):
+        saved[j] = w[lower[j] - 1]
+    ints[1] = matrix.shape[0]
+    ints[2] = UPPER
+    uplo, trans, diag, n, inc = (ints[2:3].ctypes, ints[0:1].ctypes, ints[0:1].ctypes, ints[1:2].ctypes,
+                                 ints[3:4].ctypes)
+    if scalars.itemsize == 4:
+        _strmv(uplo, trans, diag, n, matrix.ctypes, n, w.ctypes, inc)
+    else:
+        _dtrmv(uplo, trans, diag, n, matrix.ctypes, n, w.ctypes, inc)
+    for j in range(before):
+        w[lower[j]] = w[lower[j]] + subs[row, j] * saved[j]
 
 
 @_jit
@@ -130,6 +153,52 @@ def run_modal(start, stop, propagator, projection, carried, following, mass, fac
     ints, scalars = _buffers(propagator)
     for k in range(start, stop):
         _scale_modal(carried, real_scale[k], pair_first[k], pair_second[k])
+        new_mass = _row(k, propagator, propagator, projection, carried, following, mass, factor, observed,
+                        sigma, scratch, ints, scalars)
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < floors[k]:
+            return k
+        mass = new_mass
+        carried, following = following, carried
+    return stop
+
+
+@_jit
+def _advance(carried, schur, tables, lower, subs, indices, remainder, degree, w, saved, ints, scalars):
+    """carried[:N] ← e^{τT} carried[:N]: powers.py's SchurPowers.advance, the same BLAS calls and
+    elementwise operations in the same order (Horner's Taylor polynomial with T, then the row's tables;
+    ``tables[m]`` holds E_mᵀ in C order)."""
+    n = schur.shape[0]
+    for q in range(n):
+        w[q] = carried[q]
+    if remainder != 0.0:
+        for i in range(degree, 0, -1):
+            _product(schur, 0, lower, subs, w, saved, ints, scalars)
+            scalars[0] = remainder / i  # in the matrices' precision, as numpy's scalar
+            a = scalars[0]
+            for q in range(n):
+                w[q] = w[q] * a
+            for q in range(n):
+                w[q] = w[q] + carried[q]
+    for j in range(indices.shape[0]):
+        m = indices[j]
+        if m >= 0:
+            _product(tables[m], m + 1, lower, subs, w, saved, ints, scalars)
+    for q in range(n):
+        carried[q] = w[q]
+
+
+@_jit
+def run_schur(start, stop, propagator, projection, carried, following, mass, factor, observed, floors,
+              sigma, scratch, masses, tiny, huge, schur, tables, lower, subs, indices, remainders, degree, w,
+              saved):
+    """Rows start..stop−1 at any times in the Schur coordinates of an ill-conditioned generator
+    (loop_irregular's schur_rows): each row takes the carried coefficients through e^{τ_kT}
+    (:func:`_advance`) before the two products.  Returns the row it stopped at (``stop``: all done)."""
+    ints, scalars = _buffers(propagator)
+    for k in range(start, stop):
+        _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
+                 scalars)
         new_mass = _row(k, propagator, propagator, projection, carried, following, mass, factor, observed,
                         sigma, scratch, ints, scalars)
         masses[k] = new_mass

@@ -2,8 +2,9 @@
 
 * :func:`loop_regular` — rows one dt apart: the stored propagator over dt (seed 002 (5.35)/(5.38)).
 * :func:`loop_irregular` — rows at any times: the coefficients carried in the modal coordinates of
-  solver/engine/semigroup.py and scaled by e^{τΛ} before the same two products (or, for an
-  ill-conditioned generator, the nodal flow Φe^{τA} of each gap).
+  solver/engine/semigroup.py and scaled by e^{τΛ} before the same two products (for an ill-conditioned
+  generator: in its Schur coordinates, through e^{τT} by a few precomputed matrices, :func:`schur_rows`;
+  or, where those would not fit, the nodal flow Φe^{τA} of each gap).
 * :func:`loop_moving` — a ball that moves inside the loop (solver/engine/recentring.py): after a row
   whose mean or outer-shell mass calls for it, the carried density moves onto a ball around the mean;
   the update factors come a window at a time.
@@ -142,8 +143,10 @@ def loop_irregular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_fac
     carried = carried.copy()
     carried[:N] = flow.to_modal(carried[:N].astype(float))
     carried, following = carried.copy(), np.empty_like(carried)
-    scale = ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
     mass = carried.item(N)
+    if flow.powers is not None:  # Schur coordinates: e^{τT} by the tables before the two products
+        return schur_rows(rows, flow, taus, carried, following, mass)
+    scale = ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
     if rows.compiled:
         k, carried, _, _ = run_compiled(rows, 0, K, (flow.B, flow.B, flow.C), carried, following, mass,
                                         scale.compiled())
@@ -158,11 +161,36 @@ def loop_irregular(engine: Any, carried: np.ndarray, factor: np.ndarray, log_fac
     return rows.result(K, carried)
 
 
+def schur_rows(rows: Rows, flow: SpectralFlow, taus: np.ndarray, carried: np.ndarray, following: np.ndarray,
+               mass: float) -> Result:
+    """:func:`loop_irregular` in the Schur coordinates of an ill-conditioned generator: each row first
+    takes the carried coefficients through e^{τ_kT} (solver/engine/powers.py: its Taylor polynomial and
+    tables, gemv by gemv), then the engine's two products with ΦU and [UᵀΦᵀW; wᵀ]."""
+    powers, engine, N, K = flow.powers, rows.engine, rows.engine.N, len(taus)
+    assert powers is not None
+    indices, remainders = powers.plan(taus)
+    w, saved = np.empty(N, dtype=engine.arith.dtype), np.empty(powers.lower.size, dtype=engine.arith.dtype)
+    if rows.compiled:
+        k, carried, _, _ = run_compiled(rows, 0, K, (flow.B, flow.B, flow.C), carried, following, mass,
+                                        schur=(powers.T, powers.stack, powers.lower, powers.subs, indices,
+                                               remainders, powers.degree, w, saved))
+        return rows.result(k, carried)
+    remainder_list = remainders.tolist()
+    for k in range(K):
+        powers.advance(carried[:N], indices[k], remainder_list[k], w, saved)
+        mass = rows.step(k, flow.B, flow.B, flow.C, carried, following, mass)
+        if rows.reason is not None:
+            return rows.result(k, carried)
+        carried, following = following, carried
+    return rows.result(K, carried)
+
+
 def run_compiled(rows: Rows, start: int, stop: int, matrices: tuple[np.ndarray, np.ndarray, np.ndarray],
                  carried: np.ndarray, following: np.ndarray, mass: float,
-                 scales: tuple[np.ndarray, ...] | None = None):
+                 scales: tuple[np.ndarray, ...] | None = None, schur: tuple | None = None):
     """Rows start..stop−1 in the compiled loops (solver/engine/compiled.py: ``matrices`` = (P, P for
-    observed rows, Π), ``scales`` the modal scaling, else None), each row that needs it through
+    observed rows, Π), ``scales`` the modal scaling, ``schur`` the Schur form's (T, tables, subdiagonal
+    rows and entries, plan, remainders, degree, two buffers), else None), each row that needs it through
     :func:`slow_step` here.  Returns (the row it stopped at: ``stop``, or the row whose slow step
     failed with ``rows.reason``; carried; following; ∫σ)."""
     from . import compiled  # numba: imported on the first chunk
@@ -173,7 +201,11 @@ def run_compiled(rows: Rows, start: int, stop: int, matrices: tuple[np.ndarray, 
     masses, sigma, scratch = rows.masses, rows.sigma, rows.scratch
     k = start
     while k < stop:
-        if scales is None:
+        if schur is not None:
+            j = compiled.run_schur(k, stop, P, projection, carried, following, mass, rows.factor,
+                                   rows.observed_array, rows.floor_array, sigma, scratch, masses, tiny, huge,
+                                   *schur)
+        elif scales is None:
             j = compiled.run_rows(k, stop, P, P_observe, projection, carried, following, mass, rows.factor,
                                   rows.observed_array, rows.floor_array, sigma, scratch, masses, tiny, huge)
         else:

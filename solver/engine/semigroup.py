@@ -16,9 +16,13 @@ modal coordinates d = V⁻¹ c:
 
 the same two products as a regular step, plus N multiplications (a pair as one complex number:
 (d_u + i d_w) ← e^{(α − iβ)τ}(d_u + i d_w)).  The decomposition is exact algebra, but loses
-digits in proportion to cond(V); where cond(V) exceeds :data:`MAX_CONDITION` (a strongly
-non-normal generator: a stiff confining drift on a large ball) the flow is instead formed as
-e^{τA} = scipy.linalg.expm(τA) per distinct τ (exact, O(N³) once per distinct gap, cached).
+digits in proportion to cond(V) (measured: about 1e-17·cond(V) relative); where cond(V) exceeds
+:data:`MAX_CONDITION` (a strongly non-normal generator: a stiff confining drift on a large ball) the
+loops run in the orthogonal real Schur basis U instead (``form = "schur"``: A = U T Uᵀ, the same two
+products with U for V, and e^{τT} as a product of a few precomputed matrices and a short Taylor
+polynomial, O(N²) a row: solver/engine/powers.py).  Only where those tables would not fit in
+powers.MAX_TABLE_BYTES is the flow formed as e^{τA} = scipy.linalg.expm(τA) per distinct τ
+(``form = "expm"``, :attr:`SpectralFlow.exact`: O(N³) once per distinct gap, cached).
 """
 
 from __future__ import annotations
@@ -29,7 +33,10 @@ from functools import cached_property
 
 import numpy as np
 
-MAX_CONDITION = 1e10  # relative rounding of a step ≈ 1e-16·cond(V): keep it below ~1e-6
+from . import powers
+
+MAX_CONDITION = 1e7  # relative rounding of a step ≈ 1e-17·cond(V) (measured): keep it ≤ 1e-10
+FORMS = ("modal", "schur", "expm")
 _CACHE = 64  # distinct τ kept by the exact (expm) form
 
 
@@ -42,7 +49,7 @@ class SpectralFlow:
     """
 
     def __init__(self, generator: np.ndarray, basis: np.ndarray, projector: np.ndarray,
-                 weights: np.ndarray, dtype=np.float64):
+                 weights: np.ndarray, dtype=np.float64, form: str | None = None):
         import scipy.linalg as sla
 
         self.generator = np.asarray(generator, dtype=float)
@@ -67,11 +74,30 @@ class SpectralFlow:
         self.pair_rates = np.conj(pairs)  # (d_u + i d_w)' = (α − iβ)(d_u + i d_w)
         self.r = int(real.sum())
         self.condition = float(np.linalg.cond(V)) if V.shape[1] == N else math.inf
-        self.exact = not (V.shape[1] == N and self.condition <= MAX_CONDITION)
-        if not self.exact:
+        if form is None:
+            form = "modal" if V.shape[1] == N and self.condition <= MAX_CONDITION else "schur"
+        if form not in FORMS or (form == "modal" and V.shape[1] != N):
+            raise ValueError(f"form {form!r}: expected one of {', '.join(FORMS)} (modal: a full eigenbasis)")
+        self.powers: powers.SchurPowers | None = None
+        if form == "schur":
+            base = powers.table_base(N, np.dtype(dtype).itemsize)
+            if base is None:  # the tables would not fit: expm per distinct gap
+                form = "expm"
+            else:
+                T, U = sla.schur(self.generator, output="real")
+                self.powers = powers.SchurPowers(T, base, dtype)
+                self.V, self.V_inv = U, U.T.copy()
+        elif form == "modal":
             self.V = V
             self.V_inv = np.linalg.inv(V)
+        self.form = form
         self._expm_cache: OrderedDict[float, np.ndarray] = OrderedDict()
+
+    @property
+    def exact(self) -> bool:
+        """True where the flow is expm(τA) per gap at the nodes (``form = "expm"``); else the loops run in
+        the coordinates V⁻¹c (modal or Schur)."""
+        return self.form == "expm"
 
     # -- the engine's matrices ---------------------------------------------------------------
     @cached_property
@@ -89,6 +115,25 @@ class SpectralFlow:
 
     def from_modal(self, modal: np.ndarray) -> np.ndarray:
         return self.V @ modal
+
+    def apply(self, tau: float, coefficients: np.ndarray) -> np.ndarray:
+        """e^{τA} c through this flow's form (the loops' operations; tests compare it with expm)."""
+        c = np.asarray(coefficients, dtype=float)
+        if self.form == "expm":
+            import scipy.linalg as sla
+
+            return sla.expm(float(tau) * self.generator) @ c
+        d = self.to_modal(c).astype(self.dtype)
+        if self.powers is not None:
+            indices, remainders = self.powers.plan(np.array([float(tau)]))
+            w, saved = np.empty_like(d), np.empty(self.powers.lower.size, dtype=d.dtype)
+            self.powers.advance(d, indices[0], float(remainders[0]), w, saved)
+        else:
+            real, pairs = self.scales(np.array([float(tau)]))
+            d[: self.r] *= real[0]
+            z = (d[self.r::2] + 1j * d[self.r + 1::2]) * pairs[0]
+            d[self.r::2], d[self.r + 1::2] = z.real, z.imag
+        return self.from_modal(d.astype(float))
 
     def scales(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per step, the factors of the real modes (K, r) and of the pairs (K, p), complex."""

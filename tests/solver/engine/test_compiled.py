@@ -20,7 +20,7 @@ import pytest
 from helpers import EXAMPLES, ROOT
 from helpers.irregular_refs import random_times, simulate_irregular
 from yauyau.solver import compile_model, load_spec, spec_from_dict
-from yauyau.solver.engine import jit, loops, semigroup
+from yauyau.solver.engine import jit, loops, powers, semigroup
 from yauyau.solver.methods import make_filter
 from yauyau.solver.offline.pipeline import precompute
 
@@ -154,10 +154,14 @@ def test_a_ball_that_moves_inside_the_compiled_loop(monkeypatch, name, precision
 
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("name", ["cubic_sensor", "power_meter", "two_sensors"])
-def test_the_nodal_flow_of_an_ill_conditioned_generator(monkeypatch, name, precision):
-    """Above MAX_CONDITION each gap's flow is a nodal matrix: runs of equal gaps and single gaps."""
+@pytest.mark.parametrize("form", ["schur", "expm"])
+def test_the_flow_of_an_ill_conditioned_generator(monkeypatch, name, precision, form):
+    """Above MAX_CONDITION the rows run in the Schur form (tables and a Taylor polynomial per gap); where
+    the tables would not fit, each gap's flow is a nodal matrix: runs of equal gaps and single gaps."""
     model, offline = _offline(name)
     monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
+    if form == "expm":
+        monkeypatch.setattr(powers, "MAX_TABLE_BYTES", 0)
     gaps = np.random.default_rng(4).choice([1.0, 2.0, 3.5], size=K) * model.dt
     gaps[50:70] = 1.5 * model.dt  # a longer run of equal gaps
     times = np.cumsum(gaps)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers.irregular_refs import GridReference, kalman_irregular, random_times, simulate_irregular
-from yauyau.solver.engine import semigroup
+from yauyau.solver.engine import powers, semigroup
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.measurement import gate_threshold, standard_score
@@ -329,18 +329,22 @@ def test_predict_forecasts_without_changing_the_state():
 
 
 @pytest.mark.slow
-def test_ill_conditioned_generators_use_the_exact_exponential(monkeypatch):
-    """Above MAX_CONDITION the flow is expm(τA) per gap: the same numbers as the modal form."""
+@pytest.mark.parametrize("form", ["schur", "expm"])
+def test_ill_conditioned_generators_use_the_schur_form_or_the_exact_exponential(monkeypatch, form):
+    """Above MAX_CONDITION the flow is the Schur form's (or, where its tables would not fit, expm(τA) per
+    gap): the same numbers as the modal form."""
     flt = _engine(QUADRATIC, kind="discrete")
     rng = np.random.default_rng(9)
     times = random_times(rng, 200, 0.01)
     _, rows = simulate_irregular(flt.model, times, "discrete", rng)
     _, modal = flt.run_arrays(flt.initial_state(), rows, times)
-    assert not flt.flow.exact
+    assert flt.flow.form == "modal"
     monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
-    exact = YauYauFilter(flt.model, flt.offline)
-    _, result = exact.run_arrays(exact.initial_state(), rows, times)
-    assert exact.flow.exact
+    if form == "expm":
+        monkeypatch.setattr(powers, "MAX_TABLE_BYTES", 0)
+    other = YauYauFilter(flt.model, flt.offline)
+    _, result = other.run_arrays(other.initial_state(), rows, times)
+    assert other.flow.form == form and other.flow.exact == (form == "expm")
     assert np.max(np.abs(result.mean - modal.mean)) <= 1e-9
 
 

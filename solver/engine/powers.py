@@ -1,0 +1,144 @@
+"""e^{τT} for any τ on the real Schur form T = UᵀAU of an ill-conditioned generator, O(N²) a row.
+
+Where the eigenvectors V of the Galerkin generator A are ill-conditioned (cond(V) over
+solver/engine/semigroup.py's MAX_CONDITION: a strongly non-normal A, e.g. the double well x − x³ on a
+wide ball), the modal form V e^{τΛ} V⁻¹ loses digits in proportion to cond(V); a block-diagonal
+form does not help there (measured: Bavely–Stewart grouping by Sylvester equations puts 64–112 of
+96–128 eigenvalues of such generators in one block, bench/irregular_cost.py).  The orthogonal Schur
+basis U (cond 1) keeps every digit, and the flow over a gap τ is a product of precomputed matrices:
+
+    τ = n·δ + r,  n = round(τ/δ),  |r| ≤ δ/2,  δ‖T‖₁ = STEP,
+    e^{τT} = Π_j E_{j, n_j} · Σ_{i ≤ p} (rT)^i / i!      (n_j the base-b digits of n, E_{j,d} = e^{d·b^j·δT})
+
+— the Taylor polynomial by Horner (p products with T, truncation ≤ TOLERANCE), then one product per
+non-zero digit (about log_b(τ/δ) of them).  T and the tables are quasi-upper-triangular: every
+product is one BLAS trmv on N numbers (N²/2 multiply-adds) plus the 2×2 blocks' subdiagonal terms; the
+engine's loops (solver/engine/loops.py, solver/engine/compiled.py) make the same calls in the same
+order, so both paths give the same numbers bit for bit.  The tables take (b − 1)·N² numbers per digit
+position, built on first use up to the longest gap seen; the base is the largest of BASES whose
+tables for gaps up to 2^SPAN·δ fit in MAX_TABLE_BYTES.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+STEP = 0.05  # δ‖T‖₁: the remainder's |r|·‖T‖₁ ≤ STEP/2
+TOLERANCE = 1e-12  # the Taylor remainder's truncation, relative: θ^{p+1}/(p+1)!·e^θ at θ = STEP/2
+BASES = (16, 8, 4, 2)
+SPAN = 15  # the tables are sized for gaps up to 2^SPAN·δ (longer gaps add digit positions)
+MAX_TABLE_BYTES = 128 * 2 ** 20
+TOP = 2 ** 62  # n beyond: the flow has converged to its stationary state to double precision
+
+
+def taylor_degree(theta: float, tolerance: float = TOLERANCE) -> int:
+    """The smallest p with θ^{p+1}/(p+1)!·e^θ ≤ tolerance."""
+    p = 1
+    while theta ** (p + 1) / math.factorial(p + 1) * math.exp(theta) > tolerance:
+        p += 1
+    return p
+
+
+def table_base(N: int, itemsize: int, limit: int | None = None) -> int | None:
+    """The largest base whose tables for gaps up to 2^SPAN·δ take at most ``limit`` bytes (None: none)."""
+    limit = MAX_TABLE_BYTES if limit is None else limit
+    for base in BASES:
+        positions = math.ceil(SPAN / math.log2(base))
+        if (base - 1) * positions * N * N * itemsize <= limit:
+            return base
+    return None
+
+
+class SchurPowers:
+    """The tables and the per-row plan of e^{τT} (T quasi-upper-triangular, N×N) in ``dtype``.  A function
+    of T has T's block structure: its subdiagonal entries sit at T's (``lower``, ``before``).
+
+    ``T`` is kept in Fortran order, the tables as one array ``stack`` (M, N, N) whose ``stack[m]`` holds
+    E_mᵀ in C order (E_m in Fortran order: gemv reads it without a copy); E_{j,d} is
+    ``stack[j·(b − 1) + d − 1]``.
+    """
+
+    def __init__(self, schur: np.ndarray, base: int, dtype=np.float64):
+        self.schur = np.asarray(schur, dtype=float)
+        self.N = self.schur.shape[0]
+        self.base = base
+        self.dtype = dtype
+        norm = float(np.linalg.norm(self.schur, 1))
+        self.delta = STEP / norm if norm > 0.0 else 1.0
+        self.degree = taylor_degree(STEP / 2.0)
+        self.T = np.asfortranarray(self.schur, dtype=dtype)
+        from scipy.linalg.blas import dtrmv, strmv
+
+        self.trmv = strmv if np.dtype(dtype) == np.float32 else dtrmv
+        self.stack = np.empty((0, self.N, self.N), dtype=dtype)
+        self.positions = 0
+        # the 2×2 blocks' subdiagonal entries (i + 1, i): trmv reads the upper triangle only
+        self.lower = np.flatnonzero(np.diag(self.schur, -1) != 0.0).astype(np.int64) + 1
+        self.before = self.lower - 1
+        self.subs = np.diag(self.schur, -1)[self.before][None, :].astype(dtype)  # row 0: T, 1 + m: table m
+
+    def ensure(self, positions: int) -> None:
+        """Build the tables of digit positions up to ``positions`` − 1 (once)."""
+        if positions <= self.positions:
+            return
+        import scipy.linalg as sla
+
+        built, subs = [self.stack], [self.subs]
+        for j in range(self.positions, positions):
+            first = sla.expm((self.base ** j * self.delta) * self.schur)
+            power, tables = first, np.empty((self.base - 1, self.N, self.N), dtype=self.dtype)
+            for d in range(1, self.base):
+                tables[d - 1] = power.T
+                if d + 1 < self.base:
+                    power = first @ power
+            built.append(tables)
+            subs.append(tables[:, self.before, self.lower])  # (E)_{i+1, i}: stored transposed
+        self.stack = np.concatenate(built)
+        self.subs = np.ascontiguousarray(np.concatenate(subs))
+        self.positions = positions
+
+    def plan(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per row, the tables it multiplies by (K, P: index into ``stack`` or −1) and its remainder (K,)."""
+        taus = np.asarray(taus, dtype=float)
+        with np.errstate(over="ignore", invalid="ignore"):
+            steps = np.rint(taus / self.delta)
+        far = ~(steps < TOP)
+        steps[far] = TOP
+        remainders = np.where(far, 0.0, taus - steps * self.delta)
+        n = steps.astype(np.int64)
+        largest = int(n.max()) if n.size else 0
+        positions = 1
+        while self.base ** positions <= largest:
+            positions += 1
+        self.ensure(positions)
+        indices = np.full((n.size, positions), -1, dtype=np.int64)
+        for j in range(positions):
+            digit = (n // self.base ** j) % self.base
+            indices[:, j] = np.where(digit > 0, j * (self.base - 1) + digit - 1, -1)
+        return indices, remainders
+
+    def advance(self, d: np.ndarray, indices: np.ndarray, remainder: float, w: np.ndarray,
+                saved: np.ndarray) -> None:
+        """d ← e^{τT} d in place (``indices``, ``remainder``: the row's plan; ``w`` a buffer of N, ``saved``
+        one of len(lower)): the Taylor polynomial by Horner, w ← d + (r/i)·T w for i = p … 1, then w ← E w
+        for the row's tables — each product a BLAS trmv in place plus the 2×2 blocks' subdiagonal terms.
+        The operations of solver/engine/compiled.py's ``_advance``, in the same order."""
+        np.copyto(w, d)
+        if remainder != 0.0:
+            for i in range(self.degree, 0, -1):
+                self.product(self.T, 0, w, saved)
+                np.multiply(w, self.dtype(remainder / i), out=w)
+                np.add(w, d, out=w)
+        for m in indices:
+            if m >= 0:
+                self.product(self.stack[m].T, m + 1, w, saved)
+        np.copyto(d, w)
+
+    def product(self, matrix: np.ndarray, row: int, w: np.ndarray, saved: np.ndarray) -> None:
+        """w ← M w for a quasi-upper-triangular M (``row``: its subdiagonal entries in ``subs``)."""
+        np.take(w, self.before, out=saved)
+        self.trmv(matrix, w, 0, 1, 0, 0, 0, 1)
+        if saved.size:
+            w[self.lower] += self.subs[row] * saved
