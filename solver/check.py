@@ -48,6 +48,9 @@ class Trial:
     rmse: float  # of the estimates against the simulated states
     ok: bool
     against: str = ""  # the reference it was compared with, when not the report's (a finer engine)
+    regular_us: float = float("nan")  # measured µs per regular row (resolution_check(timed=True))
+    irregular_us: float = float("nan")  # and per irregular row (gaps 0.5–1.5 dt)
+    flow: str = ""  # the flow's form for irregular rows (solver/engine/semigroup.py)
 
 
 @dataclass
@@ -101,6 +104,9 @@ class CheckReport:
                  f"  basis {r.basis} ({r.nodes} nodes): mean gap {r.mean_gap:.3g}, largest {r.max_gap:.3g}, "
                  f"degenerate steps {r.degenerate:.1%}, RMSE {r.rmse:.3g} "
                  f"(reference {self.reference_rmse:.3g})"]
+        if r.flow:
+            lines.append(f"  cost per row: regular {r.regular_us:.1f} µs, irregular {r.irregular_us:.1f} µs "
+                         f"({r.irregular_us / r.regular_us:.2f}x; flow {r.flow})")
         lines += self._left()
         if r.ok:
             lines.append(f"  {'OK' if self.ok else 'resolved'}: the mean gap is within the target "
@@ -153,10 +159,11 @@ class CheckReport:
 def resolution_check(spec: ModelSpec, paths: int = 4, steps: int = 300, seed: int = 0,
                      target: float = DEFAULT_TARGET, suggest: bool = True,
                      offline: OfflineArrays | None = None,
-                     exact_only: bool = False) -> CheckReport | None:
+                     exact_only: bool = False, timed: bool = False) -> CheckReport | None:
     """The check of the module docstring for a :class:`ModelSpec` (the general engine's discretisation).
     ``offline``: the spec's own offline arrays when they exist (not computed again).  ``exact_only``:
-    None unless the reference is exact (a linear model: the check then costs a few filtered paths)."""
+    None unless the reference is exact (a linear model: the check then costs a few filtered paths).
+    ``timed``: also measure the spec's µs per regular and per irregular row (solver/engine/rowcost.py)."""
     from .model import compile_model
     from .simulate import simulate
 
@@ -179,7 +186,7 @@ def resolution_check(spec: ModelSpec, paths: int = 4, steps: int = 300, seed: in
         report.covered = [[float(lo), float(hi)]
                           for lo, hi in zip(states.min(axis=0), states.max(axis=0), strict=True)]
     report.left, report.left_at, report.domain = _leaving(model, data)
-    report.trials.append(_trial(spec, spec.discretization.basis, data, refs, target, offline, wrong))
+    report.trials.append(_trial(spec, spec.discretization.basis, data, refs, target, offline, wrong, timed))
     if suggest and not report.requested.ok and not wrong and not report.left:  # the domain first
         for scale in SCALES:
             basis = int(round(spec.discretization.basis * scale))
@@ -319,7 +326,7 @@ def _reference(spec: ModelSpec, model: Model, data: list, fine: int) -> tuple[li
 
 def _trial(spec: ModelSpec, basis: int, data: list, refs: list, target: float,
            offline: OfflineArrays | None = None,
-           wrong: float = 0.0) -> Trial:
+           wrong: float = 0.0, timed: bool = False) -> Trial:
     """``basis`` filtered on the paths against ``refs``; it passes only where the reference has no degenerate
     step (``wrong``: their fraction)."""
     engine = _filter(spec, basis, offline)
@@ -335,8 +342,14 @@ def _trial(spec: ModelSpec, basis: int, data: list, refs: list, target: float,
         means.append(result.mean)
     mean_gap = float(np.mean(np.concatenate(gaps))) if gaps else 0.0
     fraction = degenerate / total if total else 0.0
-    return Trial(basis=basis, nodes=len(engine.nodes), mean_gap=mean_gap, max_gap=worst, degenerate=fraction,
-                 rmse=_rmse(means, data), ok=mean_gap <= target and degenerate == 0 and not wrong)
+    trial = Trial(basis=basis, nodes=len(engine.nodes), mean_gap=mean_gap, max_gap=worst, degenerate=fraction,
+                  rmse=_rmse(means, data), ok=mean_gap <= target and degenerate == 0 and not wrong)
+    if timed:
+        from .engine.rowcost import row_costs
+
+        cost = row_costs(engine)
+        trial.regular_us, trial.irregular_us, trial.flow = cost.regular_us, cost.irregular_us, cost.flow
+    return trial
 
 
 def _rmse(means: list[np.ndarray], data: list) -> float:
