@@ -28,6 +28,7 @@ FRAGMENTS = [
     ("storage", "storage.md"),
     ("engine_speed", "engine.md"),
     ("compiled_kernels", "compiled.md"),
+    ("irregular_cost", "irregular.md"),
     ("blas_threads", "blas.md"),
     ("engine_batch", "engine-batch.md"),
     ("filters", "filters.md"),
