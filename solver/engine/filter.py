@@ -172,6 +172,7 @@ class YauYauFilter(ChunkedFilter):
         new = copy.copy(self)
         new.__dict__.pop("_marginal_operators", None)
         new.__dict__.pop("node_tree", None)  # the KD-tree of the old nodes
+        new.__dict__.pop("_factor_cache", None)  # h R⁻¹ at the old nodes: the new ball's differ
         new.__dict__.setdefault("_flow_owner", self)
         new.model = self.model.translated(center)
         new.offline = TranslatedOffline(home, shift, center - shift)

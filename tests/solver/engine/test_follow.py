@@ -507,3 +507,20 @@ def test_precompute_says_when_follow_has_no_effect(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "method kalman-bucy" in err
     assert "domain.follow has no effect here" in err and 'method = "yau-yau"' in err
+
+
+def test_a_translated_engine_updates_with_h_at_its_own_nodes(trend):
+    """The engine on a translated ball (``centred_at``, a move of the following ball) must weigh each row
+    by h at its own nodes, also after the home engine has stepped: it used to share the home engine's
+    cache of h R⁻¹ per observation pattern (h at the home nodes; 0.115 off in log e here).  Truth: the
+    stable form's log e = h dy − ½ h² dt (R = 1, h = x) at the translated nodes, minus its maximum."""
+    model, offline = trend
+    home = build(model, offline)
+    rows, gaps = np.array([[0.01], [-0.02], [0.05]]), np.full(3, model.dt)
+    home.factors(rows, gaps)  # fills the home engine's cache
+    moved = home.centred_at(np.array([2.0]))
+    log_factor = moved.factors(rows, gaps)[2]
+    x = moved.nodes[:, 0]
+    expected = rows * x[None, :] - 0.5 * x[None, :] ** 2 * gaps[:, None]
+    expected -= expected.max(axis=1, keepdims=True)
+    np.testing.assert_allclose(log_factor, expected, rtol=0, atol=1e-12)
