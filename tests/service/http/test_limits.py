@@ -348,8 +348,10 @@ def test_events_listeners_are_capped_per_session_and_per_worker(tmp_path, exampl
         "YAUYAU_MAX_SESSION_LISTENERS": "2", "YAUYAU_MAX_LISTENERS": "3", "YAUYAU_EVENTS_POLL": "0.05"})
     listeners: list[_Listener] = []
     try:
-        a, b = (httpx.post(server.url + "/v1/sessions", json={"model": ids["cubic_sensor"]},
-                           timeout=30).json()["id"] for _ in range(2))
+        created = [httpx.post(server.url + "/v1/sessions", json={"model": ids["cubic_sensor"]}, timeout=30)
+                   for _ in range(2)]
+        assert all(r.status_code == 201 for r in created), [(r.status_code, r.text) for r in created]
+        a, b = (r.json()["id"] for r in created)
         events = f"{server.url}/v1/sessions/{{}}/events"
         for sid in (a, a, b):
             listeners.append(_Listener(events.format(sid)))
