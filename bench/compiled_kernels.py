@@ -80,8 +80,8 @@ def measure(example: str, repeats: int) -> dict:
     # zero increments (as bench/engine_speed.py): every row a full step on both kinds of times
     rows = np.zeros((CHUNK, model.m))
     times = np.cumsum(np.random.default_rng(3).uniform(0.5, 1.5, CHUNK) * model.dt)
-    state = flt.initial_state()
-    jobs = {(label, kernel): (lambda g=given, k=kernel: _run(flt, state, rows, g, k))
+    start = flt.initial_state()
+    jobs = {(label, kernel): (lambda g=given, k=kernel: _run(flt, start, rows, g, k))
             for label, given in (("regular", None), ("irregular", times)) for kernel in KERNELS}
     identical, first_call = {}, {}
     for (label, kernel), job in jobs.items():  # warm: the flow's eigenbasis, numba's import and cache
@@ -92,7 +92,7 @@ def measure(example: str, repeats: int) -> dict:
         identical.setdefault(label, []).append((result.mean, result.cov, result.loglik, state.coefficients))
     same = {label: max(_difference(a, b) for a, b in zip(*pair, strict=True))
             for label, pair in identical.items()}
-    jobs[("loop", "fused")] = _loop(flt, state, rows)
+    jobs[("loop", "fused")] = _loop(flt, start, rows)
     jobs[("floor", "BLAS")] = _floor(flt)
     for key in (("loop", "fused"), ("floor", "BLAS")):
         jobs[key]()
