@@ -294,23 +294,42 @@ def _fused_row(k, propagator, projection, carried, following, mass, terms, y, ta
 
 
 @_jit
+def _scale_flow(carried, tau, real_rates, pair_rates, scale):
+    """e^{τΛ} on the modal coefficients in place, the scales made here (semigroup.py's ``scales`` for
+    one τ: exp(τλ) rounded to the matrices' precision through ``scale``), then :func:`scale_modal`'s
+    operations."""
+    r = real_rates.shape[0]
+    for i in range(r):
+        scale[0] = np.exp(tau * real_rates[i])
+        carried[i] = carried[i] * scale[0]
+    for j in range(pair_rates.shape[0]):
+        z = np.exp(tau * pair_rates[j])
+        scale[0] = z.real
+        scale[1] = z.imag
+        scale[2] = -z.imag
+        u = carried[r + 2 * j]
+        w = carried[r + 2 * j + 1]
+        carried[r + 2 * j] = u * scale[0] + w * scale[2]
+        carried[r + 2 * j + 1] = u * scale[1] + w * scale[0]
+
+
+@_jit
 def run_fused(start, stop, propagator, projection, carried, following, mass, terms, y, taus, constants,
               discrete, limit, floor_exponents, summary, weights, sums, negative, mode, top, masses, tiny,
-              huge, real_scale, pair_first, pair_second):
+              huge, modal, real_rates, pair_rates):
     """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
-    each row (:func:`_fused_row`): no K×Q arrays.  Modal rows (irregular) scale the carried coefficients
-    first where ``real_scale`` has rows (else regular rows).  Returns the first row that needs the
+    each row (:func:`_fused_row`): no K×Q arrays.  ``modal`` (irregular rows): each row first scales the
+    carried coefficients by e^{τ_kΛ} (:func:`_scale_flow`).  Returns the first row that needs the
     Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
     exp(floor_exponent − top)), or ``stop``."""
     ints, scalars = buffers(propagator)
     wide_ints, wide_scalars = buffers(summary)
     n = propagator.shape[1] - 1
     row, factor = np.empty(propagator.shape[0], propagator.dtype), np.empty(1, propagator.dtype)
-    wide = np.empty(propagator.shape[0])
-    modal = real_scale.shape[0] > 0
+    wide, scale = np.empty(propagator.shape[0]), np.empty(3, propagator.dtype)
     for k in range(start, stop):
         if modal:
-            scale_modal(carried, real_scale[k], pair_first[k], pair_second[k])
+            _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
         if not _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants,
                           discrete, limit, factor, row, wide, summary, sums, weights, negative, mode, top,
                           ints, scalars, wide_ints, wide_scalars):

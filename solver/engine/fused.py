@@ -2,7 +2,8 @@
 
 The common chunk — every row observed with the same components, continuous increments (the stable
 form's factor exp(Δyᵀ R⁻¹h − τ ½hᵀR⁻¹h)) or discrete Gaussian rows, regular rows or irregular rows
-in modal coordinates, no moving frame or ball, no caller that cuts the chunk — runs in
+in modal coordinates (each row's scales e^{τΛ} made in the row, not K×N in numpy before the loop), no
+moving frame or ball, no caller that cuts the chunk — runs in
 solver/engine/compiled.py ``run_fused``: each row computes its factor's exponent at the nodes (the
 operations of solver/measurement.py ``log_factors``, in its order: bit for bit), its max, the factor,
 σ = s ⊙ e and Πσ, then keeps of σ only the sums the estimates and checks read (the moments' features
@@ -31,7 +32,6 @@ from . import jit
 from .finish import Recompute, Summary
 from .gate import Gate, Prepared
 from .kernel import moment_features, moment_pairs
-from .loops import ModalScale
 
 _SUMMARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -81,15 +81,15 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
                        np.ascontiguousarray(gate.floor_exponents(missing), dtype=float))
     initial = np.append(state.coefficients, state.mass).astype(dtype)
     carried, following = initial.copy(), np.empty_like(initial)
-    real = np.empty((0, 0), dtype=dtype)
-    first = second = np.empty((0, 0, 2), dtype=dtype)
+    real, pairs = np.empty(0), np.empty(0, dtype=complex)
     if taus is None:
         P, projection = engine.observation_propagator, engine.projection
     else:
         flow = engine.flow
         carried[:N] = flow.to_modal(carried[:N].astype(float))
         P, projection = flow.B, flow.C
-        real, first, second = ModalScale(flow, taus, carried, following, N, dtype).compiled()
+        real = np.ascontiguousarray(flow.real_rates, dtype=float)
+        pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
     summary = summary_rows(engine)
     sums = np.empty((K, summary.shape[0]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
@@ -99,7 +99,7 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
                               carried.item(N), exponent_terms, y, np.ascontiguousarray(gaps, dtype=float),
                               constants, bool(obs.discrete), np.array([engine.arith.negligible], dtype=dtype),
                               floor_exponents, summary, weights, sums, negative, mode, top, masses,
-                              engine.arith.tiny, engine.arith.huge, real, first, second)
+                              engine.arith.tiny, engine.arith.huge, taus is not None, real, pairs)
     if done < K:
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
