@@ -344,6 +344,36 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
 
 
 @_jit
+def sum_rows(sigma, summary, weights, sums, negative, mode):
+    """What :func:`_fused_row` keeps of each row of a chunk's σ (K, Q) that the loops kept: the same
+    operations in the same order (a compiled chunk's moments do not depend on whether it ran fused)."""
+    wide_ints, wide_scalars = buffers(summary)
+    wide = np.empty(sigma.shape[1])
+    for k in range(sigma.shape[0]):
+        low, index, peak = 0.0, 0, -np.inf
+        for q in range(sigma.shape[1]):
+            v = sigma[k, q]
+            wide[q] = v
+            if v < 0.0:
+                low += weights[q] * v
+            if v > peak:
+                peak, index = v, q
+        negative[k], mode[k] = low, index
+        gemv(1.0, summary, wide, sums[k], wide_ints, wide_scalars)
+
+
+@_jit
+def exp_factors(log_factor, limit, factor):
+    """factor = exp(log factor) in the matrices' precision, 0 under ``limit``: :func:`_fused_row`'s
+    exponential (libm's), for the compiled loops that keep σ."""
+    for k in range(log_factor.shape[0]):
+        for q in range(log_factor.shape[1]):
+            factor[k, q] = np.exp(log_factor[k, q])
+            if factor[k, q] < limit[0]:
+                factor[k, q] = 0.0
+
+
+@_jit
 def products(rows, propagator, projection, carried, following, row):
     """Only the two products of each row, ``rows`` times (bench/compiled_kernels.py: the BLAS floor)."""
     ints, scalars = buffers(propagator)

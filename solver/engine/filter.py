@@ -75,7 +75,7 @@ from .kernel import (
     stack_results,
     with_zero_column,
 )
-from .loops import loop_irregular, loop_moving, loop_regular
+from .loops import loop_irregular, loop_moving, loop_regular, update_factors
 from .pieces import row_pieces, run_in_pieces
 from .recentring import Recentring
 from .semigroup import SpectralFlow
@@ -360,8 +360,7 @@ class YauYauFilter(ChunkedFilter):
         ``carried`` is [coefficients, ∫σ] (N+1,); ``skip`` the rows that only predict."""
         if moving is not None:
             return loop_moving(self, carried, log_factor, top, skip, gate, moving)
-        factor = np.exp(log_factor).astype(self.arith.dtype, copy=False)
-        factor[factor < self.arith.negligible] = 0.0
+        factor = update_factors(self.arith, log_factor)
         if taus is not None:
             return loop_irregular(self, carried, factor, log_factor, top, skip, gate, taus)
         return loop_regular(self, carried, factor, log_factor, top, skip, gate)

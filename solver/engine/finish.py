@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -18,8 +19,9 @@ import numpy as np
 
 from ..filtering import ChunkResult, Estimate
 from ..measurement import standard_score
+from . import jit
 from .gate import Prepared
-from .kernel import FACTOR_OVERFLOWS, moment_pairs, moments_from, stack_results
+from .kernel import FACTOR_OVERFLOWS, moment_features, moment_pairs, moments_from, stack_results
 from .state import YauYauState
 
 # ``until(means, centers)``: the rows of a chunk to keep (None: all), solver/engine/follow.py
@@ -39,6 +41,32 @@ class Summary:
     moments: np.ndarray
     checks: np.ndarray
     mode: np.ndarray
+
+
+_SUMMARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def summary_rows(engine: Any) -> np.ndarray:
+    """The rows the compiled kernel sums σ against (S, Q), Fortran order: the moments' features, then the
+    diagnostics' functionals (engine/diagnostics.py)."""
+    found = _SUMMARIES.get(engine)
+    if found is None:
+        features = moment_features(engine.weights, engine.nodes, moment_pairs(engine.nodes.shape[1]))
+        found = np.asfortranarray(np.vstack([features, engine.diagnostics.functionals()]), dtype=float)
+        _SUMMARIES[engine] = found
+    return found
+
+
+def summarise(engine: Any, sigma: np.ndarray) -> Summary:
+    """:class:`Summary` of σ rows a compiled loop kept (compiled.sum_rows: the fused rows' operations)."""
+    from . import compiled  # numba: imported on the first chunk
+
+    summary = summary_rows(engine)
+    K, features = len(sigma), summary.shape[0] - 3
+    sums, negative, mode = np.empty((K, summary.shape[0])), np.empty(K), np.empty(K, dtype=np.int64)
+    compiled.sum_rows(np.ascontiguousarray(sigma), summary, np.ascontiguousarray(engine.weights, dtype=float),
+                      sums, negative, mode)
+    return Summary(sums[:, :features], np.column_stack([sums[:, features:], negative]), mode)
 
 
 @dataclass
@@ -82,10 +110,13 @@ def finish(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray,
                   skip=ready.skip, missing=ready.missing, summary=summary)
     stop_at_overflow(engine, out, ready, taus)
     weigh_gate(out, ready)
-    if out.sigma is None:
-        assert summary is not None and until is None and out.shifts is None
-        out.mean, out.cov, out.mode = moments_from(summary.moments, out.masses, summary.mode,
-                                                   moment_pairs(engine.nodes.shape[1]), engine.nodes)
+    if out.sigma is None or jit.enabled():  # compiled: the sums of the fused rows, whether fused or not
+        sums = summary if out.sigma is None else summarise(engine, out.sigma[:out.done])
+        assert sums is not None
+        done = out.done
+        out.mean, out.cov, out.mode = moments_from(sums.moments[:done], out.masses[:done], sums.mode[:done],
+                                                   moment_pairs(engine.nodes.shape[1]), engine.nodes,
+                                                   None if out.shifts is None else out.shifts[:done])
     else:
         out.mean, out.cov, out.mode = engine.moments(out.sigma[:out.done], out.masses[:out.done],
                                                      None if out.shifts is None else out.shifts[:out.done])

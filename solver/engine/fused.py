@@ -12,8 +12,11 @@ operations of solver/measurement.py ``log_factors``, in its order: bit for bit),
 
 The factor's exponential is libm's (numpy's may be a vectorised one that differs in the last bit), and
 the sums are BLAS's (numpy's einsum adds in another order): the fused chunk agrees with the numpy path
-to rounding, not bit for bit (tests/solver/engine/test_compiled.py: 1e-12 relative in double).  The
-exponents and ``top`` are bit-identical.
+to rounding (tests/solver/engine/test_compiled.py: 1e-12 relative in double, 1e-5 in single, per
+column).  The exponents and ``top`` are bit-identical; where numpy's exp is libm's (this machine) so
+are ∫σ, the log-likelihoods and the state.  The compiled loops that keep σ use the same exp
+(loops.py ``update_factors``) and the same sums (finish.py ``summarise``): a compiled chunk's numbers
+do not depend on whether it ran fused, so they do not depend on how the rows are chunked.
 
 Anything rarer goes back to the path that keeps σ, for the whole chunk (:func:`run_fused` returns
 None): a row whose ∫σ is outside (tiny, huge) or under the gate's floor (the slow path needs s and
@@ -23,28 +26,13 @@ explanation and the state there need σ).
 
 from __future__ import annotations
 
-import weakref
 from typing import Any
 
 import numpy as np
 
 from . import jit
-from .finish import Recompute, Summary
+from .finish import Recompute, Summary, summary_rows
 from .gate import Gate, Prepared
-from .kernel import moment_features, moment_pairs
-
-_SUMMARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def summary_rows(engine: Any) -> np.ndarray:
-    """The rows the fused loop sums σ against (S, Q), Fortran order: the moments' features, then the
-    diagnostics' functionals (engine/diagnostics.py)."""
-    found = _SUMMARIES.get(engine)
-    if found is None:
-        features = moment_features(engine.weights, engine.nodes, moment_pairs(engine.nodes.shape[1]))
-        found = np.asfortranarray(np.vstack([features, engine.diagnostics.functionals()]), dtype=float)
-        _SUMMARIES[engine] = found
-    return found
 
 
 def fusable(engine: Any, rows: np.ndarray, taus: np.ndarray | None) -> bool:
