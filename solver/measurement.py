@@ -274,6 +274,11 @@ class Observation:
         half = 0.5 * np.einsum("kpi,ij,kpj->kp", h_o, pat.R_inv, h_o)
         return hR, half
 
+    def point_terms(self, h_points: np.ndarray, key: int, cache: dict | None = None):
+        """h_o R_oo⁻¹ (|o|, P) and ½h_oᵀR_oo⁻¹h_o (P,) of h at the points (P, m) for the pattern ``key``
+        (``cache``: kept per pattern, as :meth:`log_factors` keeps them)."""
+        return self._point_terms(h_points, key, self.pattern(key), cache)
+
     def _point_terms(self, h_points, key: int, pat: Pattern, cache: dict | None):
         if cache is not None and key in cache:
             return cache[key]

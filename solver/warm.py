@@ -4,8 +4,8 @@ The compiled loops (solver/engine/compiled.py) are compiled on first use, per ar
 the first time on a machine, about 0.7 s in each later process (numba's import and its on-disk cache,
 solver/engine/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
-1-D filter through every compiled loop (regular, irregular, a moving ball), in double and single
-precision: the same calls, with the same array types, as any model's chunks.
+1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
+double and single precision: the same calls, with the same array types, as any model's chunks.
 """
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ def warm_kernels() -> float | None:
     from .spec import spec_from_dict
 
     started = time.perf_counter()
-    rows = np.zeros((4, 1))
+    # every row observed: the fused loop (solver/engine/fused.py); a missing row: the loops that keep σ
+    chunks = (np.zeros((4, 1)), np.array([[0.0], [np.nan], [0.0], [0.0]]))
     times = np.array([0.05, 0.12, 0.2, 0.31])
     for follow in (False, True):
         domain = {"radius": 4.0, "follow": True} if follow else {"radius": 4.0}
@@ -45,8 +46,9 @@ def warm_kernels() -> float | None:
         for precision in ("double", "single"):
             flt = make_filter(model, offline, "yau-yau", precision=precision)
             state = flt.initial_state()
-            flt.run_arrays(state, rows)
-            if not follow:
-                flt.run_arrays(state, rows, times)
+            for rows in chunks:
+                flt.run_arrays(state, rows)
+                if not follow:
+                    flt.run_arrays(state, rows, times)
     _DONE.append(time.perf_counter() - started)
     return _DONE[0]

@@ -12,6 +12,10 @@ the Python driver (solver/engine/loops.py) takes its slow step with the tested P
 re-enters at the next row.  The carried vector alternates between the two buffers as in the Python
 loops: after j rows it is in ``following`` when j is odd.
 
+:func:`run_fused` (driven by solver/engine/fused.py) also computes each row's update factor and the sums
+its moments and checks read inside the row, for chunks whose rows are all observed: no K×Q arrays.
+Its numbers agree with the numpy path to rounding (libm's exp, BLAS's sums), not bit for bit.
+
 The products call the very BLAS ``dgemv``/``sgemv`` that scipy.linalg.blas calls on the numpy path
 (scipy.linalg.cython_blas, by address: the results are bit-identical), and the elementwise products
 are single IEEE operations (numba does not contract them into FMAs), so both paths give the same
@@ -54,7 +58,7 @@ _jit = numba.njit(cache=CACHE_DIR is not None, nogil=True)
 
 
 @_jit
-def _gemv(alpha, matrix, x, y, ints, scalars):
+def gemv(alpha, matrix, x, y, ints, scalars):
     """y = alpha · matrix · x[:n] for a Fortran-ordered matrix (m, n): gemv('N') as scipy calls it
     (``ints`` = [ord('N'), m, n, 1], ``scalars`` = [alpha, beta] in the matrix's dtype)."""
     ints[1] = matrix.shape[0]
@@ -95,18 +99,18 @@ def _row(k, propagator, observing, projection, carried, following, mass, factor,
     """Row k (kernel.py's observe or predict, then project): returns ∫σ_k (following[N])."""
     row = sigma[k]
     if observed[k]:
-        _gemv(1.0 / mass, observing, carried, scratch, ints, scalars)
+        gemv(1.0 / mass, observing, carried, scratch, ints, scalars)
         e = factor[k]
         for q in range(row.shape[0]):
             row[q] = scratch[q] * e[q]
     else:
-        _gemv(1.0 / mass, propagator, carried, row, ints, scalars)
-    _gemv(1.0, projection, row, following, ints, scalars)
+        gemv(1.0 / mass, propagator, carried, row, ints, scalars)
+    gemv(1.0, projection, row, following, ints, scalars)
     return float(following[propagator.shape[1] - 1])
 
 
 @_jit
-def _buffers(matrix):
+def buffers(matrix):
     ints = np.empty(4, np.int32)
     ints[0] = TRANS_N
     ints[3] = 1
@@ -118,7 +122,7 @@ def run_rows(start, stop, propagator, observing, projection, carried, following,
              floors, sigma, scratch, masses, tiny, huge):
     """Rows start..stop−1 with the same propagators (loop_regular; loop_irregular's nodal flow over a
     run of equal gaps).  Returns the row it stopped at (``stop``: all done)."""
-    ints, scalars = _buffers(propagator)
+    ints, scalars = buffers(propagator)
     for k in range(start, stop):
         new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
                         sigma, scratch, ints, scalars)
@@ -131,7 +135,7 @@ def run_rows(start, stop, propagator, observing, projection, carried, following,
 
 
 @_jit
-def _scale_modal(carried, real_scale, pair_first, pair_second):
+def scale_modal(carried, real_scale, pair_first, pair_second):
     """e^{τΛ} on the modal coefficients in place: the real modes, then each pair (u, w) ←
     (u·a + w·b) with a = (Re z, Im z), b = (−Im z, Re z) (loops.py's ModalScale, the same operations)."""
     r = real_scale.shape[0]
@@ -150,9 +154,9 @@ def run_modal(start, stop, propagator, projection, carried, following, mass, fac
     """Rows start..stop−1 at any times in modal coordinates (loop_irregular): each row scales the carried
     coefficients by e^{τ_kΛ} (``real_scale`` (K, r), the pairs' ``pair_first``/``pair_second`` (K, p, 2))
     before the two products.  Returns the row it stopped at (``stop``: all done)."""
-    ints, scalars = _buffers(propagator)
+    ints, scalars = buffers(propagator)
     for k in range(start, stop):
-        _scale_modal(carried, real_scale[k], pair_first[k], pair_second[k])
+        scale_modal(carried, real_scale[k], pair_first[k], pair_second[k])
         new_mass = _row(k, propagator, propagator, projection, carried, following, mass, factor, observed,
                         sigma, scratch, ints, scalars)
         masses[k] = new_mass
@@ -195,7 +199,7 @@ def run_schur(start, stop, propagator, projection, carried, following, mass, fac
     """Rows start..stop−1 at any times in the Schur coordinates of an ill-conditioned generator
     (loop_irregular's schur_rows): each row takes the carried coefficients through e^{τ_kT}
     (:func:`_advance`) before the two products.  Returns the row it stopped at (``stop``: all done)."""
-    ints, scalars = _buffers(propagator)
+    ints, scalars = buffers(propagator)
     for k in range(start, stop):
         _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
                  scalars)
@@ -228,7 +232,7 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
     offsets and the shell's mass after ∫σ).  Returns (row, strayed): the row it stopped at as
     :func:`run_rows` does, or (k + 1, True) after a row k ≠ ``last``, k ≥ ``quiet``, whose trigger
     fired (the driver moves the ball)."""
-    ints, scalars = _buffers(propagator)
+    ints, scalars = buffers(propagator)
     first = propagator.shape[1]
     for k in range(start, stop):
         new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
@@ -244,12 +248,138 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
 
 
 @_jit
+def _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants, discrete,
+               limit, factor, row, wide, summary, sums, weights, negative, mode, top, ints, scalars,
+               wide_ints, wide_scalars):
+    """Row k with its update factor and its moments' sums in the row (fused.py): the exponent
+    Σ_j y_kj (hR⁻¹)_jq − τ_k·½hᵀR⁻¹h_q (continuous) or − ½hᵀR⁻¹h_q + c_k (discrete Gaussian) in
+    measurement.py's order, its max ``top[k]``, e = exp(exponent − top) in the matrices' precision (0
+    under ``limit``), σ = s ⊙ e, Πσ into ``following``; then ``sums[k]`` = the summary rows · σ
+    (dgemv), ``negative[k]`` = Σ w min(σ, 0) and ``mode[k]`` = argmax σ (the first largest, as
+    np.argmax).  False: an exponent not finite (the caller's Python path decides)."""
+    hR, half = terms[:-1], terms[-1]
+    gemv(1.0 / mass, propagator, carried, row, ints, scalars)
+    best = -np.inf
+    for q in range(row.shape[0]):
+        a = y[k, 0] * hR[0, q]
+        for j in range(1, hR.shape[0]):
+            a += y[k, j] * hR[j, q]
+        if discrete:
+            a = a - half[q]
+            a = a + constants[k]
+        else:
+            a = a - taus[k] * half[q]
+        if not -np.inf < a < np.inf:
+            return False
+        wide[q] = a
+        if a > best:
+            best = a
+    top[k] = best
+    low, index, peak = 0.0, 0, -np.inf
+    for q in range(row.shape[0]):
+        factor[0] = np.exp(wide[q] - best)  # in the matrices' precision, as numpy's astype
+        if factor[0] < limit[0]:
+            factor[0] = 0.0
+        v = row[q] * factor[0]
+        row[q] = v
+        wide[q] = v
+        if v < 0.0:
+            low += weights[q] * v
+        if v > peak:
+            peak, index = v, q
+    negative[k], mode[k] = low, index
+    gemv(1.0, projection, row, following, ints, scalars)
+    gemv(1.0, summary, wide, sums[k], wide_ints, wide_scalars)
+    return True
+
+
+@_jit
+def _scale_flow(carried, tau, real_rates, pair_rates, scale):
+    """e^{τΛ} on the modal coefficients in place, the scales made here (semigroup.py's ``scales`` for
+    one τ: exp(τλ) rounded to the matrices' precision through ``scale``), then :func:`scale_modal`'s
+    operations."""
+    r = real_rates.shape[0]
+    for i in range(r):
+        scale[0] = np.exp(tau * real_rates[i])
+        carried[i] = carried[i] * scale[0]
+    for j in range(pair_rates.shape[0]):
+        z = np.exp(tau * pair_rates[j])
+        scale[0] = z.real
+        scale[1] = z.imag
+        scale[2] = -z.imag
+        u = carried[r + 2 * j]
+        w = carried[r + 2 * j + 1]
+        carried[r + 2 * j] = u * scale[0] + w * scale[2]
+        carried[r + 2 * j + 1] = u * scale[1] + w * scale[0]
+
+
+@_jit
+def run_fused(start, stop, propagator, projection, carried, following, mass, terms, y, taus, constants,
+              discrete, limit, floor_exponents, summary, weights, sums, negative, mode, top, masses, tiny,
+              huge, modal, real_rates, pair_rates):
+    """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
+    each row (:func:`_fused_row`): no K×Q arrays.  ``modal`` (irregular rows): each row first scales the
+    carried coefficients by e^{τ_kΛ} (:func:`_scale_flow`).  Returns the first row that needs the
+    Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
+    exp(floor_exponent − top)), or ``stop``."""
+    ints, scalars = buffers(propagator)
+    wide_ints, wide_scalars = buffers(summary)
+    n = propagator.shape[1] - 1
+    row, factor = np.empty(propagator.shape[0], propagator.dtype), np.empty(1, propagator.dtype)
+    wide, scale = np.empty(propagator.shape[0]), np.empty(3, propagator.dtype)
+    for k in range(start, stop):
+        if modal:
+            _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
+        if not _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants,
+                          discrete, limit, factor, row, wide, summary, sums, weights, negative, mode, top,
+                          ints, scalars, wide_ints, wide_scalars):
+            return k
+        new_mass = float(following[n])
+        masses[k] = new_mass
+        if not tiny < new_mass < huge or new_mass < np.exp(floor_exponents[k] - top[k]):
+            return k
+        mass = new_mass
+        carried, following = following, carried
+    return stop
+
+
+@_jit
+def sum_rows(sigma, summary, weights, sums, negative, mode):
+    """What :func:`_fused_row` keeps of each row of a chunk's σ (K, Q) that the loops kept: the same
+    operations in the same order (a compiled chunk's moments do not depend on whether it ran fused)."""
+    wide_ints, wide_scalars = buffers(summary)
+    wide = np.empty(sigma.shape[1])
+    for k in range(sigma.shape[0]):
+        low, index, peak = 0.0, 0, -np.inf
+        for q in range(sigma.shape[1]):
+            v = sigma[k, q]
+            wide[q] = v
+            if v < 0.0:
+                low += weights[q] * v
+            if v > peak:
+                peak, index = v, q
+        negative[k], mode[k] = low, index
+        gemv(1.0, summary, wide, sums[k], wide_ints, wide_scalars)
+
+
+@_jit
+def exp_factors(log_factor, limit, factor):
+    """factor = exp(log factor) in the matrices' precision, 0 under ``limit``: :func:`_fused_row`'s
+    exponential (libm's), for the compiled loops that keep σ."""
+    for k in range(log_factor.shape[0]):
+        for q in range(log_factor.shape[1]):
+            factor[k, q] = np.exp(log_factor[k, q])
+            if factor[k, q] < limit[0]:
+                factor[k, q] = 0.0
+
+
+@_jit
 def products(rows, propagator, projection, carried, following, row):
     """Only the two products of each row, ``rows`` times (bench/compiled_kernels.py: the BLAS floor)."""
-    ints, scalars = _buffers(propagator)
+    ints, scalars = buffers(propagator)
     for _ in range(rows):
-        _gemv(1.0, propagator, carried, row, ints, scalars)
-        _gemv(1.0, projection, row, following, ints, scalars)
+        gemv(1.0, propagator, carried, row, ints, scalars)
+        gemv(1.0, projection, row, following, ints, scalars)
 
 
 numba.config.CACHE_DIR = _previous_cache_dir

@@ -64,23 +64,38 @@ class Diagnostics:
         new.h_nodes = np.asarray(h_nodes, dtype=float)
         return new
 
-    def first_implausible(self, sigma, masses, cov, growth=None) -> tuple[int | None, str | None]:
+    def functionals(self) -> np.ndarray:
+        """The checks' linear functionals of nodal σ (3, Q): ∫Πσ, ∫e^{dt L}Πσ and the rim's mass (the
+        fused compiled rows take them as sums: solver/engine/fused.py)."""
+        rim = np.zeros(len(self.weights))
+        rim[self._rim] = self.weights[self._rim]
+        return np.vstack([self._kept, rim[None]])
+
+    def first_implausible(self, sigma, masses, cov, growth=None,
+                          sums: np.ndarray | None = None) -> tuple[int | None, str | None]:
         """The first step whose density cannot be right, and why (None, None if every step is fine).
 
         * mostly within one element of the boundary: the Dirichlet condition forces σ = 0 on ∂B_R,
           so the data pull the state out of the ball (impossible under the model on this domain);
         * a variance ≤ 0 (or not finite): the basis' ripples dominate, it cannot resolve the density;
         * mass leaking through ∂B_R (:meth:`_boundary_leak`): the Dirichlet wall biases the estimates.
+
+        ``sums``: instead of σ, per row the :meth:`functionals` · σ and Σ w min(σ, 0) (K, 4).
         """
         if not len(masses):
             return None, None
-        leak = self.boundary_leak(sigma, masses)
+        if sums is None:
+            leak = self.boundary_leak(sigma, masses)
+        else:
+            leak = self.leak_from(sums[:, 0], sums[:, 1], -sums[:, 3], masses)
         leaking = leak > self.leak_limit
         variances = np.diagonal(cov, axis1=1, axis2=2)
         unresolved = ~np.all(np.isfinite(cov.reshape(len(cov), -1)) & np.isfinite(masses)[:, None], axis=1)
         unresolved |= np.any(variances <= 0.0, axis=1)
         rim = np.zeros(len(masses), dtype=bool)
-        if self._rim.size:
+        if self._rim.size and sums is not None:
+            rim = sums[:, 2] > RIM_FRACTION * masses
+        elif self._rim.size:
             rim = (sigma[:, self._rim] * self.weights[self._rim]).sum(axis=1) > RIM_FRACTION * masses
         # growth: ∫σ_k for a unit-mass σ_{k-1}, the update factor divided by its maximum (None: unchecked)
         growing = np.zeros(len(masses), dtype=bool)
@@ -151,6 +166,12 @@ class Diagnostics:
         """
         projected, flowed = np.einsum("kq,fq->fk", sigma, self._kept)
         negative = -np.einsum("kq,q->k", np.minimum(sigma, 0.0), self.weights)
+        return self.leak_from(projected, flowed, negative, masses)
+
+    @staticmethod
+    def leak_from(projected: np.ndarray, flowed: np.ndarray, negative: np.ndarray,
+                  masses: np.ndarray) -> np.ndarray:
+        """:meth:`boundary_leak` from each row's ∫Πσ, ∫e^{dt L}Πσ and −Σ w min(σ, 0)."""
         with np.errstate(divide="ignore", invalid="ignore"):
             noise = np.abs(1.0 - projected / masses) + RIPPLE_WEIGHT * negative / masses
             leak = (1.0 - flowed / projected) - noise

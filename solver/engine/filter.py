@@ -64,7 +64,8 @@ from ..registry import FORMS, PRECISIONS
 from ..spec import DensityPrior, GaussianPrior, MixturePrior, spec_from_dict
 from .batch import run_batch
 from .diagnostics import Diagnostics
-from .finish import Until, finish
+from .finish import Summary, Until, finish
+from .fused import run_fused
 from .gate import Gate, Prepared
 from .kernel import (
     ARITHMETIC,
@@ -74,7 +75,7 @@ from .kernel import (
     stack_results,
     with_zero_column,
 )
-from .loops import loop_irregular, loop_moving, loop_regular
+from .loops import loop_irregular, loop_moving, loop_regular, update_factors
 from .pieces import row_pieces, run_in_pieces
 from .recentring import Recentring
 from .semigroup import SpectralFlow
@@ -344,7 +345,11 @@ class YauYauFilter(ChunkedFilter):
     def run_rows(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, gating: bool, until: Until | None = None,
              follow: Follow | None = None) -> tuple[YauYauState, ChunkResult]:
-        """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows)."""
+        """The chunk's rows through the hot loop (validated; ``taus`` None: regular rows), fused where
+        it can be (solver/engine/fused.py)."""
+        fused = None if until or follow else run_fused(self, state, rows, steps, times, taus, gating)
+        if fused is not None:
+            return fused
         ready = self.prepare(state, rows, taus, gating, follow)
         loop = self.propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
                               taus, ready.moving)
@@ -356,19 +361,18 @@ class YauYauFilter(ChunkedFilter):
         ``carried`` is [coefficients, ∫σ] (N+1,); ``skip`` the rows that only predict."""
         if moving is not None:
             return loop_moving(self, carried, log_factor, top, skip, gate, moving)
-        factor = np.exp(log_factor).astype(self.arith.dtype, copy=False)
-        factor[factor < self.arith.negligible] = 0.0
+        factor = update_factors(self.arith, log_factor)
         if taus is not None:
             return loop_irregular(self, carried, factor, log_factor, top, skip, gate, taus)
         return loop_regular(self, carried, factor, log_factor, top, skip, gate)
 
     def finish(self, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
                taus: np.ndarray | None, ready: Prepared, sigma, masses, carried, done: int,
-               reason: str | None, until: Until | None = None) -> tuple[YauYauState, ChunkResult]:
+               reason: str | None, until: Until | None = None, summary: Summary | None = None):
         """The chunk's estimates, checks and new state from what the hot loop left
         (solver/engine/finish.py)."""
         return finish(self, state, rows, steps, times, taus, ready, sigma, masses, carried, done, reason,
-                      until)
+                      until, summary)
 
     def prepare(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None,
                  gating: bool, follow: Follow | None = None) -> Prepared:
@@ -446,6 +450,10 @@ class YauYauFilter(ChunkedFilter):
         h_nodes = None if shifts is None else self.h_shifted(shifts[k:k + 1])[0]
         return self.diagnostics.explain_outlier(before, rows[k], int(steps[k]), why, float(gaps[k]),
                                                  self.observation.discrete, h_nodes)
+
+    def update_terms(self, key: int) -> tuple[np.ndarray, np.ndarray]:
+        """h_o R_oo⁻¹ (|o|, Q) and ½h_oᵀR_oo⁻¹h_o (Q,) at the nodes for the pattern ``key``, cached."""
+        return self.observation.point_terms(self.h_nodes, key, self._factor_cache)
 
     @cached_property
     def _factor_cache(self) -> dict:

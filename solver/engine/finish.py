@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -18,12 +19,54 @@ import numpy as np
 
 from ..filtering import ChunkResult, Estimate
 from ..measurement import standard_score
+from . import jit
 from .gate import Prepared
-from .kernel import FACTOR_OVERFLOWS, stack_results
+from .kernel import FACTOR_OVERFLOWS, moment_features, moment_pairs, moments_from, stack_results
 from .state import YauYauState
 
 # ``until(means, centers)``: the rows of a chunk to keep (None: all), solver/engine/follow.py
 Until = Callable[[np.ndarray, np.ndarray | None], int | None]
+
+
+class Recompute(Exception):
+    """A fused chunk (no σ kept: solver/engine/fused.py) met a step whose explanation or new state needs
+    σ: the caller runs the chunk again on the path that keeps it."""
+
+
+@dataclass(frozen=True)
+class Summary:
+    """What the fused compiled rows keep of each σ_k instead of σ: the moments' sums features · σ (K, F),
+    the checks' sums (K, 4: Diagnostics.functionals · σ, Σ w min(σ, 0)) and the node of the largest σ."""
+
+    moments: np.ndarray
+    checks: np.ndarray
+    mode: np.ndarray
+
+
+_SUMMARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def summary_rows(engine: Any) -> np.ndarray:
+    """The rows the compiled kernel sums σ against (S, Q), Fortran order: the moments' features, then the
+    diagnostics' functionals (engine/diagnostics.py)."""
+    found = _SUMMARIES.get(engine)
+    if found is None:
+        features = moment_features(engine.weights, engine.nodes, moment_pairs(engine.nodes.shape[1]))
+        found = np.asfortranarray(np.vstack([features, engine.diagnostics.functionals()]), dtype=float)
+        _SUMMARIES[engine] = found
+    return found
+
+
+def summarise(engine: Any, sigma: np.ndarray) -> Summary:
+    """:class:`Summary` of σ rows a compiled loop kept (compiled.sum_rows: the fused rows' operations)."""
+    from . import compiled  # numba: imported on the first chunk
+
+    summary = summary_rows(engine)
+    K, features = len(sigma), summary.shape[0] - 3
+    sums, negative, mode = np.empty((K, summary.shape[0])), np.empty(K), np.empty(K, dtype=np.int64)
+    compiled.sum_rows(np.ascontiguousarray(sigma), summary, np.ascontiguousarray(engine.weights, dtype=float),
+                      sums, negative, mode)
+    return Summary(sums[:, :features], np.column_stack([sums[:, features:], negative]), mode)
 
 
 @dataclass
@@ -34,7 +77,7 @@ class Outcome:
     rows: np.ndarray
     steps: np.ndarray
     times: np.ndarray
-    sigma: np.ndarray
+    sigma: np.ndarray | None
     masses: np.ndarray
     carried: np.ndarray
     done: int
@@ -48,6 +91,7 @@ class Outcome:
     shifts: np.ndarray | None = None
     skip: np.ndarray | None = None
     missing: np.ndarray | None = None
+    summary: Summary | None = None
 
     @property
     def K(self) -> int:
@@ -56,15 +100,26 @@ class Outcome:
 
 def finish(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
            taus: np.ndarray | None, ready: Prepared, sigma, masses, carried, done: int,
-           reason: str | None, until: Until | None = None) -> tuple[YauYauState, ChunkResult]:
+           reason: str | None, until: Until | None = None,
+           summary: Summary | None = None) -> tuple[YauYauState, ChunkResult]:
     """The chunk's estimates, checks and new state from what the hot loop left (``sigma``: the
-    nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last)."""
+    nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last; or
+    ``sigma`` None and the ``summary`` of a fused chunk, whose every row was good and which raises
+    :class:`Recompute` where σ is needed)."""
     out = Outcome(rows, steps, times, sigma, masses, carried, done, reason, shifts=ready.shifts,
-                  skip=ready.skip, missing=ready.missing)
+                  skip=ready.skip, missing=ready.missing, summary=summary)
     stop_at_overflow(engine, out, ready, taus)
     weigh_gate(out, ready)
-    out.mean, out.cov, out.mode = engine.moments(out.sigma[:out.done], out.masses[:out.done],
-                                                 None if out.shifts is None else out.shifts[:out.done])
+    if out.sigma is None or jit.enabled():  # compiled: the sums of the fused rows, whether fused or not
+        sums = summary if out.sigma is None else summarise(engine, out.sigma[:out.done])
+        assert sums is not None
+        done = out.done
+        out.mean, out.cov, out.mode = moments_from(sums.moments[:done], out.masses[:done], sums.mode[:done],
+                                                   moment_pairs(engine.nodes.shape[1]), engine.nodes,
+                                                   None if out.shifts is None else out.shifts[:done])
+    else:
+        out.mean, out.cov, out.mode = engine.moments(out.sigma[:out.done], out.masses[:out.done],
+                                                     None if out.shifts is None else out.shifts[:out.done])
     cut(engine, out, ready, taus, until)
     check_plausible(engine, state, out, ready, taus)
     return new_state(engine, state, out, ready, taus)
@@ -126,7 +181,14 @@ def check_plausible(engine: Any, state: YauYauState, out: Outcome, ready: Prepar
     done, top, top_before = out.done, ready.top, ready.top_before
     with np.errstate(over="ignore", invalid="ignore"):
         growth = out.masses[:done] * np.exp(top[:done] - top_before[:done])
-    bad, why = engine.diagnostics.first_implausible(out.sigma[:done], out.masses[:done], out.cov, growth)
+    if out.sigma is None:
+        assert out.summary is not None
+        bad, why = engine.diagnostics.first_implausible(None, out.masses[:done], out.cov, growth,
+                                                        out.summary.checks[:done])
+        if bad is not None or out.reason is not None:
+            raise Recompute(why)
+    else:
+        bad, why = engine.diagnostics.first_implausible(out.sigma[:done], out.masses[:done], out.cov, growth)
     if bad is None:
         if out.reason is not None:  # the hot loop stopped at step `done` (no positive mass, overflow)
             out.reason = engine.explained(out.sigma, state, out.rows, out.steps, out.skip, done, out.reason,

@@ -2,8 +2,10 @@
 
 ``YAUYAU_KERNEL`` = ``compiled`` (the default where numba is installed): the whole-chunk row loops of
 solver/engine/compiled.py; ``numpy``: the reference path of solver/engine/loops.py (one Python step a
-row around the same BLAS calls).  Both give the same numbers bit for bit (tests/solver/engine/
-test_compiled.py).  Read here only, on each chunk: a test or a user may switch it at run time.
+row around the same BLAS calls).  Both give the same σ, ∫σ, log-likelihoods and states bit for bit
+where numpy's exp is libm's, the moments to rounding (BLAS sums; fused chunks, solver/engine/fused.py:
+1e-12 relative in double; tests/solver/engine/test_compiled.py).  Read here only, on each chunk: a
+test or a user may switch it at run time.
 
 ``YAUYAU_CACHE_DIR``: the directory numba's on-disk cache of the compiled loops goes to (default the
 platform's user cache: ``$XDG_CACHE_HOME/yauyau/numba`` or ``~/.cache/yauyau/numba``, macOS

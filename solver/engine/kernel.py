@@ -89,17 +89,32 @@ def moments(sigma: np.ndarray, mass: np.ndarray, features: np.ndarray, pairs: li
 
     One einsum (numpy's own loops, no BLAS): each row's value does not depend on K.
     """
-    n = nodes.shape[1]
     K = sigma.shape[0]
-    values = np.einsum("kq,fq->kf", sigma, features) / mass[:, None]
+    sums = np.einsum("kq,fq->kf", sigma, features)
+    mode = np.argmax(sigma, axis=1) if K else np.empty(0, dtype=int)
+    return moments_from(sums, mass, mode, pairs, nodes, shifts)
+
+
+def moments_from(sums: np.ndarray, mass: np.ndarray, mode_index: np.ndarray, pairs: list[tuple[int, int]],
+                 nodes: np.ndarray, shifts: np.ndarray | None = None):
+    """:func:`moments` from each row's sums features · σ (K, F) and the node of its largest σ (K,): what
+    the fused compiled rows (solver/engine/fused.py) leave instead of σ."""
+    n = nodes.shape[1]
+    K = sums.shape[0]
+    values = sums / mass[:, None]
     first = values[:, :n]
     cov = np.empty((K, n, n))
     for p, (i, j) in enumerate(pairs):
         cov[:, i, j] = cov[:, j, i] = values[:, n + p] - first[:, i] * first[:, j]
-    mode = nodes[np.argmax(sigma, axis=1)] if K else np.empty((0, n))
+    mode = nodes[mode_index] if K else np.empty((0, n))
     if shifts is not None:
         first, mode = first + shifts, mode + shifts
     return first, cov, mode
+
+
+def moment_pairs(n: int) -> list[tuple[int, int]]:
+    """The index pairs i ≤ j of the second moments, in the order of :func:`moment_features`."""
+    return [(i, j) for i in range(n) for j in range(i, n)]
 
 
 def log_mean_factor(weights: np.ndarray, s: ArrayLike, log_factor_row: np.ndarray) -> float:

@@ -19,7 +19,9 @@ Where numba is (``YAUYAU_KERNEL``, solver/engine/jit.py), the three loops run th
 compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow path (or, on a
 moving ball, after a row whose trigger fired): :func:`run_compiled` and :func:`moving_compiled` take
 that row's slow step (or the move, or the next window of factors) here and re-enter at the next row —
-the same numbers bit for bit; the Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
+the same numbers bit for bit where numpy's exp is libm's (the compiled kernel's factors are libm's:
+:func:`update_factors`; its moments BLAS sums, solver/engine/finish.py ``summarise``, to rounding); the
+Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
 """
 
 from __future__ import annotations
@@ -38,6 +40,21 @@ if TYPE_CHECKING:  # types only
     from .semigroup import SpectralFlow
 
 Result = tuple[np.ndarray, np.ndarray, np.ndarray, int, "str | None"]
+
+
+def update_factors(arith: Any, log_factor: np.ndarray) -> np.ndarray:
+    """e_k = exp(log e_k − max) in the loop's precision, 0 under ``negligible`` (K, Q): numpy's exp, or
+    with the compiled kernel the fused rows' (libm's, solver/engine/compiled.py ``exp_factors``)."""
+    if jit.enabled() and log_factor.size:
+        from . import compiled  # numba: imported on the first chunk
+
+        factor = np.empty(log_factor.shape, dtype=arith.dtype)
+        compiled.exp_factors(np.ascontiguousarray(log_factor, dtype=float),
+                             np.array([arith.negligible], dtype=arith.dtype), factor)
+        return factor
+    factor = np.exp(log_factor).astype(arith.dtype, copy=False)
+    factor[factor < arith.negligible] = 0.0
+    return factor
 
 
 class Rows:

@@ -1,0 +1,103 @@
+"""Fused chunks: the update factor and the moments inside each compiled row, no K×Q arrays.
+
+The common chunk — every row observed with the same components, continuous increments (the stable
+form's factor exp(Δyᵀ R⁻¹h − τ ½hᵀR⁻¹h)) or discrete Gaussian rows, regular rows or irregular rows
+in modal coordinates (each row's scales e^{τΛ} made in the row, not K×N in numpy before the loop), no
+moving frame or ball, no caller that cuts the chunk — runs in
+solver/engine/compiled.py ``run_fused``: each row computes its factor's exponent at the nodes (the
+operations of solver/measurement.py ``log_factors``, in its order: bit for bit), its max, the factor,
+σ = s ⊙ e and Πσ, then keeps of σ only the sums the estimates and checks read (the moments' features
+· σ, the diagnostics' functionals · σ, Σ w min(σ, 0) and argmax σ: solver/engine/finish.py
+``Summary``).  Neither the factors (K×Q), nor their exponents, nor σ (K×Q) are stored.
+
+The factor's exponential is libm's (numpy's may be a vectorised one that differs in the last bit), and
+the sums are BLAS's (numpy's einsum adds in another order): the fused chunk agrees with the numpy path
+to rounding (tests/solver/engine/test_compiled.py: 1e-12 relative in double, 1e-5 in single, per
+column).  The exponents and ``top`` are bit-identical; where numpy's exp is libm's (this machine) so
+are ∫σ, the log-likelihoods and the state.  The compiled loops that keep σ use the same exp
+(loops.py ``update_factors``) and the same sums (finish.py ``summarise``): a compiled chunk's numbers
+do not depend on whether it ran fused, so they do not depend on how the rows are chunked.
+
+Anything rarer goes back to the path that keeps σ, for the whole chunk (:func:`run_fused` returns
+None): a row whose ∫σ is outside (tiny, huge) or under the gate's floor (the slow path needs s and
+the log factor), an exponent that is not finite, or a step the checks find implausible (its
+explanation and the state there need σ).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from . import jit
+from .finish import Recompute, Summary, summary_rows
+from .gate import Gate, Prepared
+
+
+def fusable(engine: Any, rows: np.ndarray, taus: np.ndarray | None) -> bool:
+    """Whether a chunk can run fused (before its factors are computed)."""
+    obs = engine.observation
+    if not jit.enabled() or engine.form == "literal" or engine.frame is not None or not len(rows):
+        return False
+    if obs.discrete and obs.likelihood != "gaussian":
+        return False
+    if taus is not None and (engine.flow.exact or engine.flow.powers is not None):
+        return False
+    return not np.isnan(rows).any()
+
+
+def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+              taus: np.ndarray | None, gating: bool):
+    """The chunk fused (module docstring): (new state, ChunkResult), or None where it must run on the
+    path that keeps σ."""
+    from . import compiled  # numba: imported on the first chunk
+
+    if not fusable(engine, rows, taus):
+        return None
+    obs, K, N, dtype = engine.observation, len(rows), engine.N, engine.arith.dtype
+    gaps = np.full(K, engine.model.dt) if taus is None else taus
+    keys = obs.pattern_keys(~np.isnan(rows))
+    terms = obs.row_terms(rows, gaps, keys)
+    key = int(keys[0])
+    hR, half = engine.update_terms(key)
+    exponent_terms = np.ascontiguousarray(np.vstack([hR, half[None]]), dtype=float)
+    y = np.ascontiguousarray(rows[:, obs.pattern(key).index], dtype=float)
+    missing = np.zeros(K, dtype=bool)
+    gate = Gate(obs, terms, keys, gaps, engine, None) if obs.gating and gating else None
+    floor_exponents = (np.full(K, -np.inf) if gate is None else
+                       np.ascontiguousarray(gate.floor_exponents(missing), dtype=float))
+    initial = np.append(state.coefficients, state.mass).astype(dtype)
+    carried, following = initial.copy(), np.empty_like(initial)
+    real, pairs = np.empty(0), np.empty(0, dtype=complex)
+    if taus is None:
+        P, projection = engine.observation_propagator, engine.projection
+    else:
+        flow = engine.flow
+        carried[:N] = flow.to_modal(carried[:N].astype(float))
+        P, projection = flow.B, flow.C
+        real = np.ascontiguousarray(flow.real_rates, dtype=float)
+        pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
+    summary = summary_rows(engine)
+    sums = np.empty((K, summary.shape[0]))
+    negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
+    constants = np.ascontiguousarray(terms.constant, dtype=float) if obs.discrete else np.zeros(K)
+    weights = np.ascontiguousarray(engine.weights, dtype=float)
+    done = compiled.run_fused(0, K, np.asfortranarray(P), np.asfortranarray(projection), carried, following,
+                              carried.item(N), exponent_terms, y, np.ascontiguousarray(gaps, dtype=float),
+                              constants, bool(obs.discrete), np.array([engine.arith.negligible], dtype=dtype),
+                              floor_exponents, summary, weights, sums, negative, mode, top, masses,
+                              engine.arith.tiny, engine.arith.huge, taus is not None, real, pairs)
+    if done < K:
+        return None
+    if K % 2:  # the compiled loop swapped the buffers after each row
+        carried = following
+    features = summary.shape[0] - 3
+    ready = Prepared(gaps, keys, terms, np.empty((K, 0)), top, top.copy(), missing.copy(), missing,
+                     missing.copy(), gate, initial)
+    result = Summary(sums[:, :features], np.column_stack([sums[:, features:], negative]), mode)
+    try:
+        return engine.finish(state, rows, steps, times, taus, ready, None, masses, carried.copy(), K, None,
+                             summary=result)
+    except Recompute:
+        return None
