@@ -166,7 +166,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from yauyau.solver.engine import jit
+
+    with jit.one_shot():  # the kernel chosen for this input's length ends with the command
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
+    from yauyau.solver.engine import jit
     from yauyau.solver.filtering import check_t0, cumulative_hint
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
@@ -200,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
         source = Source(read_increments(args.increments, model.m, numbers), None,
                         0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
     method = args.method or stored.method
+    jit.choose_for_rows(len(source.rows))  # short inputs: numba's start-up costs more than it saves
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
     state = OnlineFilter(flt, t0=source.t0).state if source.times is None else _at(flt, source.t0)
     watch = settings_for(flt, lost_track, monitor)

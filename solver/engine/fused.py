@@ -51,10 +51,9 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
               taus: np.ndarray | None, gating: bool):
     """The chunk fused (module docstring): (new state, ChunkResult), or None where it must run on the
     path that keeps σ."""
-    from . import compiled  # numba: imported on the first chunk
-
-    if not fusable(engine, rows, taus):
+    if not fusable(engine, rows, taus):  # before the import: the numpy kernel never imports numba
         return None
+    from . import compiled  # numba: imported on the first chunk
     obs, K, N, dtype = engine.observation, len(rows), engine.N, engine.arith.dtype
     gaps = np.full(K, engine.model.dt) if taus is None else taus
     keys = obs.pattern_keys(~np.isnan(rows))

@@ -7,6 +7,12 @@ where numpy's exp is libm's, the moments to rounding (BLAS sums; fused chunks, s
 1e-12 relative in double; tests/solver/engine/test_compiled.py).  Read here only, on each chunk: a
 test or a user may switch it at run time.
 
+A one-shot command that knows its input (``yauyau filter``) calls :func:`choose_for_rows`: below
+``COMPILED_MIN_ROWS`` rows it takes the numpy path for the whole process, because numba's import and
+the first load of its cached loops (~0.7 s of CPU) cost more than the compiled rows save (~7 µs a
+row): measured with the 1-D cubic sensor, 1 row 1.69 s numpy vs 2.37 s compiled, 100 000 rows 4.06 vs
+4.07 s (CPU, medians of 3, bench/results/startup.md).  ``YAUYAU_KERNEL`` set by the user always wins.
+
 ``YAUYAU_CACHE_DIR``: the directory numba's on-disk cache of the compiled loops goes to (default the
 platform's user cache: ``$XDG_CACHE_HOME/yauyau/numba`` or ``~/.cache/yauyau/numba``, macOS
 ``~/Library/Caches/yauyau/numba``, Windows ``%LOCALAPPDATA%\\yauyau\\numba``).  Not writable: the loops
@@ -20,15 +26,19 @@ import os
 import sys
 import tempfile
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 KERNELS = ("compiled", "numpy")
+COMPILED_MIN_ROWS = 100_000  # a one-shot command's break-even (module docstring)
 _warned: list[str] = []
+_chosen: dict[str, str] = {}  # "kernel": the process's choice by choose_for_rows, under YAUYAU_KERNEL
 
 
 def enabled() -> bool:
     """True when the compiled loops run the rows (``YAUYAU_KERNEL``, default compiled where numba is)."""
-    choice = os.environ.get("YAUYAU_KERNEL", "").strip().lower() or None
+    choice = os.environ.get("YAUYAU_KERNEL", "").strip().lower() or _chosen.get("kernel")
     if choice is not None and choice not in KERNELS:
         raise ValueError(f"YAUYAU_KERNEL={choice!r}: expected one of {', '.join(KERNELS)}")
     if choice == "numpy":
@@ -36,6 +46,26 @@ def enabled() -> bool:
     if choice is None:
         return _numba_installed()
     return True  # asked for: a missing numba raises ImportError on first use
+
+
+@contextmanager
+def one_shot() -> Iterator[None]:
+    """The span of a one-shot command: a choice made by :func:`choose_for_rows` inside ends with it."""
+    try:
+        yield
+    finally:
+        _chosen.pop("kernel", None)
+
+
+def choose_for_rows(rows: int) -> str:
+    """The kernel a command that will step ``rows`` rows in all and exit should take (module docstring):
+    numpy below ``COMPILED_MIN_ROWS`` unless ``YAUYAU_KERNEL`` says otherwise; kept until the end of
+    the enclosing :func:`one_shot`."""
+    if not os.environ.get("YAUYAU_KERNEL", "").strip() and rows < COMPILED_MIN_ROWS:
+        _chosen["kernel"] = "numpy"
+    else:
+        _chosen.pop("kernel", None)
+    return "compiled" if enabled() else "numpy"
 
 
 def _numba_installed() -> bool:

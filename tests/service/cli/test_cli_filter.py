@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -341,3 +344,62 @@ def test_a_timed_file_given_to_increments_suggests_observations(store, tmp_path,
     assert main(["filter", ids[key], "--store", str(directory), "--observations", str(timed), "--t0", "0",
                  "--out", str(out)]) == 0
     assert len(_read(out)[1]) == 20
+
+
+def _imports_numba(store, model_id: str, rows: Path, kernel: str | None) -> bool:
+    env = {k: v for k, v in os.environ.items() if k != "YAUYAU_KERNEL"}
+    env["OPENBLAS_NUM_THREADS"] = "1"
+    if kernel:
+        env["YAUYAU_KERNEL"] = kernel
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "yauyau.service.cli", "filter", model_id,
+                           "--store", str(store), "--increments", str(rows), "--out",
+                           str(rows.with_suffix(".out.csv"))], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    written = rows.with_suffix(".out.csv").read_text().splitlines()
+    assert len(written) == 1 + len(rows.read_text().splitlines())
+    names = [line.split("|")[-1].strip() for line in done.stderr.splitlines()
+             if line.startswith("import time:")]
+    return any(name == "numba" or name.startswith("numba.") for name in names)
+
+
+def test_a_short_input_takes_the_numpy_kernel_and_never_imports_numba(example_store, tmp_path):
+    """Below jit.COMPILED_MIN_ROWS rows numba's start-up costs more than its loops save
+    (bench/results/startup.md): `filter` takes the numpy path unless YAUYAU_KERNEL says otherwise."""
+    from yauyau.solver.engine import jit
+
+    store, ids = example_store
+    rows = tmp_path / "in.csv"
+    rows.write_text("0.01\n-0.02\n0.03\n")
+    assert not _imports_numba(store, ids["cubic_sensor"], rows, None)
+    assert _imports_numba(store, ids["cubic_sensor"], rows, "compiled")
+    assert jit.COMPILED_MIN_ROWS > 3
+
+
+def test_the_kernel_choice_for_a_one_shot_run(monkeypatch):
+    from yauyau.solver.engine import jit
+
+    monkeypatch.delenv("YAUYAU_KERNEL", raising=False)
+    monkeypatch.setattr(jit, "_chosen", {})
+    assert jit.choose_for_rows(10) == "numpy" and not jit.enabled()
+    assert jit.choose_for_rows(jit.COMPILED_MIN_ROWS) == "compiled" and jit.enabled()
+    monkeypatch.setenv("YAUYAU_KERNEL", "compiled")  # the user's choice wins
+    assert jit.choose_for_rows(10) == "compiled"
+    monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
+    assert jit.choose_for_rows(10**9) == "numpy"
+    monkeypatch.delenv("YAUYAU_KERNEL")
+    with jit.one_shot():
+        assert jit.choose_for_rows(10) == "numpy" and not jit.enabled()
+    assert jit.enabled()  # the choice ended with the command
+
+
+def test_an_in_process_filter_leaves_the_kernel_as_it_found_it(example_store, tmp_path, monkeypatch):
+    from yauyau.solver.engine import jit
+
+    monkeypatch.delenv("YAUYAU_KERNEL", raising=False)
+    store, ids = example_store
+    rows = tmp_path / "in.csv"
+    rows.write_text("0.01\n")
+    assert main(["filter", ids["cubic_sensor"], "--store", str(store), "--increments", str(rows),
+                 "--out", str(tmp_path / "out.csv")]) == 0
+    assert jit.enabled() and not jit._chosen
