@@ -35,22 +35,24 @@ SPEC = ROOT / "examples" / "cubic_sensor.toml"
 TARGET_CLI, TARGET_PF = 1.3, 100.0
 
 
-def _cli(model_id: str, store: Path, rows: Path, out: Path) -> float:
+def _cli(model_id: str, store: Path, rows: Path, out: Path, kernel: str) -> float:
+    """CPU seconds (user + system) of `yauyau filter` with ``kernel`` forced (YAUYAU_KERNEL)."""
     yauyau = Path(sys.executable).with_name("yauyau")
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    start = time.perf_counter()
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", YAUYAU_KERNEL=kernel)
     command = [str(yauyau), "filter", model_id, "--store", str(store), "--increments", str(rows),
                "--out", str(out)]
+    before = os.times()
     subprocess.run(command, check=True, capture_output=True, env=env)
-    return time.perf_counter() - start
+    after = os.times()
+    return (after.children_user - before.children_user) + (after.children_system - before.children_system)
 
 
 def _engine(flt, increments: np.ndarray) -> float:
     state = flt.initial_state()
-    start = time.perf_counter()
+    start = time.process_time()
     for k in range(0, len(increments), 1000):
         state, _ = flt.run_arrays(state, increments[k:k + 1000])
-    return time.perf_counter() - start
+    return time.process_time() - start
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,34 +86,44 @@ def main(argv: list[str] | None = None) -> int:
             mid = yauyau.precompute(s, tmp / "store")
             loaded = yauyau.api.load_model(tmp / "store", mid)
             flt = make_filter(loaded.model, loaded.offline, loaded.method)
-            cli, base, engine, pf = [], [], [], []
+            cli, base, slow, slow_base, engine, pf = [], [], [], [], [], []
             for _ in range(repeats):
-                cli.append(_cli(mid, tmp / "store", data, tmp / "out.csv"))
-                base.append(_cli(mid, tmp / "store", one, tmp / "out1.csv"))
+                cli.append(_cli(mid, tmp / "store", data, tmp / "out.csv", "compiled"))
+                base.append(_cli(mid, tmp / "store", one, tmp / "out1.csv", "compiled"))
+                slow.append(_cli(mid, tmp / "store", data, tmp / "out.csv", "numpy"))
+                slow_base.append(_cli(mid, tmp / "store", one, tmp / "out1.csv", "numpy"))
                 engine.append(_engine(flt, increments))
                 if peer is not None:
                     pf.append(peer.run(0) / pf_rows)
             per_row = (statistics.median(cli) - statistics.median(base)) / (K - 1)
+            numpy_row = (statistics.median(slow) - statistics.median(slow_base)) / (K - 1)
             eng = statistics.median(engine) / K
-            rows.append((label, len(flt.nodes), per_row, eng, statistics.median(pf) if pf else None))
-            pf_text = f", particles 10k {rows[-1][4] * 1e6:.0f} us/obs" if pf else ""
-            print(f"{label}: Q = {len(flt.nodes)}, CLI {per_row * 1e6:.1f} us/row, run_arrays "
-                  f"{eng * 1e6:.1f} us/row ({per_row / eng:.2f}x){pf_text}")
+            peer_row = statistics.median(pf) if pf else None
+            rows.append((label, len(flt.nodes), per_row, numpy_row, eng, peer_row))
+            pf_text = f", particles 10k {rows[-1][-1] * 1e6:.0f} us/obs" if pf else ""
+            print(f"{label}: Q = {len(flt.nodes)}, CLI {per_row * 1e6:.1f} us/row (numpy kernel "
+                  f"{numpy_row * 1e6:.1f}), run_arrays {eng * 1e6:.1f} us/row "
+                  f"({per_row / eng:.2f}x){pf_text}")
         if peer is not None:
             peer.close()
     command = "python -m bench.cli_speed" + (" --quick" if args.quick else "")
     peer_note = "" if peer is not None else f": {why}"
     lines = ["## `yauyau filter` over a file", "", f"`{command}`", "",
              f"1-D cubic sensor (N = 128), {K} increments in a CSV file; the CLI's cost per row is the run "
-             "on the file minus the run on one row (start-up, model load); `run_arrays` in chunks of 1000 "
-             f"as the CLI chunks; one BLAS thread, interleaved, medians of {repeats}. The `particles` "
+             "on the file minus the run on one row (start-up, model load), CPU time of the process, with "
+             "the compiled kernel forced (what `filter` takes from `COMPILED_MIN_ROWS` = 100 000 rows on: "
+             "below, numba's start-up costs more than it saves, bench/results/startup.md) and with the "
+             "numpy kernel (what it takes below); `run_arrays` in chunks of 1000 "
+             f"as the CLI chunks, compiled, CPU time; one BLAS thread, interleaved, medians of {repeats}. "
+             "The `particles` "
              f"library's 10k-particle bootstrap filter on the first {pf_rows} rows (bench/peer_particles.py, "
              f"exact OU transition){peer_note}.", "",
-             "| discretisation | Q | CLI µs/row | `run_arrays` µs/row | CLI / run_arrays "
-             "| particles 10k µs/obs | particles / CLI |", "|---|---:|---:|---:|---:|---:|---:|"]
-    for label, Q, cli, eng, pf in rows:
-        lines.append(f"| {label} | {Q} | {cli * 1e6:.1f} | {eng * 1e6:.1f} | {cli / eng:.2f}× | "
-                     + (f"{pf * 1e6:.0f} | {pf / cli:.0f}× |" if pf else "— | — |"))
+             "| discretisation | Q | CLI µs/row | CLI µs/row, numpy kernel | `run_arrays` µs/row "
+             "| CLI / run_arrays | particles 10k µs/obs | particles / CLI |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for label, Q, cli, numpy_row, eng, pf in rows:
+        lines.append(f"| {label} | {Q} | {cli * 1e6:.1f} | {numpy_row * 1e6:.1f} | {eng * 1e6:.1f} | "
+                     f"{cli / eng:.2f}× | " + (f"{pf * 1e6:.0f} | {pf / cli:.0f}× |" if pf else "— | — |"))
     lines += ["", f"Targets: CLI ≤ {TARGET_CLI:g}× `run_arrays` per row; ≥ {TARGET_PF:g}× faster than the "
               "10k-particle filter (default discretisation)."]
     write_fragment(FRAGMENT, lines)
