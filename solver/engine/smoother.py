@@ -1,0 +1,155 @@
+"""The fixed-interval smoother of the engine: p(x_k | all the rows of a chunk), issue 38.
+
+The forward pass is the filter's (solver/engine/loops.py).  Written at the nodes, each of its steps is
+linear in the nodal σ: with Π = ΦᵀW the projector, P_k the row's propagator (Q×N: ``propagator_fp``
+over dt, ``propagator_k`` for an observed row of the literal form, Φe^{τ_kA} over an irregular gap) and
+ẽ_k the row's update factor (exp(log e_k − max) at the nodes; 1 for a row that only predicts: missing
+or gated),
+
+    σ_k = ẽ_k ⊙ P_k Π σ_(k−1) / ∫σ_(k−1),      the filtered measure of row k: w ⊙ σ_k / ∫σ_k.
+
+So the forward pass is the forward recursion of a linear model on the Q nodes, with transition
+W P_k Π W⁻¹ between the measures, and its exact backward recursion (the adjoint of that transition in
+the same basis) is, for β_k the nodal likelihood of the rows after k (β_K = 1),
+
+    b_(k−1) = P_kᵀ (ẽ_k ⊙ w ⊙ β_k)   (N,),      β_(k−1) = Φ b_(k−1)   (Q,).
+
+Then wᵀ(σ_k ⊙ β_k) is the same for every k (the chunk's likelihood), and the smoothed measure of row k
+is w ⊙ σ_k ⊙ β_k normalised: mean, covariance and mode by the filter's own quadrature
+(``engine.moments``).  This is exactly the forward–backward smoother of the discretised model; at the
+last row it is the filter.  Each β is divided by its largest magnitude (the scale cancels in the
+normalisation), so nothing under- or overflows: ẽ_k ≤ 1 is already relative to its maximum.
+
+Irregular gaps in the generator's modal coordinates (solver/engine/semigroup.py): the forward step is
+s = B S_k d, d = C σ (B = ΦV, C = V⁻¹ΦᵀW, S_k = e^{τ_kΛ} as real scalings and 2×2 rotations), so its
+adjoint is b = V⁻ᵀ S_kᵀ Bᵀ(ẽ ⊙ w ⊙ β), β = Φb: the pairs scaled by the conjugate factors.  In the Schur
+or expm forms of an ill-conditioned generator the adjoint uses Φe^{τA} by scipy's expm per gap.
+
+Memory: the forward pass keeps its K×Q nodal σ_k and K×Q update factors (what the filter's loop
+allocates for a chunk anyway); the backward pass overwrites σ_k with σ_k ⊙ β_k in place and keeps one
+β.  So a chunk costs about 2·K·Q doubles (K = 10⁴ rows, Q = 200 nodes: 32 MB).
+
+Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a moving
+frame or an atlas (the backward pass would have to carry the adjoint of each move), increments over
+gaps long enough to be filtered in pieces, and a chunk whose filter degenerates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError, SpecError
+from ..filtering import ChunkResult, chunk_clock
+from ..measurement import check_first_gap, check_rows, resolve_times
+from .loops import loop_irregular, loop_regular, update_factors
+from .pieces import row_pieces
+from .state import YauYauState
+
+FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
+                 "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
+
+
+def smooth_arrays(engine: Any, state: YauYauState, increments: Any,
+                  times: Any = None) -> tuple[YauYauState, ChunkResult]:
+    """The fixed-interval smoother of ``engine`` (a YauYauFilter) over one chunk from ``state``: (the
+    filter's state after the chunk, a ChunkResult whose mean, cov and mode are the smoothed ones given
+    every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's)."""
+    if engine.frame is not None:
+        raise SpecError("domain.follow", FRAME_REFUSED)
+    model, obs = engine.model, engine.observation
+    field = "observations" if obs.discrete else "increments"
+    rows = check_rows(increments, model.m, field)
+    K = rows.shape[0]
+    taus = resolve_times(state.t, state.step > 0, K, model.dt, times)
+    check_first_gap(taus, obs.discrete)
+    if state.degenerate:
+        raise InputError("state", f"the filter state is degenerate ({state.reason}): nothing to smooth from")
+    if K == 0:
+        return engine.run_arrays(state, rows, times)
+    steps, times_out = chunk_clock(state, K, model.dt, times, taus)
+    if engine.form == "literal":
+        engine.check_literal(rows, taus)
+    if row_pieces(engine, rows, taus) is not None:
+        raise InputError("times", "the smoother does not take increments over gaps longer than about 2·dt "
+                                  "(the filter takes them in pieces) yet: send rows closer together, or "
+                                  "discrete measurements")
+    ready = engine.prepare(state, rows, taus, gating=True)
+    factor = update_factors(engine.arith, ready.log_factor)
+    skip = ready.skip.tolist()
+    given = (engine, ready.initial, factor, ready.log_factor, ready.top, skip, ready.gate)
+    loop = loop_regular(*given) if taus is None else loop_irregular(*given, taus)
+    sigma = loop[0]
+    new_state, filtered = engine.finish(state, rows, steps, times_out, taus, ready, *loop)
+    if filtered.degenerate.any():
+        k = int(np.argmax(filtered.degenerate))
+        raise InputError(f"{field}[{k}]", f"the filter degenerated at this row ({filtered.reason}): the "
+                                          "smoother needs every row of the chunk filtered")
+    sigma = np.asarray(sigma, dtype=float)  # single precision: the backward pass runs in double
+    only_predicts = ready.skip | filtered.gated
+    backward(engine, sigma, factor, only_predicts, taus, ready.skip)
+    masses = sigma @ engine.weights
+    if not np.all(masses > 0.0):
+        k = int(np.argmax(~(masses > 0.0)))
+        raise InputError(f"{field}[{k}]", "the smoothed density has no positive mass at this row")
+    mean, cov, mode = engine.moments(sigma, masses, ready.shifts)
+    return new_state, dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode)
+
+
+def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, only_predicts: np.ndarray,
+             taus: np.ndarray | None, skip: np.ndarray) -> None:
+    """σ_k ← σ_k ⊙ β_k in place, k = K−1 … 0 (the module's recursion; ``factor`` the loop's ẽ_k,
+    ``only_predicts`` the rows without an update, ``skip`` those the loop predicted without observing)."""
+    K = len(sigma)
+    w = engine.weights
+    basis = np.asarray(engine.offline.basis, dtype=float)
+    adjoint = _adjoint(engine, basis, taus, skip)
+    beta = np.ones(sigma.shape[1])
+    for k in range(K - 1, -1, -1):
+        sigma[k] *= beta
+        if k == 0:
+            break
+        v = w * beta if only_predicts[k] else np.asarray(factor[k], dtype=float) * w * beta
+        beta = adjoint(k, v)
+        top = float(np.max(np.abs(beta)))
+        if not np.isfinite(top) or top == 0.0:
+            raise InputError("increments", f"the backward pass lost every node at row {k}: nothing to smooth")
+        beta /= top
+
+
+def _adjoint(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
+    """adjoint(k, v) = Φ P_kᵀ v (Q,): β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
+    if taus is None:
+        P = np.asarray(engine.offline.propagator_fp, dtype=float)
+        if engine.form != "literal":
+            return lambda k, v: basis @ (P.T @ v)
+        P_k = np.asarray(engine.offline.propagator_k, dtype=float)
+
+        def literal(k: int, v: np.ndarray) -> np.ndarray:  # observed rows (gated too) used propagator_k
+            matrix = P if missing[k] else P_k
+            return basis @ (matrix.T @ v)
+
+        return literal
+    flow = engine.flow
+    if flow.form != "modal":  # Schur or expm forms: Φ e^{τA} by expm per gap
+        def exact(k: int, v: np.ndarray) -> np.ndarray:
+            nodal = np.asarray(flow.nodal_flow(float(taus[k])), dtype=float)[:, :-1]
+            return basis @ (nodal.T @ v)
+
+        return exact
+    B = np.asarray(flow.B, dtype=float)[:, :-1]
+    G = basis @ np.linalg.inv(flow.V).T  # Φ V⁻ᵀ (Q, N)
+    real, pairs = flow.scales(taus)
+    real, pairs = np.asarray(real, dtype=float), np.asarray(pairs, dtype=complex)
+    r, N = flow.r, flow.N
+
+    def modal(k: int, v: np.ndarray) -> np.ndarray:
+        d = B.T @ v
+        d[:r] *= real[k]
+        z = (d[r:N:2] + 1j * d[r + 1:N:2]) * np.conj(pairs[k])
+        d[r:N:2], d[r + 1:N:2] = z.real, z.imag
+        return G @ d
+
+    return modal
