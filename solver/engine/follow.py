@@ -56,7 +56,7 @@ from .kernel import with_zero_column
 
 SMOOTHING_REFUSED = ("the smoother does not take a ball that follows the state ([domain] follow: a moving "
                      "ball, a moving frame or an atlas) yet: its backward pass would have to carry the "
-                     "adjoint of every move; smooth on a fixed ball (precompute the model without domain.follow)")
+                     "adjoint of every move; smooth on a fixed ball (precompute without domain.follow)")
 
 if TYPE_CHECKING:  # types only
     from ..model import Model
