@@ -213,3 +213,27 @@ def test_bimodal_smoother_irregular_missing(bimodal_engine):
           f"{np.abs(mean - fmean).max():.2f}")
     assert np.abs(mean - fmean).max() > 0.1
     assert mean_gap < 0.01 and var_gap < 0.03
+
+
+def test_fixed_lag_is_the_interval_smoother_of_the_rows_up_to_k_plus_lag(ou_engine):
+    """Row k of the lag-L smoother equals row k of the fixed-interval smoother over rows 0 … k + L (1e-8),
+    the last L rows the whole chunk's; lag 0 is the filter."""
+    from yauyau.solver.smoothing import smooth_lag
+
+    _, dy = sample_ou(40, seed=4)
+    rows, L = dy[:, None], 5
+    state = ou_engine.initial_state()
+    after, lagged = smooth_lag(ou_engine, state, rows, lag=L)
+    for k in (0, 7, 20, 34):
+        _, whole = ou_engine.smooth_arrays(state, rows[:k + L + 1])
+        assert abs(lagged.mean[k, 0] - whole.mean[k, 0]) < 1e-8
+        assert abs(lagged.cov[k, 0, 0] - whole.cov[k, 0, 0]) < 1e-8
+    _, whole = ou_engine.smooth_arrays(state, rows)
+    assert np.abs(lagged.mean[-L:, 0] - whole.mean[-L:, 0]).max() < 1e-8
+    filtered_state, filtered = ou_engine.run_arrays(state, rows)
+    assert np.array_equal(after.coefficients, filtered_state.coefficients)
+    _, zero = smooth_lag(ou_engine, state, rows, lag=0)
+    assert np.array_equal(zero.mean, filtered.mean)
+    with pytest.raises(InputError) as err:
+        smooth_lag(ou_engine, state, rows, lag=-1)
+    assert err.value.field == "lag"
