@@ -23,7 +23,7 @@ from .csv_io import Source, csv_lines, read_increments, read_observations, write
 from .filter import header
 from .precompute import store_argument
 
-DEFAULT_MEMORY_GB = 2.0  # the smoother keeps about 2·Q doubles a row (solver/engine/smoother.py)
+DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
 
 EPILOG = """\
 input and output as for `yauyau filter` (yauyau filter -h): --increments IN (regular rows) or
@@ -78,16 +78,20 @@ def parse_lag(text: str | None) -> int | None:
 
 
 def check_memory(flt, rows: int, budget_gb: float, field: str) -> None:
-    """The engine keeps about 2·Q doubles a row (σ_k and the update factors): refuse a file over budget."""
+    """Refuse a file whose rows do not fit the budget: the engine smooths in checkpointed blocks of
+    max(256, √K) rows (3 doubles a node a row: σ, the factors and their exponents; solver/engine/smoother.py),
+    and every row keeps its result (mean, covariance, flags) and its line of output (about 200 bytes)."""
     if not (math.isfinite(budget_gb) and budget_gb > 0):
         raise InputError("memory", "must be a positive number of GB")
-    nodes = getattr(flt, "weights", None)
-    per_row = 16 * (len(nodes) if nodes is not None else 4 * flt.model.n ** 2)
-    fits = int(budget_gb * 1e9 // per_row)
+    n, nodes = flt.model.n, len(getattr(flt, "weights", ()))
+    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // 256  # + a checkpoint per block
+    block = 24 * nodes * max(256, math.isqrt(max(rows, 1)) + 1)
+    budget = budget_gb * 1e9
+    fits = max(0, int((budget - block) // per_row))
     if rows > fits:
-        raise InputError(field, f"{rows} rows need about {rows * per_row / 1e9:.3g} GB to smooth, over the "
-                                f"budget of {budget_gb:g} GB (--memory): at most {fits} rows fit; split the "
-                                "file or raise --memory")
+        raise InputError(field, f"{rows} rows need about {(rows * per_row + block) / 1e9:.3g} GB to smooth, "
+                                f"over the budget of {budget_gb:g} GB (--memory): at most {fits} rows fit; "
+                                "split the file or raise --memory")
 
 
 def run(args: argparse.Namespace) -> int:

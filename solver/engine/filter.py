@@ -286,10 +286,10 @@ class YauYauFilter(ChunkedFilter):
         """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
         return self._chunk(state, increments, times)
 
-    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None):
+    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: int | None = None):
         """Fixed-interval smoothing of a chunk: (state after, smoothed ChunkResult): engine/smoother.py."""
         from .smoother import smooth_arrays  # lazy: the filter alone never loads it
-        return smooth_arrays(self, state, increments, times)
+        return smooth_arrays(self, state, increments, times, block)
 
     def run_until(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None,
                   until: Until | None) -> tuple[YauYauState, ChunkResult]:

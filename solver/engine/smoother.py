@@ -25,9 +25,13 @@ s = B S_k d, d = C σ (B = ΦV, C = V⁻¹ΦᵀW, S_k = e^{τ_kΛ} as real scali
 adjoint is b = V⁻ᵀ S_kᵀ Bᵀ(ẽ ⊙ w ⊙ β), β = Φb: the pairs scaled by the conjugate factors.  In the Schur
 or expm forms of an ill-conditioned generator the adjoint uses Φe^{τA} by scipy's expm per gap.
 
-Memory: the forward pass keeps its K×Q nodal σ_k and K×Q update factors (what the filter's loop
-allocates for a chunk anyway); the backward pass overwrites σ_k with σ_k ⊙ β_k in place and keeps one
-β.  So a chunk costs about 2·K·Q doubles (K = 10⁴ rows, Q = 200 nodes: 32 MB).
+Memory: checkpointed blocks of B = max(256, ⌈√K⌉) rows.  The forward pass runs the filter block by block
+and keeps only the state (N + 1 numbers) at each block's start; the backward pass takes the blocks from
+the last, runs each block's forward pass again from its checkpoint (the filter is bit for bit the same
+however its rows are chunked) keeping its B×Q nodal σ_k, factors and exponents, overwrites σ_k with
+σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost O(√K·Q + K/√K·N)
+numbers (K = 10⁶, Q = 200: about 5 MB), plus the K rows of the result; the filter runs twice, the
+backward pass costs about one more: about 3× the filter a row.
 
 Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a moving
 frame or an atlas (the backward pass would have to carry the adjoint of each move), increments over
@@ -37,26 +41,29 @@ gaps long enough to be filtered in pieces, and a chunk whose filter degenerates.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import numpy as np
 
 from ..errors import InputError, SpecError
-from ..filtering import ChunkResult, chunk_clock
+from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
 from .loops import loop_irregular, loop_regular, update_factors
 from .pieces import row_pieces
 from .state import YauYauState
 
+BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
                  "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
 
 
-def smooth_arrays(engine: Any, state: YauYauState, increments: Any,
-                  times: Any = None) -> tuple[YauYauState, ChunkResult]:
+def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
+                  block: int | None = None) -> tuple[YauYauState, ChunkResult]:
     """The fixed-interval smoother of ``engine`` (a YauYauFilter) over one chunk from ``state``: (the
     filter's state after the chunk, a ChunkResult whose mean, cov and mode are the smoothed ones given
-    every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's)."""
+    every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's).  ``block``:
+    rows per checkpointed block (default max(256, ⌈√K⌉))."""
     if engine.frame is not None:
         raise SpecError("domain.follow", FRAME_REFUSED)
     model, obs = engine.model, engine.observation
@@ -76,47 +83,65 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any,
         raise InputError("times", "the smoother does not take increments over gaps longer than about 2·dt "
                                   "(the filter takes them in pieces) yet: send rows closer together, or "
                                   "discrete measurements")
+    size = max(BLOCK, math.isqrt(K - 1) + 1) if block is None else max(1, int(block))
+    bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
+    checkpoints, current = [], state  # the forward pass: the state at each block's start
+    for start, stop in bounds:
+        checkpoints.append(current)
+        current = _forward(engine, current, rows, steps, times_out, taus, start, stop, field)[0]
+    parts: list[ChunkResult] = []
+    beta = np.ones(len(engine.weights))
+    for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
+        _, filtered, sigma, factor, ready = _forward(engine, begin, rows, steps, times_out, taus, start, stop,
+                                                     field)
+        only_predicts = ready.skip | filtered.gated
+        block_taus = None if taus is None else taus[start:stop]
+        beta = backward(engine, sigma, factor, only_predicts, block_taus, ready.skip, beta)
+        masses = sigma @ engine.weights
+        if not np.all(masses > 0.0):
+            k = int(np.argmax(~(masses > 0.0)))
+            raise InputError(f"{field}[{start + k}]", "the smoothed density has no positive mass at this row")
+        mean, cov, mode = engine.moments(sigma, masses, ready.shifts)
+        parts.append(dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode))
+    return current, concat_results(parts[::-1])
+
+
+def _forward(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+             taus: np.ndarray | None, start: int, stop: int, field: str):
+    """Rows start … stop − 1 through the filter's loop from ``state``: (state after, the filtered result,
+    nodal σ_k (in double), the factors ẽ_k, the prepared chunk); InputError at a degenerate row."""
+    rows, steps, times = rows[start:stop], steps[start:stop], times[start:stop]
+    taus = None if taus is None else taus[start:stop]
     ready = engine.prepare(state, rows, taus, gating=True)
     factor = update_factors(engine.arith, ready.log_factor)
-    skip = ready.skip.tolist()
-    given = (engine, ready.initial, factor, ready.log_factor, ready.top, skip, ready.gate)
+    given = (engine, ready.initial, factor, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate)
     loop = loop_regular(*given) if taus is None else loop_irregular(*given, taus)
-    sigma = loop[0]
-    new_state, filtered = engine.finish(state, rows, steps, times_out, taus, ready, *loop)
+    new_state, filtered = engine.finish(state, rows, steps, times, taus, ready, *loop)
     if filtered.degenerate.any():
         k = int(np.argmax(filtered.degenerate))
-        raise InputError(f"{field}[{k}]", f"the filter degenerated at this row ({filtered.reason}): the "
-                                          "smoother needs every row of the chunk filtered")
-    sigma = np.asarray(sigma, dtype=float)  # single precision: the backward pass runs in double
-    only_predicts = ready.skip | filtered.gated
-    backward(engine, sigma, factor, only_predicts, taus, ready.skip)
-    masses = sigma @ engine.weights
-    if not np.all(masses > 0.0):
-        k = int(np.argmax(~(masses > 0.0)))
-        raise InputError(f"{field}[{k}]", "the smoothed density has no positive mass at this row")
-    mean, cov, mode = engine.moments(sigma, masses, ready.shifts)
-    return new_state, dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode)
+        raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({filtered.reason}): "
+                                                  "the smoother needs every row of the chunk filtered")
+    return new_state, filtered, np.asarray(loop[0], dtype=float), factor, ready
 
 
 def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, only_predicts: np.ndarray,
-             taus: np.ndarray | None, skip: np.ndarray) -> None:
-    """σ_k ← σ_k ⊙ β_k in place, k = K−1 … 0 (the module's recursion; ``factor`` the loop's ẽ_k,
-    ``only_predicts`` the rows without an update, ``skip`` those the loop predicted without observing)."""
+             taus: np.ndarray | None, skip: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """σ_k ← σ_k ⊙ β_k in place, k = K−1 … 0, from ``beta`` = β_(K−1) (the module's recursion; ``factor``
+    the loop's ẽ_k, ``only_predicts`` the rows without an update, ``skip`` those the loop predicted
+    without observing); returns β before the first row (the previous block's last)."""
     K = len(sigma)
     w = engine.weights
     basis = np.asarray(engine.offline.basis, dtype=float)
     adjoint = _adjoint(engine, basis, taus, skip)
-    beta = np.ones(sigma.shape[1])
     for k in range(K - 1, -1, -1):
         sigma[k] *= beta
-        if k == 0:
-            break
         v = w * beta if only_predicts[k] else np.asarray(factor[k], dtype=float) * w * beta
         beta = adjoint(k, v)
         top = float(np.max(np.abs(beta)))
         if not np.isfinite(top) or top == 0.0:
             raise InputError("increments", f"the backward pass lost every node at row {k}: nothing to smooth")
         beta /= top
+    return beta
 
 
 def _adjoint(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):

@@ -44,13 +44,18 @@ def test_ou_smoother_matches_rts(ou_engine):
     print(f"smoothed: mean {mean_gap:.2e}, var {var_gap:.2e}")
     assert mean_gap < 0.01 and var_gap < 0.03
     assert np.abs(Ps / Pf - 1).max() > 0.2  # the smoother is not the filter here
+    # checkpointed blocks of 7 rows (the default is 256 here): the same smoother
+    _, blocked = ou_engine.smooth_arrays(state, dy[:, None], block=7)
+    assert np.abs(blocked.mean[:, 0] - ms).max() < 0.01 and np.abs(blocked.cov[:, 0, 0] / Ps - 1).max() < 0.03
+    assert np.abs(blocked.mean - result.mean).max() < 1e-10
     # at the last row the smoother is the filter; the state after it is the filter's
     _, filtered = ou_engine.run_arrays(state, dy[:, None])
     assert abs(result.mean[-1, 0] - filtered.mean[-1, 0]) < 1e-12
     assert new_state.step == 1000
 
 
-def test_ou_smoother_missing_and_irregular(ou_engine):
+@pytest.mark.parametrize("block", [None, 13])
+def test_ou_smoother_missing_and_irregular(ou_engine, block):
     """Irregular gaps (0.5 to 1.5 dt) with 5% missing rows, against RTS over the same gaps
     (measured: mean 6.7e-6, variance 2.1e-5 relative)."""
     rng = np.random.default_rng(5)
@@ -63,7 +68,7 @@ def test_ou_smoother_missing_and_irregular(ou_engine):
         dy[k] = x * taus[k] + rng.normal(0, math.sqrt(R * taus[k]))
     dy[rng.random(K) < 0.05] = np.nan
     times = np.cumsum(taus)
-    _, result = ou_engine.smooth_arrays(ou_engine.initial_state(), dy[:, None], times)
+    _, result = ou_engine.smooth_arrays(ou_engine.initial_state(), dy[:, None], times, block=block)
     _, _, ms, Ps = rts_sampled(dy, 1.0, 0.5, taus=taus)
     mean_gap = np.abs(result.mean[:, 0] - ms).max()
     var_gap = np.abs(result.cov[:, 0, 0] / Ps - 1).max()
