@@ -203,3 +203,58 @@ def test_fixed_lag_is_the_interval_smoother_of_the_rows_up_to_k_plus_lag(ou_engi
     with pytest.raises(InputError) as err:
         smooth_lag(ou_engine, state, rows, lag=-1)
     assert err.value.field == "lag"
+
+
+# -- 2-D: a linear model through the engine against a matrix RTS --------------------------------------
+TWO_D = {"name": "linear-2d", "state": ["p", "q"], "drift": ["-p", "-0.5*q"],
+         "observation": ["p + 0.5*q", "q"],
+         "initial": {"kind": "gaussian", "mean": [0.3, -0.2], "cov": [[0.5, 0.0], [0.0, 0.5]]},
+         "domain": {"radius": 4.0}, "discretization": {"dt": 0.02, "basis": 200, "mesh": 16}}
+
+
+def rts_matrix(dy, F_diag, H, m0, P0, dt):
+    """Kalman + RTS of x_k = Φx + N(0, Q) (dx = diag(F) x dt + dw), dy_k = H x_k dt + N(0, I dt)."""
+    phi = np.diag(np.exp(np.asarray(F_diag) * dt))
+    Q = np.diag([(1 - math.exp(2 * f * dt)) / (-2 * f) for f in F_diag])
+    K, n = len(dy), len(m0)
+    mf, Pf, mp, Pp = np.empty((K, n)), np.empty((K, n, n)), np.empty((K, n)), np.empty((K, n, n))
+    m, P = np.asarray(m0, float), np.asarray(P0, float)
+    Hd = H * dt
+    for k in range(K):
+        m, P = phi @ m, phi @ P @ phi.T + Q
+        mp[k], Pp[k] = m, P
+        S = Hd @ P @ Hd.T + np.eye(len(H)) * dt
+        G = P @ Hd.T @ np.linalg.inv(S)
+        m, P = m + G @ (dy[k] - Hd @ m), P - G @ Hd @ P
+        mf[k], Pf[k] = m, P
+    ms, Ps = mf.copy(), Pf.copy()
+    for k in range(K - 2, -1, -1):
+        J = Pf[k] @ phi.T @ np.linalg.inv(Pp[k + 1])
+        ms[k] = mf[k] + J @ (ms[k + 1] - mp[k + 1])
+        Ps[k] = Pf[k] + J @ (Ps[k + 1] - Pp[k + 1]) @ J.T
+    return ms, Ps
+
+
+def test_two_dimensional_linear_model_against_rts():
+    """300 rows of a 2-D linear model (the observation couples p and q): smoothed mean within 0.02 and
+    covariance within 5% of RTS on the sampled model (measured: mean 7.3e-3, variances 2.5%; the filter
+    itself is 1.6e-2 and 3.8% from the Kalman filter on this mesh: 120 basis functions on 271 nodes give
+    1.9e-2 and 7% smoothed, 3.3e-2 and 7.6% filtered, the discretisation's error, not the smoother's)."""
+    model = compile_model(spec_from_dict(TWO_D))
+    engine = YauYauFilter(model, precompute(model))
+    rng = np.random.default_rng(21)
+    H, dt, K = np.array([[1.0, 0.5], [0.0, 1.0]]), 0.02, 300
+    x = rng.normal([0.3, -0.2], math.sqrt(0.5))
+    decay = np.exp(np.array([-1.0, -0.5]) * dt)
+    q = (1 - decay**2) / np.array([2.0, 1.0])
+    dy = np.empty((K, 2))
+    for k in range(K):
+        x = decay * x + rng.normal(0, np.sqrt(q))
+        dy[k] = H @ x * dt + rng.normal(0, math.sqrt(dt), 2)
+    _, result = engine.smooth_arrays(engine.initial_state(), dy)
+    ms, Ps = rts_matrix(dy, [-1.0, -0.5], H, [0.3, -0.2], 0.5 * np.eye(2), dt)
+    mean_gap = np.abs(result.mean - ms).max()
+    cov_gap = max(np.abs(result.cov[:, i, i] / Ps[:, i, i] - 1).max() for i in range(2))
+    cross_gap = np.abs(result.cov[:, 0, 1] - Ps[:, 0, 1]).max() / np.sqrt(Ps[:, 0, 0] * Ps[:, 1, 1]).min()
+    print(f"2-D: mean {mean_gap:.2e}, variances {cov_gap:.2e}, cross-covariance {cross_gap:.2e}")
+    assert mean_gap < 0.02 and cov_gap < 0.05 and cross_gap < 0.05
