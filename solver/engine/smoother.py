@@ -33,9 +33,10 @@ however its rows are chunked) keeping its B×Q nodal σ_k, factors and exponents
 numbers (K = 10⁶, Q = 200: about 5 MB), plus the K rows of the result; the filter runs twice, the
 backward pass costs about one more: about 3× the filter a row.
 
-Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a moving
-frame or an atlas (the backward pass would have to carry the adjoint of each move), increments over
-gaps long enough to be filtered in pieces, and a chunk whose filter degenerates.
+Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
+whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
+moving frame or an atlas (the backward pass would have to carry the adjoint of each move), and a chunk
+whose filter degenerates.
 """
 
 from __future__ import annotations
@@ -79,21 +80,27 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     steps, times_out = chunk_clock(state, K, model.dt, times, taus)
     if engine.form == "literal":
         engine.check_literal(rows, taus)
-    if row_pieces(engine, rows, taus) is not None:
-        raise InputError("times", "the smoother does not take increments over gaps longer than about 2·dt "
-                                  "(the filter takes them in pieces) yet: send rows closer together, or "
-                                  "discrete measurements")
+    pieces = row_pieces(engine, rows, taus)
+    if pieces is not None:
+        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True)
+
+
+def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+            taus: np.ndarray | None, block: int | None, field: str, gating: bool):
+    """The checkpointed forward pass, then the backward pass block by block from the last."""
+    K = len(rows)
     size = max(BLOCK, math.isqrt(K - 1) + 1) if block is None else max(1, int(block))
     bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
     checkpoints, current = [], state  # the forward pass: the state at each block's start
     for start, stop in bounds:
         checkpoints.append(current)
-        current = _forward(engine, current, rows, steps, times_out, taus, start, stop, field)[0]
+        current = _forward(engine, current, rows, steps, times, taus, start, stop, field, gating)[0]
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
     for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        _, filtered, sigma, factor, ready = _forward(engine, begin, rows, steps, times_out, taus, start, stop,
-                                                     field)
+        _, filtered, sigma, factor, ready = _forward(engine, begin, rows, steps, times, taus, start, stop,
+                                                     field, gating)
         only_predicts = ready.skip | filtered.gated
         block_taus = None if taus is None else taus[start:stop]
         beta = backward(engine, sigma, factor, only_predicts, block_taus, ready.skip, beta)
@@ -106,13 +113,40 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     return current, concat_results(parts[::-1])
 
 
+def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+               taus: np.ndarray, pieces: np.ndarray, block: int | None, field: str):
+    """Increments over long gaps, as the filter takes them (solver/engine/pieces.py): each row in
+    ``pieces[k]`` equal pieces of its gap and increment.  The whole rows are filtered first (the gate
+    judges whole rows: a gated row is then missing for the smoother), the pieces smoothed without the
+    gate, and each row takes its last piece's smoothed moments."""
+    new_state, filtered = engine.run_arrays(state, rows, times)
+    if filtered.degenerate.any():
+        k = int(np.argmax(filtered.degenerate))
+        raise InputError(f"{field}[{k}]", f"the filter degenerated at this row ({filtered.reason}): the "
+                                          "smoother needs every row of the chunk filtered")
+    data = rows.copy()
+    data[filtered.gated] = np.nan
+    count = np.where(np.isnan(data).all(axis=1), 1, pieces)
+    owner = np.repeat(np.arange(len(data)), count)
+    first = np.cumsum(count) - count
+    last = first + count - 1
+    share = taus[owner] / count[owner]
+    before = np.concatenate([[state.t], times[:-1]])
+    piece_times = before[owner] + share * (np.arange(len(owner)) - first[owner] + 1)
+    piece_times[last] = times  # each row ends exactly at its time
+    _, smoothed = _blocks(engine, state, data[owner] / count[owner, None], steps[owner], piece_times, share,
+                          block, field, gating=False)
+    return new_state, dataclasses.replace(filtered, mean=smoothed.mean[last], cov=smoothed.cov[last],
+                                          mode=None if smoothed.mode is None else smoothed.mode[last])
+
+
 def _forward(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-             taus: np.ndarray | None, start: int, stop: int, field: str):
+             taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool = True):
     """Rows start … stop − 1 through the filter's loop from ``state``: (state after, the filtered result,
     nodal σ_k (in double), the factors ẽ_k, the prepared chunk); InputError at a degenerate row."""
     rows, steps, times = rows[start:stop], steps[start:stop], times[start:stop]
     taus = None if taus is None else taus[start:stop]
-    ready = engine.prepare(state, rows, taus, gating=True)
+    ready = engine.prepare(state, rows, taus, gating=gating)
     factor = update_factors(engine.arith, ready.log_factor)
     given = (engine, ready.initial, factor, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate)
     loop = loop_regular(*given) if taus is None else loop_irregular(*given, taus)
