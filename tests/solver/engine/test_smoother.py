@@ -14,7 +14,16 @@ import tomllib
 import numpy as np
 import pytest
 from helpers import EXAMPLES
-from helpers.smoothing_refs import DT, THETA, A, R, rts_sampled, sample_ou
+from helpers.smoothing_refs import (
+    DT,
+    THETA,
+    A,
+    R,
+    point_mass_smoother,
+    rts_sampled,
+    sample_ou,
+    simulate_bimodal,
+)
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.filter import YauYauFilter
 from yauyau.solver.errors import InputError
@@ -119,57 +128,6 @@ BIMODAL = {"name": "bimodal", "state": ["x"], "drift": ["-0.5*x"], "observation"
 def bimodal_engine():
     model = compile_model(spec_from_dict(BIMODAL))
     return YauYauFilter(model, precompute(model))
-
-
-def point_mass_smoother(rows, taus, cells=400, radius=6.0, r=0.1, m0=0.3, P0=1.0):
-    """Forward–backward smoother on a uniform grid: the finite-difference Fokker–Planck generator L of
-    dx = −x/2 dt + dw (p_t = ½p'' + (x p/2)'), its flow by expm_multiply over each gap, Lᵀ backwards; the
-    likelihood N(z; x²/2, r) at the grid points (a NaN row: none).  Returns (filtered mean, smoothed mean,
-    smoothed variance) per row."""
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import expm_multiply
-
-    x = np.linspace(-radius, radius, cells + 1)[1:-1]
-    h = x[1] - x[0]
-    drift = -0.5 * x
-    # ½p'' − (f p)' by central differences (Dirichlet: p = 0 outside)
-    L = (diags([0.5 / h**2, -1.0 / h**2, 0.5 / h**2], [-1, 0, 1], shape=(len(x), len(x)))
-         - diags([-drift[:-1] / (2 * h), drift[1:] / (2 * h)], [-1, 1], shape=(len(x), len(x)))).tocsc()
-    LT = L.T.tocsc()
-    p = np.exp(-0.5 * (x - m0) ** 2 / P0)
-    p /= p.sum()
-    K = len(rows)
-    filtered, likes = np.empty((K, len(x))), np.ones((K, len(x)))
-    for k in range(K):
-        p = expm_multiply(L * taus[k], p)
-        if not np.isnan(rows[k]):
-            likes[k] = np.exp(-0.5 * (rows[k] - x * x / 2) ** 2 / r)
-        p = p * likes[k]
-        p /= p.sum()
-        filtered[k] = p
-    beta = np.ones(len(x))
-    smoothed = np.empty_like(filtered)
-    for k in range(K - 1, -1, -1):
-        s = filtered[k] * beta
-        smoothed[k] = s / s.sum()
-        beta = expm_multiply(LT * taus[k], likes[k] * beta)
-        beta /= beta.max()
-    fmean = filtered @ x
-    mean = smoothed @ x
-    var = smoothed @ (x * x) - mean**2
-    return fmean, mean, var
-
-
-def simulate_bimodal(taus, seed, missing=0.0):
-    rng = np.random.default_rng(seed)
-    x = rng.normal(0.3, 1.0)
-    rows = np.empty(len(taus))
-    for k, tau in enumerate(taus):
-        phi = math.exp(-0.5 * tau)
-        x = phi * x + rng.normal(0, math.sqrt(1 - phi * phi))
-        rows[k] = x * x / 2 + rng.normal(0, math.sqrt(0.1))
-    rows[rng.random(len(taus)) < missing] = np.nan
-    return rows
 
 
 def test_bimodal_smoother_regular(bimodal_engine):
