@@ -46,6 +46,7 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy.linalg.blas import dgemv
 
 from ..errors import InputError, SpecError
 from ..filtering import ChunkResult, chunk_clock, concat_results
@@ -54,6 +55,7 @@ from .loops import loop_irregular, loop_regular, update_factors
 from .pieces import row_pieces
 from .state import YauYauState
 
+CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
                  "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
@@ -99,11 +101,11 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
     for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        _, filtered, sigma, factor, ready = _forward(engine, begin, rows, steps, times, taus, start, stop,
-                                                     field, gating)
+        _, filtered, sigma, factor, masses, ready = _forward(engine, begin, rows, steps, times, taus, start,
+                                                             stop, field, gating)
         only_predicts = ready.skip | filtered.gated
         block_taus = None if taus is None else taus[start:stop]
-        beta = backward(engine, sigma, factor, only_predicts, block_taus, ready.skip, beta)
+        beta = backward(engine, sigma, factor, masses, only_predicts, block_taus, ready.skip, beta)
         masses = sigma @ engine.weights
         if not np.all(masses > 0.0):
             k = int(np.argmax(~(masses > 0.0)))
@@ -143,7 +145,8 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
 def _forward(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool = True):
     """Rows start … stop − 1 through the filter's loop from ``state``: (state after, the filtered result,
-    nodal σ_k (in double), the factors ẽ_k, the prepared chunk); InputError at a degenerate row."""
+    nodal σ_k (in double), the factors ẽ_k, their ∫σ_k, the prepared chunk); InputError at a degenerate
+    row."""
     rows, steps, times = rows[start:stop], steps[start:stop], times[start:stop]
     taus = None if taus is None else taus[start:stop]
     ready = engine.prepare(state, rows, taus, gating=gating)
@@ -155,60 +158,74 @@ def _forward(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarra
         k = int(np.argmax(filtered.degenerate))
         raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({filtered.reason}): "
                                                   "the smoother needs every row of the chunk filtered")
-    return new_state, filtered, np.asarray(loop[0], dtype=float), factor, ready
+    return new_state, filtered, np.asarray(loop[0], dtype=float), factor, np.asarray(loop[1], float), ready
 
 
-def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, only_predicts: np.ndarray,
-             taus: np.ndarray | None, skip: np.ndarray, beta: np.ndarray) -> np.ndarray:
+def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndarray,
+             only_predicts: np.ndarray, taus: np.ndarray | None, skip: np.ndarray,
+             beta: np.ndarray) -> np.ndarray:
     """σ_k ← σ_k ⊙ β_k in place, k = K−1 … 0, from ``beta`` = β_(K−1) (the module's recursion; ``factor``
-    the loop's ẽ_k, ``only_predicts`` the rows without an update, ``skip`` those the loop predicted
-    without observing); returns β before the first row (the previous block's last)."""
-    K = len(sigma)
+    the loop's ẽ_k, ``masses`` its ∫σ_k, ``only_predicts`` the rows without an update, ``skip`` those the
+    loop predicted without observing); returns β before the first row (the previous block's last).
+    Each β is divided by the forward pass's ∫σ_k (the scaled forward–backward recursion: wᵀ(σ_k ⊙ β_k)
+    stays 1 for unit-mass σ), and every :data:`CHECK` rows by its largest magnitude where that has left
+    [1e-100, 1e100]."""
+    K, Q = sigma.shape
     w = engine.weights
-    basis = np.asarray(engine.offline.basis, dtype=float)
+    basis = np.asfortranarray(engine.offline.basis, dtype=float)
     adjoint = _adjoint(engine, basis, taus, skip)
+    weighted = factor.astype(float) * w  # ẽ_k ⊙ w, and w where the row only predicted
+    weighted[only_predicts] = w
+    scale = 1.0 / np.asarray(masses, dtype=float)
+    beta, following, v = np.array(beta, dtype=float), np.empty(Q), np.empty(Q)
     for k in range(K - 1, -1, -1):
         sigma[k] *= beta
-        v = w * beta if only_predicts[k] else np.asarray(factor[k], dtype=float) * w * beta
-        beta = adjoint(k, v)
-        top = float(np.max(np.abs(beta)))
-        if not np.isfinite(top) or top == 0.0:
-            raise InputError("increments", f"the backward pass lost every node at row {k}: nothing to smooth")
-        beta /= top
+        np.multiply(weighted[k], beta, out=v)
+        adjoint(k, v, following)
+        following *= scale[k]
+        beta, following = following, beta
+        if k % CHECK == 0:
+            top = float(np.max(np.abs(beta)))
+            if not np.isfinite(top) or top == 0.0:
+                raise InputError("increments", f"the backward pass lost every node at row {k}: nothing to "
+                                               "smooth")
+            if not 1e-100 < top < 1e100:
+                beta /= top
     return beta
 
 
 def _adjoint(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
-    """adjoint(k, v) = Φ P_kᵀ v (Q,): β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
+    """adjoint(k, v, out): out = Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
+    N = basis.shape[1]
+    b = np.empty(N)
     if taus is None:
-        P = np.asarray(engine.offline.propagator_fp, dtype=float)
-        if engine.form != "literal":
-            return lambda k, v: basis @ (P.T @ v)
-        P_k = np.asarray(engine.offline.propagator_k, dtype=float)
+        P = np.asfortranarray(engine.offline.propagator_fp, dtype=float)
+        P_k = (np.asfortranarray(engine.offline.propagator_k, dtype=float) if engine.form == "literal"
+               else P)
 
-        def literal(k: int, v: np.ndarray) -> np.ndarray:  # observed rows (gated too) used propagator_k
-            matrix = P if missing[k] else P_k
-            return basis @ (matrix.T @ v)
+        def regular(k: int, v: np.ndarray, out: np.ndarray) -> None:  # literal: observed rows used P_k
+            dgemv(1.0, P if missing[k] else P_k, v, 0.0, b, 0, 1, 0, 1, 1, 1)  # b = Pᵀv
+            dgemv(1.0, basis, b, 0.0, out, 0, 1, 0, 1, 0, 1)  # out = Φb
 
-        return literal
+        return regular
     flow = engine.flow
     if flow.form != "modal":  # Schur or expm forms: Φ e^{τA} by expm per gap
-        def exact(k: int, v: np.ndarray) -> np.ndarray:
+        def exact(k: int, v: np.ndarray, out: np.ndarray) -> None:
             nodal = np.asarray(flow.nodal_flow(float(taus[k])), dtype=float)[:, :-1]
-            return basis @ (nodal.T @ v)
+            out[:] = basis @ (nodal.T @ v)
 
         return exact
     B = np.asarray(flow.B, dtype=float)[:, :-1]
     G = basis @ np.linalg.inv(flow.V).T  # Φ V⁻ᵀ (Q, N)
     real, pairs = flow.scales(taus)
     real, pairs = np.asarray(real, dtype=float), np.asarray(pairs, dtype=complex)
-    r, N = flow.r, flow.N
+    r = flow.r
 
-    def modal(k: int, v: np.ndarray) -> np.ndarray:
+    def modal(k: int, v: np.ndarray, out: np.ndarray) -> None:
         d = B.T @ v
         d[:r] *= real[k]
         z = (d[r:N:2] + 1j * d[r + 1:N:2]) * np.conj(pairs[k])
         d[r:N:2], d[r + 1:N:2] = z.real, z.imag
-        return G @ d
+        np.matmul(G, d, out=out)
 
     return modal
