@@ -31,7 +31,9 @@ the last, runs each block's forward pass again from its checkpoint (the filter i
 however its rows are chunked) keeping its B×Q nodal σ_k, factors and exponents, overwrites σ_k with
 σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost O(√K·Q + K/√K·N)
 numbers (K = 10⁶, Q = 200: about 5 MB), plus the K rows of the result; the filter runs twice, the
-backward pass costs about one more: about 3× the filter a row.
+backward pass costs about one more.  Measured on examples/ou.toml (Q = 195, N = 96; 2 shared cores):
+46 µs a row against the fused compiled filter's 11 µs (4.1×; the forward passes keep σ, so they do not
+fuse); 10⁶ rows in one chunk raised the peak RSS by 217 MB, the result's arrays.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
 whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
