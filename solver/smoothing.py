@@ -44,10 +44,12 @@ def check_lag(lag: Any, field: str = "lag") -> int:
 
 def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0) -> tuple[Any, ChunkResult]:
     """Fixed-lag smoothing of a recorded chunk: row k's estimate given the rows up to k + ``lag`` (the
-    last ``lag`` rows: given every row), ``lag = 0`` the filter.  Row k is the first row of the
-    fixed-interval smoother over rows k … k + lag from the filter's state after row k − 1 (the filter
-    is bit for bit the same however its rows are chunked), so it costs about lag + 1 smoothed rows a
-    row.  Returns (the filter's state after the chunk, the result with the smoothed mean, cov, mode)."""
+    last ``lag`` rows: given every row), ``lag = 0`` the filter.  The engine (yau-yau on a fixed ball):
+    solver/engine/fixed_lag.py, one forward pass and ``lag`` backward steps a row.  Any other smoother
+    (and the engine's increments in pieces): row k is the first row of the fixed-interval smoother over
+    rows k … k + lag from the filter's state after row k − 1 (the filter is bit for bit the same however
+    its rows are chunked), about lag + 1 smoothed rows a row.  Returns (the filter's state after the
+    chunk, the result with the smoothed mean, cov, mode)."""
     lag = check_lag(lag)
     if not can_smooth(flt):
         smooth(flt, state, rows, times)  # raises, naming the method
@@ -60,6 +62,14 @@ def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0)
         raise InputError("times", f"one time per row: {K} row(s), {len(stamps)} time(s)")
     if K == 0 or lag == 0:
         return flt.run_arrays(state, arr, stamps)
+    from .engine.filter import YauYauFilter  # the engine's own: one forward pass, L backward steps a row
+
+    if isinstance(flt, YauYauFilter):
+        from .engine.fixed_lag import smooth_lag_arrays
+
+        found = smooth_lag_arrays(flt, state, arr, stamps, lag)
+        if found is not None:
+            return found
     parts = []
     for k in range(K):
         end = min(k + lag + 1, K)

@@ -69,6 +69,18 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     filter's state after the chunk, a ChunkResult whose mean, cov and mode are the smoothed ones given
     every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's).  ``block``:
     rows per checkpointed block (default max(256, ⌈√K⌉))."""
+    chunk = validated(engine, state, increments, times)
+    if chunk is None:
+        return engine.run_arrays(state, np.empty((0, engine.model.m)), times)
+    rows, steps, times_out, taus, pieces, field = chunk
+    if pieces is not None:
+        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True)
+
+
+def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
+    """(rows, steps, times, gaps τ_k or None, pieces or None, the rows' field name) of a chunk the smoother
+    takes, None for an empty chunk; SpecError/InputError naming what it cannot take."""
     if engine.frame is not None:
         raise SpecError("domain.follow", FRAME_REFUSED)
     model, obs = engine.model, engine.observation
@@ -80,14 +92,11 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     if state.degenerate:
         raise InputError("state", f"the filter state is degenerate ({state.reason}): nothing to smooth from")
     if K == 0:
-        return engine.run_arrays(state, rows, times)
+        return None
     steps, times_out = chunk_clock(state, K, model.dt, times, taus)
     if engine.form == "literal":
         engine.check_literal(rows, taus)
-    pieces = row_pieces(engine, rows, taus)
-    if pieces is not None:
-        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
-    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True)
+    return rows, steps, times_out, taus, row_pieces(engine, rows, taus), field
 
 
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
@@ -99,12 +108,12 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
     checkpoints, current = [], state  # the forward pass: the state at each block's start
     for start, stop in bounds:
         checkpoints.append(current)
-        current = _forward(engine, current, rows, steps, times, taus, start, stop, field, gating)[0]
+        current = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)[0]
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
     for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        _, filtered, sigma, factor, masses, ready = _forward(engine, begin, rows, steps, times, taus, start,
-                                                             stop, field, gating)
+        found = forward_block(engine, begin, rows, steps, times, taus, start, stop, field, gating)
+        _, filtered, sigma, factor, masses, ready = found
         only_predicts = ready.skip | filtered.gated
         block_taus = None if taus is None else taus[start:stop]
         beta = backward(engine, sigma, factor, masses, only_predicts, block_taus, ready.skip, beta)
@@ -144,7 +153,7 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
                                           mode=None if smoothed.mode is None else smoothed.mode[last])
 
 
-def _forward(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+def forward_block(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool = True):
     """Rows start … stop − 1 through the filter's loop from ``state``: (state after, the filtered result,
     nodal σ_k (in double), the factors ẽ_k, their ∫σ_k, the prepared chunk); InputError at a degenerate
@@ -175,7 +184,7 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     K, Q = sigma.shape
     w = engine.weights
     basis = np.asfortranarray(engine.offline.basis, dtype=float)
-    adjoint = _adjoint(engine, basis, taus, skip)
+    adjoint = adjoint_of(engine, basis, taus, skip)
     weighted = factor.astype(float) * w  # ẽ_k ⊙ w, and w where the row only predicted
     weighted[only_predicts] = w
     scale = 1.0 / np.asarray(masses, dtype=float)
@@ -196,7 +205,7 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     return beta
 
 
-def _adjoint(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
+def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
     """adjoint(k, v, out): out = Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
     N = basis.shape[1]
     b = np.empty(N)
