@@ -375,6 +375,20 @@ class OnlineFilter:
                                                      self.on_degenerate, self.watch_settings)
         return result
 
+    def smooth(self, rows: ArrayLike, times: ArrayLike | None = None, lag: int | None = None) -> ChunkResult:
+        """The optimal smoother over a recorded chunk from the current state: the result of :meth:`run`
+        with each row's ``mean``, ``cov`` and ``mode`` given every row of the chunk (``lag`` L: given
+        the rows up to L after it, fixed-lag); the filter then stands after the chunk, as ``run`` leaves
+        it.  Methods yau-yau and kalman-bucy (Rauch–Tung–Striebel); another raises SpecError('method')
+        naming it (yauyau.solver.smoothing)."""
+        from .solver.smoothing import smooth, smooth_lag
+
+        if lag is None:
+            self.state, result = smooth(self.filter, self.state, rows, times)
+        else:
+            self.state, result = smooth_lag(self.filter, self.state, rows, times, lag)
+        return result
+
     def iterate(self, rows: ArrayLike, times: Iterable[float] | None = None) -> Iterator[Estimate]:
         """Yield one Estimate per row, stepping as it goes."""
         from .solver.measurement import check_rows

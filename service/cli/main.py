@@ -1,4 +1,5 @@
-"""The ``yauyau`` console script: precompute, models, filter, simulate, plot, serve, analyze.
+"""The ``yauyau`` console script: precompute, models, filter, smooth, simulate, plot, serve,
+analyze, check.
 
 Each subcommand lives in ``service/cli/<name>.py`` with ``add_arguments(parser)`` and
 ``run(args) -> int``.  User errors (:class:`solver.YauyauError`, ``storage.StoreError``) print one
@@ -19,6 +20,7 @@ COMMANDS = {
     "precompute": "solve the Kolmogorov propagators offline and store the model (prints its id)",
     "models": "list the stored models",
     "filter": "run a filter over a file of observations (increments or measurements, regular or timed)",
+    "smooth": "run the optimal smoother over a recorded file: each row given every row (or --lag L after)",
     "simulate": "simulate a sample path and its observations (CSV files filter reads)",
     "plot": "plot a filtered run: mean and 95 percent band, truth, density heat map (PNG or SVG)",
     "serve": "serve the HTTP API",

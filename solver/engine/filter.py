@@ -286,6 +286,11 @@ class YauYauFilter(ChunkedFilter):
         """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
         return self._chunk(state, increments, times)
 
+    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: int | None = None):
+        """Fixed-interval smoothing of a chunk: (state after, smoothed ChunkResult): engine/smoother.py."""
+        from .smoother import smooth_arrays  # lazy: the filter alone never loads it
+        return smooth_arrays(self, state, increments, times, block)
+
     def run_until(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None,
                   until: Until | None) -> tuple[YauYauState, ChunkResult]:
         """:meth:`run_arrays` for a ball that follows the state (solver/engine/follow.py): ``until(mean,
@@ -317,7 +322,7 @@ class YauYauFilter(ChunkedFilter):
                                          np.empty(0), state.last, None)
         steps, times = chunk_clock(state, K, model.dt, times, taus)
         if self.form == "literal":
-            self._check_literal(rows, taus)
+            self.check_literal(rows, taus)
         if state.degenerate:
             return self._stay_degenerate(state, steps, times, state.reason)
         pieces = row_pieces(self, rows, taus)
@@ -427,7 +432,7 @@ class YauYauFilter(ChunkedFilter):
         log_factor[missing | impossible] = 0.0
         return keys, terms, log_factor, top, impossible
 
-    def _check_literal(self, rows: np.ndarray, taus) -> None:
+    def check_literal(self, rows: np.ndarray, taus) -> None:
         """The literal form of seed 002 (5.35) has the potential inside the stored propagator over dt:
         regular, whole continuous increments only."""
         why = None

@@ -198,6 +198,12 @@ class KalmanBucyFilter(ChunkedFilter, GaussianFilter):
                                       degenerate=np.zeros(K, bool), predictive_loglik=done.predictive,
                                       gated=done.gated, gate_score=done.score, gate=obs.gate)
 
+    def smooth_arrays(self, state: GaussianState, increments: Any, times: Any = None):
+        """Rauch–Tung–Striebel over a chunk (exact/kalman_smoother.py): (state after, smoothed result)."""
+        from .kalman_smoother import smooth_arrays  # lazy: the filter alone never loads it
+
+        return smooth_arrays(self, state, increments, times)
+
     def _segment(self, state: GaussianState, rows: np.ndarray, keys: np.ndarray, taus) -> Segment:
         """(mean, cov, ll) of consecutive rows from ``state`` (the gate's unit of work)."""
         whole = self._whole_key()

@@ -1,0 +1,147 @@
+"""`yauyau smooth MODEL_ID --store DIR (--increments IN | --observations IN.csv) --out OUT.csv [--t0 T]
+[--lag L]`: the optimal smoother over a recorded file (yauyau.solver.smoothing, issue 38).
+
+The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the output has its columns
+(``filter.header``): ``mean_<var>`` and ``cov_<var>_<var>`` are the smoothed moments, given every row
+of the file (``--lag L``: given the rows up to L after each row, fixed-lag); loglik, gated and
+predictive_loglik are the forward pass's.  Methods yau-yau (the general engine's forward–backward
+smoother of its discretised model) and kalman-bucy (Rauch–Tung–Striebel, discrete measurements);
+another method, a following ball, a filter that degenerates, a bad --lag or a file longer than the
+memory budget (--memory) exit 2 naming the field, with nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from yauyau.solver.errors import InputError
+from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
+
+from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
+from .filter import header
+from .precompute import store_argument
+
+DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
+
+EPILOG = """\
+input and output as for `yauyau filter` (yauyau filter -h): --increments IN (regular rows) or
+  --observations IN.csv (rows with their times, header t,<components>); an empty field is missing,
+  a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
+  cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
+  covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after).
+
+exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that degenerates or a file
+  over the memory budget (one line on stderr naming the field, nothing written).
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
+    store_argument(parser)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--increments", metavar="IN",
+                        help="regular rows (continuous models): observation increments, .csv or .npy")
+    source.add_argument("--observations", metavar="IN.csv",
+                        help="rows with their times: CSV with a header t,<one column per component>")
+    parser.add_argument("--out", required=True, help="output CSV of the smoothed estimates")
+    parser.add_argument("--t0", type=float, default=None, metavar="T",
+                        help="time of the prior (default: the first row's time with --observations, "
+                             "0 with --increments)")
+    parser.add_argument("--lag", default=None, metavar="L",
+                        help="fixed-lag smoothing: each row given the L rows after it (default: every row)")
+    parser.add_argument("--method", choices=[m for m in METHODS if m != AUTO], default=None,
+                        help="method (default: the one chosen at precompute); yau-yau or kalman-bucy smooth")
+    parser.add_argument("--form", choices=FORMS, default="stable", help="yau-yau step: stable or literal")
+    parser.add_argument("--precision", choices=PRECISIONS, default=None,
+                        help="yau-yau products in double or single precision")
+    parser.add_argument("--gate", type=float, default=None, metavar="K",
+                        help="outlier gate in predictive standard deviations (default: the spec's; 0: off)")
+    parser.add_argument("--memory", type=float, default=DEFAULT_MEMORY_GB, metavar="GB",
+                        help="memory budget of the smoother's stored rows (default %(default)s GB)")
+    parser.epilog = EPILOG
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+def parse_lag(text: str | None) -> int | None:
+    """--lag: a non-negative whole number of rows (InputError('lag'))."""
+    if text is None:
+        return None
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise InputError("lag", f"must be a non-negative whole number of rows, got {text!r}") from None
+    if value < 0:
+        raise InputError("lag", f"must be a non-negative whole number of rows, got {text!r}")
+    return value
+
+
+def check_memory(flt, rows: int, budget_gb: float, field: str) -> None:
+    """Refuse a file whose rows do not fit the budget: the engine smooths in checkpointed blocks of
+    max(256, √K) rows (3 doubles a node a row: σ, the factors and their exponents; solver/engine/smoother.py),
+    and every row keeps its result (mean, covariance, flags) and its line of output (about 200 bytes)."""
+    if not (math.isfinite(budget_gb) and budget_gb > 0):
+        raise InputError("memory", "must be a positive number of GB")
+    n, nodes = flt.model.n, len(getattr(flt, "weights", ()))
+    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // 256  # + a checkpoint per block
+    block = 24 * nodes * max(256, math.isqrt(max(rows, 1)) + 1)
+    budget = budget_gb * 1e9
+    fits = max(0, int((budget - block) // per_row))
+    if rows > fits:
+        raise InputError(field, f"{rows} rows need about {(rows * per_row + block) / 1e9:.3g} GB to smooth, "
+                                f"over the budget of {budget_gb:g} GB (--memory): at most {fits} rows fit; "
+                                "split the file or raise --memory")
+
+
+def run(args: argparse.Namespace) -> int:
+    from yauyau.solver.filtering import at_time, check_t0
+    from yauyau.solver.measurement import check_gate
+    from yauyau.solver.methods import make_filter
+    from yauyau.solver.smoothing import smooth, smooth_lag
+
+    from yauyau.api import load_model
+
+    lag = parse_lag(args.lag)
+    if args.t0 is not None and not math.isfinite(args.t0):
+        raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
+    gate = check_gate(args.gate)
+    stored = load_model(args.store, args.model_id)
+    model = stored.model
+    kind = model.spec.measurement.kind
+    if args.observations is not None:
+        source = read_observations(args.observations, model.m, kind, args.t0)
+    else:
+        if kind == "discrete":
+            raise InputError("increments", f"model {stored.id} has discrete measurements: give them with "
+                                           "their times, --observations IN.csv")
+        t0 = 0.0 if args.t0 is None else check_t0(float(args.t0), "t0", float(model.dt), "--t0")
+        numbers: list[int] = []
+        source = Source(read_increments(args.increments, model.m, numbers), None, t0, "increments",
+                        numbers or None)
+    method = args.method or stored.method
+    flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
+    check_memory(flt, len(source.rows), args.memory, source.field)
+    state = at_time(flt.initial_state(), source.t0)
+    try:
+        if lag is None:
+            _, result = smooth(flt, state, source.rows, source.times)
+        else:
+            _, result = smooth_lag(flt, state, source.rows, source.times, lag)
+    except InputError as exc:
+        raise InputError(_in_file(exc.field, source), exc.message) from None
+    write_lines(args.out, header(model), csv_lines(result))
+    what = "fixed-interval" if lag is None else f"fixed-lag (L = {lag})"
+    print(f"yauyau smooth: method {method}, {what}, {len(source.rows)} row(s), {int(result.gated.sum())} "
+          "gated", file=sys.stderr)
+    return 0
+
+
+def _in_file(field: str, source: Source) -> str:
+    """A smoother's ``increments[k]``/``observations[k]`` as the file's row (with its line)."""
+    for name in ("increments", "observations"):
+        if field.startswith(f"{name}[") and "]" in field:
+            index, rest = field[len(name) + 1:].split("]", 1)
+            if index.isdigit():
+                return source.where(int(index)) + rest
+    return field

@@ -1,0 +1,91 @@
+"""The optimal smoother, for any filter that has one (issue 38): p(x_k | every row of a chunk).
+
+A filter that can smooth has ``smooth_arrays(state, rows, times)`` returning (the state after the
+chunk, a :class:`~solver.filtering.ChunkResult` whose ``mean``, ``cov`` and ``mode`` are the smoothed
+ones; its log-likelihoods, gating and flags are the forward pass's): the general engine
+(solver/engine/smoother.py, the forward–backward smoother of the discretised model) and Kalman–Bucy
+(solver/exact/kalman_smoother.py, Rauch–Tung–Striebel).  :func:`smooth` refuses the others by name.
+:func:`smooth_lag` is the fixed-lag smoother: row k given the rows up to k + L.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError, SpecError
+from .filtering import ChunkResult, concat_results, slice_result
+
+SMOOTHING_METHODS = ("yau-yau", "kalman-bucy")
+
+
+def can_smooth(flt: Any) -> bool:
+    """Whether ``flt`` has a smoother (a ball that follows the state refuses when asked)."""
+    return callable(getattr(type(flt), "smooth_arrays", None))
+
+
+def smooth(flt: Any, state: Any, rows: Any, times: Any = None) -> tuple[Any, ChunkResult]:
+    """(state after the chunk, the smoothed ChunkResult) of ``flt``; SpecError('method') naming a method
+    without a smoother."""
+    if not can_smooth(flt):
+        raise SpecError("method", f"method {flt.method} has no smoother; the general engine smooths any "
+                                  "model (method yau-yau, e.g. open_filter(..., method='yau-yau') or "
+                                  "--method yau-yau)")
+    return flt.smooth_arrays(state, rows, times)
+
+
+def check_lag(lag: Any, field: str = "lag") -> int:
+    """A fixed lag: a non-negative whole number of rows (InputError naming ``field``)."""
+    if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
+        raise InputError(field, f"must be a non-negative whole number of rows, got {lag!r}")
+    return int(lag)
+
+
+def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0) -> tuple[Any, ChunkResult]:
+    """Fixed-lag smoothing of a recorded chunk: row k's estimate given the rows up to k + ``lag`` (the
+    last ``lag`` rows: given every row), ``lag = 0`` the filter.  The engine (yau-yau on a fixed ball):
+    solver/engine/fixed_lag.py, one forward pass and ``lag`` backward steps a row.  Any other smoother
+    (and the engine's increments in pieces): row k is the first row of the fixed-interval smoother over
+    rows k … k + lag from the filter's state after row k − 1 (the filter is bit for bit the same however
+    its rows are chunked), about lag + 1 smoothed rows a row.  Returns (the filter's state after the
+    chunk, the result with the smoothed mean, cov, mode)."""
+    lag = check_lag(lag)
+    if not can_smooth(flt):
+        smooth(flt, state, rows, times)  # raises, naming the method
+    arr = np.asarray(rows, dtype=float)
+    if arr.ndim == 1 and flt.model.m == 1:
+        arr = arr[:, None]
+    K = len(arr)
+    stamps = None if times is None else np.asarray(times, dtype=float).reshape(-1)
+    if stamps is not None and len(stamps) != K:
+        raise InputError("times", f"one time per row: {K} row(s), {len(stamps)} time(s)")
+    if K == 0 or lag == 0:
+        return flt.run_arrays(state, arr, stamps)
+    from .engine.filter import YauYauFilter  # the engine's own: one forward pass, L backward steps a row
+
+    if isinstance(flt, YauYauFilter):
+        from .engine.fixed_lag import smooth_lag_arrays
+
+        found = smooth_lag_arrays(flt, state, arr, stamps, lag)
+        if found is not None:
+            return found
+    parts = []
+    for k in range(K):
+        end = min(k + lag + 1, K)
+        try:
+            _, result = flt.smooth_arrays(state, arr[k:end], None if stamps is None else stamps[k:end])
+            state, _ = flt.run_arrays(state, arr[k:k + 1], None if stamps is None else stamps[k:k + 1])
+        except InputError as exc:  # name the row in the whole chunk
+            raise InputError(_shifted(exc.field, k), exc.message) from None
+        parts.append(slice_result(result, slice(0, 1)))
+    return state, concat_results(parts)
+
+
+def _shifted(field: str, offset: int) -> str:
+    """``increments[j]`` of a window starting at row ``offset`` as ``increments[offset + j]``."""
+    head, bracket, rest = field.partition("[")
+    index, close, tail = rest.partition("]")
+    if bracket and close and index.isdigit():
+        return f"{head}[{offset + int(index)}]{tail}"
+    return field
