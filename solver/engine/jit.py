@@ -9,9 +9,10 @@ test or a user may switch it at run time.
 
 A one-shot command that knows its input (``yauyau filter``) calls :func:`choose_for_rows`: below
 ``COMPILED_MIN_ROWS`` rows it takes the numpy path for the whole process, because numba's import and
-the first load of its cached loops (~0.7 s of CPU) cost more than the compiled rows save (~7 µs a
-row): measured with the 1-D cubic sensor, 1 row 1.69 s numpy vs 2.37 s compiled, 100 000 rows 4.06 vs
-4.07 s (CPU, medians of 3, bench/results/startup.md).  ``YAUYAU_KERNEL`` set by the user always wins.
+the first load of its cached loops (~1.1 s of CPU) cost more than the compiled rows save (~13 µs a
+row): measured with the 1-D cubic sensor, CPU seconds of the whole command, 1 row 1.21 numpy vs
+2.33 compiled, 20 000 rows 1.72 vs 2.64, 100 000 rows 4.26 vs 4.03 (bench/results/startup.md).
+``YAUYAU_KERNEL`` set by the user always wins.
 
 ``YAUYAU_CACHE_DIR``: the directory numba's on-disk cache of the compiled loops goes to (default the
 platform's user cache: ``$XDG_CACHE_HOME/yauyau/numba`` or ``~/.cache/yauyau/numba``, macOS
