@@ -11,7 +11,11 @@ process so that its CPU is measured apart from the server's (both share the mach
 * ``lean``: one thread per stream, each with a keep-alive ``http.client`` connection and the
   request bodies encoded once (what a production client can do);
 * ``httpx``: httpx's asyncio client in the same style as a typical Python application (the
-  client the first version of this benchmark used).
+  client the first version of this benchmark used);
+* ``urllib``: the standard library's ``urllib.request``, one thread per stream, a new connection per
+  chunk (no keep-alive: the plainest client);
+* ``ws``: one WebSocket per stream (``WS /v1/sessions/{id}/stream``, websocket-client), a chunk sent
+  and its answer read.
 
 ``--baseline REV`` also serves git revision REV (its solver/, service/ and storage/) in the same
 run, interleaved with the working tree, so that before/after figures
@@ -203,10 +207,71 @@ def _lean_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, 
     conn.close()
 
 
-def _drive_lean(port, model_id, chunks, streams, stop_at, resent) -> list[list[float]]:
+def _new_session(port: int, model_id: str) -> str:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
+    conn.request("POST", "/v1/sessions", json.dumps({"model": model_id}), {"Content-Type": "application/json",
+                                                                          **AUTH})
+    sid = json.loads(conn.getresponse().read())["id"]
+    conn.close()
+    return sid
+
+
+def _ws_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float],
+               resent: list[int]) -> None:
+    """One WebSocket per stream (WS /v1/sessions/{id}/stream): a chunk sent, its answer read."""
+    import websocket
+
+    sid = _new_session(port, model_id)
+    url = f"ws://127.0.0.1:{port}/v1/sessions/{sid}/stream"
+    ws = websocket.create_connection(url, header=[f"Authorization: Bearer {TOKEN}"], timeout=120)
+    seq = 0
+    while seq < MAX_CHUNKS and time.perf_counter() < stop_at:
+        body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
+        start = time.perf_counter()
+        try:
+            ws.send(body, websocket.ABNF.OPCODE_TEXT)
+            text = ws.recv()
+        except (websocket.WebSocketException, OSError):  # the socket dropped: again, same seq
+            ws = websocket.create_connection(url, header=[f"Authorization: Bearer {TOKEN}"], timeout=120)
+            resent.append(seq)
+            continue
+        out.append(time.perf_counter() - start)
+        if not text.startswith('{"seq":'):
+            raise RuntimeError(f"chunk {seq}: {text[:200]}")
+        seq += 1
+    ws.close()
+
+
+def _urllib_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float],
+                   resent: list[int]) -> None:
+    """The plainest client: urllib.request, a new connection per chunk (no keep-alive)."""
+    import urllib.error
+    import urllib.request
+
+    sid = _new_session(port, model_id)
+    url = f"http://127.0.0.1:{port}/v1/sessions/{sid}/observations"
+    headers = {"Content-Type": "application/json", **AUTH}
+    seq = 0
+    while seq < MAX_CHUNKS and time.perf_counter() < stop_at:
+        body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
+        start = time.perf_counter()
+        try:
+            with urllib.request.urlopen(urllib.request.Request(url, body, headers), timeout=120) as r:
+                r.read()
+        except urllib.error.HTTPError as exc:
+            raise RuntimeError(f"chunk {seq}: {exc.code} {exc.read()[:200]!r}") from None
+        except OSError:
+            resent.append(seq)
+            continue
+        out.append(time.perf_counter() - start)
+        seq += 1
+
+
+def _drive_lean(port, model_id, chunks, streams, stop_at, resent, stream=None) -> list[list[float]]:
     bodies = [json.dumps(c, separators=(",", ":")).encode() for c in chunks]
     outs: list[list[float]] = [[] for _ in range(streams)]
-    threads = [threading.Thread(target=_lean_stream, args=(port, model_id, bodies, stop_at, out, resent))
+    threads = [threading.Thread(target=stream or _lean_stream,
+                                args=(port, model_id, bodies, stop_at, out, resent))
                for out in outs]
     for t in threads:
         t.start()
@@ -250,7 +315,9 @@ async def _drive_httpx(port, model_id, chunks, streams, stop_at, resent) -> list
 def _drive(args) -> None:
     """Client process: warm up, drive the streams, print one JSON line of results."""
     chunks = json.loads(Path(args.chunks).read_text())
-    drive = {"lean": _drive_lean, "httpx": lambda *a: asyncio.run(_drive_httpx(*a))}[args.client]
+    drive = {"lean": _drive_lean, "httpx": lambda *a: asyncio.run(_drive_httpx(*a)),
+             "ws": lambda *a: _drive_lean(*a, stream=_ws_stream),
+             "urllib": lambda *a: _drive_lean(*a, stream=_urllib_stream)}[args.client]
     resent: list[int] = []
     drive(args.port, args.model, chunks[:1], 1, time.perf_counter() + 0.3, [])  # warm-up
     cpu0, server0 = resource.getrusage(resource.RUSAGE_SELF), _group_cpu_seconds(args.server_pgid)
@@ -391,7 +458,9 @@ def _parse(argv):
     parser.add_argument("--rounds", type=int, default=1, help="repeat every configuration (interleaved)")
     parser.add_argument("--baseline", metavar="REV",
                         help="also serve service/ and storage/ of this git revision")
-    parser.add_argument("--clients", default="lean,httpx", help="comma-separated: lean, httpx")
+    parser.add_argument("--clients", default="lean,httpx",
+                        help="comma-separated: lean, httpx, urllib, ws (the WebSocket stream; not served by "
+                             "a --baseline revision before it)")
     parser.add_argument("--example", choices=sorted(SPECS), default="1d",
                         help="the model served (default 1d)")
     parser.add_argument("--stores", action="store_true",
@@ -465,6 +534,8 @@ def measure(args) -> tuple[list[dict], float, dict, dict, float]:
                 for streams in [int(v) for v in args.streams_list.split(",")]:
                     for name, server in servers.items():
                         for kind in clients:
+                            if kind == "ws" and name.startswith("baseline"):
+                                continue  # a revision before the WebSocket stream
                             result = _run_client(server, kind, model_id, chunks_file, streams, args.seconds)
                             runs.setdefault((name, kind, streams), []).append(result)
         finally:

@@ -173,3 +173,25 @@ def test_post_fast_path_answers_problems_as_the_route_did(served):
     assert r.headers["content-type"].startswith("application/problem+json")
     r = httpx.post(url, json={"seq": 0, "increments": ROWS}, headers=_auth(tokens["alice"]), timeout=30)
     assert r.status_code == 200 and r.headers["content-type"] == "application/json"
+
+
+def test_the_documented_python_block_runs(example_store, tmp_path):
+    """docs/service.md's WebSocket block, against a real server (its placeholders filled in)."""
+    import subprocess
+    import sys
+
+    from helpers.readme import env, readme_block
+
+    store, ids = example_store
+    server = Server(store, tmp_path / "sessions.sqlite3")
+    try:
+        sid = _session(server, "", ids["cubic_sensor"])
+        block = readme_block("A WebSocket stream per session", page="docs/service.md")
+        block = block.replace("localhost:8000", f"127.0.0.1:{server.port}").replace("SID", sid)
+        out = subprocess.run([sys.executable, "-c", block], env=env(), capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+        lines = out.stdout.split("\n")
+        assert lines[0].startswith("0 2 [") and lines[1].startswith("1 4 [")
+    finally:
+        server.kill()
