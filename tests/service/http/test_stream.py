@@ -51,7 +51,7 @@ def served(example_store, tmp_path):
 
 
 def _auth(token):
-    return {"Authorization": f"Bearer {token}"}
+    return {"Authorization": f"Bearer {token}"} if token else {}
 
 
 def _session(server, token, model):
