@@ -169,7 +169,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                settings.session_path())  # never in a 5xx detail (service/problems.py)
     app.state.listener_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners)
     app.state.feeds = Feeds()
-    app.state.stream_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners)
+    app.state.stream_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners,
+                                           "WebSocket streams")  # service/http/stream.py
     install_handlers(app)
     app.openapi = lambda: _problem_openapi(app)
     for router in routers:

@@ -195,3 +195,25 @@ def test_the_documented_python_block_runs(example_store, tmp_path):
         assert lines[0].startswith("0 2 [") and lines[1].startswith("1 4 [")
     finally:
         server.kill()
+
+
+def test_streams_are_capped_per_session(example_store, tmp_path):
+    """A second socket on a session at YAUYAU_MAX_SESSION_LISTENERS = 1 is refused with 429 at the
+    handshake; the first goes on."""
+    store, ids = example_store
+    server = Server(store, tmp_path / "sessions.sqlite3", env={"YAUYAU_MAX_SESSION_LISTENERS": "1"})
+    try:
+        sid = _session(server, "", ids["cubic_sensor"])
+        url = f"ws://127.0.0.1:{server.port}/v1/sessions/{sid}/stream"
+        first = websocket.create_connection(url, timeout=60)
+        try:
+            with pytest.raises(websocket.WebSocketBadStatusException) as err:
+                websocket.create_connection(url, timeout=60)
+            assert err.value.status_code == 429
+            assert "WebSocket streams" in json.loads(err.value.resp_body)["detail"]
+            first.send(json.dumps({"seq": 0, "increments": ROWS}))
+            assert strict(first.recv())["seq"] == 0
+        finally:
+            first.close()
+    finally:
+        server.kill()
