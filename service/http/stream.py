@@ -119,7 +119,7 @@ async def _serve(websocket: WebSocket, sessions: Any, session_id: str, tenant: s
     answers: asyncio.Queue = asyncio.Queue(MAX_IN_FLIGHT)
     sender = asyncio.create_task(_answer(websocket, answers, path))
     try:
-        while not sender.done():
+        while True:
             message = await websocket.receive()
             if message["type"] == "websocket.disconnect":
                 break
@@ -137,16 +137,14 @@ async def _serve(websocket: WebSocket, sessions: Any, session_id: str, tenant: s
     except WebSocketDisconnect:
         pass
     finally:
-        if not sender.done():
-            answers.put_nowait(None) if not answers.full() else sender.cancel()
-        try:
-            await sender
-        except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError):
-            pass
+        await answers.put(None)  # the sender drains what is queued (it never stops before None)
+        await sender
 
 
 async def _answer(websocket: WebSocket, answers: asyncio.Queue, path: str) -> None:
-    """Send the answers in the order of the messages (each awaited: the chunks go through the batcher)."""
+    """Send the answers in the order of the messages (each awaited: the chunks go through the batcher).
+    Once the client is gone the answers are still awaited (their chunks are applied) but not sent."""
+    gone = False
     while True:
         item = await answers.get()
         if item is None:
@@ -158,4 +156,8 @@ async def _answer(websocket: WebSocket, answers: asyncio.Queue, path: str) -> No
                 raise text
         except Exception as exc:  # noqa: BLE001 - that chunk's problem
             text = problem_text(exc, _seq_of(data), path)
-        await websocket.send_text(text if isinstance(text, str) else text.decode())
+        if not gone:
+            try:
+                await websocket.send_text(text if isinstance(text, str) else text.decode())
+            except (WebSocketDisconnect, RuntimeError, OSError):  # the client went away
+                gone = True
