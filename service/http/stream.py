@@ -20,7 +20,7 @@ message cannot fix:
   tenant's, 429/503 at a cap (the same per-worker caps as ``/events`` listeners: at most
   ``YAUYAU_MAX_SESSION_LISTENERS`` streams per session, ``YAUYAU_MAX_LISTENERS`` in all);
 * 1009 (message too big) for a message over ``YAUYAU_MAX_BODY_BYTES`` (uvicorn's ``ws_max_size``);
-* 1001 (going away) when the server shuts down.
+* 1012 (service restart; uvicorn's code) when the server shuts down.
 
 A chunk sent before the socket dropped may have been applied: reconnect and send the same seq
 again; its stored answer comes back (exactly once, as with POST).  Each chunk takes a token of the
