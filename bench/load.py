@@ -11,7 +11,11 @@ process so that its CPU is measured apart from the server's (both share the mach
 * ``lean``: one thread per stream, each with a keep-alive ``http.client`` connection and the
   request bodies encoded once (what a production client can do);
 * ``httpx``: httpx's asyncio client in the same style as a typical Python application (the
-  client the first version of this benchmark used).
+  client the first version of this benchmark used);
+* ``urllib``: the standard library's ``urllib.request``, one thread per stream, a new connection per
+  chunk (no keep-alive: the plainest client);
+* ``ws``: one WebSocket per stream (``WS /v1/sessions/{id}/stream``, websocket-client), a chunk sent
+  and its answer read.
 
 ``--baseline REV`` also serves git revision REV (its solver/, service/ and storage/) in the same
 run, interleaved with the working tree, so that before/after figures
@@ -149,6 +153,20 @@ class Server:
             self.proc.wait(timeout=30)
 
 
+def _wait_idle(server: Server, timeout: float = 180.0) -> None:
+    """Until the server's start-up work in the background (the compiled loops made ready, the analysis
+    process) is done: less than 0.05 s of CPU in a second.  Otherwise the configuration measured first
+    pays for it (a 1-stream row at 3x the server CPU per chunk of the same revision measured later)."""
+    deadline = time.monotonic() + timeout
+    before = _group_cpu_seconds(server.proc.pid)
+    while time.monotonic() < deadline:
+        time.sleep(1.0)
+        now = _group_cpu_seconds(server.proc.pid)
+        if now - before < 0.05:
+            return
+        before = now
+
+
 def _get(port: int, path: str) -> tuple[int, bytes]:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
     try:
@@ -183,7 +201,7 @@ def _lean_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, 
     sid = json.loads(conn.getresponse().read())["id"]
     path = f"/v1/sessions/{sid}/observations"
     seq = 0
-    while seq < MAX_CHUNKS and time.perf_counter() < stop_at:
+    while seq < MAX_CHUNKS and (seq == 0 or time.perf_counter() < stop_at):  # one chunk at least
         body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
         start = time.perf_counter()
         try:
@@ -203,10 +221,74 @@ def _lean_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, 
     conn.close()
 
 
-def _drive_lean(port, model_id, chunks, streams, stop_at, resent) -> list[list[float]]:
+def _new_session(port: int, model_id: str) -> str:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=120)
+    conn.request("POST", "/v1/sessions", json.dumps({"model": model_id}), {"Content-Type": "application/json",
+                                                                          **AUTH})
+    sid = json.loads(conn.getresponse().read())["id"]
+    conn.close()
+    return sid
+
+
+def _ws_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float],
+               resent: list[int]) -> None:
+    """One WebSocket per stream (WS /v1/sessions/{id}/stream): a chunk sent, its answer read."""
+    import websocket
+
+    sid = _new_session(port, model_id)
+    url = f"ws://127.0.0.1:{port}/v1/sessions/{sid}/stream"
+    # skip_utf8_validation: websocket-client checks UTF-8 in Python, 4.4 ms of client CPU per 9 KB answer
+    # (the answers are orjson's ASCII)
+    connect = dict(header=[f"Authorization: Bearer {TOKEN}"], timeout=120, skip_utf8_validation=True)
+    ws = websocket.create_connection(url, **connect)
+    seq = 0
+    while seq < MAX_CHUNKS and (seq == 0 or time.perf_counter() < stop_at):  # one chunk at least
+        body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
+        start = time.perf_counter()
+        try:
+            ws.send(body, websocket.ABNF.OPCODE_TEXT)
+            text = ws.recv()
+        except (websocket.WebSocketException, OSError):  # the socket dropped: again, same seq
+            ws = websocket.create_connection(url, **connect)
+            resent.append(seq)
+            continue
+        out.append(time.perf_counter() - start)
+        if not text.startswith('{"seq":'):
+            raise RuntimeError(f"chunk {seq}: {text[:200]}")
+        seq += 1
+    ws.close()
+
+
+def _urllib_stream(port: int, model_id: str, bodies: list[bytes], stop_at: float, out: list[float],
+                   resent: list[int]) -> None:
+    """The plainest client: urllib.request, a new connection per chunk (no keep-alive)."""
+    import urllib.error
+    import urllib.request
+
+    sid = _new_session(port, model_id)
+    url = f"http://127.0.0.1:{port}/v1/sessions/{sid}/observations"
+    headers = {"Content-Type": "application/json", **AUTH}
+    seq = 0
+    while seq < MAX_CHUNKS and (seq == 0 or time.perf_counter() < stop_at):  # one chunk at least
+        body = b'{"seq":%d,"increments":%s}' % (seq, bodies[seq % len(bodies)])
+        start = time.perf_counter()
+        try:
+            with urllib.request.urlopen(urllib.request.Request(url, body, headers), timeout=120) as r:
+                r.read()
+        except urllib.error.HTTPError as exc:
+            raise RuntimeError(f"chunk {seq}: {exc.code} {exc.read()[:200]!r}") from None
+        except OSError:
+            resent.append(seq)
+            continue
+        out.append(time.perf_counter() - start)
+        seq += 1
+
+
+def _drive_lean(port, model_id, chunks, streams, stop_at, resent, stream=None) -> list[list[float]]:
     bodies = [json.dumps(c, separators=(",", ":")).encode() for c in chunks]
     outs: list[list[float]] = [[] for _ in range(streams)]
-    threads = [threading.Thread(target=_lean_stream, args=(port, model_id, bodies, stop_at, out, resent))
+    threads = [threading.Thread(target=stream or _lean_stream,
+                                args=(port, model_id, bodies, stop_at, out, resent))
                for out in outs]
     for t in threads:
         t.start()
@@ -220,7 +302,7 @@ async def _httpx_stream(client, url, model_id, chunks, stop_at, out, resent):
 
     sid = (await client.post(url + "/v1/sessions", json={"model": model_id})).json()["id"]
     seq = 0
-    while seq < MAX_CHUNKS and time.perf_counter() < stop_at:
+    while seq < MAX_CHUNKS and (seq == 0 or time.perf_counter() < stop_at):  # one chunk at least
         start = time.perf_counter()
         try:
             r = await client.post(f"{url}/v1/sessions/{sid}/observations",
@@ -250,9 +332,12 @@ async def _drive_httpx(port, model_id, chunks, streams, stop_at, resent) -> list
 def _drive(args) -> None:
     """Client process: warm up, drive the streams, print one JSON line of results."""
     chunks = json.loads(Path(args.chunks).read_text())
-    drive = {"lean": _drive_lean, "httpx": lambda *a: asyncio.run(_drive_httpx(*a))}[args.client]
+    drive = {"lean": _drive_lean, "httpx": lambda *a: asyncio.run(_drive_httpx(*a)),
+             "ws": lambda *a: _drive_lean(*a, stream=_ws_stream),
+             "urllib": lambda *a: _drive_lean(*a, stream=_urllib_stream)}[args.client]
     resent: list[int] = []
-    drive(args.port, args.model, chunks[:1], 1, time.perf_counter() + 0.3, [])  # warm-up
+    # warm-up: one chunk at least per stream (a model loaded and its loops compiled outlast the 0.3 s)
+    drive(args.port, args.model, chunks[:1], 1, time.perf_counter() + 0.3, [])
     cpu0, server0 = resource.getrusage(resource.RUSAGE_SELF), _group_cpu_seconds(args.server_pgid)
     start = time.perf_counter()
     outs = drive(args.port, args.model, chunks, args.streams, start + args.seconds, resent)
@@ -391,7 +476,9 @@ def _parse(argv):
     parser.add_argument("--rounds", type=int, default=1, help="repeat every configuration (interleaved)")
     parser.add_argument("--baseline", metavar="REV",
                         help="also serve service/ and storage/ of this git revision")
-    parser.add_argument("--clients", default="lean,httpx", help="comma-separated: lean, httpx")
+    parser.add_argument("--clients", default="lean,httpx",
+                        help="comma-separated: lean, httpx, urllib, ws (the WebSocket stream; not served by "
+                             "a --baseline revision before it)")
     parser.add_argument("--example", choices=sorted(SPECS), default="1d",
                         help="the model served (default 1d)")
     parser.add_argument("--stores", action="store_true",
@@ -460,11 +547,15 @@ def measure(args) -> tuple[list[dict], float, dict, dict, float]:
             for k, (name, (tree, env, db, workers)) in enumerate(trees.items()):
                 db = db or tmp / f"sessions{k}.sqlite3"
                 servers[name] = Server(tree, tmp / "store", db, workers, env)
+            for server in servers.values():
+                _wait_idle(server)
             runs: dict[tuple, list[dict]] = {}
             for _ in range(args.rounds):
                 for streams in [int(v) for v in args.streams_list.split(",")]:
                     for name, server in servers.items():
                         for kind in clients:
+                            if kind == "ws" and name.startswith("baseline"):
+                                continue  # a revision before the WebSocket stream
                             result = _run_client(server, kind, model_id, chunks_file, streams, args.seconds)
                             runs.setdefault((name, kind, streams), []).append(result)
         finally:

@@ -127,6 +127,39 @@ def _validation_problem(exc: RequestValidationError) -> tuple[int, str, str]:
     return 422, field_path(tuple(err.get("loc", ()))), msg
 
 
+def problem_of(exc: BaseException, instance: str | None = None) -> tuple[int, str, str | None, str | None,
+                                                                       dict[str, str] | None]:
+    """(status, detail, field, title, headers) of an exception raised while serving a request: the one
+    mapping the exception handlers, the chunk route's fast path and the WebSocket stream share.  A 5xx is
+    logged (with ``instance``, the path)."""
+    if isinstance(exc, Problem):
+        return exc.status, exc.detail, exc.field, exc.title, exc.headers
+    if isinstance(exc, RequestValidationError):
+        status, field, detail = _validation_problem(exc)
+        return status, detail, field, None, None
+    if isinstance(exc, (SpecError, InputError)):
+        return 422, exc.message, exc.field, None, None
+    if isinstance(exc, NotFound):
+        return 404, exc.message, exc.field, None, None
+    if isinstance(exc, Conflict):
+        return 409, exc.message, exc.field, None, None
+    if isinstance(exc, Unavailable):
+        log.error("session store unavailable on %s: %s", instance, exc.message)
+        headers = {"Retry-After": str(exc.retry_after)} if exc.retry_after is not None else None
+        return 503, exc.message, exc.field, None, headers
+    if isinstance(exc, StoreError):
+        log.error("store error on %s: %s", instance, exc)
+        return 503, exc.message, exc.field, None, None
+    log.error("internal error on %s", instance, exc_info=exc)
+    return 500, "internal error (logged)", None, None, None
+
+
+def response_for(exc: BaseException, instance: str | None = None) -> Response:
+    """The problem+json response of an exception (:func:`problem_of`)."""
+    status, detail, field, title, headers = problem_of(exc, instance)
+    return problem_response(status, detail, field, title, instance, headers)
+
+
 def _allowed_methods(request: Request) -> list[str]:
     """Every method some route takes at this path (the Allow header of a 405)."""
     from starlette.routing import Match
@@ -153,27 +186,11 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(SpecError)
     @app.exception_handler(InputError)
-    async def _user(request: Request, exc: SpecError | InputError) -> Response:
-        return problem_response(422, exc.message, exc.field, instance=request.url.path)
-
     @app.exception_handler(NotFound)
-    async def _not_found(request: Request, exc: NotFound) -> Response:
-        return problem_response(404, exc.message, exc.field, instance=request.url.path)
-
     @app.exception_handler(Conflict)
-    async def _conflict(request: Request, exc: Conflict) -> Response:
-        return problem_response(409, exc.message, exc.field, instance=request.url.path)
-
-    @app.exception_handler(Unavailable)
-    async def _unavailable(request: Request, exc: Unavailable) -> Response:
-        log.error("session store unavailable on %s: %s", request.url.path, exc.message)
-        headers = {"Retry-After": str(exc.retry_after)} if exc.retry_after is not None else None
-        return problem_response(503, exc.message, exc.field, instance=request.url.path, headers=headers)
-
-    @app.exception_handler(StoreError)
-    async def _store(request: Request, exc: StoreError) -> Response:
-        log.error("store error on %s: %s", request.url.path, exc)
-        return problem_response(503, exc.message, exc.field, instance=request.url.path)
+    @app.exception_handler(StoreError)  # Unavailable too
+    async def _mapped(request: Request, exc: Exception) -> Response:
+        return response_for(exc, request.url.path)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> Response:
@@ -185,5 +202,4 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> Response:
-        log.exception("internal error on %s", request.url.path)
-        return problem_response(500, "internal error (logged)", instance=request.url.path)
+        return response_for(exc, request.url.path)

@@ -154,5 +154,6 @@ def run(args):
               "the limit or lower the cap", file=sys.stderr)
     uvicorn.run("yauyau.service.http.app:create_app", factory=True, host=settings.host, port=settings.port,
                 workers=settings.workers, log_level=settings.log_level, access_log=False,
-                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES, backlog=backlog)
+                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES, backlog=backlog,
+                ws_max_size=settings.max_body_bytes)  # a bigger stream message: closed with 1009
     return 0

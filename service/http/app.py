@@ -28,11 +28,13 @@ from ..models.jobs import Jobs
 from ..problems import hide_paths, install_handlers
 from ..sessions.manager import Sessions
 from ..settings import Settings
+from .chunk_path import ChunkFastPath
 from .limits import RateLimits, rate_limits
 from .listeners import Feeds, ListenerSlots
 from .middleware import BodyLimit, JsonBodies
 from .routes import ERRORS, routers
 from .schemas import ProblemOut
+from .stream import stream
 from .tenants import TenantGuard, allowed_hosts, load_tenants
 
 log = logging.getLogger("yauyau.service")
@@ -167,10 +169,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                settings.session_path())  # never in a 5xx detail (service/problems.py)
     app.state.listener_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners)
     app.state.feeds = Feeds()
+    app.state.stream_slots = ListenerSlots(settings.max_session_listeners, settings.max_listeners,
+                                           "WebSocket streams")  # service/http/stream.py
     install_handlers(app)
     app.openapi = lambda: _problem_openapi(app)
     for router in routers:
         app.include_router(router)
+    app.include_router(stream)  # WS /v1/sessions/{id}/stream (service/http/stream.py)
+    app.add_middleware(ChunkFastPath)  # innermost: the chunk route without routing (chunk_path.py)
     app.add_middleware(JsonBodies)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(RateLimits, **rate_limits(settings))  # inside the tenants' middleware: per tenant

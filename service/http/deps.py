@@ -25,10 +25,7 @@ async def get_settings(request: Request) -> Settings:
 
 
 async def get_sessions(request: Request) -> Sessions:
-    sessions = getattr(request.app.state, "sessions", None)
-    if sessions is None:
-        raise Problem(503, "models are still loading")
-    return sessions
+    return sessions_of(request.scope)
 
 
 async def get_registry(sessions: Annotated[Sessions, Depends(get_sessions)]) -> Registry:
@@ -39,14 +36,26 @@ async def get_jobs(request: Request) -> Jobs:
     return request.app.state.jobs
 
 
-async def get_tenant(request: Request) -> str | None:
-    """The tenant the request authenticated as (service/http/tenants.py stores it in the scope's state);
-    None when the server has no tenants file (every session is then everyone's)."""
-    tenant = request.scope.get("state", {}).get("tenant")
-    if tenant is None and getattr(request.app.state, "tenants", None) is not None:  # never without the guard
+def tenant_of(scope) -> str | None:
+    """The tenant a request (or a WebSocket) authenticated as (service/http/tenants.py stores it in the
+    scope's state); None when the server has no tenants file (every session is then everyone's)."""
+    tenant = (scope.get("state") or {}).get("tenant")
+    if tenant is None and getattr(scope["app"].state, "tenants", None) is not None:  # never without the guard
         raise Problem(401, "this server needs a tenant's token: send Authorization: Bearer TOKEN",
                       "Authorization", headers={"WWW-Authenticate": 'Bearer realm="yauyau"'})
     return tenant
+
+
+def sessions_of(scope) -> Sessions:
+    """The worker's sessions (503 while the lifespan has not made them)."""
+    sessions = getattr(scope["app"].state, "sessions", None)
+    if sessions is None:
+        raise Problem(503, "models are still loading")
+    return sessions
+
+
+async def get_tenant(request: Request) -> str | None:
+    return tenant_of(request.scope)
 
 
 async def require_admin(request: Request, tenant: Annotated[str | None, Depends(get_tenant)]) -> None:

@@ -101,13 +101,16 @@ class RateLimits:
         self.app, self.requests, self.sessions = app, requests, sessions
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or not scope["path"].startswith("/v1/"):
+        if scope["type"] not in ("http", "websocket") or not scope["path"].startswith("/v1/"):
             return await self.app(scope, receive, send)
         key = client_key(scope)
         if self.requests is not None:
             wait = self.requests.take(key)
             if wait:
                 return await self._refuse("requests", wait, scope, receive, send)
+        if scope["type"] == "websocket":  # each chunk on the socket takes a request's token (stream.py)
+            scope.setdefault("state", {})["rate_limit"] = (self.requests, key)
+            return await self.app(scope, receive, send)
         if self.sessions is None or not _creates_session(scope):
             return await self.app(scope, receive, send)
         wait = self.sessions.take(key)

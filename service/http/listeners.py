@@ -31,8 +31,8 @@ REFUSED = PromCounter("yauyau_listeners_refused_total", "/events listeners refus
 class ListenerSlots:
     """How many listen, per session and in all, on this worker."""
 
-    def __init__(self, per_session: int, total: int):
-        self.per_session, self.total = per_session, total
+    def __init__(self, per_session: int, total: int, what: str = "live listeners"):
+        self.per_session, self.total, self.what = per_session, total, what  # what: "WebSocket streams"
         self.count = 0
         self.sessions: dict[Hashable, int] = {}
 
@@ -41,12 +41,12 @@ class ListenerSlots:
         worker has."""
         if self.sessions.get(key, 0) >= self.per_session:
             REFUSED.labels("session").inc()
-            raise Problem(429, f"this session already has {self.per_session} live listeners on this worker "
+            raise Problem(429, f"this session already has {self.per_session} {self.what} on this worker "
                                "(YAUYAU_MAX_SESSION_LISTENERS); close one or retry later", "session_id",
                           title="Too many requests", retry_after=RETRY_AFTER_S)
         if self.count >= self.total:
             REFUSED.labels("worker").inc()
-            raise Problem(503, f"this worker already streams to {self.total} live listeners "
+            raise Problem(503, f"this worker already serves {self.total} {self.what} "
                                "(YAUYAU_MAX_LISTENERS); retry later", "session_id", retry_after=RETRY_AFTER_S)
         self.sessions[key] = self.sessions.get(key, 0) + 1
         self.count += 1

@@ -228,7 +228,7 @@ class TenantGuard:
         self.hosts = hosts
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http":
+        if scope["type"] not in ("http", "websocket"):  # a WebSocket is guarded as a request is
             return await self.app(scope, receive, send)
         path = scope.get("path", "")
         if self.hosts is not None and path not in ANY_HOST_PATHS:
