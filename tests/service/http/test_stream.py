@@ -217,3 +217,12 @@ def test_streams_are_capped_per_session(example_store, tmp_path):
             first.close()
     finally:
         server.kill()
+
+
+def test_the_service_declares_a_websocket_implementation_for_uvicorn():
+    """A plain install (no test extras, whose selenium happens to bring wsproto) must still serve the
+    stream: uvicorn takes websockets or wsproto, whichever is installed."""
+    from importlib.metadata import requires
+
+    runtime = [r.split(";")[0].strip().lower() for r in requires("yauyau") or [] if "extra ==" not in r]
+    assert any(r.startswith(("wsproto", "websockets")) for r in runtime), runtime
