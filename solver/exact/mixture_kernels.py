@@ -12,10 +12,9 @@ both paths see the same values of h; the kernels return a code instead of raisin
 takes the numpy path for that piece (a non-integrable component, a blow-up, a damped second-order
 factor), which raises or damps as before.
 
-Linear algebra on n×n blocks is written out (Cholesky, Gauss–Jordan with partial pivoting); the
-eigen-decompositions call LAPACK's ``dsyevd`` (the routine numpy's ``eigh`` calls) through
-scipy.linalg.cython_lapack, so the principal axes (cubature points, split directions) are the numpy
-path's to rounding.  Results agree with the numpy path to ~1e-13 relative per step
+Linear algebra on n×n blocks is written out (Cholesky, Gauss–Jordan with partial pivoting, cyclic
+Jacobi for the principal axes: LAPACK's dsyevd costs ~7 µs per 4×4 matrix through any wrapper, more
+than the rest of a component's step).  Results agree with the numpy path to ~1e-13 relative per step
 (tests/solver/exact/test_yau_jia_fast.py).  Importing this module imports numba.
 """
 
@@ -25,15 +24,8 @@ import math
 
 import numba
 import numpy as np
-from llvmlite import binding as llvm
-from numba import types
-from numba.extending import get_cython_function_address
 
 from ..engine.jit import writable_cache_dir
-
-_SYMBOL = "yauyau_cython_lapack_dsyevd"
-llvm.add_symbol(_SYMBOL, get_cython_function_address("scipy.linalg.cython_lapack", "dsyevd"))
-_dsyevd = types.ExternalFunction(_SYMBOL, types.void(*[types.voidptr] * 11))
 
 CACHE_DIR = writable_cache_dir()
 _previous_cache_dir = numba.config.CACHE_DIR
@@ -46,28 +38,80 @@ OK, FALLBACK = 0, 1
 
 
 def lapack_workspace(n: int):
-    """The buffers :func:`eigh` needs for n×n matrices: (ints, a, w, work, iwork)."""
-    ints = np.array([ord("V"), ord("L"), n, n, 1 + 6 * n + 2 * n * n, 3 + 5 * n, 0], np.int32)
-    return (ints, np.empty((n, n)), np.empty(n), np.empty(1 + 6 * n + 2 * n * n),
-            np.empty(3 + 5 * n, np.int32))
+    """Scratch for :func:`eigh` on n×n matrices."""
+    return np.empty((n, n))
 
 
 @kernel
-def eigh(M, lam, U, ws):
-    """Eigenvalues (ascending) and eigenvectors (columns of U) of the symmetric M by LAPACK dsyevd;
-    returns LAPACK's info (0: converged)."""
-    ints, a, w, work, iwork = ws
+def eigh(M, lam, U, a):
+    """Eigenvalues (ascending) and eigenvectors (columns of U) of the symmetric M by cyclic Jacobi
+    rotations (``a``: n×n scratch); returns 0 (converged) or 1.  Eigenvalues to rounding, eigenvectors
+    up to sign (the cubature and the rates are symmetric in ±u; a split's three children come out
+    in the opposite order)."""
     n = M.shape[0]
     for i in range(n):
         for j in range(n):
             a[i, j] = M[i, j]
-    _dsyevd(ints[0:1].ctypes, ints[1:2].ctypes, ints[2:3].ctypes, a.ctypes, ints[3:4].ctypes, w.ctypes,
-            work.ctypes, ints[4:5].ctypes, iwork.ctypes, ints[5:6].ctypes, ints[6:7].ctypes)
-    for k in range(n):
-        lam[k] = w[k]
-        for i in range(n):
-            U[i, k] = a[k, i]  # column-major: row k of the C-order buffer is eigenvector k
-    return ints[6]
+            U[i, j] = 1.0 if i == j else 0.0
+    done = False
+    for _ in range(60):
+        rotated = False
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                app, aqq = a[p, p], a[q, q]
+                small = 100.0 * abs(apq)  # negligible beside both diagonal entries (Numerical Recipes)
+                if abs(app) + small == abs(app) and abs(aqq) + small == abs(aqq):
+                    a[p, q] = 0.0
+                    a[q, p] = 0.0
+                    continue
+                rotated = True
+                theta = (aqq - app) / (2.0 * apq)
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                a[p, p] = app - t * apq
+                a[q, q] = aqq + t * apq
+                a[p, q] = 0.0
+                a[q, p] = 0.0
+                for r in range(n):
+                    if r != p and r != q:
+                        arp, arq = a[r, p], a[r, q]
+                        a[r, p] = c * arp - s * arq
+                        a[p, r] = a[r, p]
+                        a[r, q] = s * arp + c * arq
+                        a[q, r] = a[r, q]
+                for r in range(n):
+                    urp, urq = U[r, p], U[r, q]
+                    U[r, p] = c * urp - s * urq
+                    U[r, q] = s * urp + c * urq
+        if not rotated:
+            done = True
+            break
+    for i in range(n):
+        lam[i] = a[i, i]
+    for i in range(1, n):  # ascending, as LAPACK
+        j = i
+        while j > 0 and lam[j - 1] > lam[j]:
+            t = lam[j]
+            lam[j] = lam[j - 1]
+            lam[j - 1] = t
+            for r in range(n):
+                t = U[r, j]
+                U[r, j] = U[r, j - 1]
+                U[r, j - 1] = t
+            j -= 1
+    for i in range(n):
+        if not math.isfinite(lam[i]):
+            done = False
+    return 0 if done else 1
 
 
 @kernel
@@ -254,9 +298,40 @@ def times_exp(A, B, C, j, at, cov, s0, g, S, A2, B2, C2, M, L):
 
 
 @kernel
+def solve_transposed(X, b, out, work):
+    """out = X⁻ᵀ b by Gaussian elimination with partial pivoting (``work``: n×2n scratch)."""
+    n = X.shape[0]
+    for i in range(n):
+        for j in range(n):
+            work[i, j] = X[j, i]
+        work[i, n] = b[i]
+    for c in range(n):
+        p, best = c, abs(work[c, c])
+        for r in range(c + 1, n):
+            if abs(work[r, c]) > best:
+                p, best = r, abs(work[r, c])
+        if p != c:
+            for j in range(c, n + 1):
+                t = work[c, j]
+                work[c, j] = work[p, j]
+                work[p, j] = t
+        for r in range(c + 1, n):
+            f = work[r, c] / work[c, c]
+            for j in range(c + 1, n + 1):
+                work[r, j] -= f * work[c, j]
+    for i in range(n - 1, -1, -1):
+        t = work[i, n]
+        for j in range(i + 1, n):
+            t -= work[i, j] * out[j]
+        out[i] = t / work[i, i]
+
+
+@kernel
 def flow(A, B, C, j, q, r, Phi, Psi, w, D, d, a, dt, A1, B1, C1, X, Y, Xinv, work, Bs):
     """Component j over one step of the exact Gaussian flow (riccati.FlowFamily.path and StepBatch
-    for one flow Phi, Psi (S+1, 2n, 2n)); False where det X ≤ 0 (a blow-up)."""
+    for one flow Phi, Psi (S+1, 2n, 2n)); False where det X ≤ 0 (a blow-up).  B(s) = X(s)⁻ᵀ[B0 +
+    IX(s)ᵀq − 2IY(s)ᵀd] at the Gauss nodes by a solve, the inverse of X only at dt (for A); ``Bs``:
+    4×n scratch."""
     n = q.shape[0]
     S1 = Phi.shape[0]
     trace_D = 0.0
@@ -270,56 +345,56 @@ def flow(A, B, C, j, q, r, Phi, Psi, w, D, d, a, dt, A1, B1, C1, X, Y, Xinv, wor
                 for l in range(n):
                     x += Phi[s, i, n + l] * A[j, l, k]
                 X[i, k] = x
-        sign, ld = lu_inverse(X, Xinv, work)
-        if s == S1 - 1:
-            if not sign > 0.0 or not math.isfinite(ld):
-                return False
-            log_det = ld
-            # A1 = (Φ21 + Φ22 A) X⁻¹, symmetrised
+        # the forcing IXᵀq − 2IYᵀd with IX = Ψ11 + Ψ12 A, IY = Ψ21 + Ψ22 A, as (Ψ·)ᵀ products: O(n²)
+        for l in range(n):
+            u, v = 0.0, 0.0
             for i in range(n):
-                for k in range(n):
-                    y = Phi[s, n + i, k]
-                    for l in range(n):
-                        y += Phi[s, n + i, n + l] * A[j, l, k]
-                    Y[i, k] = y
-            for i in range(n):
-                for k in range(n):
-                    t = 0.0
-                    for l in range(n):
-                        t += Y[i, l] * Xinv[l, k]
-                    A1[j, i, k] = t
-            for i in range(n):
-                for k in range(i + 1):
-                    t = 0.5 * (A1[j, i, k] + A1[j, k, i])
-                    A1[j, i, k] = t
-                    A1[j, k, i] = t
-        # forcing = IXᵀ q − 2 IYᵀ d with IX = Ψ11 + Ψ12 A, IY = Ψ21 + Ψ22 A; B(s) = X⁻ᵀ (B + forcing)
+                u += Psi[s, i, n + l] * q[i] - 2.0 * Psi[s, n + i, n + l] * d[i]
+                v += Psi[s, i, l] * q[i] - 2.0 * Psi[s, n + i, l] * d[i]
+            Bs[1, l] = u
+            Bs[2, l] = v
         for k in range(n):
-            f = 0.0
-            for i in range(n):
-                ix = Psi[s, i, k]
-                iy = Psi[s, n + i, k]
-                for l in range(n):
-                    ix += Psi[s, i, n + l] * A[j, l, k]
-                    iy += Psi[s, n + i, n + l] * A[j, l, k]
-                f += ix * q[i] - 2.0 * iy * d[i]
-            Y[0, k] = B[j, k] + f
-        for i in range(n):
-            t = 0.0
-            for k in range(n):
-                t += Xinv[k, i] * Y[0, k]
-            Bs[i] = t
+            f = Bs[2, k]
+            for l in range(n):
+                f += A[j, l, k] * Bs[1, l]
+            Bs[3, k] = B[j, k] + f
         if s < S1 - 1:
+            solve_transposed(X, Bs[3], Bs[0], work)
             quad = 0.0
             for i in range(n):
                 t = 0.0
                 for l in range(n):
-                    t += a[i, l] * Bs[l]
-                quad += 0.5 * Bs[i] * t + Bs[i] * d[i]
+                    t += a[i, l] * Bs[0, l]
+                quad += 0.5 * Bs[0, i] * t + Bs[0, i] * d[i]
             quad_sum += w[s] * quad
-        else:
-            for i in range(n):
-                B1[j, i] = Bs[i]
+            continue
+        sign, ld = lu_inverse(X, Xinv, work)
+        if not sign > 0.0 or not math.isfinite(ld):
+            return False
+        log_det = ld
+        for i in range(n):
+            t = 0.0
+            for k in range(n):
+                t += Xinv[k, i] * Bs[3, k]
+            B1[j, i] = t
+        # A1 = (Φ21 + Φ22 A) X⁻¹, symmetrised
+        for i in range(n):
+            for k in range(n):
+                y = Phi[s, n + i, k]
+                for l in range(n):
+                    y += Phi[s, n + i, n + l] * A[j, l, k]
+                Y[i, k] = y
+        for i in range(n):
+            for k in range(n):
+                t = 0.0
+                for l in range(n):
+                    t += Y[i, l] * Xinv[l, k]
+                A1[j, i, k] = t
+        for i in range(n):
+            for k in range(i + 1):
+                t = 0.5 * (A1[j, i, k] + A1[j, k, i])
+                A1[j, i, k] = t
+                A1[j, k, i] = t
     C1[j] = C[j] + (0.5 * log_det + (r + 0.5 * trace_D) * dt - quad_sum)
     return True
 
@@ -336,7 +411,7 @@ def observe_flow(A, B, C, means, covs, F0, c, c_dot, q0, r0, Phi, Psi, w, D, d, 
     S, g, q = np.empty((n, n)), np.zeros(n), np.empty(n)
     M, L, X, Y, Xinv = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), \
         np.empty((n, n))
-    work, Bs = np.empty((n, 2 * n)), np.empty(n)
+    work, Bs = np.empty((n, 2 * n)), np.empty((4, n))
     for j in range(J):
         expected(F0, j, m, n, h0[j], J0[j], H)
         tr = 0.0
@@ -377,7 +452,7 @@ def predict_flow(A, B, C, q0, r0, Phi, Psi, w, D, d, a, dt, A1, B1, C1):
     """The observation-free flow of every component (a prediction step)."""
     J, n = B.shape
     X, Y, Xinv = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
-    work, Bs = np.empty((n, 2 * n)), np.empty(n)
+    work, Bs = np.empty((n, 2 * n)), np.empty((4, n))
     for j in range(J):
         if not flow(A, B, C, j, q0, r0, Phi, Psi, w, D, d, a, dt, A1, B1, C1, X, Y, Xinv, work, Bs):
             return FALLBACK
