@@ -9,8 +9,7 @@ normalisation, pruning and principal axes of the error control (:func:`normalise
 rates, merges, splits, exponents and moments (solver/exact/mixture_control.py).  The sensor h (a
 sympy expression) is evaluated between the kernels by the numpy path's own generated function, so
 both paths see the same values of h; the kernels return a code instead of raising, and the driver
-takes the numpy path for that piece (a non-integrable component, a blow-up, a damped second-order
-factor), which raises or damps as before.
+takes the numpy path for that piece (a non-integrable component, a blow-up), which raises as before.
 
 Linear algebra on n×n blocks is written out (Cholesky, Gauss–Jordan with partial pivoting, cyclic
 Jacobi for the principal axes: LAPACK's dsyevd costs ~7 µs per 4×4 matrix through any wrapper, more
@@ -276,25 +275,51 @@ def expected(F, j, m, n, h, Jh, H):
 
 
 @kernel
+def damping(cov, S, L):
+    """θ = 0.9/λ_max(PS) where λ_max(PS) > 0.9, else 1 (mixtures.times_exp_quadratic's damping;
+    λ(PS) = λ(LᵀSL) with P = LLᵀ); NaN where P is not positive definite."""
+    n = S.shape[0]
+    if not cholesky(cov, L):
+        return np.nan
+    M = np.zeros((n, n))
+    for a in range(n):
+        for b in range(n):
+            t = 0.0
+            for x in range(a, n):
+                for y in range(b, n):
+                    t += L[x, a] * S[x, y] * L[y, b]
+            M[a, b] = t
+    lam, U = np.empty(n), np.empty((n, n))
+    if eigh(M, lam, U, np.empty((n, n))) != 0:
+        return np.nan
+    top = lam[n - 1]
+    return 0.9 / top if top > 0.9 else 1.0
+
+
+@kernel
 def times_exp(A, B, C, j, at, cov, s0, g, S, A2, B2, C2, M, L):
     """Component j times exp(s0 + gᵀ(x − at) + ½(x − at)ᵀS(x − at)) (mixtures.times_exp_quadratic
-    with S symmetric); False where P⁻¹ − S/0.9 is not positive definite (the numpy path damps S)."""
+    with S symmetric; S is damped to θS where P⁻¹ − S/0.9 is not positive definite).  Returns 0, 1
+    (damped) or −1 (no damping found)."""
     n = at.shape[0]
     for a in range(n):
         for b in range(n):
             M[a, b] = 2.0 * A[j, a, b] - S[a, b] / 0.9
+    theta = 1.0
     if not cholesky(M, L):
-        return False
+        theta = damping(cov, S, L)
+        if not math.isfinite(theta):
+            return -1
     c = 0.0
     for a in range(n):
         Sm = 0.0
         for b in range(n):
-            Sm += S[a, b] * at[b]
-            A2[j, a, b] = A[j, a, b] - 0.5 * S[a, b]
+            Sm += theta * S[a, b] * at[b]
+            A2[j, a, b] = A[j, a, b] - 0.5 * (theta * S[a, b])
         B2[j, a] = B[j, a] - (g[a] - Sm)
         c += g[a] * at[a] - 0.5 * at[a] * Sm
     C2[j] = C[j] - (s0 - c)
-    return True
+    return 1 if theta < 1.0 else 0
 
 
 @kernel
@@ -401,9 +426,10 @@ def flow(A, B, C, j, q, r, Phi, Psi, w, D, d, a, dt, A1, B1, C1, X, Y, Xinv, wor
 
 @kernel
 def observe_flow(A, B, C, means, covs, F0, c, c_dot, q0, r0, Phi, Psi, w, D, d, a, dt,
-                 A1, B1, C1, means1, covs1, log_mass1, points1, h0, J0, ws):
+                 A1, B1, C1, means1, covs1, log_mass1, points1, h0, J0, ws, clipped):
     """The first half of the data factor (its curvature), the flow with the statistically linearised
-    data term, the new moments and their cubature points (YauJiaFilter._step up to ``h1``)."""
+    data term, the new moments and their cubature points (YauJiaFilter._step up to ``h1``); the
+    damped second-order factors are counted in ``clipped[0]``."""
     J, n = B.shape
     m = c.shape[0]
     Aw, Bw, Cw = np.empty_like(A), np.empty_like(B), np.empty_like(C)
@@ -429,8 +455,10 @@ def observe_flow(A, B, C, means, covs, F0, c, c_dot, q0, r0, Phi, Psi, w, D, d, 
         for x in range(n):
             for y in range(n):
                 tr += covs[j, x, y] * S[y, x]
-        if not times_exp(A, B, C, j, means[j], covs[j], -0.5 * tr, g, S, Aw, Bw, Cw, M, L):
+        damped = times_exp(A, B, C, j, means[j], covs[j], -0.5 * tr, g, S, Aw, Bw, Cw, M, L)
+        if damped < 0:
             return FALLBACK
+        clipped[0] += damped
         r = r0
         for i in range(m):
             t = h0[j, i]
@@ -460,7 +488,7 @@ def predict_flow(A, B, C, q0, r0, Phi, Psi, w, D, d, a, dt, A1, B1, C1):
 
 
 @kernel
-def observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2):
+def observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2, clipped):
     """The second half of exp(Δyᵀ R⁻¹ ρ_j), ρ_j = h − h0 − J0(x − m_j), to degree 2."""
     J, n = B1.shape
     m = c.shape[0]
@@ -493,8 +521,10 @@ def observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2):
             g[x] = 0.5 * t
             for y in range(n):
                 tr += covs1[j, x, y] * S[y, x]
-        if not times_exp(A1, B1, C1, j, means1[j], covs1[j], 0.5 * s0 - 0.5 * tr, g, S, A2, B2, C2, M, L):
+        damped = times_exp(A1, B1, C1, j, means1[j], covs1[j], 0.5 * s0 - 0.5 * tr, g, S, A2, B2, C2, M, L)
+        if damped < 0:
             return FALLBACK
+        clipped[0] += damped
     return OK
 
 

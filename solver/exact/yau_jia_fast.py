@@ -5,9 +5,11 @@ normalisation again (YauJiaFilter._row's loop body) — as a handful of numba ke
 component stacks (solver/exact/mixture_kernels.py, solver/exact/mixture_control.py) with the sensor
 evaluated between them by the numpy path's own functions: four calls of h per observed piece instead
 of ~1 800 numpy calls.  :meth:`FastPieces.piece` returns None where the numpy path must take the piece
-(a component that is not integrable, a blow-up, a damped second-order factor, φ ≠ 0, an inexact
-prediction flow): the numpy path then raises, damps or expands as before, so the fast path changes
-no outcome.  Numbers: the numpy path's to ~1e-13 relative per step (tests/solver/exact/test_yau_jia_fast.py).
+(a component that is not integrable, a blow-up, φ ≠ 0, an inexact prediction flow): the numpy path
+then raises or expands as before, so the fast path changes no outcome.  Numbers: the numpy path's
+to ~1e-13 relative per step, but for exact ties of merge and split choices, which rounding decides
+in either path (mirror-image split children in a prediction over a gap in pieces;
+tests/solver/exact/test_yau_jia_fast.py).
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class FastPieces:
         J = len(C)
         A, B, C = (np.ascontiguousarray(v, float) for v in (A, B, C))
         A1, B1, C1 = np.empty_like(A), np.empty_like(B), np.empty_like(C)
+        clipped = np.zeros(1, np.int64)
         if row is None:
             if not self.predict_exact:
                 return None
@@ -85,15 +88,17 @@ class FastPieces:
             points1 = np.empty((J, 2 * n, n))
             h0, J0 = np.empty((J, m)), np.empty((J, m, n))
             if mk.observe_flow(A, B, C, means, covs, F0, c, c_dot, self.q[0], self.r[0], Phi, Psi, w, D, d, a,
-                               dt, A1, B1, C1, means1, covs1, lm1, points1, h0, J0, self.ws) != mk.OK:
+                               dt, A1, B1, C1, means1, covs1, lm1, points1, h0, J0, self.ws,
+                               clipped) != mk.OK:
                 return None
             F1 = self.sensor(points1.reshape(-1, n))
             A2, B2, C2 = np.empty_like(A), np.empty_like(B), np.empty_like(C)
-            if mk.observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2) != mk.OK:
+            if mk.observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2,
+                                 clipped) != mk.OK:
                 return None
-        return self._control(A2, B2, C2)
+        return self._control(A2, B2, C2, int(clipped[0]))
 
-    def _control(self, A, B, C):
+    def _control(self, A, B, C, clipped: int):
         mc, n = self.mc, self.n
         J = len(C)
         means, covs, logw, C_norm = np.empty((J, n)), np.empty((J, n, n)), np.empty(J), np.empty(J)
@@ -123,4 +128,4 @@ class FastPieces:
                                     C_out, mean, cov)
         if code != mc.OK:
             return None
-        return A_out, B_out, C_out, float(gain), 0, int(splits), (logw2, means2, covs2, (mean, cov))
+        return A_out, B_out, C_out, float(gain), clipped, int(splits), (logw2, means2, covs2, (mean, cov))
