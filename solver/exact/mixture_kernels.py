@@ -30,7 +30,7 @@ CACHE_DIR = writable_cache_dir()
 _previous_cache_dir = numba.config.CACHE_DIR
 if CACHE_DIR is not None:
     numba.config.CACHE_DIR = str(CACHE_DIR)
-kernel = numba.njit(cache=CACHE_DIR is not None, nogil=True)  # also mixture_control.py's
+kernel = numba.njit(cache=CACHE_DIR is not None, nogil=True, error_model="numpy")  # also mixture_control.py's
 
 LOG_2PI = math.log(2.0 * math.pi)
 OK, FALLBACK = 0, 1
