@@ -16,7 +16,7 @@ from yauyau.solver.exact import yau_jia_fast
 from yauyau.solver.exact.yau_jia import YauJiaFilter
 from yauyau.solver.model import compile_model
 from yauyau.solver.simulate import simulate
-from yauyau.solver.spec import load_spec
+from yauyau.solver.spec import load_spec, spec_from_dict
 
 RTOL = 1e-10
 
@@ -69,6 +69,19 @@ def test_regular_rows_match_the_numpy_path(monkeypatch, fast_pieces, name, steps
     flt = YauJiaFilter(model)
     _same(_run(monkeypatch, "compiled", flt, rows), _run(monkeypatch, "numpy", flt, rows))
     assert fast_pieces["done"] >= steps - 2  # a rare piece may be declined (damping)
+
+
+@pytest.mark.parametrize("cap", [None, 4])
+def test_two_sensors_and_a_small_cap_match_the_numpy_path(monkeypatch, fast_pieces, cap):
+    doc = {"name": "t", "state": ["x", "y"], "drift": ["-x", "-y"], "method": "yau-jia",
+           "observation": ["sqrt(1 + x**2)", "sqrt(1 + y**2)"], "observation_noise": [[0.5, 0.0], [0.0, 0.4]],
+           "initial": {"kind": "gaussian", "mean": [0.5, -0.3], "cov": [[1.0, 0.2], [0.2, 0.8]]},
+           "domain": {"radius": 8.0}, "discretization": {"dt": 0.01, "basis": 64}}
+    model = compile_model(spec_from_dict(doc))
+    rows = simulate(model, 120, np.random.default_rng(1)).increments
+    flt = YauJiaFilter(model, max_components=cap)
+    _same(_run(monkeypatch, "compiled", flt, rows), _run(monkeypatch, "numpy", flt, rows))
+    assert fast_pieces["done"] >= 118
 
 
 def test_irregular_times_missing_and_gated_rows_match_the_numpy_path(monkeypatch, fast_pieces):
