@@ -35,6 +35,7 @@ FRAGMENTS = [
     ("exact_filters", "exact.md"),
     ("measurements", "measurements.md"),
     ("yau_jia", "yau-jia.md"),
+    ("yau_jia_speed", "yau-jia-speed.md"),
     ("engine_revision", "engine-revision.md"),
     ("cli_speed", "cli.md"),
     ("default_mesh", "default-mesh.md"),

@@ -5,7 +5,8 @@ the first time on a machine, about 0.7 s in each later process (numba's import a
 solver/engine/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
 1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
-double and single precision: the same calls, with the same array types, as any model's chunks.
+double and single precision: the same calls, with the same array types, as any model's chunks; and a
+1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py).
 """
 
 from __future__ import annotations
@@ -50,5 +51,11 @@ def warm_kernels() -> float | None:
                 flt.run_arrays(state, rows)
                 if not follow:
                     flt.run_arrays(state, rows, times)
+    # the Yau–Jia filter's kernels (solver/exact/yau_jia_fast.py): observed, missing and gated rows, a gap
+    # in pieces; their array types do not depend on the dimension
+    toy = {**_TOY, "observation": ["sqrt(1 + x**2)"], "method": "yau-jia"}
+    flt = make_filter(compile_model(spec_from_dict(toy)), None, "yau-jia")
+    rows = np.array([[0.05], [np.nan], [0.04], [5.0]])
+    flt.run_arrays(flt.initial_state(), rows, np.array([0.05, 0.1, 2.0, 2.05]))
     _DONE.append(time.perf_counter() - started)
     return _DONE[0]

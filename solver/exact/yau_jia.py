@@ -53,6 +53,7 @@ import numpy as np
 import sympy as sp
 
 from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
+from ..engine import jit
 from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock, refuse_form
 from ..gaussian import log_normal
@@ -85,6 +86,7 @@ if TYPE_CHECKING:  # types only
     from numpy.typing import ArrayLike
 
     from ..offline.pipeline import OfflineArrays
+    from .yau_jia_fast import FastPieces
 
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
@@ -123,14 +125,19 @@ class _Sensor:
         self._fn = sp.lambdify(list(xs), h + jac + hess, modules=[table, "numpy"], cse=True)
         self.n, self.m = n, m
 
-    def __call__(self, X: np.ndarray):
+    def flat(self, X: np.ndarray) -> np.ndarray:
+        """(P, m + mn + mn²): h, then ∂h and ∂²h row-major, at the points X (P, n)."""
         X = np.asarray(X, float)
-        P, n, m = len(X), self.n, self.m
         with np.errstate(all="ignore"):
             values = self._fn(*X.T)
-        flat = np.empty((P, len(values)))
+        flat = np.empty((len(X), len(values)))
         for column, value in enumerate(values):  # a constant entry broadcasts over the points
             flat[:, column] = value
+        return flat
+
+    def __call__(self, X: np.ndarray):
+        flat = self.flat(X)
+        P, n, m = len(flat), self.n, self.m
         return (flat[:, :m], flat[:, m:m + m * n].reshape(P, m, n),
                 flat[:, m + m * n:].reshape(P, m, n, n))
 
@@ -192,6 +199,7 @@ class YauJiaFilter(ChunkedFilter):
         self._q = [f.eq.q for f in flows]
         self._r = [f.eq.r for f in flows]
         self.sensor = _Sensor(model)
+        self._fast: FastPieces | None = None
 
     # -- σ = e^{φ}v as a flat Gaussian mixture ---------------------------------------------
     def _components(self, A, B, C):
@@ -467,14 +475,34 @@ class YauJiaFilter(ChunkedFilter):
             pieces = gap_pieces(tau, self._equations[0].spectrum()[1], delta)
             families = [self._gap_family(piece) for piece in pieces]
         log_mass, damped, splits = 0.0, 0, 0
+        fast = self._fast_pieces()
         for piece, family in zip(pieces, families, strict=True):
             share = row if row is None or piece is None else row * (piece / tau)
-            A, B, C, clip = self._step(A, B, C, share, piece, family)
-            C, gain, components = self._normalise(A, B, C)
-            A, B, C, split, components = self._control(A, B, C, components)
-            C, _, components = self._normalise(A, B, C, components)
+            length = self.model.dt if piece is None else piece
+            done = None if fast is None else fast.piece(A, B, C, share, length, family)
+            if done is not None:  # the compiled route (solver/exact/yau_jia_fast.py)
+                A, B, C, gain, clip, split, components = done
+            else:
+                A, B, C, clip = self._step(A, B, C, share, piece, family)
+                C, gain, components = self._normalise(A, B, C)
+                A, B, C, split, components = self._control(A, B, C, components)
+                C, _, components = self._normalise(A, B, C, components)
             log_mass, damped, splits = log_mass + gain, damped + clip, splits + split
         return A, B, C, log_mass, damped, splits, components
+
+    def _fast_pieces(self) -> FastPieces | None:
+        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/engine/jit.py) asks for them and φ = 0."""
+        if not jit.enabled() or self.structure.phi != 0:
+            return None
+        if self._fast is None:
+            from .yau_jia_fast import FastPieces
+
+            self._fast = FastPieces(sensor=self.sensor.flat, h=self.model.h, R_inv=self.R_inv,
+                                    whiten=self._whiten, q=self._q, r=self._r,
+                                    predict_exact=self._predict_exact,
+                                    max_components=self.max_components, split_tolerance=self.split_tolerance,
+                                    split_budget=self.split_budget, prune=PRUNE_LOG_WEIGHT, sigma=SIGMA)
+        return self._fast
 
     def _gap_family(self, length: float) -> FlowFamily:
         """The flows (observed, and exact prediction where the class has one) over ``length``."""
@@ -494,7 +522,9 @@ class YauJiaFilter(ChunkedFilter):
         return second - np.outer(first, first)
 
     def _moments(self, A, B, C, components=None):
-        """Mean and covariance of σ (its components if known)."""
+        """Mean and covariance of σ (its components if known; with them, by the compiled path)."""
+        if components is not None and len(components) == 4:
+            return components[3]
         logw, means, covs = self._components(A, B, C) if components is None else components
         w = np.exp(logw - log_sum_exp(logw))
         mean = w @ means
