@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.cli_speed", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer rows and repeats")
     args = parser.parse_args(argv)
-    K, repeats, pf_rows = (20_000, 5, 2000) if not args.quick else (5000, 2, 500)
+    K, repeats, pf_rows = (200_000, 3, 2000) if not args.quick else (20_000, 2, 500)
     from threadpoolctl import threadpool_limits
     from yauyau.solver.methods import make_filter
     from yauyau.solver.spec import spec_from_dict

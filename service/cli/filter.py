@@ -208,8 +208,9 @@ def _run(args: argparse.Namespace) -> int:
         source = Source(read_increments(args.increments, model.m, numbers), None,
                         0.0 if args.t0 is None else float(args.t0), "increments", numbers or None)
     method = args.method or stored.method
-    jit.choose_for_rows(len(source.rows))  # short inputs: numba's start-up costs more than it saves
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
+    # short inputs: numba's start-up costs more than its compiled rows save
+    jit.choose_for_rows(len(source.rows), getattr(flt, "compiled_min_rows", jit.COMPILED_MIN_ROWS))
     state = OnlineFilter(flt, t0=source.t0).state if source.times is None else _at(flt, source.t0)
     watch = settings_for(flt, lost_track, monitor)
     preflight(flt, state, source, args.method is None)

@@ -58,11 +58,12 @@ def one_shot() -> Iterator[None]:
         _chosen.pop("kernel", None)
 
 
-def choose_for_rows(rows: int) -> str:
+def choose_for_rows(rows: int, min_rows: int = COMPILED_MIN_ROWS) -> str:
     """The kernel a command that will step ``rows`` rows in all and exit should take (module docstring):
-    numpy below ``COMPILED_MIN_ROWS`` unless ``YAUYAU_KERNEL`` says otherwise; kept until the end of
-    the enclosing :func:`one_shot`."""
-    if not os.environ.get("YAUYAU_KERNEL", "").strip() and rows < COMPILED_MIN_ROWS:
+    numpy below ``min_rows`` (the filter's break-even: ``COMPILED_MIN_ROWS`` for the general engine, a
+    filter's own ``compiled_min_rows`` where its compiled rows save more) unless ``YAUYAU_KERNEL`` says
+    otherwise; kept until the end of the enclosing :func:`one_shot`."""
+    if not os.environ.get("YAUYAU_KERNEL", "").strip() and rows < min_rows:
         _chosen["kernel"] = "numpy"
     else:
         _chosen.pop("kernel", None)

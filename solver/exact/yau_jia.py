@@ -153,6 +153,9 @@ class YauJiaFilter(ChunkedFilter):
     """Filter protocol; see the module docstring."""
 
     method = "yau-jia"
+    # a one-shot command's break-even (solver/engine/jit.py choose_for_rows): numba's start-up, ~1.3 s
+    # of CPU, against ~5 ms a row saved at the default cap (bench/results/yau-jia-speed.md)
+    compiled_min_rows = 300
 
     def __init__(self, model: Model, max_components: int | None = None,
                  split_tolerance: float = SPLIT_TOLERANCE, gate: float | None = None,

@@ -383,6 +383,7 @@ def test_the_kernel_choice_for_a_one_shot_run(monkeypatch):
     monkeypatch.setattr(jit, "_chosen", {})
     assert jit.choose_for_rows(10) == "numpy" and not jit.enabled()
     assert jit.choose_for_rows(jit.COMPILED_MIN_ROWS) == "compiled" and jit.enabled()
+    assert jit.choose_for_rows(400, min_rows=300) == "compiled"  # a filter whose rows save more
     monkeypatch.setenv("YAUYAU_KERNEL", "compiled")  # the user's choice wins
     assert jit.choose_for_rows(10) == "compiled"
     monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
