@@ -25,15 +25,17 @@ s = B S_k d, d = C σ (B = ΦV, C = V⁻¹ΦᵀW, S_k = e^{τ_kΛ} as real scali
 adjoint is b = V⁻ᵀ S_kᵀ Bᵀ(ẽ ⊙ w ⊙ β), β = Φb: the pairs scaled by the conjugate factors.  In the Schur
 or expm forms of an ill-conditioned generator the adjoint uses Φe^{τA} by scipy's expm per gap.
 
-Memory: checkpointed blocks of B = max(256, ⌈√K⌉) rows.  The forward pass runs the filter block by block
-and keeps only the state (N + 1 numbers) at each block's start; the backward pass takes the blocks from
-the last, runs each block's forward pass again from its checkpoint (the filter is bit for bit the same
-however its rows are chunked) keeping its B×Q nodal σ_k, factors and exponents, overwrites σ_k with
-σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost O(√K·Q + K/√K·N)
-numbers (K = 10⁶, Q = 200: about 5 MB), plus the K rows of the result; the filter runs twice, the
-backward pass costs about one more.  Measured on examples/ou.toml (Q = 195, N = 96; 2 shared cores):
-46 µs a row against the fused compiled filter's 11 µs (4.1×; the forward passes keep σ, so they do not
-fuse); 10⁶ rows in one chunk raised the peak RSS by 217 MB, the result's arrays.
+Memory: a chunk whose K×Q nodal values fit :data:`KEEP` (32 MiB an array: 21 500 rows at Q = 195) keeps
+its whole forward pass (σ_k, the factors), as the filter itself holds them for the chunk, and the filter
+runs once.  A longer chunk goes in checkpointed blocks of max(256, ⌈√K⌉, KEEP // Q) rows: the first pass
+is the filter itself (its fused compiled rows, no K×Q arrays) keeping the state (N + 1 numbers) at each
+block's start; the backward pass takes the blocks from the last, runs each block's forward pass again
+from its checkpoint keeping its σ_k, factors and exponents (equal to the first pass's to rounding),
+overwrites σ_k with σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost
+O(KEEP + K/B·N) numbers besides the K rows of the result.  The backward step is one gemv with the
+Q×Q matrix ΦPᵀ (computed once per engine), in numba's compiled loop where the filter's are
+(solver/engine/compiled_backward.py, the same BLAS call).  Cost on examples/ou.toml (Q = 195, N = 96):
+bench/smoother.py and docs/benchmarks.md.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
 whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
@@ -45,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from typing import Any
 
 import numpy as np
@@ -53,12 +56,14 @@ from scipy.linalg.blas import dgemv
 from ..errors import InputError, SpecError
 from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
+from . import jit
 from .loops import loop_irregular, loop_regular, update_factors
 from .pieces import row_pieces
 from .state import YauYauState
 
 CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
+KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
 FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
                  "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
 
@@ -102,17 +107,26 @@ def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
             taus: np.ndarray | None, block: int | None, field: str, gating: bool):
     """The checkpointed forward pass, then the backward pass block by block from the last."""
-    K = len(rows)
-    size = max(BLOCK, math.isqrt(K - 1) + 1) if block is None else max(1, int(block))
+    K, Q = len(rows), len(engine.weights)
+    if block is not None:
+        size = max(1, int(block))
+    elif K * Q <= KEEP:  # the whole forward pass is kept: it runs once
+        size = K
+    else:
+        size = max(BLOCK, math.isqrt(K - 1) + 1, KEEP // Q)
     bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
-    checkpoints, current = [], state  # the forward pass: the state at each block's start
+    checkpoints, current, kept = [], state, None  # the forward pass: the state at each block's start
     for start, stop in bounds:
         checkpoints.append(current)
-        current = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)[0]
+        if len(bounds) == 1:
+            kept = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            current = kept[0]
+        else:
+            current = checkpoint(engine, current, rows, steps, times, taus, start, stop, field, gating)
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
     for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        found = forward_block(engine, begin, rows, steps, times, taus, start, stop, field, gating)
+        found = kept or forward_block(engine, begin, rows, steps, times, taus, start, stop, field, gating)
         _, filtered, sigma, factor, masses, ready = found
         only_predicts = ready.skip | filtered.gated
         block_taus = None if taus is None else taus[start:stop]
@@ -153,6 +167,22 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
                                           mode=None if smoothed.mode is None else smoothed.mode[last])
 
 
+def checkpoint(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+               taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool) -> YauYauState:
+    """The filter's state after rows start … stop − 1 from ``state``: the filter itself (its fused
+    compiled rows where they apply: no K×Q arrays, equal to :func:`forward_block`'s to rounding) where it
+    gates as the smoother does, else :func:`forward_block`; InputError at a degenerate row."""
+    if not gating:
+        return forward_block(engine, state, rows, steps, times, taus, start, stop, field, gating)[0]
+    new_state, filtered = engine.run_arrays(state, rows[start:stop],
+                                            None if taus is None else times[start:stop])
+    if filtered.degenerate.any():
+        k = int(np.argmax(filtered.degenerate))
+        raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({filtered.reason}): "
+                                                  "the smoother needs every row of the chunk filtered")
+    return new_state
+
+
 def forward_block(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
              taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool = True):
     """Rows start … stop − 1 through the filter's loop from ``state``: (state after, the filtered result,
@@ -188,13 +218,20 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     weighted = factor.astype(float) * w  # ẽ_k ⊙ w, and w where the row only predicted
     weighted[only_predicts] = w
     scale = 1.0 / np.asarray(masses, dtype=float)
-    beta, following, v = np.array(beta, dtype=float), np.empty(Q), np.empty(Q)
+    beta, v = np.array(beta, dtype=float), np.empty(Q)
+    if taus is None and jit.enabled() and sigma.flags.c_contiguous:  # the compiled loop, same numbers
+        from .compiled_backward import backward_regular
+
+        M, M_k = regular_adjoints(engine)
+        lost = backward_regular(sigma, weighted, scale, np.asarray(skip, dtype=bool), M, M_k, beta, v, CHECK)
+        if lost >= 0:
+            raise InputError("increments", f"the backward pass lost every node at row {lost}: nothing to "
+                                           "smooth")
+        return beta
     for k in range(K - 1, -1, -1):
         sigma[k] *= beta
         np.multiply(weighted[k], beta, out=v)
-        adjoint(k, v, following)
-        following *= scale[k]
-        beta, following = following, beta
+        beta = adjoint(k, v, scale[k])
         if k % CHECK == 0:
             top = float(np.max(np.abs(beta)))
             if not np.isfinite(top) or top == 0.0:
@@ -205,25 +242,39 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     return beta
 
 
-def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
-    """adjoint(k, v, out): out = Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
-    N = basis.shape[1]
-    b = np.empty(N)
-    if taus is None:
-        P = np.asfortranarray(engine.offline.propagator_fp, dtype=float)
-        P_k = (np.asfortranarray(engine.offline.propagator_k, dtype=float) if engine.form == "literal"
-               else P)
+_ADJOINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
-        def regular(k: int, v: np.ndarray, out: np.ndarray) -> None:  # literal: observed rows used P_k
-            dgemv(1.0, P if missing[k] else P_k, v, 0.0, b, 0, 1, 0, 1, 1, 1)  # b = Pᵀv
-            dgemv(1.0, basis, b, 0.0, out, 0, 1, 0, 1, 0, 1)  # out = Φb
+
+def regular_adjoints(engine: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(ΦPᵀ, ΦP_kᵀ) (Q×Q, Fortran order) of an engine's regular step (predicting, observing: the same
+    matrix but in the literal form), computed once per engine: one gemv a backward step."""
+    found = _ADJOINTS.get(engine)
+    if found is None:
+        basis = np.asarray(engine.offline.basis, dtype=float)
+        P = np.asarray(engine.offline.propagator_fp, dtype=float)
+        M = np.asfortranarray(basis @ P.T)
+        M_k = (np.asfortranarray(basis @ np.asarray(engine.offline.propagator_k, dtype=float).T)
+               if engine.form == "literal" else M)
+        found = _ADJOINTS[engine] = (M, M_k)
+    return found
+
+
+def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
+    """adjoint(k, v, α) -> α Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
+    N = basis.shape[1]
+    if taus is None:
+        M, M_k = regular_adjoints(engine)  # literal: observed rows used P_k
+        matrices = [M if m else M_k for m in np.asarray(missing, dtype=bool).tolist()]
+
+        def regular(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
+            return dgemv(alpha, matrices[k], v)
 
         return regular
     flow = engine.flow
     if flow.form != "modal":  # Schur or expm forms: Φ e^{τA} by expm per gap
-        def exact(k: int, v: np.ndarray, out: np.ndarray) -> None:
+        def exact(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
             nodal = np.asarray(flow.nodal_flow(float(taus[k])), dtype=float)[:, :-1]
-            out[:] = basis @ (nodal.T @ v)
+            return alpha * (basis @ (nodal.T @ v))
 
         return exact
     B = np.asarray(flow.B, dtype=float)[:, :-1]
@@ -232,11 +283,11 @@ def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing:
     real, pairs = np.asarray(real, dtype=float), np.asarray(pairs, dtype=complex)
     r = flow.r
 
-    def modal(k: int, v: np.ndarray, out: np.ndarray) -> None:
+    def modal(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
         d = B.T @ v
         d[:r] *= real[k]
         z = (d[r:N:2] + 1j * d[r + 1:N:2]) * np.conj(pairs[k])
         d[r:N:2], d[r + 1:N:2] = z.real, z.imag
-        np.matmul(G, d, out=out)
+        return alpha * (G @ d)
 
     return modal
