@@ -117,18 +117,24 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
     bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
     checkpoints, current, kept = [], state, None  # the forward pass: the state at each block's start
     for start, stop in bounds:
-        checkpoints.append(current)
         if len(bounds) == 1:
             kept = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            checkpoints.append((current, kept[1]))
             current = kept[0]
         else:
-            current = checkpoint(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            found = checkpoint(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            checkpoints.append((current, found[1]))
+            current = found[0]
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
-    for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        found = kept or forward_block(engine, begin, rows, steps, times, taus, start, stop, field, gating)
-        _, filtered, sigma, factor, masses, ready = found
-        only_predicts = ready.skip | filtered.gated
+    for (start, stop), (begin, filtered) in zip(reversed(bounds), reversed(checkpoints), strict=True):
+        if kept is not None:
+            _, _, sigma, factor, masses, ready = kept
+            only_predicts = ready.skip | filtered.gated
+        else:  # the block's σ_k again, from its checkpoint: the loop alone (its filtered rows are kept)
+            sigma, factor, masses, ready, gated = forward_sigma(engine, begin, rows, taus, start, stop, field,
+                                                                gating)
+            only_predicts = ready.skip | gated
         block_taus = None if taus is None else taus[start:stop]
         beta = backward(engine, sigma, factor, masses, only_predicts, block_taus, ready.skip, beta)
         masses = sigma @ engine.weights
@@ -168,19 +174,40 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
 
 
 def checkpoint(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-               taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool) -> YauYauState:
-    """The filter's state after rows start … stop − 1 from ``state``: the filter itself (its fused
-    compiled rows where they apply: no K×Q arrays, equal to :func:`forward_block`'s to rounding) where it
-    gates as the smoother does, else :func:`forward_block`; InputError at a degenerate row."""
+               taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool):
+    """(the filter's state after rows start … stop − 1 from ``state``, their filtered result): the filter
+    itself (its fused compiled rows where they apply: no K×Q arrays, equal to :func:`forward_block`'s to
+    rounding) where it gates as the smoother does, else :func:`forward_block`; InputError at a degenerate
+    row."""
     if not gating:
-        return forward_block(engine, state, rows, steps, times, taus, start, stop, field, gating)[0]
+        return forward_block(engine, state, rows, steps, times, taus, start, stop, field, gating)[:2]
     new_state, filtered = engine.run_arrays(state, rows[start:stop],
                                             None if taus is None else times[start:stop])
     if filtered.degenerate.any():
         k = int(np.argmax(filtered.degenerate))
         raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({filtered.reason}): "
                                                   "the smoother needs every row of the chunk filtered")
-    return new_state
+    return new_state, filtered
+
+
+def forward_sigma(engine: Any, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None, start: int,
+                  stop: int, field: str, gating: bool):
+    """Rows start … stop − 1 through the filter's loop alone from a checkpoint (no estimates: the first
+    pass gave them): (nodal σ_k, the factors ẽ_k, their ∫σ_k, the prepared chunk, the rows the gate
+    refused); InputError where the loop stopped early."""
+    rows, taus = rows[start:stop], None if taus is None else taus[start:stop]
+    ready = engine.prepare(state, rows, taus, gating=gating)
+    factor = update_factors(engine.arith, ready.log_factor)
+    given = (engine, ready.initial, factor, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate)
+    sigma, masses, _, done, reason = loop_regular(*given) if taus is None else loop_irregular(*given, taus)
+    if done < len(rows) or reason is not None or (ready.gate is None and ready.impossible.any()):
+        k = done if done < len(rows) else int(np.argmax(ready.impossible))
+        raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({reason}): the "
+                                                  "smoother needs every row of the chunk filtered")
+    gated = np.zeros(len(rows), dtype=bool)
+    if ready.gate is not None:
+        gated[list(ready.gate.scores)] = True
+    return np.asarray(sigma, dtype=float), factor, np.asarray(masses, dtype=float), ready, gated
 
 
 def forward_block(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
