@@ -48,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import weakref
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.linalg.blas import dgemv
@@ -64,23 +64,29 @@ from .state import YauYauState
 CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
+Visit = Callable[[int, list], None]
 FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
                  "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
 
 
 def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
-                  block: int | None = None) -> tuple[YauYauState, ChunkResult]:
+                  block: int | None = None, visit: Visit | None = None) -> tuple[YauYauState, ChunkResult]:
     """The fixed-interval smoother of ``engine`` (a YauYauFilter) over one chunk from ``state``: (the
     filter's state after the chunk, a ChunkResult whose mean, cov and mode are the smoothed ones given
     every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's).  ``block``:
-    rows per checkpointed block (default max(256, ⌈√K⌉))."""
+    rows per checkpointed block (default max(256, ⌈√K⌉)).  ``visit(start, states)``, where given, is
+    called once per block (from the last) with the smoothed densities of rows start, start + 1, … as
+    filter states (:func:`smoothed_states`): what the filter's quantiles, mode and density read."""
     chunk = validated(engine, state, increments, times)
     if chunk is None:
         return engine.run_arrays(state, np.empty((0, engine.model.m)), times)
     rows, steps, times_out, taus, pieces, field = chunk
     if pieces is not None:
+        if visit is not None:
+            raise InputError(field, "the smoothed densities of increments filtered in pieces (long gaps) "
+                                    "are not offered yet: ask for the moments alone")
         return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
-    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit)
 
 
 def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
@@ -105,7 +111,7 @@ def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
 
 
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-            taus: np.ndarray | None, block: int | None, field: str, gating: bool):
+            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None):
     """The checkpointed forward pass, then the backward pass block by block from the last."""
     K, Q = len(rows), len(engine.weights)
     if block is not None:
@@ -143,7 +149,21 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
             raise InputError(f"{field}[{start + k}]", "the smoothed density has no positive mass at this row")
         mean, cov, mode = engine.moments(sigma, masses, ready.shifts)
         parts.append(dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode))
+        if visit is not None:
+            visit(start, smoothed_states(engine, begin, sigma, parts[-1]))
     return current, concat_results(parts[::-1])
+
+
+def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed: ChunkResult) -> list:
+    """The smoothed densities w ⊙ σ_k ⊙ β_k of a block (``sigma`` after the backward pass) as filter states:
+    their projection Π(σ_k ⊙ β_k) = [c, ∫] as the filter carries σ_k, the smoothed estimate as ``last``."""
+    carried = sigma @ np.asarray(engine.projection, dtype=float).T  # (B, N + 1)
+    N = engine.N
+    return [dataclasses.replace(like, coefficients=carried[i, :N].copy(), mass=float(carried[i, N]),
+                                step=int(smoothed.step[i]), t=float(smoothed.t[i]),
+                                loglik=float(smoothed.loglik[i]), last=estimate, degenerate=False,
+                                reason=None)
+            for i, estimate in enumerate(smoothed.estimates())]
 
 
 def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
