@@ -1,5 +1,6 @@
 """`yauyau smooth MODEL_ID --store DIR (--increments IN | --observations IN.csv) --out OUT.csv [--t0 T]
-[--lag L]`: the optimal smoother over a recorded file (yauyau.solver.smoothing, issue 38).
+[--lag L] [--quantiles P,...] [--mode]`:
+the optimal smoother over a recorded file (yauyau.solver.smoothing, issue 38).
 
 The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the output has its columns
 (``filter.header``): ``mean_<var>`` and ``cov_<var>_<var>`` are the smoothed moments, given every row
@@ -20,7 +21,7 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
 
 from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
-from .filter import header
+from .filter import Outputs, header
 from .precompute import store_argument
 
 DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
@@ -30,7 +31,8 @@ input and output as for `yauyau filter` (yauyau filter -h): --increments IN (reg
   --observations IN.csv (rows with their times, header t,<components>); an empty field is missing,
   a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
   cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
-  covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after).
+  covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after);
+  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density (not with --lag).
 
 exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that degenerates or a file
   over the memory budget (one line on stderr naming the field, nothing written).
@@ -58,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="yau-yau products in double or single precision")
     parser.add_argument("--gate", type=float, default=None, metavar="K",
                         help="outlier gate in predictive standard deviations (default: the spec's; 0: off)")
+    parser.add_argument("--quantiles", default=None, metavar="P,P,...",
+                        help="marginal quantiles of each row's smoothed density, e.g. 0.05,0.5,0.95 "
+                             "(columns q<p>_<var>, as filter writes them)")
+    parser.add_argument("--mode", action="store_true",
+                        help="the smoothed density's mode (columns mode_<var>)")
     parser.add_argument("--memory", type=float, default=DEFAULT_MEMORY_GB, metavar="GB",
                         help="memory budget of the smoother's stored rows (default %(default)s GB)")
     parser.epilog = EPILOG
@@ -78,14 +85,18 @@ def parse_lag(text: str | None) -> int | None:
 
 
 def check_memory(flt, rows: int, budget_gb: float, field: str) -> None:
-    """Refuse a file whose rows do not fit the budget: the engine smooths in checkpointed blocks of
-    max(256, √K) rows (3 doubles a node a row: σ, the factors and their exponents; solver/engine/smoother.py),
-    and every row keeps its result (mean, covariance, flags) and its line of output (about 200 bytes)."""
+    """Refuse a file whose rows do not fit the budget: the engine keeps its whole forward pass where the
+    K×Q nodal values fit KEEP, else works in checkpointed blocks of max(256, √K, KEEP / Q) rows (3 doubles a
+    node a row: σ, the factors and their exponents; solver/engine/smoother.py), and every row keeps its
+    result (mean, covariance, flags) and its line of output (about 200 bytes)."""
+    from yauyau.solver.engine.smoother import BLOCK, KEEP
+
     if not (math.isfinite(budget_gb) and budget_gb > 0):
         raise InputError("memory", "must be a positive number of GB")
     n, nodes = flt.model.n, len(getattr(flt, "weights", ()))
-    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // 256  # + a checkpoint per block
-    block = 24 * nodes * max(256, math.isqrt(max(rows, 1)) + 1)
+    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // BLOCK  # + a checkpoint per block
+    kept = rows * nodes <= KEEP
+    block = 24 * nodes * (rows if kept else max(BLOCK, math.isqrt(max(rows, 1)) + 1, KEEP // max(nodes, 1)))
     budget = budget_gb * 1e9
     fits = max(0, int((budget - block) // per_row))
     if rows > fits:
@@ -98,11 +109,17 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.solver.filtering import at_time, check_t0
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
-    from yauyau.solver.smoothing import smooth, smooth_lag
+    from yauyau.solver.smoothed_summaries import smooth_with_quantiles
+    from yauyau.solver.smoothing import smooth_lag
 
     from yauyau.api import load_model
 
     lag = parse_lag(args.lag)
+    outputs = Outputs.from_args(_with_no_density(args))
+    if lag is not None and (outputs.probs is not None or outputs.mode):
+        raise InputError("quantiles" if outputs.probs is not None else "mode",
+                         "the fixed-lag smoother gives means and covariances only (no --lag for quantiles "
+                         "or the mode yet)")
     if args.t0 is not None and not math.isfinite(args.t0):
         raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
@@ -125,16 +142,28 @@ def run(args: argparse.Namespace) -> int:
     state = at_time(flt.initial_state(), source.t0)
     try:
         if lag is None:
-            _, result = smooth(flt, state, source.rows, source.times)
+            _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs)
         else:
             _, result = smooth_lag(flt, state, source.rows, source.times, lag)
     except InputError as exc:
         raise InputError(_in_file(exc.field, source), exc.message) from None
-    write_lines(args.out, header(model), csv_lines(result))
+    extras = None
+    if lag is None and (outputs.mode or outputs.probs is not None):
+        mode = result.mean if result.mode is None else result.mode
+        K = len(result.step)
+        extras = [[*(mode[k].tolist() if outputs.mode else []),
+                   *(table[k].ravel().tolist() if table is not None else [])] for k in range(K)]
+    write_lines(args.out, header(model, outputs), csv_lines(result, extras))
     what = "fixed-interval" if lag is None else f"fixed-lag (L = {lag})"
     print(f"yauyau smooth: method {method}, {what}, {len(source.rows)} row(s), {int(result.gated.sum())} "
           "gated", file=sys.stderr)
     return 0
+
+
+def _with_no_density(args: argparse.Namespace) -> argparse.Namespace:
+    """``args`` as filter's Outputs.from_args reads them (smooth has no density file yet)."""
+    return argparse.Namespace(quantiles=args.quantiles, mode=args.mode, density=None, density_every=10,
+                              density_points=None)
 
 
 def _in_file(field: str, source: Source) -> str:
