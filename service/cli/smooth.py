@@ -21,7 +21,7 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
 
 from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
-from .filter import Outputs, header
+from .filter import Outputs, header, snapshot
 from .precompute import store_argument
 
 DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
@@ -32,7 +32,8 @@ input and output as for `yauyau filter` (yauyau filter -h): --increments IN (reg
   a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
   cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
   covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after);
-  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density (not with --lag).
+  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density, --density D.h5
+  writes it on a grid as filter --density does (yau-yau; not with --lag).
 
 exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that degenerates or a file
   over the memory budget (one line on stderr naming the field, nothing written).
@@ -65,6 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(columns q<p>_<var>, as filter writes them)")
     parser.add_argument("--mode", action="store_true",
                         help="the smoothed density's mode (columns mode_<var>)")
+    parser.add_argument("--density", default=None, metavar="OUT.h5",
+                        help="write the smoothed density on a grid every --density-every steps (HDF5, as "
+                             "filter --density writes it; yau-yau)")
+    parser.add_argument("--density-every", type=int, default=10, metavar="K",
+                        help="steps between density snapshots (default %(default)s)")
+    parser.add_argument("--density-points", type=int, default=None, metavar="G",
+                        help="grid points per axis (default 401 in 1-D, 101 in 2-D, 61 in 3-D)")
     parser.add_argument("--memory", type=float, default=DEFAULT_MEMORY_GB, metavar="GB",
                         help="memory budget of the smoother's stored rows (default %(default)s GB)")
     parser.epilog = EPILOG
@@ -115,11 +123,11 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.api import load_model
 
     lag = parse_lag(args.lag)
-    outputs = Outputs.from_args(_with_no_density(args))
-    if lag is not None and (outputs.probs is not None or outputs.mode):
-        raise InputError("quantiles" if outputs.probs is not None else "mode",
-                         "the fixed-lag smoother gives means and covariances only (no --lag for quantiles "
-                         "or the mode yet)")
+    outputs = Outputs.from_args(args)
+    if lag is not None and (outputs.probs is not None or outputs.mode or outputs.density is not None):
+        raise InputError("quantiles" if outputs.probs is not None else "mode" if outputs.mode else "density",
+                         "the fixed-lag smoother gives means and covariances only (no --lag for quantiles, "
+                         "the mode or the density yet)")
     if args.t0 is not None and not math.isfinite(args.t0):
         raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
@@ -140,9 +148,15 @@ def run(args: argparse.Namespace) -> int:
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
     check_memory(flt, len(source.rows), args.memory, source.field)
     state = at_time(flt.initial_state(), source.t0)
+    snapshots: dict[int, object] = {}  # --density: the smoothed states of every --density-every-th step
+
+    def keep(k: int, smoothed) -> None:
+        if int(smoothed.step) % outputs.every == 0:
+            snapshots[int(smoothed.step)] = smoothed
     try:
         if lag is None:
-            _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs)
+            _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
+                                                     None if outputs.density is None else keep)
         else:
             _, result = smooth_lag(flt, state, source.rows, source.times, lag)
     except InputError as exc:
@@ -153,17 +167,21 @@ def run(args: argparse.Namespace) -> int:
         K = len(result.step)
         extras = [[*(mode[k].tolist() if outputs.mode else []),
                    *(table[k].ravel().tolist() if table is not None else [])] for k in range(K)]
-    write_lines(args.out, header(model, outputs), csv_lines(result, extras))
+    writer = outputs.density_writer(flt, stored, method)
+    try:
+        for step in sorted(snapshots):
+            snapshot(flt, snapshots[step], snapshots[step].last, outputs, writer)
+        write_lines(args.out, header(model, outputs), csv_lines(result, extras))
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    if writer is not None:
+        writer.close()
     what = "fixed-interval" if lag is None else f"fixed-lag (L = {lag})"
     print(f"yauyau smooth: method {method}, {what}, {len(source.rows)} row(s), {int(result.gated.sum())} "
           "gated", file=sys.stderr)
     return 0
-
-
-def _with_no_density(args: argparse.Namespace) -> argparse.Namespace:
-    """``args`` as filter's Outputs.from_args reads them (smooth has no density file yet)."""
-    return argparse.Namespace(quantiles=args.quantiles, mode=args.mode, density=None, density_every=10,
-                              density_points=None)
 
 
 def _in_file(field: str, source: Source) -> str:

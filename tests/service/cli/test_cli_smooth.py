@@ -105,8 +105,9 @@ def test_smooth_discrete_readings_with_times(tmp_path):
 def test_smooth_quantiles_and_mode_columns(tmp_path):
     """--quantiles 0.1,0.5,0.9 --mode on the bimodal sensor's readings at irregular times: filter's column
     names (mode_x, q0.1_x, …), each row's quantiles within 0.02 of the point-mass forward–backward
-    smoother's (its smoothed masses' distribution function inverted, 1200 cells); --lag with --quantiles
-    exits 2 naming quantiles, nothing written."""
+    smoother's (its smoothed masses' distribution function inverted, 1200 cells); --density: snapshots
+    whose mean by quadrature is the smoothed mean; --lag with --quantiles or --density exits 2, nothing
+    written."""
     directory = tmp_path / "store"
     model_id = yauyau.precompute(spec_from_dict(BIMODAL), directory)
     rng = np.random.default_rng(14)
@@ -127,6 +128,20 @@ def test_smooth_quantiles_and_mode_columns(tmp_path):
     gap = np.abs(values[:, 5:8] - reference).max()
     print(f"cli smoothed quantiles: {gap:.2e}")
     assert gap < 0.02 and np.abs(values[:, 2] - mean).max() < 0.01
+    # --density: the smoothed density every 20 steps, its mean by quadrature the smoothed mean column
+    from yauyau.storage.density_file import read_density
+
+    density = tmp_path / "d.h5"
+    assert main([*base[:-2], "--density", str(density), "--density-every", "20"]) == 0
+    series = read_density(density)
+    assert series.step.tolist() == [20, 40, 60, 80, 100]
+    grid, marginal = series.axes[0], series.marginals[0]
+    assert np.abs(np.trapezoid(marginal, grid, axis=1) - 1).max() < 1e-3
+    found = np.trapezoid(marginal * grid, grid, axis=1)
+    assert np.abs(found - values[series.step - 1, 2]).max() < 1e-3
+    assert np.abs(found - mean[series.step - 1]).max() < 0.01
     out.unlink()
+    density.unlink()
     assert main([*base, "--lag", "5"]) == 2
-    assert not out.exists()
+    assert main([*base[:-2], "--lag", "5", "--density", str(density)]) == 2
+    assert not out.exists() and not density.exists()
