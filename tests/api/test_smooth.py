@@ -49,8 +49,7 @@ def test_a_method_without_smoother_is_refused_by_name(stored):
 def test_smooth_quantiles_through_open_filter(stored):
     """The smoothed quantiles beside the smoothed moments: OU's smoothed law is Gaussian, so the median is
     the mean and the 0.1/0.9 quantiles are mean ∓ 1.2816 sd (within 5e-3; measured 1.9e-3 on 48 basis
-    functions); the moments are
-    smooth()'s."""
+    functions); the moments are smooth()'s."""
     spec, store, model_id = stored
     sim = yauyau.simulate(spec, steps=120, seed=4)
     result, table = yauyau.open_filter(store, model_id, method="yau-yau").smooth_quantiles(
