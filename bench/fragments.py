@@ -50,6 +50,7 @@ FRAGMENTS = [
     ("cv_basis", "cv-basis.md"),
     ("three_d", "3d.md"),
     ("follow_cost", "follow-cost.md"),
+    ("smoother", "smoother.md"),
 ]
 
 _LINK = re.compile(r"(\]\()([^)\s]+)(\))")

@@ -1,5 +1,6 @@
 """`yauyau smooth MODEL_ID --store DIR (--increments IN | --observations IN.csv) --out OUT.csv [--t0 T]
-[--lag L]`: the optimal smoother over a recorded file (yauyau.solver.smoothing, issue 38).
+[--lag L] [--quantiles P,...] [--mode]`:
+the optimal smoother over a recorded file (yauyau.solver.smoothing, issue 38).
 
 The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the output has its columns
 (``filter.header``): ``mean_<var>`` and ``cov_<var>_<var>`` are the smoothed moments, given every row
@@ -20,7 +21,7 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
 
 from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
-from .filter import header
+from .filter import Outputs, header, snapshot
 from .precompute import store_argument
 
 DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
@@ -30,7 +31,9 @@ input and output as for `yauyau filter` (yauyau filter -h): --increments IN (reg
   --observations IN.csv (rows with their times, header t,<components>); an empty field is missing,
   a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
   cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
-  covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after).
+  covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after);
+  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density, --density D.h5
+  writes it on a grid as filter --density does (yau-yau; not with --lag).
 
 exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that degenerates or a file
   over the memory budget (one line on stderr naming the field, nothing written).
@@ -58,6 +61,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="yau-yau products in double or single precision")
     parser.add_argument("--gate", type=float, default=None, metavar="K",
                         help="outlier gate in predictive standard deviations (default: the spec's; 0: off)")
+    parser.add_argument("--quantiles", default=None, metavar="P,P,...",
+                        help="marginal quantiles of each row's smoothed density, e.g. 0.05,0.5,0.95 "
+                             "(columns q<p>_<var>, as filter writes them)")
+    parser.add_argument("--mode", action="store_true",
+                        help="the smoothed density's mode (columns mode_<var>)")
+    parser.add_argument("--density", default=None, metavar="OUT.h5",
+                        help="write the smoothed density on a grid every --density-every steps (HDF5, as "
+                             "filter --density writes it; yau-yau)")
+    parser.add_argument("--density-every", type=int, default=10, metavar="K",
+                        help="steps between density snapshots (default %(default)s)")
+    parser.add_argument("--density-points", type=int, default=None, metavar="G",
+                        help="grid points per axis (default 401 in 1-D, 101 in 2-D, 61 in 3-D)")
     parser.add_argument("--memory", type=float, default=DEFAULT_MEMORY_GB, metavar="GB",
                         help="memory budget of the smoother's stored rows (default %(default)s GB)")
     parser.epilog = EPILOG
@@ -78,14 +93,18 @@ def parse_lag(text: str | None) -> int | None:
 
 
 def check_memory(flt, rows: int, budget_gb: float, field: str) -> None:
-    """Refuse a file whose rows do not fit the budget: the engine smooths in checkpointed blocks of
-    max(256, √K) rows (3 doubles a node a row: σ, the factors and their exponents; solver/engine/smoother.py),
-    and every row keeps its result (mean, covariance, flags) and its line of output (about 200 bytes)."""
+    """Refuse a file whose rows do not fit the budget: the engine keeps its whole forward pass where the
+    K×Q nodal values fit KEEP, else works in checkpointed blocks of max(256, √K, KEEP / Q) rows (3 doubles a
+    node a row: σ, the factors and their exponents; solver/engine/smoother.py), and every row keeps its
+    result (mean, covariance, flags) and its line of output (about 200 bytes)."""
+    from yauyau.solver.engine.smoother import BLOCK, KEEP
+
     if not (math.isfinite(budget_gb) and budget_gb > 0):
         raise InputError("memory", "must be a positive number of GB")
     n, nodes = flt.model.n, len(getattr(flt, "weights", ()))
-    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // 256  # + a checkpoint per block
-    block = 24 * nodes * max(256, math.isqrt(max(rows, 1)) + 1)
+    per_row = 8 * (3 * n + n * n + 12) + 200 + 8 * (nodes + 1) // BLOCK  # + a checkpoint per block
+    kept = rows * nodes <= KEEP
+    block = 24 * nodes * (rows if kept else max(BLOCK, math.isqrt(max(rows, 1)) + 1, KEEP // max(nodes, 1)))
     budget = budget_gb * 1e9
     fits = max(0, int((budget - block) // per_row))
     if rows > fits:
@@ -98,11 +117,17 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.solver.filtering import at_time, check_t0
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
-    from yauyau.solver.smoothing import smooth, smooth_lag
+    from yauyau.solver.smoothed_summaries import smooth_with_quantiles
+    from yauyau.solver.smoothing import smooth_lag
 
     from yauyau.api import load_model
 
     lag = parse_lag(args.lag)
+    outputs = Outputs.from_args(args)
+    if lag is not None and (outputs.probs is not None or outputs.mode or outputs.density is not None):
+        raise InputError("quantiles" if outputs.probs is not None else "mode" if outputs.mode else "density",
+                         "the fixed-lag smoother gives means and covariances only (no --lag for quantiles, "
+                         "the mode or the density yet)")
     if args.t0 is not None and not math.isfinite(args.t0):
         raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
@@ -123,14 +148,36 @@ def run(args: argparse.Namespace) -> int:
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
     check_memory(flt, len(source.rows), args.memory, source.field)
     state = at_time(flt.initial_state(), source.t0)
+    snapshots: dict[int, object] = {}  # --density: the smoothed states of every --density-every-th step
+
+    def keep(k: int, smoothed) -> None:
+        if int(smoothed.step) % outputs.every == 0:
+            snapshots[int(smoothed.step)] = smoothed
     try:
         if lag is None:
-            _, result = smooth(flt, state, source.rows, source.times)
+            _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
+                                                     None if outputs.density is None else keep)
         else:
             _, result = smooth_lag(flt, state, source.rows, source.times, lag)
     except InputError as exc:
         raise InputError(_in_file(exc.field, source), exc.message) from None
-    write_lines(args.out, header(model), csv_lines(result))
+    extras = None
+    if lag is None and (outputs.mode or outputs.probs is not None):
+        mode = result.mean if result.mode is None else result.mode
+        K = len(result.step)
+        extras = [[*(mode[k].tolist() if outputs.mode else []),
+                   *(table[k].ravel().tolist() if table is not None else [])] for k in range(K)]
+    writer = outputs.density_writer(flt, stored, method)
+    try:
+        for step in sorted(snapshots):
+            snapshot(flt, snapshots[step], snapshots[step].last, outputs, writer)
+        write_lines(args.out, header(model, outputs), csv_lines(result, extras))
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    if writer is not None:
+        writer.close()
     what = "fixed-interval" if lag is None else f"fixed-lag (L = {lag})"
     print(f"yauyau smooth: method {method}, {what}, {len(source.rows)} row(s), {int(result.gated.sum())} "
           "gated", file=sys.stderr)

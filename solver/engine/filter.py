@@ -286,10 +286,11 @@ class YauYauFilter(ChunkedFilter):
         """Advance over a chunk (K, m) of rows at ``times`` (or one dt apart); estimates as arrays."""
         return self._chunk(state, increments, times)
 
-    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: int | None = None):
+    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: Any = None,
+                      visit: Any = None):
         """Fixed-interval smoothing of a chunk: (state after, smoothed ChunkResult): engine/smoother.py."""
         from .smoother import smooth_arrays  # lazy: the filter alone never loads it
-        return smooth_arrays(self, state, increments, times, block)
+        return smooth_arrays(self, state, increments, times, block, visit)
 
     def run_until(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None,
                   until: Until | None) -> tuple[YauYauState, ChunkResult]:

@@ -63,14 +63,12 @@ def _lagged(engine: Any, pending: list[tuple], taus: np.ndarray | None, lag: int
     basis = np.asfortranarray(engine.offline.basis, dtype=float)
     adjoint = adjoint_of(engine, basis, None if taus is None else taus[start:end], skip)
     Q = sigma.shape[1]
-    smoothed, following, v = np.empty_like(sigma), np.empty(Q), np.empty(Q)
+    smoothed, v = np.empty_like(sigma), np.empty(Q)
     for i in range(stop - start):
         beta = np.ones(Q)
         for j in range(min(i + lag, K - 1 - start), i, -1):
             np.multiply(weighted[j], beta, out=v)
-            adjoint(j, v, following)
-            following *= scale[j]
-            beta, following = following, beta
+            beta = adjoint(j, v, scale[j])
             if j % CHECK == 0:
                 top = float(np.max(np.abs(beta)))
                 if not np.isfinite(top) or top == 0.0:

@@ -25,15 +25,19 @@ s = B S_k d, d = C σ (B = ΦV, C = V⁻¹ΦᵀW, S_k = e^{τ_kΛ} as real scali
 adjoint is b = V⁻ᵀ S_kᵀ Bᵀ(ẽ ⊙ w ⊙ β), β = Φb: the pairs scaled by the conjugate factors.  In the Schur
 or expm forms of an ill-conditioned generator the adjoint uses Φe^{τA} by scipy's expm per gap.
 
-Memory: checkpointed blocks of B = max(256, ⌈√K⌉) rows.  The forward pass runs the filter block by block
-and keeps only the state (N + 1 numbers) at each block's start; the backward pass takes the blocks from
-the last, runs each block's forward pass again from its checkpoint (the filter is bit for bit the same
-however its rows are chunked) keeping its B×Q nodal σ_k, factors and exponents, overwrites σ_k with
-σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost O(√K·Q + K/√K·N)
-numbers (K = 10⁶, Q = 200: about 5 MB), plus the K rows of the result; the filter runs twice, the
-backward pass costs about one more.  Measured on examples/ou.toml (Q = 195, N = 96; 2 shared cores):
-46 µs a row against the fused compiled filter's 11 µs (4.1×; the forward passes keep σ, so they do not
-fuse); 10⁶ rows in one chunk raised the peak RSS by 217 MB, the result's arrays.
+Memory: a chunk whose K×Q nodal values fit :data:`KEEP` (32 MiB an array: 21 500 rows at Q = 195) keeps
+its whole forward pass (σ_k, the factors), as the filter itself holds them for the chunk, and the filter
+runs once.  A longer chunk goes in checkpointed blocks of max(256, ⌈√K⌉, KEEP // Q) rows: the first pass
+is the filter itself (its fused compiled rows, no K×Q arrays) keeping the state (N + 1 numbers) at each
+block's start; the backward pass takes the blocks from the last, runs each block's forward pass again
+from its checkpoint keeping its σ_k, factors and exponents (equal to the first pass's to rounding),
+overwrites σ_k with σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost
+O(KEEP + K/B·N) numbers besides the K rows of the result.  The backward step is one gemv with the
+Q×Q matrix ΦPᵀ (computed once per engine), in numba's compiled loop where the filter's are
+(solver/engine/compiled_backward.py, the same BLAS call).  Measured on examples/ou.toml (Q = 195, N = 96;
+bench/smoother.py, docs/benchmarks.md; CPU time, one BLAS thread, 2 shared cores at load ~6): 17 µs a row
+against the fused filter's 8.0 (2.1×) kept whole (20 000 rows), 30 µs against 9.4 (3.2×) checkpointed
+(100 000 rows); 10⁶ rows in one chunk raised the peak RSS by 72 MB.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
 whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
@@ -45,7 +49,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+import weakref
+from typing import Any, Callable
 
 import numpy as np
 from scipy.linalg.blas import dgemv
@@ -53,29 +58,37 @@ from scipy.linalg.blas import dgemv
 from ..errors import InputError, SpecError
 from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
+from . import jit
 from .loops import loop_irregular, loop_regular, update_factors
 from .pieces import row_pieces
 from .state import YauYauState
 
 CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
+KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
+Visit = Callable[[int, list], None]
 FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
                  "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
 
 
 def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
-                  block: int | None = None) -> tuple[YauYauState, ChunkResult]:
+                  block: int | None = None, visit: Visit | None = None) -> tuple[YauYauState, ChunkResult]:
     """The fixed-interval smoother of ``engine`` (a YauYauFilter) over one chunk from ``state``: (the
     filter's state after the chunk, a ChunkResult whose mean, cov and mode are the smoothed ones given
     every row of the chunk; its log-likelihoods, gating and the rest are the forward pass's).  ``block``:
-    rows per checkpointed block (default max(256, ⌈√K⌉))."""
+    rows per checkpointed block (default max(256, ⌈√K⌉)).  ``visit(start, states)``, where given, is
+    called once per block (from the last) with the smoothed densities of rows start, start + 1, … as
+    filter states (:func:`smoothed_states`): what the filter's quantiles, mode and density read."""
     chunk = validated(engine, state, increments, times)
     if chunk is None:
         return engine.run_arrays(state, np.empty((0, engine.model.m)), times)
     rows, steps, times_out, taus, pieces, field = chunk
     if pieces is not None:
+        if visit is not None:
+            raise InputError(field, "the smoothed densities of increments filtered in pieces (long gaps) "
+                                    "are not offered yet: ask for the moments alone")
         return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
-    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit)
 
 
 def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
@@ -100,21 +113,36 @@ def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
 
 
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-            taus: np.ndarray | None, block: int | None, field: str, gating: bool):
+            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None):
     """The checkpointed forward pass, then the backward pass block by block from the last."""
-    K = len(rows)
-    size = max(BLOCK, math.isqrt(K - 1) + 1) if block is None else max(1, int(block))
+    K, Q = len(rows), len(engine.weights)
+    if block is not None:
+        size = max(1, int(block))
+    elif K * Q <= KEEP:  # the whole forward pass is kept: it runs once
+        size = K
+    else:
+        size = max(BLOCK, math.isqrt(K - 1) + 1, KEEP // Q)
     bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
-    checkpoints, current = [], state  # the forward pass: the state at each block's start
+    checkpoints, current, kept = [], state, None  # the forward pass: the state at each block's start
     for start, stop in bounds:
-        checkpoints.append(current)
-        current = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)[0]
+        if len(bounds) == 1:
+            kept = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            checkpoints.append((current, kept[1]))
+            current = kept[0]
+        else:
+            found = checkpoint(engine, current, rows, steps, times, taus, start, stop, field, gating)
+            checkpoints.append((current, found[1]))
+            current = found[0]
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights))
-    for (start, stop), begin in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        found = forward_block(engine, begin, rows, steps, times, taus, start, stop, field, gating)
-        _, filtered, sigma, factor, masses, ready = found
-        only_predicts = ready.skip | filtered.gated
+    for (start, stop), (begin, filtered) in zip(reversed(bounds), reversed(checkpoints), strict=True):
+        if kept is not None:
+            _, _, sigma, factor, masses, ready = kept
+            only_predicts = ready.skip | filtered.gated
+        else:  # the block's σ_k again, from its checkpoint: the loop alone (its filtered rows are kept)
+            sigma, factor, masses, ready, gated = forward_sigma(engine, begin, rows, taus, start, stop, field,
+                                                                gating)
+            only_predicts = ready.skip | gated
         block_taus = None if taus is None else taus[start:stop]
         beta = backward(engine, sigma, factor, masses, only_predicts, block_taus, ready.skip, beta)
         masses = sigma @ engine.weights
@@ -123,7 +151,21 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
             raise InputError(f"{field}[{start + k}]", "the smoothed density has no positive mass at this row")
         mean, cov, mode = engine.moments(sigma, masses, ready.shifts)
         parts.append(dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode))
+        if visit is not None:
+            visit(start, smoothed_states(engine, begin, sigma, parts[-1]))
     return current, concat_results(parts[::-1])
+
+
+def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed: ChunkResult) -> list:
+    """The smoothed densities w ⊙ σ_k ⊙ β_k of a block (``sigma`` after the backward pass) as filter states:
+    their projection Π(σ_k ⊙ β_k) = [c, ∫] as the filter carries σ_k, the smoothed estimate as ``last``."""
+    carried = sigma @ np.asarray(engine.projection, dtype=float).T  # (B, N + 1)
+    N = engine.N
+    return [dataclasses.replace(like, coefficients=carried[i, :N].copy(), mass=float(carried[i, N]),
+                                step=int(smoothed.step[i]), t=float(smoothed.t[i]),
+                                loglik=float(smoothed.loglik[i]), last=estimate, degenerate=False,
+                                reason=None)
+            for i, estimate in enumerate(smoothed.estimates())]
 
 
 def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
@@ -151,6 +193,43 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
                           block, field, gating=False)
     return new_state, dataclasses.replace(filtered, mean=smoothed.mean[last], cov=smoothed.cov[last],
                                           mode=None if smoothed.mode is None else smoothed.mode[last])
+
+
+def checkpoint(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+               taus: np.ndarray | None, start: int, stop: int, field: str, gating: bool):
+    """(the filter's state after rows start … stop − 1 from ``state``, their filtered result): the filter
+    itself (its fused compiled rows where they apply: no K×Q arrays, equal to :func:`forward_block`'s to
+    rounding) where it gates as the smoother does, else :func:`forward_block`; InputError at a degenerate
+    row."""
+    if not gating:
+        return forward_block(engine, state, rows, steps, times, taus, start, stop, field, gating)[:2]
+    new_state, filtered = engine.run_arrays(state, rows[start:stop],
+                                            None if taus is None else times[start:stop])
+    if filtered.degenerate.any():
+        k = int(np.argmax(filtered.degenerate))
+        raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({filtered.reason}): "
+                                                  "the smoother needs every row of the chunk filtered")
+    return new_state, filtered
+
+
+def forward_sigma(engine: Any, state: YauYauState, rows: np.ndarray, taus: np.ndarray | None, start: int,
+                  stop: int, field: str, gating: bool):
+    """Rows start … stop − 1 through the filter's loop alone from a checkpoint (no estimates: the first
+    pass gave them): (nodal σ_k, the factors ẽ_k, their ∫σ_k, the prepared chunk, the rows the gate
+    refused); InputError where the loop stopped early."""
+    rows, taus = rows[start:stop], None if taus is None else taus[start:stop]
+    ready = engine.prepare(state, rows, taus, gating=gating)
+    factor = update_factors(engine.arith, ready.log_factor)
+    given = (engine, ready.initial, factor, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate)
+    sigma, masses, _, done, reason = loop_regular(*given) if taus is None else loop_irregular(*given, taus)
+    if done < len(rows) or reason is not None or (ready.gate is None and ready.impossible.any()):
+        k = done if done < len(rows) else int(np.argmax(ready.impossible))
+        raise InputError(f"{field}[{start + k}]", f"the filter degenerated at this row ({reason}): the "
+                                                  "smoother needs every row of the chunk filtered")
+    gated = np.zeros(len(rows), dtype=bool)
+    if ready.gate is not None:
+        gated[list(ready.gate.scores)] = True
+    return np.asarray(sigma, dtype=float), factor, np.asarray(masses, dtype=float), ready, gated
 
 
 def forward_block(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
@@ -188,13 +267,20 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     weighted = factor.astype(float) * w  # ẽ_k ⊙ w, and w where the row only predicted
     weighted[only_predicts] = w
     scale = 1.0 / np.asarray(masses, dtype=float)
-    beta, following, v = np.array(beta, dtype=float), np.empty(Q), np.empty(Q)
+    beta, v = np.array(beta, dtype=float), np.empty(Q)
+    if taus is None and jit.enabled() and sigma.flags.c_contiguous:  # the compiled loop, same numbers
+        from .compiled_backward import backward_regular
+
+        M, M_k = regular_adjoints(engine)
+        lost = backward_regular(sigma, weighted, scale, np.asarray(skip, dtype=bool), M, M_k, beta, v, CHECK)
+        if lost >= 0:
+            raise InputError("increments", f"the backward pass lost every node at row {lost}: nothing to "
+                                           "smooth")
+        return beta
     for k in range(K - 1, -1, -1):
         sigma[k] *= beta
         np.multiply(weighted[k], beta, out=v)
-        adjoint(k, v, following)
-        following *= scale[k]
-        beta, following = following, beta
+        beta = adjoint(k, v, scale[k])
         if k % CHECK == 0:
             top = float(np.max(np.abs(beta)))
             if not np.isfinite(top) or top == 0.0:
@@ -205,25 +291,39 @@ def backward(engine: Any, sigma: np.ndarray, factor: np.ndarray, masses: np.ndar
     return beta
 
 
-def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
-    """adjoint(k, v, out): out = Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
-    N = basis.shape[1]
-    b = np.empty(N)
-    if taus is None:
-        P = np.asfortranarray(engine.offline.propagator_fp, dtype=float)
-        P_k = (np.asfortranarray(engine.offline.propagator_k, dtype=float) if engine.form == "literal"
-               else P)
+_ADJOINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
-        def regular(k: int, v: np.ndarray, out: np.ndarray) -> None:  # literal: observed rows used P_k
-            dgemv(1.0, P if missing[k] else P_k, v, 0.0, b, 0, 1, 0, 1, 1, 1)  # b = Pᵀv
-            dgemv(1.0, basis, b, 0.0, out, 0, 1, 0, 1, 0, 1)  # out = Φb
+
+def regular_adjoints(engine: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(ΦPᵀ, ΦP_kᵀ) (Q×Q, Fortran order) of an engine's regular step (predicting, observing: the same
+    matrix but in the literal form), computed once per engine: one gemv a backward step."""
+    found = _ADJOINTS.get(engine)
+    if found is None:
+        basis = np.asarray(engine.offline.basis, dtype=float)
+        P = np.asarray(engine.offline.propagator_fp, dtype=float)
+        M = np.asfortranarray(basis @ P.T)
+        M_k = (np.asfortranarray(basis @ np.asarray(engine.offline.propagator_k, dtype=float).T)
+               if engine.form == "literal" else M)
+        found = _ADJOINTS[engine] = (M, M_k)
+    return found
+
+
+def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing: np.ndarray):
+    """adjoint(k, v, α) -> α Φ P_kᵀ v (Q,), β_(k−1) from v = ẽ_k ⊙ w ⊙ β_k, for row k's propagator P_k."""
+    N = basis.shape[1]
+    if taus is None:
+        M, M_k = regular_adjoints(engine)  # literal: observed rows used P_k
+        matrices = [M if m else M_k for m in np.asarray(missing, dtype=bool).tolist()]
+
+        def regular(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
+            return dgemv(alpha, matrices[k], v)
 
         return regular
     flow = engine.flow
     if flow.form != "modal":  # Schur or expm forms: Φ e^{τA} by expm per gap
-        def exact(k: int, v: np.ndarray, out: np.ndarray) -> None:
+        def exact(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
             nodal = np.asarray(flow.nodal_flow(float(taus[k])), dtype=float)[:, :-1]
-            out[:] = basis @ (nodal.T @ v)
+            return alpha * (basis @ (nodal.T @ v))
 
         return exact
     B = np.asarray(flow.B, dtype=float)[:, :-1]
@@ -232,11 +332,11 @@ def adjoint_of(engine: Any, basis: np.ndarray, taus: np.ndarray | None, missing:
     real, pairs = np.asarray(real, dtype=float), np.asarray(pairs, dtype=complex)
     r = flow.r
 
-    def modal(k: int, v: np.ndarray, out: np.ndarray) -> None:
+    def modal(k: int, v: np.ndarray, alpha: float) -> np.ndarray:
         d = B.T @ v
         d[:r] *= real[k]
         z = (d[r:N:2] + 1j * d[r + 1:N:2]) * np.conj(pairs[k])
         d[r:N:2], d[r + 1:N:2] = z.real, z.imag
-        np.matmul(G, d, out=out)
+        return alpha * (G @ d)
 
     return modal

@@ -52,11 +52,12 @@ def sample_ou(K, seed, m0=1.0, P0=0.5):
     return xs, dy
 
 
-def point_mass_smoother(rows, taus, cells=400, radius=6.0, r=0.1, m0=0.3, P0=1.0):
+def point_mass_smoother(rows, taus, cells=400, radius=6.0, r=0.1, m0=0.3, P0=1.0, full=False):
     """Forward–backward smoother on a uniform grid: the finite-difference Fokker–Planck generator L of
     dx = −x/2 dt + dw (p_t = ½p'' + (x p/2)'), its flow by expm_multiply over each gap, Lᵀ backwards; the
     likelihood N(z; x²/2, r) at the grid points (a NaN row: none).  Returns (filtered mean, smoothed mean,
-    smoothed variance) per row."""
+    smoothed variance) per row; ``full``: also the grid and the smoothed masses at its points
+    (K, cells − 1)."""
     from scipy.sparse import diags
     from scipy.sparse.linalg import expm_multiply
 
@@ -88,6 +89,8 @@ def point_mass_smoother(rows, taus, cells=400, radius=6.0, r=0.1, m0=0.3, P0=1.0
     fmean = filtered @ x
     mean = smoothed @ x
     var = smoothed @ (x * x) - mean**2
+    if full:
+        return fmean, mean, var, x, smoothed
     return fmean, mean, var
 
 

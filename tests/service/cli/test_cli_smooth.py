@@ -100,3 +100,48 @@ def test_smooth_discrete_readings_with_times(tmp_path):
     mean_gap, var_gap = np.abs(values[:, 2] - mean).max(), np.abs(values[:, 3] / var - 1).max()
     print(f"cli discrete: mean {mean_gap:.2e}, var {var_gap:.2e}")
     assert mean_gap < 0.01 and var_gap < 0.03
+
+
+def test_smooth_quantiles_and_mode_columns(tmp_path):
+    """--quantiles 0.1,0.5,0.9 --mode on the bimodal sensor's readings at irregular times: filter's column
+    names (mode_x, q0.1_x, …), each row's quantiles within 0.02 of the point-mass forward–backward
+    smoother's (its smoothed masses' distribution function inverted, 1200 cells); --density: snapshots
+    whose mean by quadrature is the smoothed mean; --lag with --quantiles or --density exits 2, nothing
+    written."""
+    directory = tmp_path / "store"
+    model_id = yauyau.precompute(spec_from_dict(BIMODAL), directory)
+    rng = np.random.default_rng(14)
+    taus = rng.exponential(0.05, 100) + 1e-3
+    z = simulate_bimodal(taus, seed=15, missing=0.05)
+    path = tmp_path / "obs.csv"
+    path.write_text("t,z\n" + "".join(f"{t!r},{'' if v != v else repr(float(v))}\n"
+                                        for t, v in zip(np.cumsum(taus).tolist(), z.tolist(), strict=True)))
+    out = tmp_path / "out.csv"
+    base = ["smooth", model_id, "--store", str(directory), "--observations", str(path), "--t0", "0",
+            "--out", str(out), "--method", "yau-yau", "--quantiles", "0.1,0.5,0.9"]
+    assert main([*base, "--mode"]) == 0
+    names, values = _read(out)
+    assert names[3:8] == ["cov_x_x", "mode_x", "q0.1_x", "q0.5_x", "q0.9_x"]
+    _, mean, _, x, smoothed = point_mass_smoother(z, taus, cells=1200, full=True)
+    cdf = np.cumsum(smoothed, axis=1) - 0.5 * smoothed
+    reference = np.array([np.interp([0.1, 0.5, 0.9], c / c[-1], x) for c in cdf])
+    gap = np.abs(values[:, 5:8] - reference).max()
+    print(f"cli smoothed quantiles: {gap:.2e}")
+    assert gap < 0.02 and np.abs(values[:, 2] - mean).max() < 0.01
+    # --density: the smoothed density every 20 steps, its mean by quadrature the smoothed mean column
+    from yauyau.storage.density_file import read_density
+
+    density = tmp_path / "d.h5"
+    assert main([*base[:-2], "--density", str(density), "--density-every", "20"]) == 0
+    series = read_density(density)
+    assert series.step.tolist() == [20, 40, 60, 80, 100]
+    grid, marginal = series.axes[0], series.marginals[0]
+    assert np.abs(np.trapezoid(marginal, grid, axis=1) - 1).max() < 1e-3
+    found = np.trapezoid(marginal * grid, grid, axis=1)
+    assert np.abs(found - values[series.step - 1, 2]).max() < 1e-3
+    assert np.abs(found - mean[series.step - 1]).max() < 0.01
+    out.unlink()
+    density.unlink()
+    assert main([*base, "--lag", "5"]) == 2
+    assert main([*base[:-2], "--lag", "5", "--density", str(density)]) == 2
+    assert not out.exists() and not density.exists()

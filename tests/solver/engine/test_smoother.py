@@ -287,3 +287,22 @@ def test_a_following_ball_is_refused_by_name():
     with pytest.raises(SpecError) as err:
         flt.smooth_arrays(flt.initial_state(), np.zeros((3, 1)))
     assert err.value.field == "domain.follow" and "follow" in str(err.value)
+
+
+def test_forward_pass_kept_or_checkpointed_and_both_backward_loops(ou_engine, monkeypatch):
+    """The forward pass kept whole (K·Q ≤ KEEP), in checkpointed blocks of KEEP // Q rows beyond it (the
+    checkpoints from the filter itself), and the backward pass of the Python loop (YAUYAU_KERNEL=numpy):
+    the same smoother to rounding."""
+    from yauyau.solver.engine import jit, smoother
+
+    _, dy = sample_ou(600, seed=9)
+    state = ou_engine.initial_state()
+    _, whole = ou_engine.smooth_arrays(state, dy[:, None])
+    monkeypatch.setattr(smoother, "KEEP", 100 * len(ou_engine.weights))  # blocks of 256 rows
+    _, blocked = ou_engine.smooth_arrays(state, dy[:, None])
+    assert np.abs(blocked.mean - whole.mean).max() < 1e-10 and np.abs(blocked.cov - whole.cov).max() < 1e-10
+    monkeypatch.setattr(jit, "enabled", lambda: False)
+    _, python = ou_engine.smooth_arrays(state, dy[:, None])
+    assert np.abs(python.mean - whole.mean).max() < 1e-10 and np.abs(python.cov - whole.cov).max() < 1e-10
+    ms, Ps = rts_sampled(dy, 1.0, 0.5)[2:]
+    assert np.abs(whole.mean[:, 0] - ms).max() < 0.01 and np.abs(whole.cov[:, 0, 0] / Ps - 1).max() < 0.03
