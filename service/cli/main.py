@@ -22,7 +22,8 @@ COMMANDS = {
     "filter": "run a filter over a file of observations (increments or measurements, regular or timed)",
     "smooth": "run the optimal smoother over a recorded file: each row given every row (or --lag L after)",
     "simulate": "simulate a sample path and its observations (CSV files filter reads)",
-    "plot": "plot a filtered run: mean and 95 percent band, truth, density heat map (PNG or SVG)",
+    "plot": ("plot a filtered run: mean and 95 percent band, the smoothed one beside it, truth, density "
+             "heat map (PNG or SVG)"),
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",
     "check": "whether the spec's discretisation resolves its posterior, before any data",

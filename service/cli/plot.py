@@ -1,11 +1,14 @@
-"""`yauyau plot OUT.csv [--truth TRUTH.csv] [--density D.h5] --out FIG.png`: look at a filtered run.
+"""`yauyau plot OUT.csv [--smoothed S.csv] [--truth TRUTH.csv] [--density D.h5] --out FIG.png`: look at a run.
 
 One row of panels per state variable: the conditional mean against time with a 95% band (the
 marginal quantiles q0.025/q0.975 when OUT.csv has them, else mean ± 1.96 sd), the truth overlaid
 (`yauyau simulate` writes it), rows the outlier gate rejected marked x on the mean (column gated),
 re-initialisations as dotted vertical lines (column reinitialised), degenerate rows shaded, and
-with --density the marginal density as a heat map over time with the mean and truth on top.  PNG or
-SVG by the suffix of --out (matplotlib, no screen needed).
+with --density the marginal density as a heat map over time with the mean and truth on top.  With
+--smoothed S.csv (`yauyau smooth --out S.csv` over the same rows) the smoothed mean and its 95% band are
+drawn on the same panels, in red beside the filtered blue, each labelled; its rows must be OUT.csv's
+(same count, same t) and its variables the same.  PNG or SVG by the suffix of --out (matplotlib, no
+screen needed).
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ FORMATS = (".png", ".svg")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("estimates", metavar="OUT.csv", help="output of yauyau filter")
+    parser.add_argument("--smoothed", default=None, metavar="S.csv",
+                        help="output of yauyau smooth over the same rows: its mean and 95%% band drawn "
+                             "beside the filtered ones")
     parser.add_argument("--truth", default=None, metavar="TRUTH.csv", help="truth.csv of yauyau simulate")
     parser.add_argument("--density", default=None, metavar="D.h5",
                         help="density file of yauyau filter --density")
@@ -52,14 +58,40 @@ def read_table(path: str, field: str) -> dict[str, list[float]]:
     return columns
 
 
-def variables(columns: dict[str, list[float]], path: str) -> list[str]:
+def variables(columns: dict[str, list[float]], path: str, field: str = "estimates") -> list[str]:
     from yauyau.solver.errors import InputError
 
     names = [c[len("mean_"):] for c in columns if c.startswith("mean_")]
     if not names or "t" not in columns:
-        raise InputError("estimates", f"{path} has no t and mean_<var> columns: is it the output of "
-                                      "yauyau filter?")
+        command = "smooth" if field == "smoothed" else "filter"
+        raise InputError(field, f"{path} has no t and mean_<var> columns: is it the output of "
+                                f"yauyau {command}?")
+    for var in names:
+        quantiles = f"q0.025_{var}" in columns and f"q0.975_{var}" in columns
+        has_band = f"cov_{var}_{var}" in columns or quantiles
+        if not has_band:
+            raise InputError(field, f"{path} has mean_{var} but neither cov_{var}_{var} nor q0.025_{var} and "
+                                    f"q0.975_{var}: no band to draw")
     return names
+
+
+def check_smoothed(estimates: dict, names: list[str], smoothed: dict, path: str) -> None:
+    """The smoothed file must cover the filtered file's rows: same variables, same row count, same t."""
+    import numpy as np
+    from yauyau.solver.errors import InputError
+
+    theirs = variables(smoothed, path, "smoothed")
+    if theirs != names:
+        raise InputError("smoothed", f"{path} has the variables {theirs}, the filtered file {names}")
+    if len(smoothed["t"]) != len(estimates["t"]):
+        raise InputError("smoothed", f"{path} has {len(smoothed['t'])} rows, the filtered file "
+                                     f"{len(estimates['t'])}: smooth the same rows")
+    a, b = np.array(estimates["t"]), np.array(smoothed["t"])
+    differ = ~np.isclose(a, b, rtol=1e-9, atol=1e-12)
+    if differ.any():
+        k = int(np.argmax(differ))
+        raise InputError("smoothed", f"{path} row {k + 1}: t = {b[k]!r}, the filtered file's t = {a[k]!r}: "
+                                     "smooth the same rows")
 
 
 def band(columns: dict[str, list[float]], var: str):
@@ -74,8 +106,10 @@ def band(columns: dict[str, list[float]], var: str):
     return mean - 1.96 * sd, mean + 1.96 * sd, "mean ± 1.96 sd"
 
 
-def draw(estimates: dict, names: list[str], truth: dict | None, density, title: str):
-    """The figure (matplotlib Figure, Agg canvas)."""
+def draw(estimates: dict, names: list[str], truth: dict | None, density, title: str,
+         smoothed: dict | None = None):
+    """The figure (matplotlib Figure, Agg canvas); ``smoothed`` (checked by check_smoothed) adds the
+    smoothed mean and band in red."""
     import numpy as np
     from matplotlib.figure import Figure
 
@@ -91,8 +125,14 @@ def draw(estimates: dict, names: list[str], truth: dict | None, density, title: 
         ax = axes[i, 0]
         mean = np.array(estimates[f"mean_{var}"])
         low, high, label = band(estimates, var)
-        ax.fill_between(t, low, high, color="tab:blue", alpha=0.25, linewidth=0, label=label)
-        ax.plot(t, mean, color="tab:blue", linewidth=1.2, label="conditional mean")
+        which = "filtered " if smoothed is not None else ""
+        ax.fill_between(t, low, high, color="tab:blue", alpha=0.25, linewidth=0, label=which + label)
+        ax.plot(t, mean, color="tab:blue", linewidth=1.2, label=which + "conditional mean")
+        if smoothed is not None:
+            s_low, s_high, s_label = band(smoothed, var)
+            ax.fill_between(t, s_low, s_high, color="tab:red", alpha=0.2, linewidth=0,
+                            label="smoothed " + s_label)
+            ax.plot(t, smoothed[f"mean_{var}"], color="tab:red", linewidth=1.2, label="smoothed mean")
         if f"mode_{var}" in estimates:
             ax.plot(t, estimates[f"mode_{var}"], color="tab:green", linewidth=0.8, label="mode")
         if truth is not None and var in truth:
@@ -181,6 +221,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("out", f"{out.name}: give a .png or .svg file name")
     estimates = read_table(args.estimates, "estimates")
     names = variables(estimates, args.estimates)
+    smoothed = None
+    if args.smoothed:
+        smoothed = read_table(args.smoothed, "smoothed")
+        check_smoothed(estimates, names, smoothed, args.smoothed)
     truth = read_table(args.truth, "truth") if args.truth else None
     if truth is not None and "t" not in truth:
         raise InputError("truth", f"{args.truth} has no t column: is it the truth.csv of yauyau simulate?")
@@ -189,8 +233,9 @@ def run(args: argparse.Namespace) -> int:
         from yauyau.storage.density_file import read_density
 
         density = read_density(args.density)
-    title = args.title or " · ".join(Path(p).name for p in (args.estimates, args.truth, args.density) if p)
-    fig = draw(estimates, names, truth, density, title)
+    title = args.title or " · ".join(Path(p).name for p in (args.estimates, args.smoothed, args.truth,
+                                                           args.density) if p)
+    fig = draw(estimates, names, truth, density, title, smoothed)
     try:
         fig.savefig(out, dpi=110)
     except OSError as exc:

@@ -145,3 +145,73 @@ def test_smooth_quantiles_and_mode_columns(tmp_path):
     assert main([*base, "--lag", "5"]) == 2
     assert main([*base[:-2], "--lag", "5", "--density", str(density)]) == 2
     assert not out.exists() and not density.exists()
+
+
+def _png(path):
+    import matplotlib.image
+
+    return matplotlib.image.imread(path)[..., :3]
+
+
+def test_plot_draws_the_smoothed_band_beside_the_filtered_one(stored, tmp_path, capsys):
+    """`yauyau plot F.csv --smoothed S.csv`: one PNG with both means and both 95% bands, labelled; the
+    lines and bands are drawn from the two files' columns (read back from the figure's artists); the
+    smoothed band is narrower (it uses more data). Bad --smoothed (missing file, other rows, other t,
+    other variables, not a run's output) exits 2 naming smoothed, nothing written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from yauyau.service.cli import plot
+
+    directory, model_id, path, _ = stored
+    filtered, smoothed = tmp_path / "f.csv", tmp_path / "s.csv"
+    assert main(["filter", model_id, "--store", str(directory), "--increments", str(path), "--out",
+                 str(filtered), "--method", "yau-yau"]) == 0
+    assert main(["smooth", model_id, "--store", str(directory), "--increments", str(path), "--out",
+                 str(smoothed), "--method", "yau-yau"]) == 0
+    fig_path, plain = tmp_path / "both.png", tmp_path / "plain.png"
+    assert main(["plot", str(filtered), "--smoothed", str(smoothed), "--out", str(fig_path)]) == 0
+    assert main(["plot", str(filtered), "--out", str(plain)]) == 0
+    image = _png(fig_path)
+    assert image.std() > 0.05
+    def red(img):  # the tab:red smoothed mean line
+        return (np.abs(img - np.array([0.84, 0.15, 0.16])) < 0.08).all(axis=-1).mean()
+
+    assert red(image) > 0.001 and red(_png(plain)) < 1e-4
+    # the data the figure is drawn from
+    f_cols, s_cols = plot.read_table(str(filtered), "estimates"), plot.read_table(str(smoothed), "smoothed")
+    names = plot.variables(f_cols, str(filtered))
+    plot.check_smoothed(f_cols, names, s_cols, str(smoothed))
+    fig = plot.draw(f_cols, names, None, None, "t", s_cols)
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    assert np.array_equal(lines["filtered conditional mean"].get_ydata(), np.array(f_cols["mean_x"]))
+    assert np.array_equal(lines["smoothed mean"].get_ydata(), np.array(s_cols["mean_x"]))
+    bands = {c.get_label(): c for c in ax.collections}
+    assert set(bands) == {"filtered mean ± 1.96 sd", "smoothed mean ± 1.96 sd"}
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert {"filtered conditional mean", "smoothed mean", *bands} <= set(legend)
+
+    def width(label):  # the band's height along t, from the polygon fill_between drew
+        verts = bands[label].get_paths()[0].vertices
+        k = len(f_cols["t"])
+        return verts[k + 2:2 * k + 2, 1][::-1] - verts[1:k + 1, 1]
+
+    s_sd = np.sqrt(np.array(s_cols["cov_x_x"]))
+    assert np.allclose(width("smoothed mean ± 1.96 sd"), 2 * 1.96 * s_sd, atol=1e-9)
+    assert (width("smoothed mean ± 1.96 sd") <= width("filtered mean ± 1.96 sd") + 1e-9).all()
+    # bad --smoothed: exit 2 naming it, nothing written
+    text = smoothed.read_text().splitlines()
+    cases = {"missing.csv": None, "short.csv": "\n".join(text[:-1]),
+             "shifted.csv": "\n".join([text[0], text[1].replace(",0.01,", ",0.015,", 1), *text[2:]]),
+             "renamed.csv": "\n".join([text[0].replace("mean_x", "mean_y").replace("cov_x_x", "cov_y_y"),
+                                        *text[1:]]),
+             "nomean.csv": "a,b\n1,2"}
+    for name, body in cases.items():
+        if body is not None:
+            (tmp_path / name).write_text(body + "\n")
+        out = tmp_path / f"bad-{name}.png"
+        capsys.readouterr()
+        assert main(["plot", str(filtered), "--smoothed", str(tmp_path / name), "--out", str(out)]) == 2, name
+        err = capsys.readouterr().err
+        assert "error: smoothed" in err and "Traceback" not in err and not out.exists(), (name, err)
