@@ -154,7 +154,7 @@ def create_session(service: SessionsDep, tenant: TenantDep, body: SessionCreate)
     tenant creating it."""
     return _json(service.create(body.model, body.prior, body.method, body.on_degenerate, body.t0, body.gate,
                                 lost_track=None if body.lost_track is None else body.lost_track.model_dump(),
-                                monitor=body.monitor, owner=tenant), 201)
+                                monitor=body.monitor, owner=tenant, smooth_lag=body.smooth_lag), 201)
 
 
 @sessions.get("", response_model=SessionPage, responses=_errors(422))

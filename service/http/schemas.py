@@ -56,6 +56,11 @@ class SessionCreate(_Body):
                     "raises `alarm` on a row): the mean number of healthy rows per false alarm, from 1e3 to "
                     "1e15 (1e9 is a good choice), or 0 (off); default: the model spec's [measurement] "
                     "monitor (off unless set)")
+    smooth_lag: Any = Field(
+        None, description="fixed-lag smoothing, in rows (1 to 1000): every chunk response then also carries "
+                          "`smoothed`, the estimate of each row given the smooth_lag rows after it, for the "
+                          "rows this chunk completes (row k once row k + smooth_lag has come). Methods that "
+                          "smooth only: yau-yau on a fixed ball, kalman-bucy with discrete measurements")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
@@ -164,6 +169,7 @@ class SessionOptions(BaseModel):
     lost_track: LostTrackOut | None = Field(None, description="the lost-track rule in force")
     monitor: float | None = Field(None, description="the innovation monitor in force: healthy rows per false "
                                                     "alarm (0: off)")
+    smooth_lag: int | None = Field(None, description="fixed-lag smoothing in rows (when set)")
 
 
 class SessionCreated(BaseModel):
@@ -198,6 +204,10 @@ class ChunkResult(BaseModel):
                                                                        "the filter started again")
     alarms: list[int] = Field(default_factory=list, description="rows of this chunk (0-based) where the "
                                                                 "innovation monitor raised its alarm")
+    smoothed: list[EstimateOut] | None = Field(
+        None, description="(smooth_lag sessions) the fixed-lag smoothed estimates this chunk completes, in "
+                          "order: row k's given the rows up to k + smooth_lag (its step is row k's); empty "
+                          "after a degenerate or re-initialised row (the lag starts again from there)")
     monitor: float | None = Field(None, description="the innovation monitor's statistic after the chunk (±1: "
                                                     "an alarm; null: the monitor is off)")
 

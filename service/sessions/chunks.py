@@ -25,6 +25,7 @@ from yauyau.solver.watch import Watch, WatchSettings, join_state, settle, split_
 
 from .. import metrics
 from ..models.cache import LoadedModel
+from .lagged import lagged_rows, split_lag
 from .responses import Extras, encode_response, response_body, result_response, result_rows, summary_fields
 
 ROW_FIELDS = {"continuous": "increments", "discrete": "observations"}
@@ -58,10 +59,12 @@ class ChunkJob:
     record: Any = None  # the session as read to check the chunk (the store may use it)
     settings: WatchSettings | None = None  # the session's watch (solver/watch.py)
     applied: dict[str, Any] | None = None  # the response, once computed (for the metrics)
+    lag: int | None = None  # the session's smooth_lag (service/sessions/lagged.py): run alone
 
 
 def load_state(filt: Any, data: Any) -> tuple[Any, Watch]:
-    """(filter state, watch) of a stored session state."""
+    """(filter state, watch) of a stored session state (its fixed-lag window, if any, left aside)."""
+    data, _ = split_lag(data)
     data, watch = split_state(data)
     return filt.state_from_dict(data), watch
 
@@ -183,13 +186,14 @@ def compute_many(jobs: list[ChunkJob], pairs: list[tuple[int, dict[str, Any]]]) 
             out[p] = exc
     # a filter that lost track computes nothing (it answers held rows): alone, with its reason
     together = [p for p in range(len(pairs))
-                if out[p] is None and not jobs[pairs[p][0]].extras and watches[p].lost is None]
+                if out[p] is None and not jobs[pairs[p][0]].extras and watches[p].lost is None
+                and jobs[pairs[p][0]].lag is None]
     if together:
         _run_together(jobs, pairs, together, states, watches, out)
     for p in range(len(pairs)):
         if out[p] is None:
             try:
-                out[p] = _alone(jobs[pairs[p][0]], states[p], watches[p])
+                out[p] = _alone(jobs[pairs[p][0]], states[p], watches[p], split_lag(pairs[p][1])[1])
             except Exception as exc:  # noqa: BLE001 - that chunk's answer
                 out[p] = exc
     return out
@@ -223,11 +227,22 @@ def _run_together(jobs: list[ChunkJob], pairs: list[tuple[int, dict[str, Any]]],
             out[p] = exc
 
 
-def _alone(job: ChunkJob, state: Any, watch: Watch) -> tuple[dict[str, Any], str]:
+def _alone(job: ChunkJob, state: Any, watch: Watch, window: dict[str, Any] | None = None,
+           ) -> tuple[dict[str, Any], str]:
+    before = state
     state, watch, response = chunk_response(job.seq, state, job.array, job.filt, job.extras, job.times,
                                             job.policy, watch, job.settings or WatchSettings())
     job.applied = response
-    return join_state(state, watch), encode_response(response)
+    stored = join_state(state, watch)
+    if job.lag is not None:  # fixed-lag smoothing (service/sessions/lagged.py)
+        if response["degenerate"] or response["reinitialised"] or watch.lost is not None:
+            response["smoothed"] = []  # the window starts again from the new state
+        else:
+            stamps = np.array([row["t"] for row in response["estimates"]], dtype=float)
+            response["smoothed"], window = lagged_rows(job.filt, job.lag, before, window, job.array,
+                                                       job.times, stamps)
+            stored["lag"] = window
+    return stored, encode_response(response)
 
 
 def count_applied(job: ChunkJob) -> None:

@@ -65,10 +65,11 @@ from .chunks import (
     request_digest,
     rows_array,
 )
+from .lagged import check_can_smooth, check_smooth_lag
 from .responses import Extras, encode_response, estimate_full, frame_body, summaries_of
 
 DEFAULT_OPTIONS = {"on_degenerate": DEFAULT_POLICY, "t0": 0.0, "gate": None, "lost_track": None,
-                   "monitor": None}
+                   "monitor": None, "smooth_lag": None}
 
 
 def _record(rec: Any, name: str) -> Any:
@@ -104,6 +105,8 @@ def _shown_options(options: dict[str, Any], filt: Any) -> dict[str, Any]:
         shown["lost_track"] = settings.lost.to_dict()
     if settings.monitor > 0:
         shown["monitor"] = settings.monitor
+    if options.get("smooth_lag") is not None:
+        shown["smooth_lag"] = int(options["smooth_lag"])
     return shown
 
 
@@ -173,14 +176,15 @@ class Sessions:
 
     def create(self, model_id: str, prior: Any | None, method: str | None, on_degenerate: str = "stop",
                t0: float = 0.0, gate: float | None = None, lost_track: Any | None = None,
-               monitor: float | None = None, owner: str | None = None) -> dict[str, Any]:
+               monitor: float | None = None, owner: str | None = None,
+               smooth_lag: int | None = None) -> dict[str, Any]:
         """A new session of ``model_id``; its options (``on_degenerate``, ``t0``, ``gate``,
-        ``lost_track``, ``monitor``) and its ``owner`` (the tenant creating it, or None) are stored
-        with it."""
+        ``lost_track``, ``monitor``, ``smooth_lag``: service/sessions/lagged.py) and its ``owner`` (the
+        tenant creating it, or None) are stored with it."""
         options = {"on_degenerate": check_policy(on_degenerate), "t0": check_t0(t0),
                    "gate": check_gate(gate),
                    "lost_track": None if lost_track is None else check_lost_track(lost_track).to_dict(),
-                   "monitor": check_monitor(monitor)}
+                   "monitor": check_monitor(monitor), "smooth_lag": check_smooth_lag(smooth_lag)}
         loaded = self.registry.get(model_id)
         check_t0(t0, "t0", float(loaded.model.dt))  # a step of dt must still be a step at t0
         filt = loaded.filter(method, options["gate"])
@@ -189,6 +193,8 @@ class Sessions:
         except SpecError as exc:  # the prior of the request, not the spec's: name it so
             raise (_as_prior_error(exc) if prior is not None else exc) from None
         state = at_time(state, options["t0"])
+        if options["smooth_lag"] is not None:
+            check_can_smooth(filt, state)
         estimate = estimate_full(filt.estimate(state))
         response = {"model": model_id, "method": filt.method, "step": int(state.step), "t": float(state.t),
                     "estimate": estimate, "options": _shown_options(options, filt)}
@@ -264,7 +270,8 @@ class Sessions:
         asked = request_digest(data, request.extras, field, times)
         options = _options(rec)
         return ChunkJob(request.session_id, request.seq, asked, filt, array, times,
-                         options["on_degenerate"], request.extras, rec, _watch_settings(options, filt))
+                         options["on_degenerate"], request.extras, rec, _watch_settings(options, filt),
+                         lag=options.get("smooth_lag"))
 
     def reset(self, session_id: str, seq: int, prior: Any | None = None, source: str | None = None,
               encoded: bool = False, tenant: str | None = None) -> Any:
