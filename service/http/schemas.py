@@ -57,10 +57,11 @@ class SessionCreate(_Body):
                     "1e15 (1e9 is a good choice), or 0 (off); default: the model spec's [measurement] "
                     "monitor (off unless set)")
     smooth_lag: Any = Field(
-        None, description="fixed-lag smoothing, in rows (1 to 1000): every chunk response then also carries "
-                          "`smoothed`, the estimate of each row given the smooth_lag rows after it, for the "
-                          "rows this chunk completes (row k once row k + smooth_lag has come). Methods that "
-                          "smooth only: yau-yau on a fixed ball, kalman-bucy with discrete measurements")
+        None, json_schema_extra={"type": "integer", "minimum": 1, "maximum": 1000},
+        description="fixed-lag smoothing, in rows (1 to 1000): every chunk response then also carries "
+                    "`smoothed`, the estimate of each row given the smooth_lag rows after it, for the "
+                    "rows this chunk completes (row k once row k + smooth_lag has come). Methods that "
+                    "smooth only: yau-yau on a fixed ball, kalman-bucy with discrete measurements")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},

@@ -104,6 +104,14 @@ def test_engine_session_smooths_with_a_fixed_lag_exactly_once(served):
         assert again.content == answers[seq].content
     info = client.get(f"/v1/sessions/{created['id']}").json()
     assert info["step"] == K and info["next_seq"] == len(sizes) and info["options"]["smooth_lag"] == LAG
+    # a reset starts the window again at the session's step: rows after it only
+    seq = len(sizes)
+    r = client.post(f"/v1/sessions/{created['id']}/reset", json={"seq": seq, "from": "model"})
+    assert r.status_code == 200, r.text
+    after = [_post(client, created["id"], seq + 1 + i, "increments", dy[:n]).json()
+             for i, n in enumerate((5, 10))]
+    assert after[0]["smoothed"] == []
+    assert [e["step"] for e in after[1]["smoothed"]] == list(range(K + 1, K + 15 - LAG + 1))
 
 
 def test_kalman_bucy_discrete_session_smooths_at_irregular_times(served):
