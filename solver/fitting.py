@@ -7,8 +7,9 @@ near-exact one otherwise).  :func:`fit` maximises it over a box of free names wi
 * free names are entries of the spec's ``parameters`` table and the reserved
   ``observation_noise[i][i]`` / ``diffusion[i][i]`` (the noise variances); the spec's values start;
 * the optimiser is scipy's bounded L-BFGS-B on the box scaled to [0, 1]ᵏ with finite-difference
-  gradients (measured on OU's exact likelihood against Powell with bounds: the same optimum within
-  1e-6 of the box, about half the evaluations; the likelihood is smooth in the parameters);
+  gradients: measured on OU's exact (Kalman–Bucy) likelihood of 1 000 irregular readings, it took 10
+  evaluations where Powell with bounds took 40, both at the same optimum (θ within 3e-6, log-likelihood
+  within 1e-9); the likelihood is smooth in the parameters;
 * standard errors are from the observed information, the Hessian of the log-likelihood at the
   optimum by ``scipy.differentiate.hessian`` (central differences, steps scaled to each parameter);
 * the offline stage depends on the drift and the diffusion only (the stable form filters with

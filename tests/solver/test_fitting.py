@@ -82,7 +82,6 @@ def check_ou(K: int, seed: int):
     return found, theta, se
 
 
-@pytest.mark.slow
 def test_ou_rate_from_1000_irregular_readings_is_the_exact_kalman_mle():
     check_ou(1000, 3)
 
@@ -106,3 +105,73 @@ def test_bad_input_names_the_field():
     with pytest.raises(InputError) as err:
         yauyau.fit(spec, z[:2, None], t[:2], free={"theta": (0.1, 1.0)})
     assert err.value.field == "rows"
+
+
+SQUARE = '''
+name = "square-sensor-fit"
+state = ["x"]
+drift = ["-theta*x"]
+observation = ["x**2/2"]
+observation_noise = [[0.05]]
+parameters = { theta = 0.6 }
+method = "yau-yau"
+[measurement]
+kind = "discrete"
+[initial]
+kind = "gaussian"
+mean = [1.0]
+cov = [[0.25]]
+[domain]
+radius = 6.0
+[discretization]
+dt = 0.01
+basis = 40
+'''
+
+
+def grid_loglik(theta: float, z: np.ndarray, t: np.ndarray, r: float = 0.05, half: float = 6.0,
+                points: int = 241) -> float:
+    """A point-mass likelihood: the grid's Markov chain (upwind rates of drift -θx, diffusion 1) carries
+    the prior between readings (scipy.sparse.linalg.expm_multiply), each reading weighs the masses."""
+    from scipy.sparse import diags
+    from scipy.sparse.linalg import expm_multiply
+
+    x = np.linspace(-half, half, points)
+    h = x[1] - x[0]
+    f = -theta * x
+    up = np.maximum(f, 0) / h + 0.5 / h**2
+    down = np.maximum(-f, 0) / h + 0.5 / h**2
+    up[-1] = down[0] = 0.0
+    Q = diags([-(up + down), up[:-1], down[1:]], [0, 1, -1]).tocsc()  # rows: from, columns: to
+    A = Q.T.tocsc()
+    p = np.exp(-0.5 * (x - 1.0) ** 2 / 0.25)
+    p /= p.sum()
+    prev, total = 0.0, 0.0
+    for zk, tk in zip(z, t, strict=True):
+        p = np.maximum(expm_multiply(A * (tk - prev), p), 0.0)
+        w = p * np.exp(-0.5 * (zk - x**2 / 2) ** 2 / r) / math.sqrt(2 * math.pi * r)
+        total += math.log(w.sum())
+        p = w / w.sum()
+        prev = tk
+    return total
+
+
+def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
+    spec = yauyau.parse_spec_text(SQUARE, "toml")
+    rng = np.random.default_rng(7)
+    K, theta = 300, 1.0
+    t = np.cumsum(rng.exponential(0.1, K))
+    x, prev, xs = rng.normal(1.0, 0.5), 0.0, []
+    for tk in t:
+        a = math.exp(-theta * (tk - prev))
+        x = a * x + rng.normal(0.0, math.sqrt((1 - a * a) / (2 * theta)))
+        xs.append(x)
+        prev = tk
+    z = np.array(xs) ** 2 / 2 + rng.normal(0.0, math.sqrt(0.05), K)
+    ref = minimize_scalar(lambda th: -grid_loglik(th, z, t), bounds=(0.2, 3.0), method="bounded",
+                          options={"xatol": 1e-4}).x
+    found = yauyau.fit(spec, z[:, None], t, free={"theta": (0.2, 3.0)})
+    assert found.converged, found.reason
+    assert found.method == "yau-yau"
+    assert abs(found.estimates["theta"] - ref) < 0.02 + 0.05 * ref, (found.estimates, ref)
+    assert math.isfinite(found.stderr["theta"]) and found.stderr["theta"] > 0
