@@ -175,3 +175,27 @@ def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
     assert found.method == "yau-yau"
     assert abs(found.estimates["theta"] - ref) < 0.02 + 0.05 * ref, (found.estimates, ref)
     assert math.isfinite(found.stderr["theta"]) and found.stderr["theta"] > 0
+
+
+def test_offline_stage_is_keyed_by_what_it_depends_on():
+    """A name entering only h, the observation noise or the prior keeps the offline stage's content hash
+    (reused, no precompute); one entering the drift or the diffusion changes it (recomputed)."""
+    from yauyau.solver.fitting import _offline_key, with_values
+
+    spec = yauyau.parse_spec_text(SQUARE.replace("parameters = { theta = 0.6 }",
+                                                 "parameters = { theta = 0.6, c = 0.5 }")
+                                  .replace('["x**2/2"]', '["c*x**2"]'), "toml")
+    key = _offline_key(spec)
+    assert _offline_key(with_values(spec, {"c": 0.7})) == key
+    assert _offline_key(with_values(spec, {"observation_noise[0][0]": 0.2})) == key
+    assert _offline_key(with_values(spec, {"theta": 0.7})) != key
+    assert _offline_key(with_values(spec, {"diffusion[0][0]": 2.0})) != key
+
+
+def test_profile_peaks_at_the_estimate():
+    spec = yauyau.parse_spec_text(OU, "toml")
+    z, t = ou_record(300, 4)
+    found = yauyau.fit(spec, z[:, None], t, free={"theta": (0.05, 2.0)}, profile="theta")
+    grid, ll = np.array(found.profile["grid"]), np.array(found.profile["loglik"])
+    assert np.all(ll <= found.loglik + 1e-9)
+    assert abs(grid[np.argmax(ll)] - found.estimates["theta"]) <= grid[1] - grid[0]
