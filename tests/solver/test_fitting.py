@@ -199,3 +199,33 @@ def test_profile_peaks_at_the_estimate():
     grid, ll = np.array(found.profile["grid"]), np.array(found.profile["loglik"])
     assert np.all(ll <= found.loglik + 1e-9)
     assert abs(grid[np.argmax(ll)] - found.estimates["theta"]) <= grid[1] - grid[0]
+
+
+def test_a_likelihood_not_finite_in_the_box_is_reported_not_optimised(monkeypatch):
+    """Where the record's log-likelihood is NaN (here: made so on 0.54 < θ < 0.57, around the
+    maximum, where the optimiser or the Hessian's steps go), the fit stops with
+    converged False and the reason naming the values, instead of optimising through it."""
+    import dataclasses
+
+    from yauyau.solver import methods
+
+    real = methods.make_filter
+
+    def broken(model, offline=None, method=None, **kw):
+        flt = real(model, offline, method, **kw)
+        if not 0.54 < model.spec.parameters["theta"] < 0.57:
+            return flt
+        run = flt.run_arrays
+
+        def nan_run(state, rows, times=None):
+            state, result = run(state, rows, times)
+            return state, dataclasses.replace(result, loglik=np.full_like(result.loglik, np.nan))
+        flt.run_arrays = nan_run
+        return flt
+
+    monkeypatch.setattr(methods, "make_filter", broken)
+    spec = yauyau.parse_spec_text(OU, "toml")
+    z, t = ou_record(300, 4)  # its maximum is near 0.553
+    found = yauyau.fit(spec, z[:, None], t, free={"theta": (0.05, 5.0)})
+    assert not found.converged
+    assert "not finite" in found.reason and "theta" in found.reason
