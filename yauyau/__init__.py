@@ -123,6 +123,9 @@ _API = {
     "simulate": "yauyau.api",
     # analysis
     "analyze": "yauyau.api",
+    # fitting
+    "fit": "yauyau.solver.fitting",
+    "FitResult": "yauyau.solver.fitting",
     # errors (each names the field at fault)
     "YauyauError": "yauyau.solver.errors",
     "SpecError": "yauyau.solver.errors",

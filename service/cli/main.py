@@ -1,5 +1,5 @@
 """The ``yauyau`` console script: precompute, models, filter, smooth, simulate, plot, serve,
-analyze, check.
+analyze, check, fit.
 
 Each subcommand lives in ``service/cli/<name>.py`` with ``add_arguments(parser)`` and
 ``run(args) -> int``.  User errors (:class:`solver.YauyauError`, ``storage.StoreError``) print one
@@ -26,6 +26,7 @@ COMMANDS = {
              "heat map (PNG or SVG)"),
     "serve": "serve the HTTP API",
     "analyze": "estimation-algebra analysis of a model spec and the recommended method",
+    "fit": "maximum-likelihood estimates of a spec's parameters from a record, with standard errors",
     "check": "whether the spec's discretisation resolves its posterior, before any data",
 }
 
