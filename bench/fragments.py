@@ -51,6 +51,7 @@ FRAGMENTS = [
     ("three_d", "3d.md"),
     ("follow_cost", "follow-cost.md"),
     ("smoother", "smoother.md"),
+    ("fit", "fit.md"),
 ]
 
 _LINK = re.compile(r"(\]\()([^)\s]+)(\))")
