@@ -8,7 +8,7 @@
   precompute), from process start to exit: as it chooses (the numpy kernel for so short an input),
   with the compiled kernel forced and the cache that precompute warmed, and forced with a cold cache
   (a fresh ``YAUYAU_CACHE_DIR`` each run: what the first run on a machine where nothing warmed it pays);
-* the kernel's break-even for a one-shot `filter` (solver/engine/jit.py ``COMPILED_MIN_ROWS``): CPU
+* the kernel's break-even for a one-shot `filter` (solver/jit.py ``COMPILED_MIN_ROWS``): CPU
   seconds of `filter` on 1, 20 000 and 100 000 rows with each kernel forced;
 * ``yauyau serve`` from process start to ``/readyz`` answering 200, with 1 and with 9 stored models;
 * the same commands of an earlier git revision (``--baseline REV``, default ``ea33e0d``: v0.1, the
@@ -215,7 +215,7 @@ def render(results: dict[str, dict[str, float]], repeats: int, baseline: str | N
     even = results["break-even"]
     lines += ["", "The kernel's break-even for a one-shot `filter` (CPU seconds, user + system, each kernel "
               "forced with `YAUYAU_KERNEL`; `filter` itself takes the numpy path below "
-              "`COMPILED_MIN_ROWS` rows, solver/engine/jit.py):", "",
+              "`COMPILED_MIN_ROWS` rows, solver/jit.py):", "",
               "| rows | numpy kernel s | compiled kernel s | compiled − numpy s |", "|---:|---:|---:|---:|"]
     for rows in BREAK_EVEN_ROWS:
         a, b = even[f"{rows} numpy"], even[f"{rows} compiled"]

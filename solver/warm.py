@@ -2,7 +2,7 @@
 
 The compiled loops (solver/engine/compiled.py) are compiled on first use, per argument type: about 4 s
 the first time on a machine, about 0.7 s in each later process (numba's import and its on-disk cache,
-solver/engine/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
+solver/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
 1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
 double and single precision: the same calls, with the same array types, as any model's chunks; and a
@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from .engine import jit
+from . import jit
 
 _TOY = {"name": "warm-up", "state": ["x"], "drift": ["-x"], "observation": ["x"],
         "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[0.5]]},

@@ -48,6 +48,15 @@ Simulation and checks
 
    simulate         -- a true path and its rows (increments dy or readings z), every dt or at given times
 
+Fitting
+-------
+
+.. autosummary::
+
+   fit              -- maximum-likelihood estimates of a spec's parameters and noise levels from a
+                       record, with standard errors (the filter's own log-likelihood)
+   FitResult        -- estimates, stderr, loglik, evaluations, converged, method, profile, fitted spec
+
 Before any data, ``yauyau check SPEC`` (the command line) filters a few simulated paths against a
 reference (the exact Kalman filter, or the engine at twice the basis) and says whether the spec's
 discretisation resolves the posterior.

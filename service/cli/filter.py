@@ -166,7 +166,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from yauyau.solver.engine import jit
+    from yauyau.solver import jit
 
     with jit.one_shot():  # the kernel chosen for this input's length ends with the command
         return _run(args)
@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
-    from yauyau.solver.engine import jit
+    from yauyau.solver import jit
     from yauyau.solver.filtering import check_t0, cumulative_hint
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter

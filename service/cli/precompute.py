@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 def _warm_kernels(args: argparse.Namespace) -> None:
     """Compile the engine's row loops into numba's on-disk cache (or load them from it), so that
     ``yauyau filter`` and the service do not compile them on their first chunk; say what it cost."""
-    from yauyau.solver.engine.jit import cache_dir
+    from yauyau.solver.jit import cache_dir
     from yauyau.solver.warm import warm_kernels
 
     seconds = warm_kernels()

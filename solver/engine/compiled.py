@@ -1,6 +1,6 @@
 """The engine's row loops compiled by numba: whole chunks without Python between the rows.
 
-The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/engine/jit.py) for regular rows,
+The fast path of solver/engine/loops.py (``YAUYAU_KERNEL``, solver/jit.py) for regular rows,
 irregular rows (modal scaling, the Schur form's tables: :func:`run_schur`, or a nodal flow per run of
 equal gaps) and a ball that moves inside the
 loop (:func:`run_moving`: it also stops after a row whose trigger fires).  Each loop runs rows
@@ -30,7 +30,7 @@ from llvmlite import binding as llvm
 from numba import types
 from numba.extending import get_cython_function_address
 
-from .jit import writable_cache_dir
+from ..jit import writable_cache_dir
 
 TRANS_N = ord("N")
 

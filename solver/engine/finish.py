@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from .. import jit
 from ..filtering import ChunkResult, Estimate
 from ..measurement import standard_score
-from . import jit
 from .gate import Prepared
 from .kernel import FACTOR_OVERFLOWS, moment_features, moment_pairs, moments_from, stack_results
 from .state import YauYauState

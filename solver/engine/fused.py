@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from . import jit
+from .. import jit
 from .finish import Recompute, Summary, summary_rows
 from .gate import Gate, Prepared
 

@@ -15,7 +15,7 @@ number of good steps and why the loop stopped early (None: it did not).  A step 
 overflows, or an observed row whose cheap gate bound is over its threshold, takes the slow path
 (:func:`slow_step`: log scale, the exact gate score).
 
-Where numba is (``YAUYAU_KERNEL``, solver/engine/jit.py), the three loops run their rows in the
+Where numba is (``YAUYAU_KERNEL``, solver/jit.py), the three loops run their rows in the
 compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow path (or, on a
 moving ball, after a row whose trigger fired): :func:`run_compiled` and :func:`moving_compiled` take
 that row's slow step (or the move, or the next window of factors) here and re-enter at the next row —
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from . import jit
+from .. import jit
 from .gate import Gate
 from .kernel import NO_MASS_AFTER_UPDATE, NO_MASS_ON_BALL, log_mean_factor, observe, predict, project, rescue
 

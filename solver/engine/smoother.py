@@ -55,10 +55,10 @@ from typing import Any, Callable
 import numpy as np
 from scipy.linalg.blas import dgemv
 
+from .. import jit
 from ..errors import InputError, SpecError
 from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
-from . import jit
 from .loops import loop_irregular, loop_regular, update_factors
 from .pieces import row_pieces
 from .state import YauYauState

@@ -1,6 +1,6 @@
 """The Yau–Jia filter's mixture arithmetic compiled by numba: whole component stacks per call.
 
-The fast path of solver/exact/yau_jia.py (``YAUYAU_KERNEL``, solver/engine/jit.py; driven by
+The fast path of solver/exact/yau_jia.py (``YAUYAU_KERNEL``, solver/jit.py; driven by
 solver/exact/yau_jia_fast.py).  Each kernel does for all J components of a mixture what the numpy
 path does with a few dozen calls of numpy's wrappers around small (J, n, n) stacks: exponents to
 moments (:func:`prepare`), the first half of the data factor and the exact Gaussian flow
@@ -24,7 +24,7 @@ import math
 import numba
 import numpy as np
 
-from ..engine.jit import writable_cache_dir
+from ..jit import writable_cache_dir
 
 CACHE_DIR = writable_cache_dir()
 _previous_cache_dir = numba.config.CACHE_DIR

@@ -52,8 +52,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import sympy as sp
 
+from .. import jit
 from ..analysis.yau_jia import YauJiaStructure, yau_jia_structure
-from ..engine import jit
 from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock, refuse_form
 from ..gaussian import log_normal
@@ -153,7 +153,7 @@ class YauJiaFilter(ChunkedFilter):
     """Filter protocol; see the module docstring."""
 
     method = "yau-jia"
-    # a one-shot command's break-even (solver/engine/jit.py choose_for_rows): numba's start-up, ~1.3 s
+    # a one-shot command's break-even (solver/jit.py choose_for_rows): numba's start-up, ~1.3 s
     # of CPU, against ~5 ms a row saved at the default cap (bench/results/yau-jia-speed.md)
     compiled_min_rows = 300
 
@@ -494,7 +494,7 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, log_mass, damped, splits, components
 
     def _fast_pieces(self) -> FastPieces | None:
-        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/engine/jit.py) asks for them and φ = 0."""
+        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/jit.py) asks for them and φ = 0."""
         if not jit.enabled() or self.structure.phi != 0:
             return None
         if self._fast is None:

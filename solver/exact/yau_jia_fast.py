@@ -1,4 +1,4 @@
-"""The Yau–Jia filter's compiled pieces (``YAUYAU_KERNEL`` = compiled, solver/engine/jit.py).
+"""The Yau–Jia filter's compiled pieces (``YAUYAU_KERNEL`` = compiled, solver/jit.py).
 
 One piece of a row — the step over an interval, the normalisation, the error control and the
 normalisation again (YauJiaFilter._row's loop body) — as a handful of numba kernels over whole

@@ -594,3 +594,24 @@ def test_rows_written_before_checksums_are_read_and_sealed_at_their_next_write(t
 
     with pytest.raises(Unavailable):
         store.get(sid)
+
+
+def test_a_commit_landing_during_the_health_read_is_not_lost_transactions(tmp_path: Path, monkeypatch):
+    """A burst of session creation in CI once had the health check report 'lost committed transactions
+    (generation 1482 < 1483 seen)': another thread committed between the health read of the generation
+    and its comparison.  Here that commit is made to land exactly there."""
+    store = SqliteSessionStore(tmp_path / "s.sqlite3")
+    store.create("abc", "yau-yau", {"values": []})  # one committed write: generation 1
+    read = SqliteSessionStore._read_generation
+
+    def read_then_another_thread_commits(db):
+        generation = read(db)
+        store._committed(generation + 1)  # a commit of another thread, after this read's snapshot
+        return generation
+
+    monkeypatch.setattr(SqliteSessionStore, "_read_generation",
+                        staticmethod(read_then_another_thread_commits))
+    assert store.health() is None
+    monkeypatch.undo()
+    store._committed(store._generation + 5)  # but a generation that really went back is still caught
+    assert "lost committed transactions" in (store.health() or "")

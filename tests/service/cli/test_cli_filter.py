@@ -366,7 +366,7 @@ def _imports_numba(store, model_id: str, rows: Path, kernel: str | None) -> bool
 def test_a_short_input_takes_the_numpy_kernel_and_never_imports_numba(example_store, tmp_path):
     """Below jit.COMPILED_MIN_ROWS rows numba's start-up costs more than its loops save
     (bench/results/startup.md): `filter` takes the numpy path unless YAUYAU_KERNEL says otherwise."""
-    from yauyau.solver.engine import jit
+    from yauyau.solver import jit
 
     store, ids = example_store
     rows = tmp_path / "in.csv"
@@ -377,7 +377,7 @@ def test_a_short_input_takes_the_numpy_kernel_and_never_imports_numba(example_st
 
 
 def test_the_kernel_choice_for_a_one_shot_run(monkeypatch):
-    from yauyau.solver.engine import jit
+    from yauyau.solver import jit
 
     monkeypatch.delenv("YAUYAU_KERNEL", raising=False)
     monkeypatch.setattr(jit, "_chosen", {})
@@ -395,7 +395,7 @@ def test_the_kernel_choice_for_a_one_shot_run(monkeypatch):
 
 
 def test_an_in_process_filter_leaves_the_kernel_as_it_found_it(example_store, tmp_path, monkeypatch):
-    from yauyau.solver.engine import jit
+    from yauyau.solver import jit
 
     monkeypatch.delenv("YAUYAU_KERNEL", raising=False)
     store, ids = example_store

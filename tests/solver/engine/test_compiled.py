@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from helpers import EXAMPLES, ROOT
 from helpers.irregular_refs import random_times, simulate_irregular
-from yauyau.solver import compile_model, load_spec, spec_from_dict
+from yauyau.solver import compile_model, jit, load_spec, spec_from_dict
 from yauyau.solver.engine import compiled as compiled_loops
-from yauyau.solver.engine import jit, loops, powers, semigroup
+from yauyau.solver.engine import loops, powers, semigroup
 from yauyau.solver.methods import make_filter
 from yauyau.solver.offline.pipeline import precompute
 

@@ -293,7 +293,8 @@ def test_forward_pass_kept_or_checkpointed_and_both_backward_loops(ou_engine, mo
     """The forward pass kept whole (K·Q ≤ KEEP), in checkpointed blocks of KEEP // Q rows beyond it (the
     checkpoints from the filter itself), and the backward pass of the Python loop (YAUYAU_KERNEL=numpy):
     the same smoother to rounding."""
-    from yauyau.solver.engine import jit, smoother
+    from yauyau.solver import jit
+    from yauyau.solver.engine import smoother
 
     _, dy = sample_ou(600, seed=9)
     state = ou_engine.initial_state()
