@@ -116,7 +116,8 @@ def blas_threads_argument(parser: argparse.ArgumentParser) -> None:
                              "thread per process is faster on a busy machine, bench/results/blas.md)")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def record_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
+    """A stored model and a record of rows: what `filter` and `smooth` both read."""
     parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
     store_argument(parser)
     source = parser.add_mutually_exclusive_group(required=True)
@@ -124,10 +125,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="regular rows (continuous models): observation increments, .csv or .npy")
     source.add_argument("--observations", metavar="IN.csv",
                         help="rows with their times: CSV with a header t,<one column per component>")
-    parser.add_argument("--out", required=True, help="output CSV of the estimates")
+    parser.add_argument("--out", required=True, help=out_help)
     parser.add_argument("--t0", type=float, default=None, metavar="T",
                         help="time of the prior (default: the first row's time with --observations, "
                              "0 with --increments)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    record_arguments(parser, "output CSV of the estimates")
     parser.add_argument("--gate", type=float, default=None, metavar="K",
                         help="outlier gate in predictive standard deviations (default: the spec's "
                              "[measurement] gate; 0: off)")

@@ -21,8 +21,7 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
 
 from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
-from .filter import Outputs, header, snapshot
-from .precompute import store_argument
+from .filter import Outputs, header, record_arguments, snapshot
 
 DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
 
@@ -41,17 +40,7 @@ exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that deg
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("model_id", help="id of a stored model (yauyau models lists them)")
-    store_argument(parser)
-    source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--increments", metavar="IN",
-                        help="regular rows (continuous models): observation increments, .csv or .npy")
-    source.add_argument("--observations", metavar="IN.csv",
-                        help="rows with their times: CSV with a header t,<one column per component>")
-    parser.add_argument("--out", required=True, help="output CSV of the smoothed estimates")
-    parser.add_argument("--t0", type=float, default=None, metavar="T",
-                        help="time of the prior (default: the first row's time with --observations, "
-                             "0 with --increments)")
+    record_arguments(parser, "output CSV of the smoothed estimates")
     parser.add_argument("--lag", default=None, metavar="L",
                         help="fixed-lag smoothing: each row given the L rows after it (default: every row)")
     parser.add_argument("--method", choices=[m for m in METHODS if m != AUTO], default=None,
