@@ -8,30 +8,11 @@ import math
 
 import numpy as np
 import pytest
+from helpers.fit_specs import OU
 from scipy.optimize import minimize_scalar
 from yauyau.solver.errors import InputError
 
 import yauyau
-
-OU = '''
-name = "ou-fit"
-state = ["x"]
-drift = ["-theta*x"]
-observation = ["x"]
-observation_noise = [[0.09]]
-parameters = { theta = 0.5 }
-[measurement]
-kind = "discrete"
-[initial]
-kind = "gaussian"
-mean = [0.0]
-cov = [[1.0]]
-[domain]
-radius = 8.0
-[discretization]
-dt = 0.01
-basis = 32
-'''
 
 
 def ou_record(K: int, seed: int, theta: float = 1.0, r: float = 0.09):
