@@ -254,6 +254,22 @@ def prepare(A, B, C, means, covs, log_mass, points, ws):
 
 
 @kernel
+def half_curvature(H, c, m, n, S):
+    """S = ½ Σ_i c_i H_i, symmetrised (the data factor's quadratic term: ½ ∂²(cᵀh))."""
+    for x in range(n):
+        for y in range(n):
+            t = 0.0
+            for i in range(m):
+                t += H[i, x, y] * c[i]
+            S[x, y] = 0.5 * t
+    for x in range(n):
+        for y in range(x + 1):
+            t = 0.5 * (S[x, y] + S[y, x])
+            S[x, y] = t
+            S[y, x] = t
+
+
+@kernel
 def expected(F, j, m, n, h, Jh, H):
     """E[h], E[∂h], E[∂²h] over component j from the sensor's values F (J·2n points, flat columns)."""
     P = 2 * n
@@ -441,17 +457,7 @@ def observe_flow(A, B, C, means, covs, F0, c, c_dot, q0, r0, Phi, Psi, w, D, d, 
     for j in range(J):
         expected(F0, j, m, n, h0[j], J0[j], H)
         tr = 0.0
-        for x in range(n):
-            for y in range(n):
-                t = 0.0
-                for i in range(m):
-                    t += H[i, x, y] * c[i]
-                S[x, y] = 0.5 * t
-        for x in range(n):
-            for y in range(x + 1):
-                t = 0.5 * (S[x, y] + S[y, x])
-                S[x, y] = t
-                S[y, x] = t
+        half_curvature(H, c, m, n, S)
         for x in range(n):
             for y in range(n):
                 tr += covs[j, x, y] * S[y, x]
@@ -497,17 +503,7 @@ def observe_finish(A1, B1, C1, means, means1, covs1, F1, h0, J0, c, A2, B2, C2, 
     M, L = np.empty((n, n)), np.empty((n, n))
     for j in range(J):
         expected(F1, j, m, n, h1, J1, H)
-        for x in range(n):
-            for y in range(n):
-                t = 0.0
-                for i in range(m):
-                    t += H[i, x, y] * c[i]
-                S[x, y] = 0.5 * t
-        for x in range(n):
-            for y in range(x + 1):
-                t = 0.5 * (S[x, y] + S[y, x])
-                S[x, y] = t
-                S[y, x] = t
+        half_curvature(H, c, m, n, S)
         s0, tr = 0.0, 0.0
         for i in range(m):
             t = h1[i] - h0[j, i]
