@@ -316,11 +316,14 @@ def _scale_flow(carried, tau, real_rates, pair_rates, scale):
 @_jit
 def run_fused(start, stop, propagator, projection, carried, following, mass, terms, y, taus, constants,
               discrete, limit, floor_exponents, summary, weights, sums, negative, mode, top, masses, tiny,
-              huge, modal, real_rates, pair_rates):
+              huge, modal, real_rates, pair_rates, triangular, schur, tables, lower, subs, indices,
+              remainders, degree, w, saved):
     """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
-    each row (:func:`_fused_row`): no K×Q arrays.  ``modal`` (irregular rows): each row first scales the
-    carried coefficients by e^{τ_kΛ} (:func:`_scale_flow`).  Returns the first row that needs the
-    Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
+    each row (:func:`_fused_row`): no K×Q arrays.  Irregular rows first take the carried coefficients
+    through the row's flow: ``modal``, scaled by e^{τ_kΛ} (:func:`_scale_flow`); ``triangular``, through
+    e^{τ_kT} in the Schur coordinates of an ill-conditioned generator (:func:`_advance`, with
+    :func:`run_schur`'s arguments; placeholders of the same types otherwise).  Returns the first row
+    that needs the Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
     exp(floor_exponent − top)), or ``stop``."""
     ints, scalars = buffers(propagator)
     wide_ints, wide_scalars = buffers(summary)
@@ -330,6 +333,9 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
     for k in range(start, stop):
         if modal:
             _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
+        elif triangular:
+            _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
+                     scalars)
         if not _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants,
                           discrete, limit, factor, row, wide, summary, sums, weights, negative, mode, top,
                           ints, scalars, wide_ints, wide_scalars):

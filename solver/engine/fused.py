@@ -2,7 +2,9 @@
 
 The common chunk — every row observed with the same components, continuous increments (the stable
 form's factor exp(Δyᵀ R⁻¹h − τ ½hᵀR⁻¹h)) or discrete Gaussian rows, regular rows or irregular rows
-in modal coordinates (each row's scales e^{τΛ} made in the row, not K×N in numpy before the loop), no
+in modal coordinates (each row's scales e^{τΛ} made in the row, not K×N in numpy before the loop) or
+in the Schur coordinates of an ill-conditioned generator (e^{τT} by solver/engine/powers.py's tables in
+the row), no
 moving frame or ball, no caller that cuts the chunk — runs in
 solver/engine/compiled.py ``run_fused``: each row computes its factor's exponent at the nodes (the
 operations of solver/measurement.py ``log_factors``, in its order: bit for bit), its max, the factor,
@@ -42,7 +44,7 @@ def fusable(engine: Any, rows: np.ndarray, taus: np.ndarray | None) -> bool:
         return False
     if obs.discrete and obs.likelihood != "gaussian":
         return False
-    if taus is not None and (engine.flow.exact or engine.flow.powers is not None):
+    if taus is not None and engine.flow.exact:
         return False
     return not np.isnan(rows).any()
 
@@ -69,14 +71,18 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
     initial = np.append(state.coefficients, state.mass).astype(dtype)
     carried, following = initial.copy(), np.empty_like(initial)
     real, pairs = np.empty(0), np.empty(0, dtype=complex)
+    triangular = _no_schur(dtype)
     if taus is None:
         P, projection = engine.observation_propagator, engine.projection
     else:
         flow = engine.flow
         carried[:N] = flow.to_modal(carried[:N].astype(float))
         P, projection = flow.B, flow.C
-        real = np.ascontiguousarray(flow.real_rates, dtype=float)
-        pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
+        if flow.powers is None:
+            real = np.ascontiguousarray(flow.real_rates, dtype=float)
+            pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
+        else:
+            triangular = _schur_arguments(flow.powers, taus, N, dtype)
     summary = summary_rows(engine)
     sums = np.empty((K, summary.shape[0]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
@@ -86,7 +92,8 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
                               carried.item(N), exponent_terms, y, np.ascontiguousarray(gaps, dtype=float),
                               constants, bool(obs.discrete), np.array([engine.arith.negligible], dtype=dtype),
                               floor_exponents, summary, weights, sums, negative, mode, top, masses,
-                              engine.arith.tiny, engine.arith.huge, taus is not None, real, pairs)
+                              engine.arith.tiny, engine.arith.huge, taus is not None and not triangular[0],
+                              real, pairs, *triangular)
     if done < K:
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
@@ -100,3 +107,20 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
                              summary=result)
     except Recompute:
         return None
+
+
+def _schur_arguments(powers: Any, taus: np.ndarray, N: int, dtype: Any) -> tuple:
+    """The Schur form's flow for compiled.run_fused (solver/engine/loops.py ``schur_rows``'s): True, T,
+    the tables, the 2×2 blocks' subdiagonal rows and entries, each row's plan and remainder, the Taylor
+    degree and two buffers."""
+    indices, remainders = powers.plan(taus)
+    w, saved = np.empty(N, dtype=dtype), np.empty(powers.lower.size, dtype=dtype)
+    return (True, powers.T, powers.stack, powers.lower, powers.subs, indices, remainders, powers.degree, w,
+            saved)
+
+
+def _no_schur(dtype: Any) -> tuple:
+    """Placeholders of the same array types as :func:`_schur_arguments` (one compiled signature)."""
+    return (False, np.empty((2, 2), dtype=dtype, order="F"), np.empty((0, 2, 2), dtype=dtype),
+            np.empty(0, dtype=np.int64), np.empty((1, 0), dtype=dtype), np.empty((0, 1), dtype=np.int64),
+            np.empty(0), 0, np.empty(0, dtype=dtype), np.empty(0, dtype=dtype))

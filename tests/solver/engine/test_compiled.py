@@ -211,6 +211,26 @@ def test_fused_chunks_are_the_numpy_rows(monkeypatch, _fused_chunks, name, preci
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", ["cubic_sensor", "two_sensors", "yau_jia_1d"])
+def test_fused_chunks_in_the_schur_form(monkeypatch, _fused_chunks, name, precision):
+    """Irregular rows of an ill-conditioned generator (yau_jia_1d's is: cond(V) ≈ 1e10; the others
+    forced there) run fused too, each row's flow e^{τT} by the Schur tables inside the row: the whole
+    chunk in one compiled loop, within RTOL of the numpy path (which applies the same tables)."""
+    model, offline = _offline(name)
+    monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
+    times = random_times(np.random.default_rng(5), K, model.dt)
+    times[60:] += 40.0 * model.dt  # one long gap: several digit positions of the tables
+    _, rows = simulate_irregular(model, times, model.spec.measurement.kind, np.random.default_rng(13))
+    numpy_run = _run(monkeypatch, "numpy", model, offline, precision, rows, times)
+    assert not _fused_chunks
+    flt = make_filter(model, offline, "yau-yau", precision=precision)
+    assert flt.flow.powers is not None  # the Schur form
+    fused_run = _run(monkeypatch, "compiled", model, offline, precision, rows, times)
+    assert _fused_chunks and min(_fused_chunks) > 0  # every chunk fused to its end (a long gap: pieces)
+    _close(numpy_run, fused_run, precision)
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
 def test_a_fused_chunk_that_meets_the_slow_path_runs_again_keeping_sigma(monkeypatch, _fused_chunks,
                                                                           precision):
     """A gated outlier (the gate's exact score needs s) and a rescued row: the fused loop stops there
