@@ -40,9 +40,10 @@ against the fused filter's 8.0 (2.1×) kept whole (20 000 rows), 30 µs against 
 (100 000 rows); 10⁶ rows in one chunk raised the peak RSS by 72 MB.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
-whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
-moving frame or an atlas (the backward pass would have to carry the adjoint of each move), and a chunk
-whose filter degenerates.
+whole rows.  A ball that follows the state (an atlas too) is smoothed over its sequence of balls, the
+backward pass carrying the adjoint of each move (solver/engine/follow_smoother.py, through
+:func:`smooth_from`).  Refused (InputError/SpecError naming the reason): a moving frame (its nodes move
+every step), and a chunk whose filter degenerates.
 """
 
 from __future__ import annotations
@@ -67,8 +68,8 @@ CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
 Visit = Callable[[int, list], None]
-FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
-                 "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
+FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift, whose "
+                 "nodes move every step) yet; smooth on a fixed ball (precompute without domain.follow)")
 
 
 def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
@@ -79,16 +80,29 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     rows per checkpointed block (default max(256, ⌈√K⌉)).  ``visit(start, states)``, where given, is
     called once per block (from the last) with the smoothed densities of rows start, start + 1, … as
     filter states (:func:`smoothed_states`): what the filter's quantiles, mode and density read."""
+    new_state, result, _ = smooth_from(engine, state, increments, times, block, visit)
+    return new_state, result
+
+
+def smooth_from(engine: Any, state: YauYauState, increments: Any, times: Any = None, block: int | None = None,
+                visit: Visit | None = None, beta: np.ndarray | None = None):
+    """:func:`smooth_arrays` with the rows after the chunk given as ``beta`` (Q,): the nodal likelihood of
+    those rows given the state after the chunk's last row (None: no rows after, β = 1), as the backward
+    pass of a ball that follows the state carries it in (solver/engine/follow_smoother.py).  Returns
+    (state after, smoothed result, β before the chunk's first row (Q,): Φ P_0ᵀ(ẽ_0 ⊙ w ⊙ β_0), up to a
+    positive factor)."""
     chunk = validated(engine, state, increments, times)
     if chunk is None:
-        return engine.run_arrays(state, np.empty((0, engine.model.m)), times)
+        new_state, result = engine.run_arrays(state, np.empty((0, engine.model.m)), times)
+        return new_state, result, np.ones(len(engine.weights)) if beta is None else beta
     rows, steps, times_out, taus, pieces, field = chunk
     if pieces is not None:
         if visit is not None:
             raise InputError(field, "the smoothed densities of increments filtered in pieces (long gaps) "
                                     "are not offered yet: ask for the moments alone")
-        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
-    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit)
+        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field, beta)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit,
+                   beta=beta)
 
 
 def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
@@ -113,8 +127,10 @@ def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
 
 
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None):
-    """The checkpointed forward pass, then the backward pass block by block from the last."""
+            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None,
+            beta: np.ndarray | None = None):
+    """The checkpointed forward pass, then the backward pass block by block from the last (from ``beta``
+    after the last row, default 1): (state after, smoothed result, β before the first row)."""
     K, Q = len(rows), len(engine.weights)
     if block is not None:
         size = max(1, int(block))
@@ -134,7 +150,7 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
             checkpoints.append((current, found[1]))
             current = found[0]
     parts: list[ChunkResult] = []
-    beta = np.ones(len(engine.weights))
+    beta = np.ones(len(engine.weights)) if beta is None else np.array(beta, dtype=float)
     for (start, stop), (begin, filtered) in zip(reversed(bounds), reversed(checkpoints), strict=True):
         if kept is not None:
             _, _, sigma, factor, masses, ready = kept
@@ -153,7 +169,7 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
         parts.append(dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode))
         if visit is not None:
             visit(start, smoothed_states(engine, begin, sigma, parts[-1]))
-    return current, concat_results(parts[::-1])
+    return current, concat_results(parts[::-1]), beta
 
 
 def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed: ChunkResult) -> list:
@@ -169,7 +185,8 @@ def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed:
 
 
 def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-               taus: np.ndarray, pieces: np.ndarray, block: int | None, field: str):
+               taus: np.ndarray, pieces: np.ndarray, block: int | None, field: str,
+               beta: np.ndarray | None = None):
     """Increments over long gaps, as the filter takes them (solver/engine/pieces.py): each row in
     ``pieces[k]`` equal pieces of its gap and increment.  The whole rows are filtered first (the gate
     judges whole rows: a gated row is then missing for the smoother), the pieces smoothed without the
@@ -189,10 +206,10 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
     before = np.concatenate([[state.t], times[:-1]])
     piece_times = before[owner] + share * (np.arange(len(owner)) - first[owner] + 1)
     piece_times[last] = times  # each row ends exactly at its time
-    _, smoothed = _blocks(engine, state, data[owner] / count[owner, None], steps[owner], piece_times, share,
-                          block, field, gating=False)
+    _, smoothed, beta = _blocks(engine, state, data[owner] / count[owner, None], steps[owner], piece_times,
+                                share, block, field, gating=False, beta=beta)
     return new_state, dataclasses.replace(filtered, mean=smoothed.mean[last], cov=smoothed.cov[last],
-                                          mode=None if smoothed.mode is None else smoothed.mode[last])
+                                          mode=None if smoothed.mode is None else smoothed.mode[last]), beta
 
 
 def checkpoint(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
