@@ -148,8 +148,7 @@ class FollowingFilter(ChunkedFilter):
     def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: Any = None,
                       visit: Any = None):
         """Fixed-interval smoothing over the same sequence of balls (solver/engine/follow_smoother.py)."""
-        from .follow_smoother import smooth_following  # lazy: the filter alone never loads it
-        return smooth_following(self, state, increments, times, block, visit)
+        return self.home.smooth_following(self, state, increments, times, block, visit)
 
     def __getattr__(self, name: str) -> Any:  # offline, nodes, weights, N, form, precision, flow...
         if name.startswith("__") or name == "home":

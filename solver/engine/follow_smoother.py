@@ -70,9 +70,7 @@ def smooth_following(follow: Any, state: YauYauState, increments: Any, times: An
             _, part, beta = smooth_from(follow.engine(center), starts[j], rows[a:b],
                                         None if stamps is None else stamps[a:b], block, seen, beta)
         except InputError as exc:  # the row in the whole chunk
-            from ..smoothing import _shifted
-
-            raise InputError(_shifted(exc.field, a), exc.message) from None
+            raise exc.shifted(a) from None
         parts.append(part)
         if j:
             beta = carried_back(follow, balls[j - 1][2], center, beta, f"{field}[{a - 1}]")
