@@ -74,6 +74,28 @@ def test_bad_input_exits_2_naming_the_field(stored, tmp_path, capsys, extra, fie
         assert "rows fit" in err and "--memory" in err
 
 
+def test_a_file_over_the_memory_budget_says_the_budget_and_the_rows_that_fit(stored, tmp_path, capsys):
+    """--memory 0.0008 (GB) for 300 rows: exit 2 naming increments, the budget and the count that fits,
+    nothing written; that many rows then smooth under the same budget, with or without --lag."""
+    import re
+
+    code, out = _smooth(stored, tmp_path, "--method", "yau-yau", "--memory", "0.0008")
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists()
+    assert "error: increments: 300 rows need about" in err
+    assert "over the budget of 0.0008 GB (--memory)" in err
+    fits = int(re.search(r"at most (\d+) rows fit", err).group(1))
+    assert 0 < fits < 300
+    directory, model_id, _, dy = stored
+    path = tmp_path / "head.csv"
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in dy[:fits]))
+    for extra in ([], ["--lag", "3"]):
+        out = tmp_path / "head_out.csv"
+        assert main(["smooth", model_id, "--store", str(directory), "--increments", str(path), "--out",
+                     str(out), "--method", "yau-yau", "--memory", "0.0008", *extra]) == 0
+        assert len(_read(out)[1]) == fits
+
+
 BIMODAL = {"name": "bimodal", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x**2/2"],
            "diffusion": [[1.0]], "observation_noise": [[0.1]], "measurement": {"kind": "discrete"},
            "initial": {"kind": "gaussian", "mean": [0.3], "cov": [[1.0]]},
