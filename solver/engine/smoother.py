@@ -32,12 +32,15 @@ is the filter itself (its fused compiled rows, no K×Q arrays) keeping the state
 block's start; the backward pass takes the blocks from the last, runs each block's forward pass again
 from its checkpoint keeping its σ_k, factors and exponents (equal to the first pass's to rounding),
 overwrites σ_k with σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost
-O(KEEP + K/B·N) numbers besides the K rows of the result.  The backward step is one gemv with the
+O(KEEP + K/B·N) numbers besides the K rows of the result.  The last block (a whole one: the remainder
+block comes first) keeps its first pass's σ_k, factors and exponents, as a chunk kept whole does, so its
+forward pass runs once.  The backward step is one gemv with the
 Q×Q matrix ΦPᵀ (computed once per engine), in numba's compiled loop where the filter's are
 (solver/engine/compiled_backward.py, the same BLAS call).  Measured on examples/ou.toml (Q = 195, N = 96;
-bench/smoother.py, docs/benchmarks.md; CPU time, one BLAS thread, 2 shared cores at load ~6): 17 µs a row
-against the fused filter's 8.0 (2.1×) kept whole (20 000 rows), 30 µs against 9.4 (3.2×) checkpointed
-(100 000 rows); 10⁶ rows in one chunk raised the peak RSS by 72 MB.
+bench/smoother.py, docs/benchmarks.md; CPU time, one BLAS thread, 2 shared cores at load ~6.5): 22 µs a
+row against the fused filter's 9.9 (2.3×) kept whole (20 000 rows), 28 µs against 10.6 (2.65×)
+checkpointed (100 000 rows; 3.2× before the last block kept its first pass); 10⁶ rows in one chunk peaked
+at 533 MB RSS against 429 MB for the engine and the rows alone.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
 whole rows.  A ball that follows the state (an atlas too) is smoothed over its sequence of balls, the
@@ -138,10 +141,13 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
         size = K
     else:
         size = max(BLOCK, math.isqrt(K - 1) + 1, KEEP // Q)
-    bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
+    # the remainder first, so that the last block, whose forward pass is kept from the first pass (the
+    # backward pass starts there), is a whole one
+    first = K - (K - 1) // size * size
+    bounds = [(0, first)] + [(start, start + size) for start in range(first, K, size)]
     checkpoints, current, kept = [], state, None  # the forward pass: the state at each block's start
     for start, stop in bounds:
-        if len(bounds) == 1:
+        if stop == K:
             kept = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)
             checkpoints.append((current, kept[1]))
             current = kept[0]
@@ -152,8 +158,9 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
     parts: list[ChunkResult] = []
     beta = np.ones(len(engine.weights)) if beta is None else np.array(beta, dtype=float)
     for (start, stop), (begin, filtered) in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        if kept is not None:
+        if kept is not None:  # the last block
             _, _, sigma, factor, masses, ready = kept
+            kept = None  # (its arrays go with the block: one block's at a time)
             only_predicts = ready.skip | filtered.gated
         else:  # the block's σ_k again, from its checkpoint: the loop alone (its filtered rows are kept)
             sigma, factor, masses, ready, gated = forward_sigma(engine, begin, rows, taus, start, stop, field,
