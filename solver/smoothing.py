@@ -21,7 +21,7 @@ SMOOTHING_METHODS = ("yau-yau", "kalman-bucy")
 
 
 def can_smooth(flt: Any) -> bool:
-    """Whether ``flt`` has a smoother (a moving frame refuses when asked)."""
+    """Whether ``flt`` has a smoother."""
     return callable(getattr(type(flt), "smooth_arrays", None))
 
 

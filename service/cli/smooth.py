@@ -7,7 +7,7 @@ The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the ou
 of the file (``--lag L``: given the rows up to L after each row, fixed-lag); loglik, gated and
 predictive_loglik are the forward pass's.  Methods yau-yau (the general engine's forward–backward
 smoother of its discretised model) and kalman-bucy (Rauch–Tung–Striebel, discrete measurements);
-another method, a moving frame, a filter that degenerates, a bad --lag or a file longer than the
+another method, a filter that degenerates, a bad --lag or a file longer than the
 memory budget (--memory) exit 2 naming the field, with nothing written.
 """
 

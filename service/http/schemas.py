@@ -61,7 +61,7 @@ class SessionCreate(_Body):
         description="fixed-lag smoothing, in rows (1 to 1000): every chunk response then also carries "
                     "`smoothed`, the estimate of each row given the smooth_lag rows after it, for the "
                     "rows this chunk completes (row k once row k + smooth_lag has come). Methods that "
-                    "smooth only: yau-yau (not in a moving frame), kalman-bucy with discrete measurements")
+                    "smooth only: yau-yau, kalman-bucy with discrete measurements")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},

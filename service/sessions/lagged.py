@@ -46,7 +46,7 @@ def check_can_smooth(filt: Any, state: Any) -> None:
         why = "it has no smoother"
     else:
         try:
-            smooth(filt, state, np.empty((0, filt.model.m)))  # the smoother's own refusals (frame, kind)
+            smooth(filt, state, np.empty((0, filt.model.m)))  # the smoother's own refusals (kind)
         except (SpecError, InputError) as exc:
             why = exc.message
     if why is not None:

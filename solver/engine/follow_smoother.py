@@ -1,4 +1,5 @@
-"""The fixed-interval smoother on a ball that follows the state (``[domain] follow``, an atlas too), issue 38.
+"""The fixed-interval smoother on a ball that follows the state (``[domain] follow``; an atlas, a moving
+frame too), issue 38.
 
 The filter's own pass (:meth:`FollowingFilter.run_arrays`) decides where the ball goes: rows a_j … b_j − 1
 are filtered on the ball around c_j, and after row b_j − 1 the state moves onto the ball around c_(j+1).
@@ -23,8 +24,9 @@ adjoint exactly.
 
 Cost: the filter's pass (it places the balls), the filter again over each ball's rows keeping the state at
 each ball's start (one state a ball), then each ball's smoother (its forward pass once more, kept whole or
-checkpointed, and the backward pass).  Refused (SpecError naming ``domain.follow``): a moving frame, whose
-nodes move every step.
+checkpointed, and the backward pass).  In a moving frame (solver/engine/frame.py) a ball's run is the
+frame's engine over the rows between two moves (its nodes ride the frame row by row, the coefficients'
+recursion is the fixed ball's), and a move carries from where the frame took the ball.
 """
 
 from __future__ import annotations
@@ -34,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, SpecError
+from ..errors import InputError
 from ..filtering import ChunkResult, concat_results
 from .carry import Carry
-from .smoother import FRAME_REFUSED, Visit, smooth_from, validated
+from .smoother import Visit, smooth_from, validated
 from .state import YauYauState
 
 Ball = tuple[int, int, np.ndarray]  # rows a … b − 1 on the ball around the centre
@@ -48,8 +50,6 @@ def smooth_following(follow: Any, state: YauYauState, increments: Any, times: An
     """(the filter's state after the chunk, its result with the smoothed mean, cov and mode) of a
     FollowingFilter ``follow`` over one chunk from ``state`` (module docstring); ``block`` and ``visit`` as
     smoother.py's (``visit`` gets states with their ball's ``center``)."""
-    if follow.frame is not None:
-        raise SpecError("domain.follow", FRAME_REFUSED)
     chunk = validated(follow.home, state, increments, times)  # the rows, times and state checked
     if chunk is None:
         return follow.run_arrays(state, np.empty((0, follow.model.m)), times)
@@ -60,44 +60,53 @@ def smooth_following(follow: Any, state: YauYauState, increments: Any, times: An
         k = int(np.argmax(first.degenerate))
         raise InputError(f"{field}[{k}]", f"the filter degenerated at this row ({first.reason}): the "
                                           "smoother needs every row of the chunk filtered")
-    balls = ball_runs(np.asarray(state.center, dtype=float), np.asarray(first.center, dtype=float))
-    starts = ball_starts(follow, state, rows, stamps, balls)
+    balls = ball_runs(np.asarray(state.center, dtype=float), np.asarray(first.center, dtype=float),
+                      first.recentred if follow.frame is not None else None)
+    starts, moves = ball_starts(follow, state, rows, stamps, balls)
     beta, parts = None, []
     for j in range(len(balls) - 1, -1, -1):
         a, b, center = balls[j]
-        seen = None if visit is None else _on_ball(visit, a, center)
+        seen = None if visit is None else _on_ball(visit, a, None if follow.frame is not None else center)
         try:
-            _, part, beta = smooth_from(follow.engine(center), starts[j], rows[a:b],
+            _, part, beta = smooth_from(follow.runner(center), starts[j], rows[a:b],
                                         None if stamps is None else stamps[a:b], block, seen, beta)
         except InputError as exc:  # the row in the whole chunk
             raise exc.shifted(a) from None
         parts.append(part)
         if j:
-            beta = carried_back(follow, balls[j - 1][2], center, beta, f"{field}[{a - 1}]")
+            beta = carried_back(follow, *moves[j - 1], beta, f"{field}[{a - 1}]")
     smoothed = concat_results(parts[::-1])
     return new_state, dataclasses.replace(first, mean=smoothed.mean, cov=smoothed.cov, mode=smoothed.mode)
 
 
-def ball_runs(start: np.ndarray, centers: np.ndarray) -> list[Ball]:
+def ball_runs(start: np.ndarray, centers: np.ndarray, moved: np.ndarray | None = None) -> list[Ball]:
     """The runs of rows filtered on one ball: row 0's is ``start``, row k's the centre after row k − 1
-    (``ChunkResult.center``: where a move after that row took the ball)."""
+    (``ChunkResult.center``: where a move after that row took the ball).  In a moving frame (its centre
+    changes every row) the runs end at the moves ``moved`` instead."""
     K = len(centers)
     balls = np.concatenate([start[None, :], centers[:-1]])
-    changes = [0, *(np.flatnonzero(np.any(balls[1:] != balls[:-1], axis=1)) + 1).tolist(), K]
+    if moved is None:
+        ends = np.flatnonzero(np.any(balls[1:] != balls[:-1], axis=1)) + 1
+    else:
+        ends = np.flatnonzero(np.asarray(moved[:-1], dtype=bool)) + 1
+    changes = [0, *ends.tolist(), K]
     return [(a, b, balls[a]) for a, b in zip(changes[:-1], changes[1:], strict=True)]
 
 
 def ball_starts(follow: Any, state: YauYauState, rows: np.ndarray, stamps: np.ndarray | None,
-                balls: list[Ball]) -> list[YauYauState]:
+                balls: list[Ball]) -> tuple[list[YauYauState], list[tuple[np.ndarray, np.ndarray]]]:
     """The state before each ball's first row, on that ball: the filter over the ball's rows, then the
-    move (:func:`carried`)."""
-    starts, current = [state], state
+    move (:func:`carried`); and each move's (centre before, centre after) (in a moving frame the centre
+    before is where the frame took the ball over the run)."""
+    starts, moves, current = [state], [], state
     for (a, b, center), (_, _, after) in zip(balls[:-1], balls[1:], strict=True):
         given = None if stamps is None else stamps[a:b]
-        current, _ = follow.engine(center).run_arrays(current, rows[a:b], given)
-        current = carried(follow, current, center, after)
+        current, _ = follow.runner(center).run_arrays(current, rows[a:b], given)
+        before = center if follow.frame is None else np.asarray(current.center, dtype=float)
+        moves.append((before, after))
+        current = carried(follow, current, before, after)
         starts.append(current)
-    return starts
+    return starts, moves
 
 
 def move_map(follow: Any, before: np.ndarray, after: np.ndarray) -> Carry:
@@ -136,8 +145,11 @@ def carried_back(follow: Any, before: np.ndarray, after: np.ndarray, beta: np.nd
     return found / top
 
 
-def _on_ball(visit: Visit, first: int, center: np.ndarray) -> Visit:
-    """``visit`` for a ball's rows: the chunk's row numbers, each state with the ball's centre."""
+def _on_ball(visit: Visit, first: int, center: np.ndarray | None) -> Visit:
+    """``visit`` for a ball's rows: the chunk's row numbers, each state with the ball's centre (None: a
+    moving frame's states already have theirs, row by row)."""
     def seen(start: int, states: list) -> None:
-        visit(first + start, [dataclasses.replace(s, center=np.array(center, dtype=float)) for s in states])
+        if center is not None:
+            states = [dataclasses.replace(s, center=np.array(center, dtype=float)) for s in states]
+        visit(first + start, states)
     return seen

@@ -43,10 +43,11 @@ checkpointed (100 000 rows; 3.2× before the last block kept its first pass); 10
 at 533 MB RSS against 429 MB for the engine and the rows alone.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
-whole rows.  A ball that follows the state (an atlas too) is smoothed over its sequence of balls, the
-backward pass carrying the adjoint of each move (solver/engine/follow_smoother.py, through
-:func:`smooth_from`).  Refused (InputError/SpecError naming the reason): a moving frame (its nodes move
-every step), and a chunk whose filter degenerates.
+whole rows.  A ball that follows the state (an atlas, a moving frame too) is smoothed over its sequence
+of balls, the backward pass carrying the adjoint of each move (solver/engine/follow_smoother.py, through
+:func:`smooth_from`); in a moving frame each row's nodes are moved (``ready.shifts``: the factors and
+moments at them), the recursion in the coefficients is unchanged.  Refused (InputError naming the row): a
+chunk whose filter degenerates.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ import numpy as np
 from scipy.linalg.blas import dgemv
 
 from .. import jit
-from ..errors import InputError, SpecError
+from ..errors import InputError
 from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
 from .loops import loop_irregular, loop_regular, update_factors
@@ -71,8 +72,6 @@ CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
 Visit = Callable[[int, list], None]
-FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift, whose "
-                 "nodes move every step) yet; smooth on a fixed ball (precompute without domain.follow)")
 
 
 def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
@@ -111,8 +110,6 @@ def smooth_from(engine: Any, state: YauYauState, increments: Any, times: Any = N
 def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
     """(rows, steps, times, gaps τ_k or None, pieces or None, the rows' field name) of a chunk the smoother
     takes, None for an empty chunk; SpecError/InputError naming what it cannot take."""
-    if engine.frame is not None:
-        raise SpecError("domain.follow", FRAME_REFUSED)
     model, obs = engine.model, engine.observation
     field = "observations" if obs.discrete else "increments"
     rows = check_rows(increments, model.m, field)
@@ -184,10 +181,11 @@ def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed:
     their projection Π(σ_k ⊙ β_k) = [c, ∫] as the filter carries σ_k, the smoothed estimate as ``last``."""
     carried = sigma @ np.asarray(engine.projection, dtype=float).T  # (B, N + 1)
     N = engine.N
+    centers = [like.center] * len(carried) if smoothed.center is None else list(smoothed.center)  # a frame's
     return [dataclasses.replace(like, coefficients=carried[i, :N].copy(), mass=float(carried[i, N]),
                                 step=int(smoothed.step[i]), t=float(smoothed.t[i]),
                                 loglik=float(smoothed.loglik[i]), last=estimate, degenerate=False,
-                                reason=None)
+                                reason=None, center=centers[i])
             for i, estimate in enumerate(smoothed.estimates())]
 
 
