@@ -29,7 +29,8 @@ EPILOG = """\
 input and output as for `yauyau filter` (yauyau filter -h): --increments IN (regular rows) or
   --observations IN.csv (rows with their times, header t,<components>); an empty field is missing,
   a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
-  cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
+  cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised (and center_<var>,
+  recentred on a ball that follows the state); the means and
   covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after);
   --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density (with --lag L, of
   each row's density given the L rows after it), --density D.h5 writes it on a grid as filter --density
@@ -158,7 +159,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         for step in sorted(snapshots):
             snapshot(flt, snapshots[step], snapshots[step].last, outputs, writer)
-        write_lines(args.out, header(model, outputs), csv_lines(result, extras))
+        write_lines(args.out, header(model, outputs, follow=result.center is not None),  # a following ball
+                    csv_lines(result, extras))
     except BaseException:
         if writer is not None:
             writer.abort()

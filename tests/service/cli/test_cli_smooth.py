@@ -96,6 +96,41 @@ def test_a_file_over_the_memory_budget_says_the_budget_and_the_rows_that_fit(sto
         assert len(_read(out)[1]) == fits
 
 
+def test_smooth_on_a_ball_that_follows_the_state(tmp_path):
+    """`yauyau smooth` on [domain] follow: 800 rows of the random walk with a trend (travelling ~8 units, a
+    ball of radius 6), the smoothed columns (and the ball's centre_x, recentred, as filter writes them)
+    against RTS of the sampled model (measured mean 2.3e-5, variance 1.0e-4; bounds 0.02, 5%); --lag 5 on
+    the first 200 rows against the fixed-lag RTS (measured 1.2e-5)."""
+    from helpers.linear_rts import TREND, rts_trend
+    from yauyau.solver import compile_model
+    from yauyau.solver.simulate import simulate
+
+    spec = spec_from_dict(TREND)
+    model_id = yauyau.precompute(spec, tmp_path / "store")
+    dy = simulate(compile_model(spec), 800, np.random.default_rng(5)).increments[:, 0]
+    path = tmp_path / "dy.csv"
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in dy))
+    out = tmp_path / "out.csv"
+    store = str(tmp_path / "store")
+    base = ["smooth", model_id, "--store", store, "--increments", str(path), "--out", str(out)]
+    assert main(base) == 0
+    names, values = _read(out)
+    _, _, ms, Ps = rts_trend(dy, np.full(800, 0.01))
+    mean_gap, var_gap = np.abs(values[:, 2] - ms).max(), np.abs(values[:, 3] / Ps - 1).max()
+    print(f"cli follow: mean {mean_gap:.2e}, var {var_gap:.2e}")
+    assert names[:4] == ["step", "t", "mean_x", "cov_x_x"] and names[-2:] == ["center_x", "recentred"]
+    assert values.shape[1] == len(names) and values[:, -1].sum() >= 1  # the ball moved
+    assert mean_gap < 0.02 and var_gap < 0.05 and ms[-1] - ms[0] > 6.0
+    head = dy[:200]
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in head))
+    assert main([*base, "--lag", "5"]) == 0
+    lagged = _read(out)[1]
+    ms_lag = np.array([rts_trend(head[:k + 6], np.full(len(head[:k + 6]), 0.01))[2][k] for k in range(200)])
+    lag_gap = np.abs(lagged[:, 2] - ms_lag).max()
+    print(f"cli follow --lag 5: mean {lag_gap:.2e}")
+    assert lag_gap < 0.02
+
+
 BIMODAL = {"name": "bimodal", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x**2/2"],
            "diffusion": [[1.0]], "observation_noise": [[0.1]], "measurement": {"kind": "discrete"},
            "initial": {"kind": "gaussian", "mean": [0.3], "cov": [[1.0]]},
