@@ -24,3 +24,12 @@ class InputError(YauyauError, ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.message = message
+
+    def shifted(self, offset: int) -> "InputError":
+        """This error about row j of a part starting at row ``offset``: ``increments[j]`` (any name)
+        becomes ``increments[offset + j]``; another field stays as it is."""
+        head, bracket, rest = self.field.partition("[")
+        index, close, tail = rest.partition("]")
+        if bracket and close and index.isdigit():
+            return InputError(f"{head}[{offset + int(index)}]{tail}", self.message)
+        return InputError(self.field, self.message)

@@ -5,7 +5,8 @@ density.
 The engine (yau-yau) hands its smoothed densities w ⊙ σ_k ⊙ β_k over block by block as filter states
 (solver/engine/smoother.py ``smoothed_states``), so quantiles, the mode and ``density(...)`` are the very
 code the filter's rows use; a Gaussian smoother (Kalman–Bucy's RTS) answers in closed form from the
-smoothed mean and covariance, m_i + √P_ii Φ⁻¹(p).
+smoothed mean and covariance, m_i + √P_ii Φ⁻¹(p).  The fixed-lag smoother (``smooth_lag``) hands its
+densities over the same way: :func:`smooth_lag_with_quantiles`.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from .errors import InputError
 from .filtering import ChunkResult
-from .smoothing import smooth
+from .smoothing import smooth, smooth_lag
 from .summaries import check_probabilities, is_gaussian, quantiles
 
 
@@ -26,13 +27,42 @@ def smooth_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, pr
     each row's smoothed density or None without ``probs``).  ``each(k, smoothed_state)``, where given, is
     called for every row with its smoothed density as a state of ``flt`` (``flt.density(state, points)``
     and the rest read it; engine only)."""
+    def run(visit: Visit | None) -> tuple[Any, ChunkResult]:
+        if visit is None:
+            return smooth(flt, state, rows, times)
+        if not hasattr(flt, "smooth_arrays") or "visit" not in flt.smooth_arrays.__code__.co_varnames:
+            raise InputError("quantiles", f"method {flt.method}: quantiles of the smoothed density are "
+                                          "offered by the engine (yau-yau) and the Gaussian smoothers")
+        return flt.smooth_arrays(state, rows, times, visit=visit)
+
+    return _summarised(flt, run, probs, each)
+
+
+def smooth_lag_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0,
+                              probs: Any = None, each: Callable[[int, Any], None] | None = None,
+                              ) -> tuple[Any, ChunkResult, Any]:
+    """:func:`smooth_with_quantiles` for the fixed-lag smoother: row k's density given the rows up to
+    k + ``lag`` (solver/smoothing.py ``smooth_lag``)."""
+    def run(visit: Visit | None) -> tuple[Any, ChunkResult]:
+        return smooth_lag(flt, state, rows, times, lag, visit=visit)
+
+    return _summarised(flt, run, probs, each)
+
+
+Visit = Callable[[int, list], None]
+
+
+def _summarised(flt: Any, run: Callable[[Visit | None], tuple[Any, ChunkResult]], probs: Any,
+                each: Callable[[int, Any], None] | None) -> tuple[Any, ChunkResult, Any]:
+    """``run(visit)`` (a smoother handing its densities to ``visit(start, states)``, or None: the moments
+    alone) with the quantiles of each row read off its density (closed form for a Gaussian smoother)."""
     probs = None if probs is None else check_probabilities(probs)
     if is_gaussian(flt):
         if each is not None:
             raise InputError("density", f"method {flt.method}: its smoothed density is the Gaussian of the "
                                         "smoothed mean and cov (no density file); the engine (yau-yau) "
                                         "writes one")
-        new_state, result = smooth(flt, state, rows, times)
+        new_state, result = run(None)
         if probs is None:
             return new_state, result, None
         from scipy.special import ndtri
@@ -40,7 +70,7 @@ def smooth_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, pr
         sd = np.sqrt(np.clip(np.diagonal(result.cov, axis1=1, axis2=2), 0.0, None))  # (K, n)
         return new_state, result, result.mean[:, :, None] + sd[:, :, None] * ndtri(probs)[None, None, :]
     if probs is None and each is None:
-        new_state, result = smooth(flt, state, rows, times)
+        new_state, result = run(None)
         return new_state, result, None
     found: dict[int, np.ndarray] = {}
 
@@ -51,9 +81,6 @@ def smooth_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, pr
             if each is not None:
                 each(start + i, smoothed)
 
-    if not hasattr(flt, "smooth_arrays") or "visit" not in flt.smooth_arrays.__code__.co_varnames:
-        raise InputError("quantiles", f"method {flt.method}: quantiles of the smoothed density are offered "
-                                      "by the engine (yau-yau) and the Gaussian smoothers")
-    new_state, result = flt.smooth_arrays(state, rows, times, visit=visit)
+    new_state, result = run(visit)
     table = None if probs is None else np.stack([found[k] for k in range(len(result.step))])
     return new_state, result, table

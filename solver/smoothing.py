@@ -21,7 +21,7 @@ SMOOTHING_METHODS = ("yau-yau", "kalman-bucy")
 
 
 def can_smooth(flt: Any) -> bool:
-    """Whether ``flt`` has a smoother (a ball that follows the state refuses when asked)."""
+    """Whether ``flt`` has a smoother."""
     return callable(getattr(type(flt), "smooth_arrays", None))
 
 
@@ -42,14 +42,16 @@ def check_lag(lag: Any, field: str = "lag") -> int:
     return int(lag)
 
 
-def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0) -> tuple[Any, ChunkResult]:
+def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0,
+               visit: Any = None) -> tuple[Any, ChunkResult]:
     """Fixed-lag smoothing of a recorded chunk: row k's estimate given the rows up to k + ``lag`` (the
     last ``lag`` rows: given every row), ``lag = 0`` the filter.  The engine (yau-yau on a fixed ball):
     solver/engine/fixed_lag.py, one forward pass and ``lag`` backward steps a row.  Any other smoother
     (and the engine's increments in pieces): row k is the first row of the fixed-interval smoother over
     rows k … k + lag from the filter's state after row k − 1 (the filter is bit for bit the same however
     its rows are chunked), about lag + 1 smoothed rows a row.  Returns (the filter's state after the
-    chunk, the result with the smoothed mean, cov, mode)."""
+    chunk, the result with the smoothed mean, cov, mode).  ``visit(k, [state])``, where given (the engine),
+    gets row k's fixed-lag smoothed density as a filter state (solver/smoothed_summaries.py reads it)."""
     lag = check_lag(lag)
     if not can_smooth(flt):
         smooth(flt, state, rows, times)  # raises, naming the method
@@ -60,32 +62,39 @@ def smooth_lag(flt: Any, state: Any, rows: Any, times: Any = None, lag: int = 0)
     stamps = None if times is None else np.asarray(times, dtype=float).reshape(-1)
     if stamps is not None and len(stamps) != K:
         raise InputError("times", f"one time per row: {K} row(s), {len(stamps)} time(s)")
-    if K == 0 or lag == 0:
+    if K == 0 or (lag == 0 and visit is None):
         return flt.run_arrays(state, arr, stamps)
     from .engine.filter import YauYauFilter  # the engine's own: one forward pass, L backward steps a row
 
     if isinstance(flt, YauYauFilter):
         from .engine.fixed_lag import smooth_lag_arrays
 
-        found = smooth_lag_arrays(flt, state, arr, stamps, lag)
+        found = smooth_lag_arrays(flt, state, arr, stamps, lag, visit=visit)
         if found is not None:
             return found
     parts = []
     for k in range(K):
         end = min(k + lag + 1, K)
         try:
-            _, result = flt.smooth_arrays(state, arr[k:end], None if stamps is None else stamps[k:end])
+            result, first = _window(flt, state, arr[k:end], None if stamps is None else stamps[k:end], visit)
             state, _ = flt.run_arrays(state, arr[k:k + 1], None if stamps is None else stamps[k:k + 1])
         except InputError as exc:  # name the row in the whole chunk
-            raise InputError(_shifted(exc.field, k), exc.message) from None
+            raise exc.shifted(k) from None
         parts.append(slice_result(result, slice(0, 1)))
+        if visit is not None:
+            visit(k, first)
     return state, concat_results(parts)
 
 
-def _shifted(field: str, offset: int) -> str:
-    """``increments[j]`` of a window starting at row ``offset`` as ``increments[offset + j]``."""
-    head, bracket, rest = field.partition("[")
-    index, close, tail = rest.partition("]")
-    if bracket and close and index.isdigit():
-        return f"{head}[{offset + int(index)}]{tail}"
-    return field
+def _window(flt: Any, state: Any, rows: np.ndarray, times: Any, visit: Any) -> tuple[ChunkResult, list]:
+    """The fixed-interval smoother over one window: (its result, [its first row's smoothed density] where
+    ``visit`` asks for densities, else [])."""
+    if visit is None:
+        return flt.smooth_arrays(state, rows, times)[1], []
+    first: list = []
+
+    def keep(start: int, states: list) -> None:
+        if start == 0:
+            first.append(states[0])
+
+    return flt.smooth_arrays(state, rows, times, visit=keep)[1], first

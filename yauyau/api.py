@@ -389,14 +389,19 @@ class OnlineFilter:
             self.state, result = smooth_lag(self.filter, self.state, rows, times, lag)
         return result
 
-    def smooth_quantiles(self, rows: ArrayLike, probs: ArrayLike,
-                         times: ArrayLike | None = None) -> tuple[ChunkResult, np.ndarray]:
-        """:meth:`smooth` (fixed-interval) with the marginal quantiles of each row's smoothed density:
-        (the result, quantiles (K, n, len(probs))), by the filter's own quantile code on the smoothed
-        densities (yau-yau) or the Gaussian's closed form (kalman-bucy); yauyau.solver.smoothed_summaries."""
-        from .solver.smoothed_summaries import smooth_with_quantiles
+    def smooth_quantiles(self, rows: ArrayLike, probs: ArrayLike, times: ArrayLike | None = None,
+                         lag: int | None = None) -> tuple[ChunkResult, np.ndarray]:
+        """:meth:`smooth` with the marginal quantiles of each row's smoothed density (``lag`` L: given the
+        rows up to L after it): (the result, quantiles (K, n, len(probs))), by the filter's own quantile
+        code on the smoothed densities (yau-yau) or the Gaussian's closed form (kalman-bucy);
+        yauyau.solver.smoothed_summaries."""
+        from .solver.smoothed_summaries import smooth_lag_with_quantiles, smooth_with_quantiles
 
-        self.state, result, table = smooth_with_quantiles(self.filter, self.state, rows, times, probs)
+        if lag is None:
+            self.state, result, table = smooth_with_quantiles(self.filter, self.state, rows, times, probs)
+        else:
+            self.state, result, table = smooth_lag_with_quantiles(self.filter, self.state, rows, times, lag,
+                                                                  probs)
         return result, table
 
     def iterate(self, rows: ArrayLike, times: Iterable[float] | None = None) -> Iterator[Estimate]:

@@ -7,7 +7,7 @@ The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the ou
 of the file (``--lag L``: given the rows up to L after each row, fixed-lag); loglik, gated and
 predictive_loglik are the forward pass's.  Methods yau-yau (the general engine's forward–backward
 smoother of its discretised model) and kalman-bucy (Rauch–Tung–Striebel, discrete measurements);
-another method, a following ball, a filter that degenerates, a bad --lag or a file longer than the
+another method, a filter that degenerates, a bad --lag or a file longer than the
 memory budget (--memory) exit 2 naming the field, with nothing written.
 """
 
@@ -29,10 +29,12 @@ EPILOG = """\
 input and output as for `yauyau filter` (yauyau filter -h): --increments IN (regular rows) or
   --observations IN.csv (rows with their times, header t,<components>); an empty field is missing,
   a row of empty fields no observation. OUT.csv has filter's columns: step, t, mean_<var>,
-  cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised; the means and
+  cov_<var>_<var>, loglik, degenerate, gated, predictive_loglik, reinitialised (and center_<var>,
+  recentred on a ball that follows the state); the means and
   covariances are the smoothed ones (given every row; with --lag L, given the rows up to L after);
-  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density, --density D.h5
-  writes it on a grid as filter --density does (yau-yau; not with --lag).
+  --quantiles P,... and --mode add q<p>_<var> and mode_<var> of the smoothed density (with --lag L, of
+  each row's density given the L rows after it), --density D.h5 writes it on a grid as filter --density
+  does (yau-yau).
 
 exit status: 0 done; 2 bad input, a method that cannot smooth, a filter that degenerates or a file
   over the memory budget (one line on stderr naming the field, nothing written).
@@ -106,17 +108,12 @@ def run(args: argparse.Namespace) -> int:
     from yauyau.solver.filtering import at_time, check_t0
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
-    from yauyau.solver.smoothed_summaries import smooth_with_quantiles
-    from yauyau.solver.smoothing import smooth_lag
+    from yauyau.solver.smoothed_summaries import smooth_lag_with_quantiles, smooth_with_quantiles
 
     from yauyau.api import load_model
 
     lag = parse_lag(args.lag)
     outputs = Outputs.from_args(args)
-    if lag is not None and (outputs.probs is not None or outputs.mode or outputs.density is not None):
-        raise InputError("quantiles" if outputs.probs is not None else "mode" if outputs.mode else "density",
-                         "the fixed-lag smoother gives means and covariances only (no --lag for quantiles, "
-                         "the mode or the density yet)")
     if args.t0 is not None and not math.isfinite(args.t0):
         raise InputError("t0", "must be a finite number (the time at which the model's prior holds)")
     gate = check_gate(args.gate)
@@ -142,16 +139,18 @@ def run(args: argparse.Namespace) -> int:
     def keep(k: int, smoothed) -> None:
         if int(smoothed.step) % outputs.every == 0:
             snapshots[int(smoothed.step)] = smoothed
+    each = None if outputs.density is None else keep
     try:
         if lag is None:
             _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
-                                                     None if outputs.density is None else keep)
+                                                     each)
         else:
-            _, result = smooth_lag(flt, state, source.rows, source.times, lag)
+            _, result, table = smooth_lag_with_quantiles(flt, state, source.rows, source.times, lag,
+                                                         outputs.probs, each)
     except InputError as exc:
         raise InputError(_in_file(exc.field, source), exc.message) from None
     extras = None
-    if lag is None and (outputs.mode or outputs.probs is not None):
+    if outputs.mode or outputs.probs is not None:
         mode = result.mean if result.mode is None else result.mode
         K = len(result.step)
         extras = [[*(mode[k].tolist() if outputs.mode else []),
@@ -160,7 +159,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         for step in sorted(snapshots):
             snapshot(flt, snapshots[step], snapshots[step].last, outputs, writer)
-        write_lines(args.out, header(model, outputs), csv_lines(result, extras))
+        write_lines(args.out, header(model, outputs, follow=result.center is not None),  # a following ball
+                    csv_lines(result, extras))
     except BaseException:
         if writer is not None:
             writer.abort()

@@ -61,7 +61,7 @@ class SessionCreate(_Body):
         description="fixed-lag smoothing, in rows (1 to 1000): every chunk response then also carries "
                     "`smoothed`, the estimate of each row given the smooth_lag rows after it, for the "
                     "rows this chunk completes (row k once row k + smooth_lag has come). Methods that "
-                    "smooth only: yau-yau on a fixed ball, kalman-bucy with discrete measurements")
+                    "smooth only: yau-yau, kalman-bucy with discrete measurements")
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"model": "3f9c2a...", "prior": {"kind": "gaussian", "mean": [0.5], "cov": [[1.0]]}},
@@ -207,7 +207,8 @@ class ChunkResult(BaseModel):
                                                                 "innovation monitor raised its alarm")
     smoothed: list[EstimateOut] | None = Field(
         None, description="(smooth_lag sessions) the fixed-lag smoothed estimates this chunk completes, in "
-                          "order: row k's given the rows up to k + smooth_lag (its step is row k's); empty "
+                          "order: row k's given the rows up to k + smooth_lag (its step is row k's; the mode "
+                          "and quantiles when the chunk asks for them, as its estimates); empty "
                           "after a degenerate or re-initialised row (the lag starts again from there)")
     monitor: float | None = Field(None, description="the innovation monitor's statistic after the chunk (±1: "
                                                     "an alarm; null: the monitor is off)")

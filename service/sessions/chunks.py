@@ -240,7 +240,7 @@ def _alone(job: ChunkJob, state: Any, watch: Watch, window: dict[str, Any] | Non
         else:
             stamps = np.array([row["t"] for row in response["estimates"]], dtype=float)
             response["smoothed"], window = lagged_rows(job.filt, job.lag, before, window, job.array,
-                                                       job.times, stamps)
+                                                       job.times, stamps, job.extras)
             stored["lag"] = window
     return stored, encode_response(response)
 

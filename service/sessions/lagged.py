@@ -20,9 +20,11 @@ from typing import Any
 import numpy as np
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import slice_result
+from yauyau.solver.smoothed_summaries import smooth_lag_with_quantiles
 from yauyau.solver.smoothing import SMOOTHING_METHODS, can_smooth, smooth, smooth_lag
+from yauyau.solver.summaries import is_gaussian
 
-from .responses import estimate_rows
+from .responses import Extras, estimate_rows, summaries_of
 
 MAX_LAG = 1000  # rows: the window the session's state stores (and each chunk smooths over)
 
@@ -44,7 +46,7 @@ def check_can_smooth(filt: Any, state: Any) -> None:
         why = "it has no smoother"
     else:
         try:
-            smooth(filt, state, np.empty((0, filt.model.m)))  # the smoother's own refusals (follow, kind)
+            smooth(filt, state, np.empty((0, filt.model.m)))  # the smoother's own refusals (kind)
         except (SpecError, InputError) as exc:
             why = exc.message
     if why is not None:
@@ -66,11 +68,13 @@ def _rows_json(rows: np.ndarray) -> list:
 
 
 def lagged_rows(filt: Any, lag: int, before: Any, window: dict[str, Any] | None, rows: np.ndarray,
-                times: list[float] | None, stamps: np.ndarray,
+                times: list[float] | None, stamps: np.ndarray, extras: Extras | None = None,
                 ) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
     """(the smoothed estimates this chunk completes, the window to store) for a chunk of ``rows`` (at
     ``times``, or one dt apart; ``stamps``: the times the filter gave them) run from the session state
-    ``before`` with the stored ``window``."""
+    ``before`` with the stored ``window``.  ``extras`` (the chunk's mode and quantiles): each smoothed
+    estimate carries them as the filtered ones do, by the same code (``summaries_of``) on its smoothed
+    density (the engine) or its Gaussian (Kalman–Bucy)."""
     timed = times is not None
     if window is None or not window["rows"]:
         anchor, old_rows, old_times, was_timed = before, np.empty((0, rows.shape[1])), [], timed
@@ -90,9 +94,29 @@ def lagged_rows(filt: Any, lag: int, before: Any, window: dict[str, Any] | None,
         return [], {"anchor": anchor.to_dict(), "rows": _rows_json(all_rows), "times": all_times,
                     "timed": timed}
     given = np.asarray(all_times) if timed else None
-    _, result = smooth_lag(filt, anchor, all_rows, given, lag)
+    result, fields = _smoothed(filt, anchor, all_rows, given, lag, extras, done)
     head = slice_result(result, slice(0, done))
     out = estimate_rows(head.step, head.t, np.asarray(head.mean, float), np.asarray(head.cov, float))
+    out = [row | extra for row, extra in zip(out, fields, strict=True)]
     anchor, _ = filt.run_arrays(anchor, all_rows[:done], None if given is None else given[:done])
     return out, {"anchor": anchor.to_dict(), "rows": _rows_json(all_rows[done:]), "times": all_times[done:],
                  "timed": timed}
+
+
+def _smoothed(filt: Any, anchor: Any, rows: np.ndarray, given: np.ndarray | None, lag: int,
+              extras: Extras | None, done: int) -> tuple[Any, list[dict[str, Any]]]:
+    """(the fixed-lag smoothed result over the window, the mode and quantiles asked for of its first
+    ``done`` rows: {} each without ``extras``)."""
+    if not extras:
+        return smooth_lag(filt, anchor, rows, given, lag)[1], [{}] * done
+    if is_gaussian(filt):
+        result = smooth_lag(filt, anchor, rows, given, lag)[1]
+        return result, [summaries_of(filt, None, est, extras) for est in result.estimates()[:done]]
+    found: dict[int, dict[str, Any]] = {}
+
+    def each(k: int, smoothed: Any) -> None:
+        if k < done:
+            found[k] = summaries_of(filt, smoothed, smoothed.last, extras)
+
+    _, result, _ = smooth_lag_with_quantiles(filt, anchor, rows, given, lag, None, each)
+    return result, [found[k] for k in range(done)]

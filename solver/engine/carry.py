@@ -66,6 +66,15 @@ class Carry:
             out[self.rest] = self.rows @ nodal
         return out
 
+    def adjoint(self, values: np.ndarray) -> np.ndarray:
+        """Cᵀv, the transpose of :meth:`apply` (values at the new nodes → the old nodes): what the backward
+        pass of a smoother carries back over the move (solver/engine/follow_smoother.py)."""
+        out = np.zeros(self.size)
+        np.add.at(out, self.source, values[self.matched])
+        if self.rows is not None:
+            out += self.rows.T @ values[self.rest]
+        return out
+
 
 def row_block(rows: Any, lo: int, hi: int) -> Any:
     """Rows lo:hi of a CSR matrix as a CSR matrix of their own (None: no row), without scipy's slicing

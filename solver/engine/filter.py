@@ -292,6 +292,10 @@ class YauYauFilter(ChunkedFilter):
         from .smoother import smooth_arrays  # lazy: the filter alone never loads it
         return smooth_arrays(self, state, increments, times, block, visit)
 
+    def smooth_following(self, follow: Any, *args: Any):  # FollowingFilter.smooth_arrays
+        from .follow_smoother import smooth_following  # here: from follow.py it would be an import circle
+        return smooth_following(follow, *args)
+
     def run_until(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None,
                   until: Until | None) -> tuple[YauYauState, ChunkResult]:
         """:meth:`run_arrays` for a ball that follows the state (solver/engine/follow.py): ``until(mean,

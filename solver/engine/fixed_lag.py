@@ -19,15 +19,18 @@ import numpy as np
 
 from ..errors import InputError
 from ..filtering import ChunkResult, concat_results
-from .smoother import BLOCK, CHECK, adjoint_of, forward_block, validated
+from .smoother import BLOCK, CHECK, Visit, adjoint_of, forward_block, smoothed_states, validated
 from .state import YauYauState
 
 
 def smooth_lag_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None, lag: int = 0,
-                      block: int | None = None) -> tuple[YauYauState, ChunkResult] | None:
+                      block: int | None = None,
+                      visit: Visit | None = None) -> tuple[YauYauState, ChunkResult] | None:
     """(the filter's state after the chunk, the result with each row's moments given the ``lag`` rows
-    after it), or None where the chunk's increments are filtered in pieces."""
-    if lag == 0:
+    after it), or None where the chunk's increments are filtered in pieces.  ``visit(start, states)``,
+    where given, gets the smoothed densities block by block as filter states (smoother.py's
+    ``smoothed_states``)."""
+    if lag == 0 and visit is None:
         return engine.run_arrays(state, increments, times)
     chunk = validated(engine, state, increments, times)
     if chunk is None:
@@ -48,13 +51,18 @@ def smooth_lag_arrays(engine: Any, state: YauYauState, increments: Any, times: A
         weighted[ready.skip | filtered.gated] = engine.weights
         pending.append((start, stop, filtered, sigma, weighted, masses, ready.skip))
         while pending and (pending[0][1] + lag <= stop or stop == K):
-            parts.append(_lagged(engine, pending, taus, lag, K))
+            part, smoothed = _lagged(engine, pending, taus, lag, K)
+            parts.append(part)
+            if visit is not None:
+                visit(pending[0][0], smoothed_states(engine, state, smoothed, part))
             pending.pop(0)
     return current, concat_results(parts)
 
 
-def _lagged(engine: Any, pending: list[tuple], taus: np.ndarray | None, lag: int, K: int) -> ChunkResult:
-    """The first pending block's rows, each given the ``lag`` rows after it (from the pending blocks)."""
+def _lagged(engine: Any, pending: list[tuple], taus: np.ndarray | None, lag: int,
+            K: int) -> tuple[ChunkResult, np.ndarray]:
+    """The first pending block's rows, each given the ``lag`` rows after it (from the pending blocks), and
+    their smoothed nodal σ_k ⊙ β_k."""
     start, stop, filtered, sigma, _, _, _ = pending[0]
     end = pending[-1][1]
     weighted = np.concatenate([p[4] for p in pending])
@@ -81,4 +89,4 @@ def _lagged(engine: Any, pending: list[tuple], taus: np.ndarray | None, lag: int
         k = int(np.argmax(~(masses > 0.0)))
         raise InputError(f"increments[{start + k}]", "the smoothed density has no positive mass at this row")
     mean, cov, mode = engine.moments(smoothed, masses, None)
-    return dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode)
+    return dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode), smoothed

@@ -54,10 +54,6 @@ from .carry import Carry, carried_at, unshaped_points
 from .frame import affine_frame
 from .kernel import with_zero_column
 
-SMOOTHING_REFUSED = ("the smoother does not take a ball that follows the state ([domain] follow: a moving "
-                     "ball, a moving frame or an atlas) yet: its backward pass would have to carry the "
-                     "adjoint of every move; smooth on a fixed ball (precompute without domain.follow)")
-
 if TYPE_CHECKING:  # types only
     from ..model import Model
     from .state import YauYauState
@@ -149,9 +145,10 @@ class FollowingFilter(ChunkedFilter):
 
         return kept(self._framed, self.gate_override, make, 4)
 
-    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None):
-        """Refused for now (solver/engine/smoother.py): the backward pass would carry each move's adjoint."""
-        raise SpecError("domain.follow", SMOOTHING_REFUSED)
+    def smooth_arrays(self, state: YauYauState, increments: Any, times: Any = None, block: Any = None,
+                      visit: Any = None):
+        """Fixed-interval smoothing over the same sequence of balls (solver/engine/follow_smoother.py)."""
+        return self.home.smooth_following(self, state, increments, times, block, visit)
 
     def __getattr__(self, name: str) -> Any:  # offline, nodes, weights, N, form, precision, flow...
         if name.startswith("__") or name == "home":

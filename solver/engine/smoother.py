@@ -32,17 +32,22 @@ is the filter itself (its fused compiled rows, no K×Q arrays) keeping the state
 block's start; the backward pass takes the blocks from the last, runs each block's forward pass again
 from its checkpoint keeping its σ_k, factors and exponents (equal to the first pass's to rounding),
 overwrites σ_k with σ_k ⊙ β_k in place and carries one β (Q,) into the block before.  So the rows cost
-O(KEEP + K/B·N) numbers besides the K rows of the result.  The backward step is one gemv with the
+O(KEEP + K/B·N) numbers besides the K rows of the result.  The last block (a whole one: the remainder
+block comes first) keeps its first pass's σ_k, factors and exponents, as a chunk kept whole does, so its
+forward pass runs once.  The backward step is one gemv with the
 Q×Q matrix ΦPᵀ (computed once per engine), in numba's compiled loop where the filter's are
 (solver/engine/compiled_backward.py, the same BLAS call).  Measured on examples/ou.toml (Q = 195, N = 96;
-bench/smoother.py, docs/benchmarks.md; CPU time, one BLAS thread, 2 shared cores at load ~6): 17 µs a row
-against the fused filter's 8.0 (2.1×) kept whole (20 000 rows), 30 µs against 9.4 (3.2×) checkpointed
-(100 000 rows); 10⁶ rows in one chunk raised the peak RSS by 72 MB.
+bench/smoother.py, docs/benchmarks.md; CPU time, one BLAS thread, 2 shared cores at load ~6.5): 22 µs a
+row against the fused filter's 9.9 (2.3×) kept whole (20 000 rows), 28 µs against 10.6 (2.65×)
+checkpointed (100 000 rows; 3.2× before the last block kept its first pass); 10⁶ rows in one chunk peaked
+at 533 MB RSS against 429 MB for the engine and the rows alone.
 
 Increments over long gaps are smoothed in the filter's pieces (solver/engine/pieces.py), the gate judging
-whole rows.  Refused for now (InputError/SpecError naming the reason): a ball that follows the state, a
-moving frame or an atlas (the backward pass would have to carry the adjoint of each move), and a chunk
-whose filter degenerates.
+whole rows.  A ball that follows the state (an atlas, a moving frame too) is smoothed over its sequence
+of balls, the backward pass carrying the adjoint of each move (solver/engine/follow_smoother.py, through
+:func:`smooth_from`); in a moving frame each row's nodes are moved (``ready.shifts``: the factors and
+moments at them), the recursion in the coefficients is unchanged.  Refused (InputError naming the row): a
+chunk whose filter degenerates.
 """
 
 from __future__ import annotations
@@ -56,7 +61,7 @@ import numpy as np
 from scipy.linalg.blas import dgemv
 
 from .. import jit
-from ..errors import InputError, SpecError
+from ..errors import InputError
 from ..filtering import ChunkResult, chunk_clock, concat_results
 from ..measurement import check_first_gap, check_rows, resolve_times
 from .loops import loop_irregular, loop_regular, update_factors
@@ -67,8 +72,6 @@ CHECK = 32  # rows between the backward pass's magnitude checks
 BLOCK = 256  # rows of a checkpointed block at least (√K where that is more)
 KEEP = 1 << 22  # nodal values (32 MiB a K×Q array) up to which a chunk's forward pass is kept whole
 Visit = Callable[[int, list], None]
-FRAME_REFUSED = ("the smoother does not take a moving frame ([domain] follow with an affine drift) yet: its "
-                 "backward pass would have to carry the adjoint of every move; smooth on a fixed ball")
 
 
 def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any = None,
@@ -79,23 +82,34 @@ def smooth_arrays(engine: Any, state: YauYauState, increments: Any, times: Any =
     rows per checkpointed block (default max(256, ⌈√K⌉)).  ``visit(start, states)``, where given, is
     called once per block (from the last) with the smoothed densities of rows start, start + 1, … as
     filter states (:func:`smoothed_states`): what the filter's quantiles, mode and density read."""
+    new_state, result, _ = smooth_from(engine, state, increments, times, block, visit)
+    return new_state, result
+
+
+def smooth_from(engine: Any, state: YauYauState, increments: Any, times: Any = None, block: int | None = None,
+                visit: Visit | None = None, beta: np.ndarray | None = None):
+    """:func:`smooth_arrays` with the rows after the chunk given as ``beta`` (Q,): the nodal likelihood of
+    those rows given the state after the chunk's last row (None: no rows after, β = 1), as the backward
+    pass of a ball that follows the state carries it in (solver/engine/follow_smoother.py).  Returns
+    (state after, smoothed result, β before the chunk's first row (Q,): Φ P_0ᵀ(ẽ_0 ⊙ w ⊙ β_0), up to a
+    positive factor)."""
     chunk = validated(engine, state, increments, times)
     if chunk is None:
-        return engine.run_arrays(state, np.empty((0, engine.model.m)), times)
+        new_state, result = engine.run_arrays(state, np.empty((0, engine.model.m)), times)
+        return new_state, result, np.ones(len(engine.weights)) if beta is None else beta
     rows, steps, times_out, taus, pieces, field = chunk
     if pieces is not None:
         if visit is not None:
             raise InputError(field, "the smoothed densities of increments filtered in pieces (long gaps) "
                                     "are not offered yet: ask for the moments alone")
-        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field)
-    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit)
+        return _in_pieces(engine, state, rows, steps, times_out, taus, pieces, block, field, beta)
+    return _blocks(engine, state, rows, steps, times_out, taus, block, field, gating=True, visit=visit,
+                   beta=beta)
 
 
 def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
     """(rows, steps, times, gaps τ_k or None, pieces or None, the rows' field name) of a chunk the smoother
     takes, None for an empty chunk; SpecError/InputError naming what it cannot take."""
-    if engine.frame is not None:
-        raise SpecError("domain.follow", FRAME_REFUSED)
     model, obs = engine.model, engine.observation
     field = "observations" if obs.discrete else "increments"
     rows = check_rows(increments, model.m, field)
@@ -113,8 +127,10 @@ def validated(engine: Any, state: YauYauState, increments: Any, times: Any):
 
 
 def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None):
-    """The checkpointed forward pass, then the backward pass block by block from the last."""
+            taus: np.ndarray | None, block: int | None, field: str, gating: bool, visit: Visit | None = None,
+            beta: np.ndarray | None = None):
+    """The checkpointed forward pass, then the backward pass block by block from the last (from ``beta``
+    after the last row, default 1): (state after, smoothed result, β before the first row)."""
     K, Q = len(rows), len(engine.weights)
     if block is not None:
         size = max(1, int(block))
@@ -122,10 +138,13 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
         size = K
     else:
         size = max(BLOCK, math.isqrt(K - 1) + 1, KEEP // Q)
-    bounds = [(start, min(start + size, K)) for start in range(0, K, size)]
+    # the remainder first, so that the last block, whose forward pass is kept from the first pass (the
+    # backward pass starts there), is a whole one
+    first = K - (K - 1) // size * size
+    bounds = [(0, first)] + [(start, start + size) for start in range(first, K, size)]
     checkpoints, current, kept = [], state, None  # the forward pass: the state at each block's start
     for start, stop in bounds:
-        if len(bounds) == 1:
+        if stop == K:
             kept = forward_block(engine, current, rows, steps, times, taus, start, stop, field, gating)
             checkpoints.append((current, kept[1]))
             current = kept[0]
@@ -134,10 +153,11 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
             checkpoints.append((current, found[1]))
             current = found[0]
     parts: list[ChunkResult] = []
-    beta = np.ones(len(engine.weights))
+    beta = np.ones(len(engine.weights)) if beta is None else np.array(beta, dtype=float)
     for (start, stop), (begin, filtered) in zip(reversed(bounds), reversed(checkpoints), strict=True):
-        if kept is not None:
+        if kept is not None:  # the last block
             _, _, sigma, factor, masses, ready = kept
+            kept = None  # (its arrays go with the block: one block's at a time)
             only_predicts = ready.skip | filtered.gated
         else:  # the block's σ_k again, from its checkpoint: the loop alone (its filtered rows are kept)
             sigma, factor, masses, ready, gated = forward_sigma(engine, begin, rows, taus, start, stop, field,
@@ -153,7 +173,7 @@ def _blocks(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray
         parts.append(dataclasses.replace(filtered, mean=mean, cov=cov, mode=mode))
         if visit is not None:
             visit(start, smoothed_states(engine, begin, sigma, parts[-1]))
-    return current, concat_results(parts[::-1])
+    return current, concat_results(parts[::-1]), beta
 
 
 def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed: ChunkResult) -> list:
@@ -161,15 +181,17 @@ def smoothed_states(engine: Any, like: YauYauState, sigma: np.ndarray, smoothed:
     their projection Π(σ_k ⊙ β_k) = [c, ∫] as the filter carries σ_k, the smoothed estimate as ``last``."""
     carried = sigma @ np.asarray(engine.projection, dtype=float).T  # (B, N + 1)
     N = engine.N
+    centers = [like.center] * len(carried) if smoothed.center is None else list(smoothed.center)  # a frame's
     return [dataclasses.replace(like, coefficients=carried[i, :N].copy(), mass=float(carried[i, N]),
                                 step=int(smoothed.step[i]), t=float(smoothed.t[i]),
                                 loglik=float(smoothed.loglik[i]), last=estimate, degenerate=False,
-                                reason=None)
+                                reason=None, center=centers[i])
             for i, estimate in enumerate(smoothed.estimates())]
 
 
 def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
-               taus: np.ndarray, pieces: np.ndarray, block: int | None, field: str):
+               taus: np.ndarray, pieces: np.ndarray, block: int | None, field: str,
+               beta: np.ndarray | None = None):
     """Increments over long gaps, as the filter takes them (solver/engine/pieces.py): each row in
     ``pieces[k]`` equal pieces of its gap and increment.  The whole rows are filtered first (the gate
     judges whole rows: a gated row is then missing for the smoother), the pieces smoothed without the
@@ -189,10 +211,10 @@ def _in_pieces(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndar
     before = np.concatenate([[state.t], times[:-1]])
     piece_times = before[owner] + share * (np.arange(len(owner)) - first[owner] + 1)
     piece_times[last] = times  # each row ends exactly at its time
-    _, smoothed = _blocks(engine, state, data[owner] / count[owner, None], steps[owner], piece_times, share,
-                          block, field, gating=False)
+    _, smoothed, beta = _blocks(engine, state, data[owner] / count[owner, None], steps[owner], piece_times,
+                                share, block, field, gating=False, beta=beta)
     return new_state, dataclasses.replace(filtered, mean=smoothed.mean[last], cov=smoothed.cov[last],
-                                          mode=None if smoothed.mode is None else smoothed.mode[last])
+                                          mode=None if smoothed.mode is None else smoothed.mode[last]), beta
 
 
 def checkpoint(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,

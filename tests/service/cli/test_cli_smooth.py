@@ -74,6 +74,63 @@ def test_bad_input_exits_2_naming_the_field(stored, tmp_path, capsys, extra, fie
         assert "rows fit" in err and "--memory" in err
 
 
+def test_a_file_over_the_memory_budget_says_the_budget_and_the_rows_that_fit(stored, tmp_path, capsys):
+    """--memory 0.0008 (GB) for 300 rows: exit 2 naming increments, the budget and the count that fits,
+    nothing written; that many rows then smooth under the same budget, with or without --lag."""
+    import re
+
+    code, out = _smooth(stored, tmp_path, "--method", "yau-yau", "--memory", "0.0008")
+    err = capsys.readouterr().err
+    assert code == 2 and not out.exists()
+    assert "error: increments: 300 rows need about" in err
+    assert "over the budget of 0.0008 GB (--memory)" in err
+    fits = int(re.search(r"at most (\d+) rows fit", err).group(1))
+    assert 0 < fits < 300
+    directory, model_id, _, dy = stored
+    path = tmp_path / "head.csv"
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in dy[:fits]))
+    for extra in ([], ["--lag", "3"]):
+        out = tmp_path / "head_out.csv"
+        assert main(["smooth", model_id, "--store", str(directory), "--increments", str(path), "--out",
+                     str(out), "--method", "yau-yau", "--memory", "0.0008", *extra]) == 0
+        assert len(_read(out)[1]) == fits
+
+
+def test_smooth_on_a_ball_that_follows_the_state(tmp_path):
+    """`yauyau smooth` on [domain] follow: 800 rows of the random walk with a trend (travelling ~8 units, a
+    ball of radius 6), the smoothed columns (and the ball's centre_x, recentred, as filter writes them)
+    against RTS of the sampled model (measured mean 2.3e-5, variance 1.0e-4; bounds 0.02, 5%); --lag 5 on
+    the first 200 rows against the fixed-lag RTS (measured 1.2e-5)."""
+    from helpers.linear_rts import TREND, rts_trend
+    from yauyau.solver import compile_model
+    from yauyau.solver.simulate import simulate
+
+    spec = spec_from_dict(TREND)
+    model_id = yauyau.precompute(spec, tmp_path / "store")
+    dy = simulate(compile_model(spec), 800, np.random.default_rng(5)).increments[:, 0]
+    path = tmp_path / "dy.csv"
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in dy))
+    out = tmp_path / "out.csv"
+    store = str(tmp_path / "store")
+    base = ["smooth", model_id, "--store", store, "--increments", str(path), "--out", str(out)]
+    assert main(base) == 0
+    names, values = _read(out)
+    _, _, ms, Ps = rts_trend(dy, np.full(800, 0.01))
+    mean_gap, var_gap = np.abs(values[:, 2] - ms).max(), np.abs(values[:, 3] / Ps - 1).max()
+    print(f"cli follow: mean {mean_gap:.2e}, var {var_gap:.2e}")
+    assert names[:4] == ["step", "t", "mean_x", "cov_x_x"] and names[-2:] == ["center_x", "recentred"]
+    assert values.shape[1] == len(names) and values[:, -1].sum() >= 1  # the ball moved
+    assert mean_gap < 0.02 and var_gap < 0.05 and ms[-1] - ms[0] > 6.0
+    head = dy[:200]
+    path.write_text("dy\n" + "".join(f"{float(v)!r}\n" for v in head))
+    assert main([*base, "--lag", "5"]) == 0
+    lagged = _read(out)[1]
+    ms_lag = np.array([rts_trend(head[:k + 6], np.full(len(head[:k + 6]), 0.01))[2][k] for k in range(200)])
+    lag_gap = np.abs(lagged[:, 2] - ms_lag).max()
+    print(f"cli follow --lag 5: mean {lag_gap:.2e}")
+    assert lag_gap < 0.02
+
+
 BIMODAL = {"name": "bimodal", "state": ["x"], "drift": ["-0.5*x"], "observation": ["x**2/2"],
            "diffusion": [[1.0]], "observation_noise": [[0.1]], "measurement": {"kind": "discrete"},
            "initial": {"kind": "gaussian", "mean": [0.3], "cov": [[1.0]]},
@@ -106,8 +163,8 @@ def test_smooth_quantiles_and_mode_columns(tmp_path):
     """--quantiles 0.1,0.5,0.9 --mode on the bimodal sensor's readings at irregular times: filter's column
     names (mode_x, q0.1_x, …), each row's quantiles within 0.02 of the point-mass forward–backward
     smoother's (its smoothed masses' distribution function inverted, 1200 cells); --density: snapshots
-    whose mean by quadrature is the smoothed mean; --lag with --quantiles or --density exits 2, nothing
-    written."""
+    whose mean by quadrature is the smoothed mean; --lag 5 with the quantiles: its last 5 rows are the
+    fixed-interval smoother's."""
     directory = tmp_path / "store"
     model_id = yauyau.precompute(spec_from_dict(BIMODAL), directory)
     rng = np.random.default_rng(14)
@@ -140,11 +197,44 @@ def test_smooth_quantiles_and_mode_columns(tmp_path):
     found = np.trapezoid(marginal * grid, grid, axis=1)
     assert np.abs(found - values[series.step - 1, 2]).max() < 1e-3
     assert np.abs(found - mean[series.step - 1]).max() < 0.01
-    out.unlink()
-    density.unlink()
-    assert main([*base, "--lag", "5"]) == 2
-    assert main([*base[:-2], "--lag", "5", "--density", str(density)]) == 2
-    assert not out.exists() and not density.exists()
+    # --lag 5 with the quantiles: its last 5 rows are given every row, the fixed-interval smoother's
+    lagged = tmp_path / "lag.csv"
+    assert main([*base[:base.index("--out")], "--out", str(lagged), *base[base.index("--out") + 2:], "--mode",
+                 "--lag", "5"]) == 0
+    names_lag, values_lag = _read(lagged)
+    assert names_lag == names and np.abs(values_lag[-5:, 2:8] - values[-5:, 2:8]).max() < 1e-8
+
+
+def fixed_lag_rts(dy, lag, **model):
+    """Row k's RTS-smoothed mean and variance given rows 0 … k + lag (helpers' RTS over that window)."""
+    K = len(dy)
+    ms, Ps = np.empty(K), np.empty(K)
+    for k in range(K):
+        _, _, m, P = rts_sampled(dy[:min(k + lag + 1, K)], 1.0, 0.5, **model)
+        ms[k], Ps[k] = m[k], P[k]
+    return ms, Ps
+
+
+def test_fixed_lag_quantiles_and_mode(stored, tmp_path):
+    """--lag 4 --quantiles 0.05,0.5,0.95 --mode: each row's quantiles of its density given the 4 rows after
+    it, against the fixed-lag RTS's Gaussian m + √P Φ⁻¹(p): measured 0.010 (bound 0.02, the bimodal
+    test's), where the means are within 1e-5: the smoothed density handed to the quantile code is the
+    projection of σ_k ⊙ β_k onto the 48 basis functions (fixed-interval on the same rows: 0.006; the filter's
+    own quantiles: 2.7e-4).  The mode, the nodal one as without --lag, within the node spacing of the
+    Gaussian's (its mean)."""
+    from scipy.special import ndtri
+
+    code, out = _smooth(stored, tmp_path, "--method", "yau-yau", "--lag", "4", "--quantiles", "0.05,0.5,0.95",
+                        "--mode")
+    assert code == 0
+    names, values = _read(out)
+    assert names[2:8] == ["mean_x", "cov_x_x", "mode_x", "q0.05_x", "q0.5_x", "q0.95_x"]
+    ms, Ps = fixed_lag_rts(stored[3], 4, theta=0.5, a=1.0, r=1.0)
+    exact = ms[:, None] + np.sqrt(Ps)[:, None] * ndtri([0.05, 0.5, 0.95])[None, :]
+    gap = np.abs(values[:, 5:8] - exact).max()
+    print(f"cli fixed-lag quantiles: {gap:.2e}, mode {np.abs(values[:, 4] - ms).max():.2e}")
+    assert gap < 0.02 and np.abs(values[:, 2] - ms).max() < 0.01
+    assert np.abs(values[:, 4] - ms).max() < 0.15
 
 
 def _png(path):

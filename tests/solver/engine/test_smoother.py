@@ -274,21 +274,6 @@ def test_gated_row_only_predicts_in_the_smoother_too(ou_engine):
     assert mean_gap < 0.01 and var_gap < 0.03
 
 
-def test_a_following_ball_is_refused_by_name():
-    """[domain] follow: the backward pass would have to carry every move's adjoint; refused for now."""
-    from yauyau.solver.engine.filter import build
-    from yauyau.solver.errors import SpecError
-
-    doc = {"name": "trend", "state": ["x"], "drift": ["1.0"], "observation": ["x"], "method": "yau-yau",
-           "initial": {"kind": "gaussian", "mean": [0.0], "cov": [[1.0]]},
-           "domain": {"radius": 6.0, "follow": True}, "discretization": {"dt": 0.01, "basis": 32}}
-    model = compile_model(spec_from_dict(doc))
-    flt = build(model, precompute(model))
-    with pytest.raises(SpecError) as err:
-        flt.smooth_arrays(flt.initial_state(), np.zeros((3, 1)))
-    assert err.value.field == "domain.follow" and "follow" in str(err.value)
-
-
 def test_forward_pass_kept_or_checkpointed_and_both_backward_loops(ou_engine, monkeypatch):
     """The forward pass kept whole (K·Q ≤ KEEP), in checkpointed blocks of KEEP // Q rows beyond it (the
     checkpoints from the filter itself), and the backward pass of the Python loop (YAUYAU_KERNEL=numpy):
