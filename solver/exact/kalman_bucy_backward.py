@@ -74,15 +74,22 @@ def _adjoint(flt: Any, key: int) -> GaussianKolmogorov:
     F, f0, a = np.asarray(flt.F, float), np.asarray(flt.f0, float), np.asarray(flt.model.a, float)
     if key == 0:
         return GaussianKolmogorov(-F, -f0, a=a)
-    _, H_o, _, _, R_inv = flt._pattern(key)
+    _, H_o, _, R_inv = observed_terms(flt, key)
     return GaussianKolmogorov(-F, -f0, Q=0.5 * H_o.T @ R_inv @ H_o, a=a)
+
+
+def observed_terms(flt: Any, key: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, H_o, h0_o, R_oo⁻¹) of the observed components ``key``."""
+    pattern = flt.observation.pattern(key)
+    index = pattern.index
+    return index, np.asarray(flt.H, float)[index], np.asarray(flt.h0, float)[index], pattern.R_inv
 
 
 def _potential(flt: Any, row: np.ndarray, key: int, tau: float) -> np.ndarray:
     """q = H_oᵀR_oo⁻¹(h0_o − ẏ_o) of the potential's linear part, ẏ = Δy/τ (0 for a row without data)."""
     if key == 0:
         return np.zeros(flt.model.n)
-    index, H_o, h0_o, _, R_inv = flt._pattern(key)
+    index, H_o, h0_o, R_inv = observed_terms(flt, key)
     return H_o.T @ R_inv @ (h0_o - row[index] / tau)
 
 
