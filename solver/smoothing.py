@@ -2,9 +2,23 @@
 
 A filter that can smooth has ``smooth_arrays(state, rows, times)`` returning (the state after the
 chunk, a :class:`~solver.filtering.ChunkResult` whose ``mean``, ``cov`` and ``mode`` are the smoothed
-ones; its log-likelihoods, gating and flags are the forward pass's): the general engine
-(solver/engine/smoother.py, the forward–backward smoother of the discretised model) and Kalman–Bucy
-(solver/exact/kalman_smoother.py, Rauch–Tung–Striebel).  :func:`smooth` refuses the others by name.
+ones; its log-likelihoods, gating and flags are the forward pass's):
+
+* yau-yau: the general engine (solver/engine/smoother.py), the forward–backward smoother of its
+  discretised model, any model (on a ball that follows the state: solver/engine/follow_smoother.py, over
+  its sequence of balls);
+* kalman-bucy, exact: Rauch–Tung–Striebel for discrete measurements and the time-sampled increment model
+  (solver/exact/kalman_smoother.py); for continuous increments (the robust flow) the two-filter form,
+  filtered × the backward message of the adjoint flow (solver/exact/kalman_bucy_backward.py);
+* yau-hu, exact: the seeds give no smoother, but the filter's step is the exact robust flow, whose
+  adjoint keeps β = e^{−F}·(a finite sum of exponential-quadratics) (solver/exact/yau_hu_smoother.py):
+  the smoothed density is the filter's mixture times that sum, a Gaussian mixture in closed form.
+
+Refused by name (SpecError('method'), pointing to yau-yau), :data:`NO_SMOOTHER` says why: yau-jia, whose
+step is not a fixed kernel — each component takes the data term linearised about its own mean, then is
+split, merged and pruned — so no backward pass is the adjoint of what the filter did, and a backward
+mixture filter would need approximations of its own (the smoother would not be exact, nor exact to the
+filter's approximation).
 :func:`smooth_lag` is the fixed-lag smoother: row k given the rows up to k + L.
 """
 
@@ -17,7 +31,9 @@ import numpy as np
 from .errors import InputError, SpecError
 from .filtering import ChunkResult, concat_results, slice_result
 
-SMOOTHING_METHODS = ("yau-yau", "kalman-bucy")
+SMOOTHING_METHODS = ("yau-yau", "kalman-bucy", "yau-hu")
+NO_SMOOTHER = {"yau-jia": "its mixture steps linearise the data term about each component's mean and split, "
+                          "merge and prune components, so no backward pass is exact for it"}
 
 
 def can_smooth(flt: Any) -> bool:
@@ -29,9 +45,10 @@ def smooth(flt: Any, state: Any, rows: Any, times: Any = None) -> tuple[Any, Chu
     """(state after the chunk, the smoothed ChunkResult) of ``flt``; SpecError('method') naming a method
     without a smoother."""
     if not can_smooth(flt):
-        raise SpecError("method", f"method {flt.method} has no smoother; the general engine smooths any "
-                                  "model (method yau-yau, e.g. open_filter(..., method='yau-yau') or "
-                                  "--method yau-yau)")
+        why = NO_SMOOTHER.get(flt.method)
+        raise SpecError("method", f"method {flt.method} has no smoother{f' ({why})' if why else ''}; the "
+                                  "general engine smooths any model (method yau-yau, e.g. "
+                                  "open_filter(..., method='yau-yau') or --method yau-yau)")
     return flt.smooth_arrays(state, rows, times)
 
 

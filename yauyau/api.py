@@ -379,8 +379,8 @@ class OnlineFilter:
         """The optimal smoother over a recorded chunk from the current state: the result of :meth:`run`
         with each row's ``mean``, ``cov`` and ``mode`` given every row of the chunk (``lag`` L: given
         the rows up to L after it, fixed-lag); the filter then stands after the chunk, as ``run`` leaves
-        it.  Methods yau-yau and kalman-bucy (Rauch–Tung–Striebel); another raises SpecError('method')
-        naming it (yauyau.solver.smoothing)."""
+        it.  Methods yau-yau, kalman-bucy and yau-hu (exact); another raises SpecError('method') naming it
+        (yauyau.solver.smoothing)."""
         from .solver.smoothing import smooth, smooth_lag
 
         if lag is None:

@@ -6,9 +6,9 @@ The input is read as `yauyau filter` reads it (service/cli/csv_io.py) and the ou
 (``filter.header``): ``mean_<var>`` and ``cov_<var>_<var>`` are the smoothed moments, given every row
 of the file (``--lag L``: given the rows up to L after each row, fixed-lag); loglik, gated and
 predictive_loglik are the forward pass's.  Methods yau-yau (the general engine's forward–backward
-smoother of its discretised model) and kalman-bucy (Rauch–Tung–Striebel, discrete measurements);
-another method, a filter that degenerates, a bad --lag or a file longer than the
-memory budget (--memory) exit 2 naming the field, with nothing written.
+smoother of its discretised model, also on a ball that follows the state), kalman-bucy and yau-hu
+(exact: solver/smoothing.py); another method, a filter that degenerates, a bad --lag or a file longer
+than the memory budget (--memory) exit 2 naming the field, with nothing written.
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lag", default=None, metavar="L",
                         help="fixed-lag smoothing: each row given the L rows after it (default: every row)")
     parser.add_argument("--method", choices=[m for m in METHODS if m != AUTO], default=None,
-                        help="method (default: the one chosen at precompute); yau-yau or kalman-bucy smooth")
+                        help="method (default: the one chosen at precompute); yau-yau, kalman-bucy or yau-hu "
+                             "smooth")
     parser.add_argument("--form", choices=FORMS, default="stable", help="yau-yau step: stable or literal")
     parser.add_argument("--precision", choices=PRECISIONS, default=None,
                         help="yau-yau products in double or single precision")

@@ -17,8 +17,9 @@ with m⁻_k = Φ_k m_(k−1) + Γf0, P⁻_k = Φ_k P_(k−1) Φ_kᵀ + Q_k (a ga
 which the recursion takes as it is).
 
 Continuous increments through the robust Kalman–Bucy flow (the default kind) integrate the update over
-each gap together with the dynamics, so their smoother is not this recursion: refused (SpecError) for
-now, pointing to yau-yau or to the sampled model.
+each gap together with the dynamics, so their smoother is not this recursion but the two-filter form of
+solver/exact/kalman_bucy_backward.py (filtered × the adjoint flow's backward message), exact for the
+same model.
 """
 
 from __future__ import annotations
@@ -28,18 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, SpecError
+from ..errors import InputError
 from ..filtering import ChunkResult
 from ..reference.kalman import van_loan
 
 
 def smooth_arrays(flt: Any, state: Any, increments: Any, times: Any = None) -> tuple[Any, ChunkResult]:
     """(the filter's state after the chunk, its ChunkResult with the RTS-smoothed mean, cov and mode)."""
-    if not (flt.discrete or flt.sampled):
-        raise SpecError("method", "kalman-bucy smooths discrete measurements ([measurement] kind = "
-                                  "\"discrete\") and the time-sampled increment model; its robust flow for "
-                                  "continuous increments has no smoother yet: use method yau-yau (the "
-                                  "general engine smooths any model)")
     new_state, result = flt.run_arrays(state, increments, times)
     K = len(result)
     if K == 0:
@@ -47,6 +43,10 @@ def smooth_arrays(flt: Any, state: Any, increments: Any, times: Any = None) -> t
     if result.degenerate.any():
         k = int(np.argmax(result.degenerate))
         raise InputError(f"increments[{k}]", f"the filter degenerated at this row ({result.reason})")
+    if not (flt.discrete or flt.sampled):
+        from .kalman_bucy_backward import smooth_continuous
+
+        return smooth_continuous(flt, state, increments, new_state, result)
     model = flt.model
     F, f0, a = np.asarray(flt.F, float), np.asarray(flt.f0, float), np.asarray(model.a, float)
     gaps = np.diff(np.concatenate([[float(state.t)], np.asarray(result.t, dtype=float)]))

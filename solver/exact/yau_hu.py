@@ -243,6 +243,12 @@ class YauHuFilter(ChunkedFilter):
                                        np.zeros(K, bool), predictive_loglik=done.predictive, gated=done.gated,
                                        gate_score=done.score, gate=obs.gate)
 
+    def smooth_arrays(self, state: YauHuState, increments: Any, times: Any = None):
+        """The exact fixed-interval smoother (exact/yau_hu_smoother.py): (state after, smoothed result)."""
+        from .yau_hu_smoother import smooth_arrays  # lazy: the filter alone never loads it
+
+        return smooth_arrays(self, state, increments, times, self._steps, self._whitened)
+
     def _segment(self, state: YauHuState, rows: np.ndarray, keys: np.ndarray, taus) -> Segment:
         """Estimates, log-likelihood increments and the exponents after each row (the gate's unit)."""
         whole = (1 << self.model.m) - 1

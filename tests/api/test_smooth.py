@@ -40,10 +40,10 @@ def test_smooth_through_open_filter(stored):
 
 def test_a_method_without_smoother_is_refused_by_name(stored):
     _, store, model_id = stored
-    flt = yauyau.open_filter(store, model_id, method="yau-hu")
+    flt = yauyau.open_filter(store, model_id, method="yau-jia")
     with pytest.raises(yauyau.SpecError) as err:
         flt.smooth(np.zeros((5, 1)))
-    assert err.value.field == "method" and "yau-hu" in str(err.value) and "yau-yau" in str(err.value)
+    assert err.value.field == "method" and "yau-jia" in str(err.value) and "yau-yau" in str(err.value)
 
 
 def test_smooth_quantiles_through_open_filter(stored):

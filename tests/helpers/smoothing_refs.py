@@ -1,7 +1,9 @@
 """The smoother tests' independent references (tests/solver/engine/test_smoother.py,
-tests/solver/exact/test_kalman_smoother.py): a scalar Kalman filter + Rauch–Tung–Striebel smoother and
-the OU sample it is checked on; a forward–backward point-mass smoother for the bimodal sensor h = x²/2
-with discrete readings and its sample; written without the package."""
+tests/solver/exact/test_kalman_smoother.py, test_kalman_bucy_backward.py): a scalar Kalman filter +
+Rauch–Tung–Striebel smoother and the OU sample it is checked on; RTS on the exact discrete model of each
+gap of the continuous linear model (the augmented Kalman–Bucy equations by solve_ivp); a forward–backward
+point-mass smoother for the bimodal sensor h = x²/2 with discrete readings and its sample; written
+without the package."""
 
 from __future__ import annotations
 
@@ -37,6 +39,48 @@ def rts_sampled(dy, m0, P0, theta=THETA, a=A, r=R, taus=None, H=1.0):
         J = Pf[k] * phi / Pp[k + 1]
         ms[k] = mf[k] + J * (ms[k + 1] - mp[k + 1])
         Ps[k] = Pf[k] + J * J * (Ps[k + 1] - Pp[k + 1])
+    return mf, Pf, ms, Ps
+
+
+def rts_exact_gaps(F, f0, a, H, h0, R_, m0, P0, rows, taus, skip):
+    """Filtered and RTS-smoothed moments of dx = (Fx + f0)dt + dv (cov a), dy = (Hx + h0)dt + dw (cov R_)
+    with Δy_k spread linearly over τ_k (rows where ``skip`` or all-NaN: prediction only; NaN components:
+    not observed), from N(m0, P0), independent of the package: per gap the Kalman–Bucy equations of the
+    augmented state (x(t), x_(k−1)) by solve_ivp (rtol 1e-12) give the joint Gaussian of (x_(k−1), x_k)
+    given the rows up to k, then RTS in its joint form (x_(k−1) | x_k is Markov given later rows)."""
+    from scipy.integrate import solve_ivp
+
+    n, K = len(m0), len(rows)
+    Fz = np.block([[F, np.zeros((n, n))], [np.zeros((n, 2 * n))]])
+    fz = np.concatenate([f0, np.zeros(n)])
+    az = np.block([[a, np.zeros((n, n))], [np.zeros((n, 2 * n))]])
+    mf, Pf, mb, Pb, Cb = (np.empty((K, n)), np.empty((K, n, n)), np.empty((K, n)), np.empty((K, n, n)),
+                          np.empty((K, n, n)))
+    m, P = np.asarray(m0, float), np.asarray(P0, float)
+    for k in range(K):
+        tau, obs = taus[k], ~np.isnan(rows[k]) & ~skip[k]
+        Hz = np.hstack([H[obs], np.zeros((obs.sum(), n))])
+        Rinv = np.linalg.inv(R_[np.ix_(obs, obs)])
+        ydot, h0o = rows[k, obs] / tau, h0[obs]
+
+        def rhs(_t, y, Hz=Hz, Rinv=Rinv, ydot=ydot, h0o=h0o):
+            mz, Pz = y[:2 * n], y[2 * n:].reshape(2 * n, 2 * n)
+            gain = Pz @ Hz.T @ Rinv
+            dm = Fz @ mz + fz + gain @ (ydot - Hz @ mz - h0o)
+            dP = Fz @ Pz + Pz @ Fz.T + az - gain @ Hz @ Pz
+            return np.concatenate([dm, dP.ravel()])
+
+        y0 = np.concatenate([m, m, np.block([[P, P], [P, P]]).ravel()])
+        y = solve_ivp(rhs, (0.0, tau), y0, method="DOP853", rtol=1e-12, atol=1e-14).y[:, -1]
+        mz, Pz = y[:2 * n], y[2 * n:].reshape(2 * n, 2 * n)
+        Pz = 0.5 * (Pz + Pz.T)
+        m, P = mz[:n], Pz[:n, :n]
+        mf[k], Pf[k], mb[k], Pb[k], Cb[k] = m, P, mz[n:], Pz[n:, n:], Pz[n:, :n]
+    ms, Ps = mf.copy(), Pf.copy()
+    for k in range(K - 1, 0, -1):  # x_(k−1) | x_k, rows ≤ k: mean mb + J (x_k − m_k), J = C P_k⁻¹
+        J = np.linalg.solve(Pf[k], Cb[k].T).T
+        ms[k - 1] = mb[k] + J @ (ms[k] - mf[k])
+        Ps[k - 1] = Pb[k] + J @ (Ps[k] - Pf[k]) @ J.T
     return mf, Pf, ms, Ps
 
 

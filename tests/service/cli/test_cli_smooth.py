@@ -63,7 +63,7 @@ def test_smooth_writes_the_smoothed_columns(stored, tmp_path):
 @pytest.mark.parametrize("extra, field", [
     (["--method", "yau-yau", "--lag", "-1"], "lag"),
     (["--method", "yau-yau", "--lag", "1.5"], "lag"),
-    (["--method", "yau-hu"], "method"),
+    (["--method", "yau-jia"], "method"),
     (["--method", "yau-yau", "--memory", "1e-6"], "increments"),
 ])
 def test_bad_input_exits_2_naming_the_field(stored, tmp_path, capsys, extra, field):

@@ -172,7 +172,7 @@ def test_kalman_bucy_discrete_session_smooths_at_irregular_times(served):
     ({"smooth_lag": 0}, "smooth_lag", "1 to 1000"), ({"smooth_lag": 1001}, "smooth_lag", "1 to 1000"),
     ({"smooth_lag": 2.5}, "smooth_lag", "whole number"), ({"smooth_lag": "3"}, "smooth_lag", "whole number"),
     ({"smooth_lag": True}, "smooth_lag", "whole number"),
-    ({"smooth_lag": 5, "method": "yau-hu"}, "smooth_lag", "yau-hu"),
+    ({"smooth_lag": 5, "method": "yau-jia"}, "smooth_lag", "yau-jia"),
 ])
 def test_bad_smooth_lag_is_a_problem_naming_it(served, options, field, words):
     client, _, ids = served

@@ -6,10 +6,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 from helpers.smoothing_refs import DT, THETA, A, R, rts_sampled, sample_ou
 from yauyau.solver import compile_model, spec_from_dict
-from yauyau.solver.errors import SpecError
 from yauyau.solver.exact.kalman_bucy import KalmanBucyFilter
 from yauyau.solver.smoothing import smooth
 
@@ -50,9 +48,3 @@ def test_discrete_readings_irregular_missing_equal_rts():
     print("discrete", gaps)
     assert max(gaps) < 1e-8
 
-
-def test_robust_continuous_kind_is_refused():
-    flt = KalmanBucyFilter(compile_model(spec_from_dict(OU)))
-    with pytest.raises(SpecError) as err:
-        smooth(flt, flt.initial_state(), np.zeros((3, 1)))
-    assert err.value.field == "method" and "yau-yau" in str(err.value)
