@@ -8,23 +8,11 @@ import math
 
 import numpy as np
 import pytest
-from helpers.fit_specs import OU
+from helpers.fit_specs import OU, ou_path, ou_record
 from scipy.optimize import minimize_scalar
 from yauyau.solver.errors import InputError
 
 import yauyau
-
-
-def ou_record(K: int, seed: int, theta: float = 1.0, r: float = 0.09):
-    rng = np.random.default_rng(seed)
-    t = np.cumsum(rng.exponential(0.1, K))
-    x, prev, xs = rng.normal(0.0, 1.0), 0.0, []
-    for tk in t:
-        a = math.exp(-theta * (tk - prev))
-        x = a * x + rng.normal(0.0, math.sqrt((1 - a * a) / (2 * theta)))
-        xs.append(x)
-        prev = tk
-    return np.array(xs) + rng.normal(0.0, math.sqrt(r), K), t
 
 
 def kalman_loglik(theta: float, z: np.ndarray, t: np.ndarray, r: float = 0.09) -> float:
@@ -142,13 +130,8 @@ def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
     rng = np.random.default_rng(7)
     K, theta = 300, 1.0
     t = np.cumsum(rng.exponential(0.1, K))
-    x, prev, xs = rng.normal(1.0, 0.5), 0.0, []
-    for tk in t:
-        a = math.exp(-theta * (tk - prev))
-        x = a * x + rng.normal(0.0, math.sqrt((1 - a * a) / (2 * theta)))
-        xs.append(x)
-        prev = tk
-    z = np.array(xs) ** 2 / 2 + rng.normal(0.0, math.sqrt(0.05), K)
+    xs = ou_path(rng, t, theta, rng.normal(1.0, 0.5))
+    z = xs**2 / 2 + rng.normal(0.0, math.sqrt(0.05), K)
     ref = minimize_scalar(lambda th: -grid_loglik(th, z, t), bounds=(0.2, 3.0), method="bounded",
                           options={"xatol": 1e-4}).x
     found = yauyau.fit(spec, z[:, None], t, free={"theta": (0.2, 3.0)})
