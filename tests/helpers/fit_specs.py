@@ -26,6 +26,28 @@ basis = 32
 '''
 
 
+# the x**2/2 sensor of an OU state, on the general engine (a nonlinear model: the grid reference's)
+SQUARE = '''
+name = "square-sensor-fit"
+state = ["x"]
+drift = ["-theta*x"]
+observation = ["x**2/2"]
+observation_noise = [[0.05]]
+parameters = { theta = 0.6 }
+method = "yau-yau"
+[measurement]
+kind = "discrete"
+[initial]
+kind = "gaussian"
+mean = [1.0]
+cov = [[0.25]]
+[domain]
+radius = 6.0
+[discretization]
+dt = 0.01
+basis = 40
+'''
+
 def irregular_times(rng: np.random.Generator, K: int, dyadic: bool = False) -> np.ndarray:
     """K increasing times at random gaps of mean about 0.1: exponential, or with ``dyadic`` whole
     multiples of 1/16 (geometric counts, mean 1/0.6), exact in binary, so that the few distinct gaps hit

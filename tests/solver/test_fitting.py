@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers.fit_specs import OU, ou_path, ou_record
+from helpers.fit_specs import OU, SQUARE, ou_path, ou_record
 from scipy.optimize import minimize_scalar
 from yauyau.solver.errors import InputError
 
@@ -76,28 +76,6 @@ def test_bad_input_names_the_field():
     assert err.value.field == "rows"
 
 
-SQUARE = '''
-name = "square-sensor-fit"
-state = ["x"]
-drift = ["-theta*x"]
-observation = ["x**2/2"]
-observation_noise = [[0.05]]
-parameters = { theta = 0.6 }
-method = "yau-yau"
-[measurement]
-kind = "discrete"
-[initial]
-kind = "gaussian"
-mean = [1.0]
-cov = [[0.25]]
-[domain]
-radius = 6.0
-[discretization]
-dt = 0.01
-basis = 40
-'''
-
-
 def grid_loglik(theta: float, z: np.ndarray, t: np.ndarray, r: float = 0.05, half: float = 6.0,
                 points: int = 241) -> float:
     """A point-mass likelihood: the grid's Markov chain (upwind rates of drift -θx, diffusion 1) carries
@@ -144,16 +122,16 @@ def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
 def test_offline_stage_is_keyed_by_what_it_depends_on():
     """A name entering only h, the observation noise or the prior keeps the offline stage's content hash
     (reused, no precompute); one entering the drift or the diffusion changes it (recomputed)."""
-    from yauyau.solver.fitting import _offline_key, with_values
+    from yauyau.solver.fitting import offline_key, with_values
 
     spec = yauyau.parse_spec_text(SQUARE.replace("parameters = { theta = 0.6 }",
                                                  "parameters = { theta = 0.6, c = 0.5 }")
                                   .replace('["x**2/2"]', '["c*x**2"]'), "toml")
-    key = _offline_key(spec)
-    assert _offline_key(with_values(spec, {"c": 0.7})) == key
-    assert _offline_key(with_values(spec, {"observation_noise[0][0]": 0.2})) == key
-    assert _offline_key(with_values(spec, {"theta": 0.7})) != key
-    assert _offline_key(with_values(spec, {"diffusion[0][0]": 2.0})) != key
+    key = offline_key(spec)
+    assert offline_key(with_values(spec, {"c": 0.7})) == key
+    assert offline_key(with_values(spec, {"observation_noise[0][0]": 0.2})) == key
+    assert offline_key(with_values(spec, {"theta": 0.7})) != key
+    assert offline_key(with_values(spec, {"diffusion[0][0]": 2.0})) != key
 
 
 def test_profile_peaks_at_the_estimate():
