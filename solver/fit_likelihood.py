@@ -177,12 +177,20 @@ def evaluations_on(workers: int | None, scheduler: str | None, like: Likelihood,
         yield None, (f"evaluations in this process: no free name enters the offline stage of {like.method} "
                      "(each evaluation takes milliseconds)")
         return
+    from concurrent.futures import CancelledError
+
+    from distributed.scheduler import KilledWorker
+
     from .offline.distributed import dask_client
 
+    where = scheduler or f"a local Dask cluster of {workers} processes"
     with dask_client(workers or 1, scheduler) as client:
         def mapper(fun: Callable[[Any], Any], items: Any) -> list:
-            items = list(items)
-            return client.gather(client.map(fun, items, pure=False))
+            try:
+                return client.gather(client.map(fun, list(items), pure=False))
+            except (OSError, TimeoutError, CancelledError, KilledWorker) as exc:  # the cluster, not the spec
+                raise InputError("scheduler" if scheduler else "workers",
+                                 f"{where} failed during the fit ({type(exc).__name__}: {exc}); run it "
+                                 "again, or without --workers / --scheduler (in this process)") from None
 
-        where = scheduler or f"a local Dask cluster of {workers} processes"
         yield mapper, f"evaluations of {', '.join(drift)} (offline stage recomputed) in parallel on {where}"
