@@ -386,6 +386,30 @@ def parse_expression(text: str, names: Mapping[str, "sp.Expr"], field: str = "ex
     return expr
 
 
+def parameters_used(texts: Sequence[str], state: Sequence[str], parameters: Sequence[str],
+                    field: str) -> frozenset[str]:
+    """The ``parameters`` that the expressions ``texts`` depend on: the free symbols of the SymPy
+    expressions built from their checked trees with each parameter an internal symbol (``p_0, p_1, ...``,
+    never the user's name), so ``a`` is not found in ``alpha`` and ``0*a`` or ``a - a`` use no ``a``.  An
+    expression that SymPy builds only with the parameters as numbers (``x**theta``: a non-constant
+    exponent) counts every parameter named in its tree (ast.Name nodes), the safe side."""
+    import sympy as sp
+
+    symbols = {name: sp.Symbol(f"p_{i}", real=True) for i, name in enumerate(parameters)}
+    names: dict[str, Any] = dict(symbols)
+    names.update(zip(state, state_symbols(len(state)), strict=True))
+    used: set[str] = set()
+    for i, text in enumerate(texts):
+        try:
+            found = parse_expression(text, names, f"{field}[{i}]").free_symbols
+            used.update(name for name, symbol in symbols.items() if symbol in found)
+        except SpecError:
+            tree = _checked_tree(text, f"{field}[{i}]")
+            named = (node.id for node in ast.walk(tree) if isinstance(node, ast.Name))
+            used.update(name for name in named if name in symbols)
+    return frozenset(used)
+
+
 def nonsmooth_functions(exprs: Sequence["sp.Expr"]) -> list[str]:
     """The names (as the user writes them) of the non-differentiable functions in ``exprs``."""
     import sympy as sp

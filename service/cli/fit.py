@@ -1,10 +1,11 @@
 """`yauyau fit SPEC (--increments IN | --observations IN.csv) --free NAME=LO:HI [--free ...] [--t0 T]
-[--json] [--out FITTED.toml]`: maximum-likelihood estimates of a spec's parameters from a record
-(yauyau.solver.fitting, issue 39).
+[--json] [--out FITTED.toml] [--profile NAME] [--workers K | --scheduler ADDR]`: maximum-likelihood
+estimates of a spec's parameters from a record (yauyau.solver.fitting, issue 39).
 
 Free names are entries of the spec's ``parameters`` table and ``observation_noise[i][i]`` /
 ``diffusion[i][i]``; the spec's values start.  Exit 0 when the optimiser converged, 1 when not (the
-reason on stderr), 2 for bad input naming the field (nothing written).
+reason on stderr: the optimiser stopped, the likelihood is flat in a name or not finite somewhere), 2
+for bad input naming the field (nothing written).
 """
 
 from __future__ import annotations
@@ -27,10 +28,22 @@ input as for `yauyau filter`: --increments IN (regular rows, continuous models) 
 
 output: a table (estimate, standard error from the observed information, bounds hit, log-likelihood,
   evaluations, time), or with --json exactly {"estimates", "stderr", "loglik", "evaluations",
-  "converged", "method"}; --out FITTED.toml (or .json) writes the spec with the fitted values.
+  "converged", "method"}, plus "profile": {"name", "grid", "loglik"} only with --profile NAME (the
+  profile log-likelihood of NAME on 21 points of its box, the other free names re-maximised; `yauyau
+  plot FIT.json --out FIG.png` draws it); --out FITTED.toml (or .json) writes the spec with the fitted
+  values (only when converged).
 
-exit status: 0 converged; 1 not converged (why on stderr); 2 bad input (the field named, nothing
-  written).
+parallel: a free name entering the drift or the diffusion recomputes the offline stage at every
+  evaluation; with --workers K (> 1: a local Dask cluster of K processes) or --scheduler tcp://HOST:PORT
+  the evaluations that do not wait on each other (the finite-difference gradient's points, the
+  Hessian's, the profile's grid) run on Dask, as `yauyau precompute --workers` does; the optimiser and
+  its answer are the same. Other fits (milliseconds per evaluation) stay in this process.
+
+exit status: 0 converged; 1 not converged, saying why on stderr: the optimiser stopped, the likelihood
+  is flat in a free name at the optimum (the record does not determine it there: the name is given),
+  or not finite / refused by the filter somewhere the optimiser went; 2 bad input (the field named,
+  nothing written): a free name not in the spec or used by no expression, LO >= HI, a variance bound
+  <= 0, the spec's value outside the box, too few rows for the free names.
 """
 
 
@@ -46,6 +59,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time of the prior (default: as yauyau filter)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.add_argument("--out", default=None, metavar="FITTED.toml", help="write the fitted spec")
+    parser.add_argument("--profile", default=None, metavar="NAME",
+                        help="also compute the profile log-likelihood of this free name (adds \"profile\" to "
+                             "--json; draw it with yauyau plot FIT.json)")
+    parser.add_argument("--workers", type=int, default=None, metavar="K",
+                        help="local Dask worker processes for the evaluations of a fit that recomputes the "
+                             "offline stage (default 1: in this process)")
+    parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                        help="run those evaluations on this running Dask cluster instead")
     parser.epilog = EPILOG
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
@@ -89,11 +110,16 @@ def run(args: argparse.Namespace) -> int:
                                            "--observations IN.csv")
         t0 = 0.0 if args.t0 is None else check_t0(float(args.t0), "t0", float(spec.discretization.dt), "--t0")
         source = Source(read_increments(args.increments, spec.m), None, t0, "increments")
-    result = fit(spec, source.rows, source.times, free, t0=source.t0)
+    if args.workers is not None and args.workers < 1:
+        raise InputError("workers", "must be a positive integer")
+    result = fit(spec, source.rows, source.times, free, args.profile, t0=source.t0, workers=args.workers,
+                 scheduler=args.scheduler)
+    if result.note:
+        print(f"yauyau fit: {result.note}", file=sys.stderr)
     if args.out is not None and result.spec is not None and result.converged:
         write_spec(args.out, result.spec)
     if args.json:
-        print(json.dumps(result.as_json()))
+        print(json.dumps(result.as_json(profile=args.profile is not None)))
     else:
         print(f"{'name':<24} {'estimate':>14} {'stderr':>12}  bound")
         for name, value in result.estimates.items():

@@ -1,4 +1,5 @@
-"""`yauyau plot OUT.csv [--smoothed S.csv] [--truth TRUTH.csv] [--density D.h5] --out FIG.png`: look at a run.
+"""`yauyau plot OUT.csv [--smoothed S.csv] [--truth TRUTH.csv] [--density D.h5] --out FIG.png`: look at a run
+(`yauyau plot FIT.json --out FIG.png`: a fit's profile log-likelihood, service/cli/plot_fit.py).
 
 One row of panels per state variable: the conditional mean against time with a 95% band (the
 marginal quantiles q0.025/q0.975 when OUT.csv has them, else mean ± 1.96 sd), the truth overlaid
@@ -22,7 +23,9 @@ FORMATS = (".png", ".svg")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("estimates", metavar="OUT.csv", help="output of yauyau filter")
+    parser.add_argument("estimates", metavar="OUT.csv",
+                        help="output of yauyau filter, or FIT.json of yauyau fit --profile NAME --json (its "
+                             "profile is drawn)")
     parser.add_argument("--smoothed", default=None, metavar="S.csv",
                         help="output of yauyau smooth over the same rows: its mean and 95%% band drawn "
                              "beside the filtered ones")
@@ -219,6 +222,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:
         raise InputError("out", f"{out.name}: give a .png or .svg file name")
+    if Path(args.estimates).suffix.lower() == ".json":  # yauyau fit --profile NAME --json: its profile
+        from .plot_fit import run as plot_fit
+
+        return plot_fit(args, out)
     estimates = read_table(args.estimates, "estimates")
     names = variables(estimates, args.estimates)
     smoothed = None
@@ -235,10 +242,6 @@ def run(args: argparse.Namespace) -> int:
         density = read_density(args.density)
     title = args.title or " · ".join(Path(p).name for p in (args.estimates, args.smoothed, args.truth,
                                                            args.density) if p)
-    fig = draw(estimates, names, truth, density, title, smoothed)
-    try:
-        fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise InputError("out", f"cannot write {out}: {exc}") from None
-    print(out)
-    return 0
+    from .plot_fit import save
+
+    return save(draw(estimates, names, truth, density, title, smoothed), out)

@@ -27,7 +27,9 @@ from __future__ import annotations
 import dataclasses
 import socket
 import threading
+from collections.abc import Iterator
 from concurrent.futures import CancelledError
+from contextlib import contextmanager
 from typing import Any, Callable
 
 from ..errors import InputError
@@ -70,12 +72,11 @@ def _check_reachable(scheduler: str) -> None:
                                       "scheduler` or check the address") from None
 
 
-def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
-               store: Callable[[int, Any], None], solve: Callable[[Any, tuple[int, int]], Any], *,
-               workers: int = 1, scheduler: str | None = None) -> None:
-    """Solve ``tasks`` ((job index, column block) pairs) on Dask with ``solve(job, block)`` (a module-level
-    function: workers import it by name), calling ``store(j, result)`` as each block arrives.  Every job
-    is scattered to every worker once."""
+@contextmanager
+def dask_client(workers: int = 1, scheduler: str | None = None) -> Iterator[Any]:
+    """A Dask client: on a local cluster of ``workers`` processes (one thread each) started for the block
+    and shut down after it, or connected to the running ``scheduler``; InputError naming ``workers`` or
+    ``scheduler`` when neither can be had.  ``yauyau precompute`` and ``yauyau fit --workers`` use it."""
     try:
         from distributed import Client, LocalCluster
     except ImportError:  # pragma: no cover - distributed is a dependency
@@ -104,18 +105,30 @@ def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
         if cluster is not None:
             cluster.close()
         raise InputError("scheduler", f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
-    watch = _Watch(client, WORKERLESS_S)
     try:
-        _solve(client, jobs, tasks, store, solve, watch)
-    except InputError:
-        raise
-    except (TimeoutError, OSError, CancelledError, _killed_worker()) as exc:  # the cluster, not the spec
-        raise InputError(*_lost(scheduler, workers, exc, watch)) from None
+        yield client
     finally:
-        watch.stop()
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def run_blocks(jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],
+               store: Callable[[int, Any], None], solve: Callable[[Any, tuple[int, int]], Any], *,
+               workers: int = 1, scheduler: str | None = None) -> None:
+    """Solve ``tasks`` ((job index, column block) pairs) on Dask with ``solve(job, block)`` (a module-level
+    function: workers import it by name), calling ``store(j, result)`` as each block arrives.  Every job
+    is scattered to every worker once."""
+    with dask_client(workers, scheduler) as client:
+        watch = _Watch(client, WORKERLESS_S)
+        try:
+            _solve(client, jobs, tasks, store, solve, watch)
+        except InputError:
+            raise
+        except (TimeoutError, OSError, CancelledError, _killed_worker()) as exc:  # the cluster, not the spec
+            raise InputError(*_lost(scheduler, workers, exc, watch)) from None
+        finally:
+            watch.stop()
 
 
 def _solve(client, jobs: list[Any], tasks: list[tuple[int, tuple[int, int]]],

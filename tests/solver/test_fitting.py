@@ -8,23 +8,11 @@ import math
 
 import numpy as np
 import pytest
-from helpers.fit_specs import OU
+from helpers.fit_specs import OU, SQUARE, ou_path, ou_record
 from scipy.optimize import minimize_scalar
 from yauyau.solver.errors import InputError
 
 import yauyau
-
-
-def ou_record(K: int, seed: int, theta: float = 1.0, r: float = 0.09):
-    rng = np.random.default_rng(seed)
-    t = np.cumsum(rng.exponential(0.1, K))
-    x, prev, xs = rng.normal(0.0, 1.0), 0.0, []
-    for tk in t:
-        a = math.exp(-theta * (tk - prev))
-        x = a * x + rng.normal(0.0, math.sqrt((1 - a * a) / (2 * theta)))
-        xs.append(x)
-        prev = tk
-    return np.array(xs) + rng.normal(0.0, math.sqrt(r), K), t
 
 
 def kalman_loglik(theta: float, z: np.ndarray, t: np.ndarray, r: float = 0.09) -> float:
@@ -88,28 +76,6 @@ def test_bad_input_names_the_field():
     assert err.value.field == "rows"
 
 
-SQUARE = '''
-name = "square-sensor-fit"
-state = ["x"]
-drift = ["-theta*x"]
-observation = ["x**2/2"]
-observation_noise = [[0.05]]
-parameters = { theta = 0.6 }
-method = "yau-yau"
-[measurement]
-kind = "discrete"
-[initial]
-kind = "gaussian"
-mean = [1.0]
-cov = [[0.25]]
-[domain]
-radius = 6.0
-[discretization]
-dt = 0.01
-basis = 40
-'''
-
-
 def grid_loglik(theta: float, z: np.ndarray, t: np.ndarray, r: float = 0.05, half: float = 6.0,
                 points: int = 241) -> float:
     """A point-mass likelihood: the grid's Markov chain (upwind rates of drift -θx, diffusion 1) carries
@@ -142,13 +108,8 @@ def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
     rng = np.random.default_rng(7)
     K, theta = 300, 1.0
     t = np.cumsum(rng.exponential(0.1, K))
-    x, prev, xs = rng.normal(1.0, 0.5), 0.0, []
-    for tk in t:
-        a = math.exp(-theta * (tk - prev))
-        x = a * x + rng.normal(0.0, math.sqrt((1 - a * a) / (2 * theta)))
-        xs.append(x)
-        prev = tk
-    z = np.array(xs) ** 2 / 2 + rng.normal(0.0, math.sqrt(0.05), K)
+    xs = ou_path(rng, t, theta, rng.normal(1.0, 0.5))
+    z = xs**2 / 2 + rng.normal(0.0, math.sqrt(0.05), K)
     ref = minimize_scalar(lambda th: -grid_loglik(th, z, t), bounds=(0.2, 3.0), method="bounded",
                           options={"xatol": 1e-4}).x
     found = yauyau.fit(spec, z[:, None], t, free={"theta": (0.2, 3.0)})
@@ -161,16 +122,16 @@ def test_square_sensor_drift_rate_is_the_grid_likelihood_maximiser():
 def test_offline_stage_is_keyed_by_what_it_depends_on():
     """A name entering only h, the observation noise or the prior keeps the offline stage's content hash
     (reused, no precompute); one entering the drift or the diffusion changes it (recomputed)."""
-    from yauyau.solver.fitting import _offline_key, with_values
+    from yauyau.solver.fitting import offline_key, with_values
 
     spec = yauyau.parse_spec_text(SQUARE.replace("parameters = { theta = 0.6 }",
                                                  "parameters = { theta = 0.6, c = 0.5 }")
                                   .replace('["x**2/2"]', '["c*x**2"]'), "toml")
-    key = _offline_key(spec)
-    assert _offline_key(with_values(spec, {"c": 0.7})) == key
-    assert _offline_key(with_values(spec, {"observation_noise[0][0]": 0.2})) == key
-    assert _offline_key(with_values(spec, {"theta": 0.7})) != key
-    assert _offline_key(with_values(spec, {"diffusion[0][0]": 2.0})) != key
+    key = offline_key(spec)
+    assert offline_key(with_values(spec, {"c": 0.7})) == key
+    assert offline_key(with_values(spec, {"observation_noise[0][0]": 0.2})) == key
+    assert offline_key(with_values(spec, {"theta": 0.7})) != key
+    assert offline_key(with_values(spec, {"diffusion[0][0]": 2.0})) != key
 
 
 def test_profile_peaks_at_the_estimate():

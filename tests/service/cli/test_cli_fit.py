@@ -1,10 +1,15 @@
 """`yauyau fit` (service/cli/fit.py, issue 39): the OU rate of a timed record as the library's fit
-gives it, --json's exact keys, --out's fitted spec, and exit 2 naming the field with nothing written."""
+gives it, --json's exact keys, --out's fitted spec, exit 2 naming the field with nothing written, exit 1
+when not converged (the console script), --profile's extra key and `yauyau plot FIT.json`."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -64,3 +69,59 @@ def test_bad_input_exits_2_naming_the_field(record, tmp_path, capsys, free, fiel
     assert code == 2
     assert f"error: {field}" in capsys.readouterr().err
     assert not out.exists()
+
+
+FLAT = OU.replace('observation = ["x"]', 'observation = ["x + max(c, 0)"]').replace(
+    "theta = 0.5 }", "theta = 0.5, c = -0.5 }")
+
+
+def test_not_converged_exits_1_saying_why_through_the_console_script(record, tmp_path):
+    """A likelihood flat in c where the fit starts (h = x + max(c, 0), c = -0.5): the real `yauyau`
+    process exits 1, stderr says the fit did not converge and why (flat in c), --out is not written."""
+    _, data, _, _ = record
+    spec = tmp_path / "flat.toml"
+    spec.write_text(FLAT)
+    out = tmp_path / "fitted.toml"
+    done = subprocess.run([str(Path(sys.executable).with_name("yauyau")), "fit", str(spec), "--observations",
+                           str(data), "--t0", "0", "--free", "theta=0.05:5", "--free", "c=-1:1", "--json",
+                           "--out", str(out)], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, PYTHONWARNINGS="ignore"))
+    assert done.returncode == 1, done.stderr
+    assert "not converged" in done.stderr and "flat in c at c = -0.5" in done.stderr
+    assert "Traceback" not in done.stderr
+    got = json.loads(done.stdout)
+    assert got["converged"] is False and got["estimates"]["c"] == -0.5
+    assert not out.exists()
+
+
+def test_profile_key_and_its_plot(record, tmp_path, capsys):
+    """--profile theta adds a seventh key, "profile" (its grid spans the box, its maximum at the grid
+    point nearest the estimate); `yauyau plot FIT.json` writes the PNG; a FIT.json without a profile
+    exits 2 naming the field, nothing written."""
+    spec, data, _, _ = record
+    args = ["fit", str(spec), "--observations", str(data), "--t0", "0", "--free", "theta=0.05:3", "--json"]
+    assert main([*args, "--profile", "theta"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert set(got) == {"estimates", "stderr", "loglik", "evaluations", "converged", "method", "profile"}
+    grid, ll = np.array(got["profile"]["grid"]), np.array(got["profile"]["loglik"])
+    assert got["profile"]["name"] == "theta" and grid[0] == 0.05 and grid[-1] == 3.0
+    assert abs(grid[np.argmax(ll)] - got["estimates"]["theta"]) <= grid[1] - grid[0]
+    fit_json = tmp_path / "fit.json"
+    fit_json.write_text(json.dumps(got))
+    png = tmp_path / "profile.png"
+    assert main(["plot", str(fit_json), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    capsys.readouterr()
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({k: v for k, v in got.items() if k != "profile"}))
+    other = tmp_path / "other.png"
+    assert main(["plot", str(bare), "--out", str(other)]) == 2
+    assert "error: profile" in capsys.readouterr().err
+    assert not other.exists()
+
+
+def test_workers_must_be_positive(record, capsys):
+    spec, data, _, _ = record
+    code = main(["fit", str(spec), "--observations", str(data), "--free", "theta=0.05:5", "--workers", "0"])
+    assert code == 2
+    assert "error: workers" in capsys.readouterr().err
