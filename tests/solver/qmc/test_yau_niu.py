@@ -202,3 +202,19 @@ def test_a_posterior_the_restart_cannot_recover_is_flagged():
     assert result.degenerate.tolist() == [False, True, True]
     assert "restart cannot recover" in result.reason and "discretization.points" in result.reason
     assert np.isfinite(result.mean).all() and np.isfinite(result.cov).all() and state.degenerate
+
+
+def test_auto_recommends_yau_niu_past_three_states():
+    """No exact filter (the analysis's facts all false) and 4 states: yau-niu, and the summary says why;
+    at 3 states the general engine."""
+    from yauyau.solver.analysis.report import recommend_method_from
+
+    ring = ["-x0 + 0.5*tanh(x1)", "-x1 + 0.5*tanh(x2)", "-x2 + 0.5*tanh(x3)", "-x3 + 0.5*tanh(x0)"]
+    model = compile_model(spec_from_dict(_doc(4, ring, ["x0**3", "sin(x2)"], np.eye(2).tolist(), [0] * 4,
+                                              np.eye(4).tolist(), method="auto")))
+    method, reason = recommend_method_from(model, False, False, False, True)
+    assert method == "yau-niu" and "4 states" in reason and "2509.16896" in reason
+    ring3 = ring[:2] + ["-x2 + 0.5*tanh(x0)"]
+    small = compile_model(spec_from_dict(_doc(3, ring3, ["x0**3"], [[1.0]], [0] * 3, np.eye(3).tolist(),
+                                              method="auto")))
+    assert recommend_method_from(small, False, False, False, True)[0] == "yau-yau"
