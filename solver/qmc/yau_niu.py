@@ -57,6 +57,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -66,7 +67,7 @@ from scipy.stats import qmc
 from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
-from ..measurement import check_first_gap, check_gate, check_rows, resolve_times
+from ..measurement import Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 
@@ -75,6 +76,7 @@ if TYPE_CHECKING:
 
 DEFAULT_POINTS = 8192  # measured: see default_points
 RESTART = 0.5  # restart when 1/Σw² < RESTART·N
+MAX_BLOCK_COMPONENTS = 62  # observation components per block (Observation's pattern keys are int64 bits)
 GAUSSIAN_SCORE = 3.0  # a cloud within this many sampling sd of Gaussian skewness/kurtosis restarts as one
 MAX_BYTES = 4 << 30  # the point budget's memory ceiling
 WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ...
@@ -205,9 +207,20 @@ def weighted_moments(X: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return mean, 0.5 * (cov + cov.T)
 
 
+def log_sum_exp(values: np.ndarray) -> float:
+    """log Σ exp(values) of a 1-D array, in log scale (scipy's logsumexp costs ~30× more per call on
+    the small arrays of one block)."""
+    top = float(values.max())
+    if not math.isfinite(top):
+        return top
+    return top + math.log(float(np.exp(values - top).sum()))
+
+
 def symmetric_root(P: np.ndarray, power: float = 0.5) -> np.ndarray:
     """P^power of a symmetric positive semi-definite P (eigenvalues clipped at 0; power < 0 needs P
     positive definite)."""
+    if P.shape == (1, 1):
+        return np.array([[max(float(P[0, 0]), 0.0) ** power]])
     lam, U = np.linalg.eigh(0.5 * (P + P.T))
     return (U * np.clip(lam, 0.0, None) ** power) @ U.T
 
@@ -216,7 +229,7 @@ def match_moments(X: np.ndarray, w: np.ndarray, mean: np.ndarray, cov: np.ndarra
     """The points mapped affinely, x ↦ mean + C^{1/2}P^{-1/2}(x − x̄), so that their weighted mean and
     covariance are ``mean`` and ``cov`` = C (P, x̄: the cloud's own; only shifted where P is singular)."""
     here, P = weighted_moments(X, w)
-    lam = np.linalg.eigvalsh(P)
+    lam = np.diag(P) if P.shape == (1, 1) else np.linalg.eigvalsh(P)
     if lam[0] <= 1e-12 * max(lam[-1], 1e-300):
         return X - here + mean
     return mean + (X - here) @ (symmetric_root(P, -0.5) @ symmetric_root(cov))
@@ -252,6 +265,14 @@ class YauNiuFilter(ChunkedFilter):
         used = [sorted(index[s] for s in expr.free_symbols if s in index) for expr in model.observation]
         block_of = [int(owner[u[0]]) if u else 0 for u in used]  # a constant component: block 0
         self._components = [np.flatnonzero(np.array(block_of) == b) for b in range(len(self.blocks))]
+        widest = max(len(c) for c in self._components)
+        if widest > MAX_BLOCK_COMPONENTS:
+            raise SpecError("observation", f"{widest} observation components act on one coupled block of "
+                                           f"states; yau-niu takes at most {MAX_BLOCK_COMPONENTS} per block")
+        # each block's measurement sees its own components (their pattern keys are bits of an int64)
+        self._block_observations = [Observation(SimpleNamespace(spec=model.spec, m=len(c),
+                                                          R=np.asarray(model.R, float)[np.ix_(c, c)]))
+                              for c in self._components]
 
     # -- prior ------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauNiuState:
@@ -317,14 +338,12 @@ class YauNiuFilter(ChunkedFilter):
         return match_moments(Y, np.full(N, 1.0 / N), mean, cov)
 
     def _block_terms(self, rows: np.ndarray, gaps: np.ndarray):
-        """Per block: its rows (the other blocks' components NaN), pattern keys and row terms."""
-        obs = self.observation
+        """Per block: its observation (the block's components only), rows, pattern keys and row terms."""
         out = []
-        for comps in self._components:
-            part = np.full_like(rows, np.nan)
-            part[:, comps] = rows[:, comps]
+        for comps, obs in zip(self._components, self._block_observations, strict=True):
+            part = rows[:, comps]
             keys = obs.pattern_keys(~np.isnan(part))
-            out.append((part, keys, obs.row_terms(part, gaps, keys)))
+            out.append((comps, obs, part, keys, obs.row_terms(part, gaps, keys)))
         return out
 
     def _moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -359,14 +378,15 @@ class YauNiuFilter(ChunkedFilter):
             rng = np.random.default_rng([state.seed, int(steps[k])])
             if gaps[k] > 0:
                 X = self._kolmogorov(X, np.exp(logW), float(gaps[k]), rng)
-            hX = model.h(X)[None] if any(keys[k] for _, keys, _ in blocks) else None
+            hX = model.h(X)[None] if any(keys[k] for _, _, _, keys, _ in blocks) else None
             gain = 0.0
-            for b, (coords, (part, keys, terms)) in enumerate(zip(self.blocks, blocks, strict=True)):
+            for b, (coords, (comps, block_obs, part, keys, terms)) in enumerate(zip(self.blocks, blocks,
+                                                                                    strict=True)):
                 if keys[k]:
-                    factor = obs.log_factors(hX, part[k:k + 1], gaps[k:k + 1], keys[k:k + 1],
-                                             terms.rows(k, k + 1, keys))[0]
+                    factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], gaps[k:k + 1],
+                                                   keys[k:k + 1], terms.rows(k, k + 1, keys))[0]
                     total = logW[b] + factor  # Yau–Niu, log-domain update
-                    block_gain = float(logsumexp(total))
+                    block_gain = log_sum_exp(total)
                     if not math.isfinite(block_gain):
                         reason = (f"step {int(steps[k])}: the observation's likelihood is zero or not finite "
                                   "at every point; reset the session, or use more points "
@@ -389,7 +409,7 @@ class YauNiuFilter(ChunkedFilter):
             else:
                 if hX is not None:
                     pll[k] = gain
-                    ll_inc[k] = gain - sum(float(terms.offset[k]) for _, keys, terms in blocks if keys[k])
+                    ll_inc[k] = gain - sum(float(terms.offset[k]) for *_, keys, terms in blocks if keys[k])
                 mean, cov = self._moments(X, np.exp(logW))
                 mean_out[k], cov_out[k] = mean, cov
                 continue

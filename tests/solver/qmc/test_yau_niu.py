@@ -153,6 +153,19 @@ def test_ten_cubic_sensors_match_ten_point_mass_filters():
     assert rms <= 0.05, rms
 
 
+def test_a_hundred_cubic_sensors_match_their_point_mass_filters():
+    """100 states and 100 observation components (past the int64 pattern keys of a whole row: each block
+    keys its own components): 50 rows at 1024 points, rms mean gap ≤ 0.05."""
+    model = cubic_model(100, points=1024)
+    rows = simulate(model, 50, np.random.default_rng(8)).increments
+    reference = np.stack([point_mass_means(rows[:, i], DT) for i in range(100)], axis=1)
+    flt = YauNiuFilter(model)
+    _, result = flt.run_arrays(flt.initial_state(), rows)
+    assert not result.degenerate.any() and np.isfinite(result.loglik).all()
+    rms = float(np.sqrt(np.mean((result.mean - reference) ** 2)))
+    assert rms <= 0.05, rms
+
+
 def test_blocks_follow_the_couplings():
     ring = linear_model(4)
     assert [b.tolist() for b in independent_blocks(ring)] == [[0, 1, 2, 3]]
