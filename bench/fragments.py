@@ -36,6 +36,7 @@ FRAGMENTS = [
     ("measurements", "measurements.md"),
     ("yau_jia", "yau-jia.md"),
     ("yau_jia_speed", "yau-jia-speed.md"),
+    ("yau_niu", "yau-niu.md"),
     ("engine_revision", "engine-revision.md"),
     ("cli_speed", "cli.md"),
     ("default_mesh", "default-mesh.md"),

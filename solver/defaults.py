@@ -66,7 +66,10 @@ def stored_discretization(spec: Any, table: dict[str, Any]) -> None:
     """The ``[discretization]`` table of ``spec`` as it enters the content hash, edited in place.  Lagrange
     where it is also the default is left out (ids of specs from before ``element`` stay); an element or
     mesh chosen here is written out, so the id says what is computed and reading the canonical JSON
-    back gives the same spec.  A mesh-free spec keeps its table (no mesh is built)."""
+    back gives the same spec.  A mesh-free spec keeps its table (no mesh is built).  ``points`` left out
+    (yau-niu's default) is not written, so ids of specs from before it stay."""
+    if table.get("points") is None:
+        table.pop("points", None)
     if mesh_free(spec):
         chosen = "lagrange"
     else:

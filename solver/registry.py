@@ -33,6 +33,9 @@ REGISTRY: dict[str, Method] = {m.name: m for m in (
     Method("yau-jia", "yauyau.solver.exact.yau_jia", "YauJiaFilter", False,
            "affine-plus-gradient drift, nonlinear h with quadratic V: Gaussian-mixture ODE filter, no mesh "
            "(Yau & Jia, 2005, Theorem 4.2)"),
+    Method("yau-niu", "yauyau.solver.qmc.yau_niu", "YauNiuFilter", False,
+           "quasi-Monte Carlo Yau-Yau method for any model up to 100 states: QMC points, Euler kernel, "
+           "log-domain update, local resampling-restart (Yau & Niu, 2025)"),
     Method("wei-norman", "yauyau.solver.exact.wei_norman", "WeiNormanFilter", True,
            "exact for the finite-dimensional estimation algebras of Shi et al. (2017), Theorem 1"),
 )}
@@ -45,6 +48,11 @@ PRECISIONS = ("double", "single")  # the yau-yau matrix-vector products ([discre
 POLICIES = ("stop", "reinitialise")  # what a degenerate density does (solver/recovery.py)
 DEFAULT_POLICY = "stop"
 
+
+MAX_STATES = 100  # the spec's cap on state variables: past MAX_GRID_STATES, method "yau-niu" only
+MAX_GRID_STATES = 6  # the cap for every other method
+MAX_GRID_OBSERVATIONS = 16  # the other methods' cap on observation components (yau-niu: MAX_STATES)
+QMC_ONLY = "yau-niu"  # the method that runs past MAX_GRID_STATES
 
 MAX_MESH_DIMENSION = 3  # the general engine's finite elements: intervals, disks, balls
 

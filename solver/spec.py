@@ -2,10 +2,10 @@
 
     dx = f(x) dt + G dv,   dy = h(x) dt + dw,   E[dv dvᵀ] = Q dt,  E[dw dwᵀ] = R dt,
 
-with x ∈ ℝⁿ (n = 1 … 6; the general engine's finite elements up to 3) and y ∈ ℝᵐ.  ``diffusion`` is
-a = G Q Gᵀ (n×n, symmetric positive semi-definite: zero rows for noise-free coordinates, which the
-general engine discretises with ``scheme = "supg"`` and the mesh-free methods take as they are) and
-``observation_noise`` is R (m×m, SPD).
+with x ∈ ℝⁿ (n = 1 … 6, up to 100 with method "yau-niu"; the general engine's finite elements up to 3)
+and y ∈ ℝᵐ.  ``diffusion`` is a = G Q Gᵀ (n×n, symmetric positive semi-definite: zero rows for
+noise-free coordinates, which the general engine discretises with ``scheme = "supg"`` and the
+mesh-free methods take as they are) and ``observation_noise`` is R (m×m, SPD).
 
 Two parts, one document.  The *problem* (:class:`ProblemSpec`: state, drift, observation, noises,
 parameters, prior) is what the user knows about the system; the *discretisation*
@@ -44,7 +44,7 @@ from pydantic import (
 from .defaults import default_element, stored_discretization
 from .errors import SpecError
 from .expressions import RESERVED_NAMES, numeric_expression, numeric_many
-from .registry import METHODS, check_method  # noqa: F401  (METHODS: the spec's choices, re-exported)
+from .registry import MAX_GRID_OBSERVATIONS, MAX_GRID_STATES, MAX_STATES, METHODS, QMC_ONLY, check_method  # noqa: F401
 from .spec_tables import (  # noqa: F401  (the tables, also importable from here)
     FOLLOW_DISTANCE,
     FOLLOW_MASS,
@@ -104,7 +104,7 @@ class ModelSpec(Strict):
     """A problem and its discretisation, validated together (one flat document: the file format)."""
 
     name: str = Field(min_length=1, max_length=100)
-    state: list[str] = Field(min_length=1, max_length=6)  # the engine's finite elements: up to 3
+    state: list[str] = Field(min_length=1, max_length=MAX_STATES)  # past MAX_GRID_STATES: yau-niu only
 
     @field_validator("name")
     @classmethod
@@ -114,7 +114,7 @@ class ModelSpec(Strict):
                              "or surrounding spaces")
         return name
     drift: list[str]
-    observation: list[str] = Field(min_length=1, max_length=16)
+    observation: list[str] = Field(min_length=1, max_length=MAX_STATES)  # past 16: yau-niu only
     diffusion: list[list[float]] | None = None
     observation_noise: list[list[float]] | None = None
     parameters: dict[str, float] = Field(default_factory=dict, max_length=64)
@@ -164,6 +164,12 @@ class ModelSpec(Strict):
     @model_validator(mode="after")
     def _shapes(self) -> "ModelSpec":
         n, m = len(self.state), len(self.observation)
+        if n > MAX_GRID_STATES and self.method != QMC_ONLY:
+            raise SpecError("state", f"{n} state variables: past {MAX_GRID_STATES}, only method = "
+                                     f"\"{QMC_ONLY}\" runs (up to {MAX_STATES}); set method = \"{QMC_ONLY}\"")
+        if m > MAX_GRID_OBSERVATIONS and self.method != QMC_ONLY:
+            raise SpecError("observation", f"{m} observation components: past {MAX_GRID_OBSERVATIONS}, only "
+                                           f"method = \"{QMC_ONLY}\" runs (up to {MAX_STATES})")
         clash = set(self.state) & set(self.parameters)
         if clash:
             raise SpecError("parameters", f"names also used as state variables: {sorted(clash)}")

@@ -211,7 +211,8 @@ class Discretization(Strict):
     element is the closest to the exact filter at a given cost (bench/results/cv-basis.md).  Left out, it
     is "supg" where the diffusion is only positive semi-definite (noise on some coordinates: the
     operator is hypoelliptic and plain Galerkin rings along the drift, bench/results/psd.md) and "galerkin"
-    otherwise.
+    otherwise.  ``points`` is the quasi-Monte Carlo point budget of method "yau-niu"
+    (solver/qmc/yau_niu.py; None: its default, chosen by measurement).
     """
 
     dt: float = Field(gt=0, le=10.0)
@@ -222,6 +223,7 @@ class Discretization(Strict):
     precision: Literal["double", "single"] = "double"
     element: Literal["lagrange", "bubble"] | None = None  # None: by dimension (ModelSpec.element)
     scheme: Literal["galerkin", "consistent", "supg"] | None = None
+    points: int | None = Field(default=None, ge=16)  # yau-niu's QMC point budget (None: by dimension)
 
 
 def mixture_weights(weights) -> np.ndarray:

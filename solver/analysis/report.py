@@ -9,7 +9,7 @@ dσ = L0 σ dt + Σ_i L_i σ dy_i with (seed 002 (2.2), seed 004 (2))
 
 :func:`analyze` decides the conditions of :mod:`.conditions` (at most half of the time limit) and
 builds the estimation algebra of :mod:`.algebra` (the rest), then :func:`recommend_method_from`
-chooses kalman-bucy | yau-hu | wei-norman | yau-yau.
+chooses kalman-bucy | yau-hu | wei-norman | yau-jia | yau-yau | yau-niu (past 3 states).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from typing import Any, Callable
 from ..expressions import nonsmooth_functions
 from ..model import Model
 from ..papers import cite, cite_full, reference
+from ..registry import MAX_MESH_DIMENSION
 from .algebra import DEFAULT_MAX_DEPTH, DEFAULT_MAX_DIMENSION, EstimationAlgebra, bounded_algebra
 from .budget import DEFAULT_MAX_SIZE, DEFAULT_TIME_LIMIT, Budget, bounded
 from .conditions import Condition, Facts, all_of, decide_conditions, observed_coordinate
@@ -35,6 +36,8 @@ YAU_HU = cite_full("000", "Theorem 3.1")  # the direct method: DMZ -> Kolmogorov
 WEI_NORMAN = cite_full("004", "Theorem 1")
 YAU_YAU = cite_full("002", "Section 5")
 YAU_JIA = cite_full("001", "Theorem 4.2")
+YAU_NIU = ("S.-T. Yau and Y.-S. Niu, An Improved Yau-Yau Algorithm for High Dimensional Nonlinear Filtering "
+           "Problems, arXiv:2509.16896 (2025)")
 CLASS_004 = cite("004")  # the non-maximal-rank class (i)-(v) of seed 004 §III
 
 
@@ -257,7 +260,7 @@ def _report(model: Model, facts: Facts, algebra: EstimationAlgebra, basis: list[
     method, reason = recommend_method_from(model, facts.linear is True, yau is True,
                                            facts.structure_holds is True, a_is_identity,
                                            yau_jia=facts.yau_jia is True)
-    if method == "yau-yau" and undecided:
+    if method in ("yau-yau", "yau-niu") and undecided:
         reason += f" (the exact-filter conditions were {undecided}; the general engine is always valid)"
     n = model.n
     shown = f"not computed within {' / '.join(facts.stopped_by)}" if facts.stopped_by else "not computed"
@@ -296,6 +299,12 @@ def plain_summary(model: Model, method: str, facts: Facts, algebra: EstimationAl
                  "h^T R^-1 h is quadratic (Yau and Jia, 2005): the density is carried as a Gaussian mixture "
                  "moved exactly by ODEs, and the nonlinear sensor enters each step with a controlled "
                  "second-order error; no mesh, so any dimension up to 6.")
+    elif method == "yau-niu":
+        first = (f"The model ({shape}) has no exact finite-dimensional filter and more states than the "
+                 f"general engine's finite elements take ({MAX_MESH_DIMENSION}): the quasi-Monte Carlo "
+                 "Yau-Yau method (Yau and Niu, 2025) carries the density on low-discrepancy points with "
+                 "log weights, restarting them where they stop covering it; its accuracy grows with "
+                 "[discretization] points.")
     elif method == "wei-norman":
         first = (f"The model ({shape}) belongs to the non-maximal-rank class of Shi, Chen, Dong and Yau "
                  "(2017): its estimation algebra is finite-dimensional, so the Wei-Norman filter is exact "
@@ -348,6 +357,10 @@ def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
         return "yau-jia", ("f is affine plus a gradient and V is quadratic (seed 001 (4.1), (4.2)): the "
                            "Kolmogorov equation maps Gaussians to Gaussians by ODEs, the nonlinear sensor "
                            f"enters as a Gaussian-mixture update with controlled error ({YAU_JIA})")
+    if model.n > MAX_MESH_DIMENSION:  # past the engine's finite elements: the QMC method
+        return "yau-niu", (f"no finite-dimensional exact filter applies and the model has {model.n} "
+                           f"states, past the general engine's {MAX_MESH_DIMENSION}-D finite elements: the "
+                           f"quasi-Monte Carlo Yau-Yau method on points, any dimension ({YAU_NIU})")
     if (linear or yau or seed004) and not a_is_identity:
         return "yau-yau", "an exact filter would apply with a = I, but a != I here: the general engine"
     return "yau-yau", ("no finite-dimensional exact filter applies: the general Yau-Yau algorithm "
@@ -355,5 +368,6 @@ def recommend_method_from(model: Model, linear: bool, yau: bool, seed004: bool,
 
 
 def recommend_method(report: AnalysisReport) -> tuple[str, str]:
-    """The method the analysis recommends and why: kalman-bucy | yau-hu | wei-norman | yau-yau."""
+    """The method the analysis recommends and why: kalman-bucy | yau-hu | wei-norman | yau-jia | yau-yau
+    | yau-niu (no exact filter, more than 3 states)."""
     return report.method, report.reason

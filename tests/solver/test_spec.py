@@ -78,7 +78,7 @@ def test_bad_spec_names_field(over, field):
     ({"initial": {"kind": "mixture", "weights": [1.0], "means": [[0.5]], "covs": [[[1.0]]], "cov": 1}},
      "initial.cov", "did you mean 'covs'?"),
     ({"discretization": {"dt": 0.01, "basis": 16, "zzz": 1}}, "discretization.zzz",
-     "this table accepts basis, dt, element, mesh, order, precision, scheme, substeps"),
+     "this table accepts basis, dt, element, mesh, order, points, precision, scheme, substeps"),
 ])
 def test_unknown_key_names_the_nearest_accepted_one(over, field, hint):
     """A misspelt key is named with the key it most likely meant and the keys its table accepts

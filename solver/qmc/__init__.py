@@ -1,0 +1,1 @@
+"""Quasi-Monte Carlo filters: the Yau–Niu method (solver/qmc/yau_niu.py) for models of any dimension."""
