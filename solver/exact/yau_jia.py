@@ -46,6 +46,7 @@ sensor); yau-yau takes both.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -80,6 +81,7 @@ from .riccati import (
     mixture_state_from_dict,
 )
 from .schedule import BoundedCache, regular_gaps
+from .sensor_tape import Tape, Uncompilable, sensor_tapes
 from .yau_system import exponential_sum
 
 if TYPE_CHECKING:  # types only
@@ -93,6 +95,7 @@ SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model
 MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: bench/results/yau-jia.md)
 SPLIT_SHARE = 8  # at most max_components / 8 splits per step (diffusion widens every component)
 SPLIT_TOLERANCE = 0.05  # log-likelihood error per unit time at the ±√3σ points, per component
+_UNCOMPILED: set[str] = set()  # the reasons already warned about (solver/exact/sensor_tape.py)
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,20 @@ class _Sensor:
         table = {"DiracDelta": lambda *a: np.zeros_like(np.asarray(a[0], float))}
         self._fn = sp.lambdify(list(xs), h + jac + hess, modules=[table, "numpy"], cse=True)
         self.n, self.m = n, m
+        self.h, self.symbols = h, xs
+
+    def tapes(self) -> tuple[Tape, Tape] | None:
+        """The compiled kernels' programs of h, ∂h, ∂²h and of h (solver/exact/sensor_tape.py), or None
+        (with one warning per reason) where an expression has no instruction."""
+        try:
+            return sensor_tapes(self.h, self.symbols)
+        except Uncompilable as reason:
+            key = str(reason)
+            if key not in _UNCOMPILED:
+                _UNCOMPILED.add(key)
+                warnings.warn(f"yauyau: the yau-jia filter takes its numpy path: the sensor has no compiled "
+                              f"form ({reason})", RuntimeWarning, stacklevel=4)
+            return None
 
     def flat(self, X: np.ndarray) -> np.ndarray:
         """(P, m + mn + mn²): h, then ∂h and ∂²h row-major, at the points X (P, n)."""
@@ -494,14 +511,17 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, log_mass, damped, splits, components
 
     def _fast_pieces(self) -> FastPieces | None:
-        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/jit.py) asks for them and φ = 0."""
+        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/jit.py) asks for them, φ = 0 and the
+        sensor compiles to a tape (else the numpy path, with one warning: _Sensor.tapes)."""
         if not jit.enabled() or self.structure.phi != 0:
             return None
         if self._fast is None:
+            tapes = self.sensor.tapes()
+            if tapes is None:
+                return None
             from .yau_jia_fast import FastPieces
 
-            self._fast = FastPieces(sensor=self.sensor.flat, h=self.model.h, R_inv=self.R_inv,
-                                    whiten=self._whiten, q=self._q, r=self._r,
+            self._fast = FastPieces(tapes=tapes, R_inv=self.R_inv, whiten=self._whiten, q=self._q, r=self._r,
                                     predict_exact=self._predict_exact,
                                     max_components=self.max_components, split_tolerance=self.split_tolerance,
                                     split_budget=self.split_budget, prune=PRUNE_LOG_WEIGHT, sigma=SIGMA)
