@@ -28,7 +28,7 @@ step a large mixture starves and its components grow wide (a 2-D ring-shaped pos
 *less* accurate at 128 components than at 32).  Room for the splits is made first, by merging the
 cheapest pairs (Runnalls' bound, moments kept) among the other components, so that a fresh split is
 never merged back.  Components whose weight falls below e^{−30} of the largest are pruned.  The cap
-(``default_components``) is 64 in 1-D, 128 in 2-D and 32 above.  Log-scale weights throughout; the
+(``default_components``) is 64 in 1-D, 128 in 2-D and 16 above.  Log-scale weights throughout; the
 log-likelihood (log of the ratio of ∫σ, the convention of KalmanBucyFilter) is carried; a step that loses
 integrability is reported degenerate and the state keeps the last good mixture.
 
@@ -92,7 +92,7 @@ if TYPE_CHECKING:  # types only
 
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
-MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: bench/results/yau-jia.md)
+MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 16 above (measured: bench/results/yau-jia-speed.md)
 SPLIT_SHARE = 8  # at most max_components / 8 splits per step (diffusion widens every component)
 SPLIT_TOLERANCE = 0.05  # log-likelihood error per unit time at the ±√3σ points, per component
 _UNCOMPILED: set[str] = set()  # the reasons already warned about (solver/exact/sensor_tape.py)
@@ -162,8 +162,10 @@ class _Sensor:
 def default_components(n: int) -> int:
     """The default cap on the mixture: 64 in 1-D, 128 in 2-D (a ring-shaped posterior: at 32 and 64
     the worst of 20 seeds × 1000 steps missed 0.01, at 128 it is 0.0066; tests/solver/exact/test_yau_jia.py),
-    32 from 3-D on, where each component costs O(n³) and 32 already beat 10k particles 8× in gap."""
-    return MAX_COMPONENTS.get(n, 32)
+    16 from 3-D on, where each component costs O(n³): on 4-D range-only tracking, rows 50-400 of 3 seeds,
+    the mean gap to 10⁶ particles was 0.021 at 16, 0.019 at 32 and 64 (seed to seed ±0.005), 0.058 at 8
+    (one seed lost), 10k particles 0.059; 16 costs 0.4× of 32 per row (bench/results/yau-jia-speed.md)."""
+    return MAX_COMPONENTS.get(n, 16)
 
 
 class YauJiaFilter(ChunkedFilter):
