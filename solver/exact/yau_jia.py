@@ -28,7 +28,7 @@ step a large mixture starves and its components grow wide (a 2-D ring-shaped pos
 *less* accurate at 128 components than at 32).  Room for the splits is made first, by merging the
 cheapest pairs (Runnalls' bound, moments kept) among the other components, so that a fresh split is
 never merged back.  Components whose weight falls below e^{−30} of the largest are pruned.  The cap
-(``default_components``) is 64 in 1-D, 128 in 2-D and 32 above.  Log-scale weights throughout; the
+(``default_components``) is 64 in 1-D, 128 in 2-D and 16 above.  Log-scale weights throughout; the
 log-likelihood (log of the ratio of ∫σ, the convention of KalmanBucyFilter) is carried; a step that loses
 integrability is reported degenerate and the state keeps the last good mixture.
 
@@ -46,6 +46,7 @@ sensor); yau-yau takes both.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -80,6 +81,7 @@ from .riccati import (
     mixture_state_from_dict,
 )
 from .schedule import BoundedCache, regular_gaps
+from .sensor_tape import Tape, Uncompilable, sensor_tapes
 from .yau_system import exponential_sum
 
 if TYPE_CHECKING:  # types only
@@ -90,9 +92,10 @@ if TYPE_CHECKING:  # types only
 
 PRUNE_LOG_WEIGHT = -30.0  # relative to the largest component
 SIGMA = math.sqrt(3.0)  # the ±√3σ points where the sensor's quadratic model is checked
-MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 32 above (measured: bench/results/yau-jia.md)
+MAX_COMPONENTS = {1: 64, 2: 128}  # by dimension; 16 above (measured: bench/results/yau-jia-speed.md)
 SPLIT_SHARE = 8  # at most max_components / 8 splits per step (diffusion widens every component)
 SPLIT_TOLERANCE = 0.05  # log-likelihood error per unit time at the ±√3σ points, per component
+_UNCOMPILED: set[str] = set()  # the reasons already warned about (solver/exact/sensor_tape.py)
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,20 @@ class _Sensor:
         table = {"DiracDelta": lambda *a: np.zeros_like(np.asarray(a[0], float))}
         self._fn = sp.lambdify(list(xs), h + jac + hess, modules=[table, "numpy"], cse=True)
         self.n, self.m = n, m
+        self.h, self.symbols = h, xs
+
+    def tapes(self) -> tuple[Tape, Tape] | None:
+        """The compiled kernels' programs of h, ∂h, ∂²h and of h (solver/exact/sensor_tape.py), or None
+        (with one warning per reason) where an expression has no instruction."""
+        try:
+            return sensor_tapes(self.h, self.symbols)
+        except Uncompilable as reason:
+            key = str(reason)
+            if key not in _UNCOMPILED:
+                _UNCOMPILED.add(key)
+                warnings.warn(f"yauyau: the yau-jia filter takes its numpy path: the sensor has no compiled "
+                              f"form ({reason})", RuntimeWarning, stacklevel=4)
+            return None
 
     def flat(self, X: np.ndarray) -> np.ndarray:
         """(P, m + mn + mn²): h, then ∂h and ∂²h row-major, at the points X (P, n)."""
@@ -145,8 +162,10 @@ class _Sensor:
 def default_components(n: int) -> int:
     """The default cap on the mixture: 64 in 1-D, 128 in 2-D (a ring-shaped posterior: at 32 and 64
     the worst of 20 seeds × 1000 steps missed 0.01, at 128 it is 0.0066; tests/solver/exact/test_yau_jia.py),
-    32 from 3-D on, where each component costs O(n³) and 32 already beat 10k particles 8× in gap."""
-    return MAX_COMPONENTS.get(n, 32)
+    16 from 3-D on, where each component costs O(n³): on 4-D range-only tracking, rows 50-400 of 3 seeds,
+    the mean gap to 10⁶ particles was 0.021 at 16, 0.019 at 32 and 64 (seed to seed ±0.005), 0.058 at 8
+    (one seed lost), 10k particles 0.059; 16 costs 0.4× of 32 per row (bench/results/yau-jia-speed.md)."""
+    return MAX_COMPONENTS.get(n, 16)
 
 
 class YauJiaFilter(ChunkedFilter):
@@ -494,14 +513,17 @@ class YauJiaFilter(ChunkedFilter):
         return A, B, C, log_mass, damped, splits, components
 
     def _fast_pieces(self) -> FastPieces | None:
-        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/jit.py) asks for them and φ = 0."""
+        """The compiled pieces where ``YAUYAU_KERNEL`` (solver/jit.py) asks for them, φ = 0 and the
+        sensor compiles to a tape (else the numpy path, with one warning: _Sensor.tapes)."""
         if not jit.enabled() or self.structure.phi != 0:
             return None
         if self._fast is None:
+            tapes = self.sensor.tapes()
+            if tapes is None:
+                return None
             from .yau_jia_fast import FastPieces
 
-            self._fast = FastPieces(sensor=self.sensor.flat, h=self.model.h, R_inv=self.R_inv,
-                                    whiten=self._whiten, q=self._q, r=self._r,
+            self._fast = FastPieces(tapes=tapes, R_inv=self.R_inv, whiten=self._whiten, q=self._q, r=self._r,
                                     predict_exact=self._predict_exact,
                                     max_components=self.max_components, split_tolerance=self.split_tolerance,
                                     split_budget=self.split_budget, prune=PRUNE_LOG_WEIGHT, sigma=SIGMA)
