@@ -21,6 +21,13 @@ from .smoothing import smooth, smooth_lag
 from .summaries import check_probabilities, is_gaussian, quantiles
 
 
+def offers_densities(flt: Any) -> bool:
+    """Whether ``flt``'s smoother gives each row's smoothed density (quantiles, mode, density files): the
+    Gaussian smoothers (closed form) and the engine's (it hands its densities to a ``visit``)."""
+    smoother = getattr(type(flt), "smooth_arrays", None)
+    return is_gaussian(flt) or (callable(smoother) and "visit" in smoother.__code__.co_varnames)
+
+
 def smooth_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, probs: Any = None,
                           each: Callable[[int, Any], None] | None = None) -> tuple[Any, ChunkResult, Any]:
     """(the filter's state after the chunk, the smoothed result, marginal quantiles (K, n, len(probs)) of
@@ -30,7 +37,7 @@ def smooth_with_quantiles(flt: Any, state: Any, rows: Any, times: Any = None, pr
     def run(visit: Visit | None) -> tuple[Any, ChunkResult]:
         if visit is None:
             return smooth(flt, state, rows, times)
-        if not hasattr(flt, "smooth_arrays") or "visit" not in flt.smooth_arrays.__code__.co_varnames:
+        if not offers_densities(flt):
             raise InputError("quantiles", f"method {flt.method}: quantiles of the smoothed density are "
                                           "offered by the engine (yau-yau) and the Gaussian smoothers")
         return flt.smooth_arrays(state, rows, times, visit=visit)

@@ -21,7 +21,7 @@ from yauyau.solver.errors import InputError
 from yauyau.solver.registry import AUTO, FORMS, METHODS, PRECISIONS
 
 from .csv_io import Source, csv_lines, read_increments, read_observations, write_lines
-from .filter import Outputs, header, record_arguments, snapshot
+from .filter import Outputs, blas_threads_argument, header, record_arguments, snapshot
 
 DEFAULT_MEMORY_GB = 2.0  # what the rows of a smoothing run may take (check_memory)
 
@@ -67,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="grid points per axis (default 401 in 1-D, 101 in 2-D, 61 in 3-D)")
     parser.add_argument("--memory", type=float, default=DEFAULT_MEMORY_GB, metavar="GB",
                         help="memory budget of the smoother's stored rows (default %(default)s GB)")
+    blas_threads_argument(parser)
     parser.epilog = EPILOG
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
@@ -105,7 +106,33 @@ def check_memory(flt, rows: int, budget_gb: float, field: str) -> None:
                                 "split the file or raise --memory")
 
 
+def check_summaries(flt, outputs) -> None:
+    """--mode, --quantiles and --density read each row's smoothed density: the engine's (yau-yau) or a
+    Gaussian's (kalman-bucy); another smoother (yau-hu's mixture) gives its moments only — refused by
+    the option's name before any work (its mode is not its mean)."""
+    from yauyau.solver.smoothed_summaries import offers_densities
+
+    if offers_densities(flt):
+        return
+    for wanted, field in ((outputs.mode, "mode"), (outputs.probs is not None, "quantiles"),
+                          (outputs.density is not None, "density")):
+        if wanted:
+            raise InputError(field, f"method {flt.method}: its smoother gives the smoothed mean and "
+                                    f"covariance only; drop --{field}, or smooth with --method yau-yau (the "
+                                    "engine's smoothed density)")
+
+
 def run(args: argparse.Namespace) -> int:
+    from yauyau.solver import jit
+
+    with jit.one_shot():  # the kernel chosen for this input's length ends with the command (as filter's)
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from threadpoolctl import threadpool_limits
+    from yauyau.solver import jit
+    from yauyau.solver.blas import blas_threads
     from yauyau.solver.filtering import at_time, check_t0
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
@@ -134,6 +161,9 @@ def run(args: argparse.Namespace) -> int:
     method = args.method or stored.method
     flt = make_filter(model, stored.offline, method, form=args.form, precision=args.precision, gate=gate)
     check_memory(flt, len(source.rows), args.memory, source.field)
+    check_summaries(flt, outputs)
+    threads = blas_threads(args.blas_threads)
+    jit.choose_for_rows(len(source.rows), getattr(flt, "compiled_min_rows", jit.COMPILED_MIN_ROWS))
     state = at_time(flt.initial_state(), source.t0)
     snapshots: dict[int, object] = {}  # --density: the smoothed states of every --density-every-th step
 
@@ -142,12 +172,13 @@ def run(args: argparse.Namespace) -> int:
             snapshots[int(smoothed.step)] = smoothed
     each = None if outputs.density is None else keep
     try:
-        if lag is None:
-            _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
-                                                     each)
-        else:
-            _, result, table = smooth_lag_with_quantiles(flt, state, source.rows, source.times, lag,
-                                                         outputs.probs, each)
+        with threadpool_limits(limits=threads, user_api="blas"):  # one by default (blas.md)
+            if lag is None:
+                _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
+                                                         each)
+            else:
+                _, result, table = smooth_lag_with_quantiles(flt, state, source.rows, source.times, lag,
+                                                             outputs.probs, each)
     except InputError as exc:
         raise InputError(_in_file(exc.field, source), exc.message) from None
     extras = None

@@ -67,3 +67,20 @@ def test_yau_jia_has_no_smoother_and_exits_2(stored, tmp_path, capsys):
                  "--method", method])
     err = capsys.readouterr().err
     assert code == 2 and "method" in err and method in err and "yau-yau" in err and not out.exists()
+
+
+@pytest.mark.parametrize("option", [["--mode"], ["--quantiles", "0.5"], ["--density", "D.h5"]])
+def test_yau_hu_smooths_moments_only_and_refuses_the_density_options_by_name(stored, tmp_path, capsys,
+                                                                             option):
+    """yau-hu's smoother gives the smoothed mean and covariance: --mode (its mixture's mode is not its
+    mean), --quantiles and --density exit 2 naming the option, nothing written."""
+    directory, model_id, path, _ = stored
+    out = tmp_path / "out.csv"
+    if option[0] == "--density":
+        option = ["--density", str(tmp_path / "d.h5")]
+    code = main(["smooth", model_id, "--store", str(directory), "--increments", str(path), "--out", str(out),
+                 "--method", "yau-hu", *option])
+    err = capsys.readouterr().err
+    field = option[0].lstrip("-")
+    assert code == 2 and field in err and "yau-yau" in err and "Traceback" not in err
+    assert not out.exists() and not (tmp_path / "d.h5").exists()
