@@ -274,6 +274,16 @@ class YauNiuFilter(ChunkedFilter):
                                                           R=np.asarray(model.R, float)[np.ix_(c, c)]))
                               for c in self._components]
 
+    def marginal(self, state: YauNiuState, variable: int, grid: np.ndarray,
+                 resolution: int = 0) -> np.ndarray:
+        """p_i(x_i) at ``grid``: a weighted Gaussian KDE (Scott's bandwidth) of coordinate ``variable``
+        of the points under its block's weights; ``resolution`` is unused (no quadrature is needed)."""
+        from scipy.stats import gaussian_kde
+
+        block = next(b for b, coords in enumerate(self.blocks) if variable in coords)
+        w = np.exp(state.log_weights[block] - logsumexp(state.log_weights[block]))
+        return gaussian_kde(state.points[:, variable], weights=w)(np.asarray(grid, float))
+
     # -- prior ------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauNiuState:
         """QMC points of the prior (gaussian or mixture: points of each component in proportion, equal
