@@ -216,10 +216,13 @@ def _search_mode(flt: Filter, state: FilterState, estimate: Estimate) -> np.ndar
     mean = np.asarray(estimate.mean, float)
     sd = np.sqrt(np.clip(np.diag(np.asarray(estimate.cov, float)), 1e-18, None))
     per_axis = {1: 401, 2: 81, 3: 25}.get(n, 9)
-    axes = [np.linspace(mean[i] - 6 * sd[i], mean[i] + 6 * sd[i], per_axis) for i in range(n)]
-    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
-    values = np.asarray(flt.density(state, points), dtype=float)
-    start = points[int(np.argmax(np.nan_to_num(values, nan=-np.inf)))]
+    if hasattr(flt, "point_mode"):  # a point cloud: start from its densest point, no grid
+        start = flt.point_mode(state)
+    else:
+        axes = [np.linspace(mean[i] - 6 * sd[i], mean[i] + 6 * sd[i], per_axis) for i in range(n)]
+        points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
+        values = np.asarray(flt.density(state, points), dtype=float)
+        start = points[int(np.argmax(np.nan_to_num(values, nan=-np.inf)))]
 
     def neg_log(x: np.ndarray) -> float:
         value = float(np.asarray(flt.density(state, x[None, :]), dtype=float)[0])

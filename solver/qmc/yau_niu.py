@@ -274,6 +274,23 @@ class YauNiuFilter(ChunkedFilter):
                                                           R=np.asarray(model.R, float)[np.ix_(c, c)]))
                               for c in self._components]
 
+    def marginal(self, state: YauNiuState, variable: int, grid: np.ndarray,
+                 resolution: int = 0) -> np.ndarray:
+        """p_i(x_i) at ``grid``: a weighted Gaussian KDE (Scott's bandwidth) of coordinate ``variable``
+        of the points under its block's weights; ``resolution`` is unused (no quadrature is needed)."""
+        from scipy.stats import gaussian_kde
+
+        block = next(b for b, coords in enumerate(self.blocks) if variable in coords)
+        w = np.exp(state.log_weights[block] - logsumexp(state.log_weights[block]))
+        return gaussian_kde(state.points[:, variable], weights=w)(np.asarray(grid, float))
+
+    def point_mode(self, state: YauNiuState, candidates: int = 256) -> np.ndarray:
+        """The MAP point, read as the candidate of highest kernel density among the ``candidates``
+        heaviest points (a grid search over n ≥ 4 dimensions cannot be held in memory)."""
+        heaviest = np.argsort(state.log_weights.sum(axis=0))[-candidates:]
+        X = state.points[heaviest]
+        return X[int(np.argmax(self.density(state, X)))].copy()
+
     # -- prior ------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauNiuState:
         """QMC points of the prior (gaussian or mixture: points of each component in proportion, equal
