@@ -448,7 +448,7 @@ class YauNiuFilter(ChunkedFilter):
                             reason=reason if degenerate else None)
         return new_state, ChunkResult(steps, times_out, mean_out, cov_out, None, loglik, ll_inc, bad,
                                       reason=new_state.reason if bad.any() else None,
-                                      predictive_loglik=pll, gate=obs.gate)
+                                      predictive_loglik=pll, gate=None)  # not applied: "gate off"
 
     def estimate(self, state: YauNiuState) -> Estimate:
         mean, cov = self._moments(state.points, np.exp(state.log_weights))
