@@ -73,7 +73,27 @@ class FitResult:
                "evaluations": self.evaluations, "converged": self.converged, "method": self.method}
         if profile:
             out["profile"] = self.profile
-        return out
+        return _json_numbers(out)
+
+
+def _json_numbers(value: Any) -> Any:
+    """``value`` with every non-finite float as None (JSON's null: NaN and ±inf are not JSON)."""
+    if isinstance(value, dict):
+        return {key: _json_numbers(v) for key, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_numbers(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
+# Continuous increments: the record's quadratic variation fixes R (Σ dy² over [0, T] → R·T), and the
+# log-likelihood, a density against the noise's own Wiener measure, is not comparable across R: it grows
+# without bound as R → 0, so a "maximum" would be the lower bound.
+CONTINUOUS_NOISE = ("cannot be fitted from continuous increments: their quadratic variation fixes it "
+                    "(R ≈ Σ dy² / T over the record) and the log-likelihood grows without bound as R → 0; "
+                    "set it in the spec from Σ dy² / T, or fit it from discrete readings ([measurement] "
+                    "kind = \"discrete\")")
 
 
 def _check_free(spec: ModelSpec, free: Any) -> dict[str, tuple[float, float, float]]:
@@ -89,6 +109,8 @@ def _check_free(spec: ModelSpec, free: Any) -> dict[str, tuple[float, float, flo
             size = spec.n if table == "diffusion" else spec.m
             if i != j or i >= size:
                 raise InputError(where, f"only the diagonal {table}[i][i], i < {size}, can be fitted")
+            if table == "observation_noise" and spec.measurement.kind == "continuous":
+                raise InputError(where, CONTINUOUS_NOISE)
             start = float((spec.diffusion_matrix() if table == "diffusion" else spec.noise_matrix())[i, i])
             positive = True
         elif name in spec.parameters:

@@ -31,9 +31,11 @@ import numpy as np
 from .errors import InputError, SpecError
 from .filtering import ChunkResult, concat_results, slice_result
 
+ENGINE_STATES = 3  # the general engine's finite elements: up to 3 states
 SMOOTHING_METHODS = ("yau-yau", "kalman-bucy", "yau-hu")
 NO_SMOOTHER = {"yau-jia": "its mixture steps linearise the data term about each component's mean and split, "
-                          "merge and prune components, so no backward pass is exact for it"}
+                          "merge and prune components, so no backward pass is exact for it",
+               "yau-niu": "its weighted point set has no backward pass yet"}
 
 
 def can_smooth(flt: Any) -> bool:
@@ -46,9 +48,13 @@ def smooth(flt: Any, state: Any, rows: Any, times: Any = None) -> tuple[Any, Chu
     without a smoother."""
     if not can_smooth(flt):
         why = NO_SMOOTHER.get(flt.method)
-        raise SpecError("method", f"method {flt.method} has no smoother{f' ({why})' if why else ''}; the "
-                                  "general engine smooths any model (method yau-yau, e.g. "
-                                  "open_filter(..., method='yau-yau') or --method yau-yau)")
+        engine = (f"the general engine smooths models of at most {ENGINE_STATES} states (method yau-yau, "
+                  "precomputed: e.g. `yauyau precompute` of the spec with method = \"yau-yau\", then "
+                  "--method yau-yau); this model has no smoother yet" if flt.model.n > ENGINE_STATES else
+                  "the general engine smooths any model (method yau-yau, e.g. open_filter(..., "
+                  "method='yau-yau') or --method yau-yau)")
+        raise SpecError("method", f"method {flt.method} has no smoother{f' ({why})' if why else ''}; "
+                                  + engine)
     return flt.smooth_arrays(state, rows, times)
 
 

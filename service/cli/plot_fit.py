@@ -30,7 +30,8 @@ def read_fit(path: str) -> dict:
         raise InputError("profile", f"{path}: the profile could not be computed: {profile['error']}")
     grid, loglik = profile.get("grid"), profile.get("loglik")
     ok = (isinstance(grid, list) and isinstance(loglik, list) and len(grid) == len(loglik) >= 2
-          and all(isinstance(v, (int, float)) for v in grid + loglik))
+          and all(isinstance(v, (int, float)) for v in grid)
+          and all(v is None or isinstance(v, (int, float)) for v in loglik))  # null: not finite there
     if not ok:
         raise InputError("profile", f"{path}: profile needs grid and loglik, lists of numbers of one length")
     name = profile.get("name")
@@ -43,7 +44,8 @@ def draw(fit: dict, title: str):
     import numpy as np
     from matplotlib.figure import Figure
 
-    grid, loglik = np.array(fit["grid"], dtype=float), np.array(fit["loglik"], dtype=float)
+    grid = np.array(fit["grid"], dtype=float)
+    loglik = np.array([math.nan if v is None else v for v in fit["loglik"]], dtype=float)
     best = fit["best"] if isinstance(fit["best"], (int, float)) and math.isfinite(fit["best"]) else math.nan
     best = float(np.nanmax(np.append(loglik, best)))
     fig = Figure(figsize=(6.4, 4.0), layout="constrained")

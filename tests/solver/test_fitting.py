@@ -4,6 +4,7 @@ likelihood of a nonlinear model, and bad input naming the field."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -71,6 +72,13 @@ def test_bad_input_names_the_field():
         with pytest.raises(InputError) as err:
             yauyau.fit(spec, z[:, None], t, free=free)
         assert err.value.field == field
+    # continuous increments: the quadratic variation fixes R, the likelihood is unbounded as R → 0
+    doc = spec.model_dump(mode="json")
+    doc["measurement"] = {"kind": "continuous"}
+    continuous = yauyau.parse_spec_text(json.dumps(doc), "json")
+    with pytest.raises(InputError) as err:
+        yauyau.fit(continuous, 0.1 * z[:, None], t, free={"observation_noise[0][0]": (0.01, 1.0)})
+    assert err.value.field == "free.observation_noise[0][0]" and "Σ dy² / T" in err.value.message
     with pytest.raises(InputError) as err:
         yauyau.fit(spec, z[:2, None], t[:2], free={"theta": (0.1, 1.0)})
     assert err.value.field == "rows"

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import EXAMPLES
 from helpers.fit_specs import OU
 from yauyau.service.cli import main
 
@@ -71,6 +72,20 @@ def test_bad_input_exits_2_naming_the_field(record, tmp_path, capsys, free, fiel
     assert not out.exists()
 
 
+def test_observation_noise_from_continuous_increments_exits_2(tmp_path, capsys):
+    """Continuous increments fix R by their quadratic variation (the likelihood grows without bound as
+    R → 0): `fit --free observation_noise[0][0]=…` on examples/ou.toml exits 2 naming it, saying Σ dy² / T."""
+    data = tmp_path / "dy.csv"
+    dy = np.random.default_rng(3).normal(0.0, 0.1, 200)
+    data.write_text("dy\n" + "\n".join(repr(float(v)) for v in dy) + "\n")
+    out = tmp_path / "fitted.toml"
+    code = main(["fit", str(EXAMPLES / "ou.toml"), "--increments", str(data), "--free",
+                 "observation_noise[0][0]=0.0001:2", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "error: free.observation_noise[0][0]" in err and "Σ dy² / T" in err
+    assert not out.exists()
+
+
 FLAT = OU.replace('observation = ["x"]', 'observation = ["x + max(c, 0)"]').replace(
     "theta = 0.5 }", "theta = 0.5, c = -0.5 }")
 
@@ -89,9 +104,14 @@ def test_not_converged_exits_1_saying_why_through_the_console_script(record, tmp
     assert done.returncode == 1, done.stderr
     assert "not converged" in done.stderr and "flat in c at c = -0.5" in done.stderr
     assert "Traceback" not in done.stderr
-    got = json.loads(done.stdout)
+    got = json.loads(done.stdout, parse_constant=_not_json)  # strict JSON: no NaN / Infinity
     assert got["converged"] is False and got["estimates"]["c"] == -0.5
+    assert got["stderr"]["c"] is None  # not finite there: JSON's null
     assert not out.exists()
+
+
+def _not_json(constant: str):
+    raise AssertionError(f"{constant} is not JSON")
 
 
 def test_profile_key_and_its_plot(record, tmp_path, capsys):

@@ -253,3 +253,17 @@ def test_quantiles_match_the_kalman_marginal():
     # the mode (Nelder–Mead on the kernel density from the densest heavy point, no grid) is the
     # Gaussian's mean: within 0.1 (0.2 sd; measured 0.049)
     assert np.abs(mode(flt, state) - means[-1]).max() <= 0.1
+
+
+def test_smoothing_is_refused_by_name_without_a_dead_end():
+    """yau-niu has no smoother yet: SpecError naming the method, saying why, and — past the engine's 3
+    states — not sending the user to an engine that cannot take the model."""
+    from yauyau.solver.smoothing import smooth
+
+    model = linear_model(4)
+    flt = YauNiuFilter(model, points=256)
+    with pytest.raises(SpecError) as err:
+        smooth(flt, flt.initial_state(), np.zeros((5, model.m)))
+    message = err.value.message
+    assert err.value.field == "method" and "yau-niu" in message and "no backward pass" in message
+    assert "at most 3 states" in message and "smooths any model" not in message
