@@ -32,6 +32,7 @@ FRAGMENTS = [
     ("blas_threads", "blas.md"),
     ("engine_batch", "engine-batch.md"),
     ("filters", "filters.md"),
+    ("peer_gap", "peer-gap.md"),
     ("exact_filters", "exact.md"),
     ("measurements", "measurements.md"),
     ("yau_jia", "yau-jia.md"),
