@@ -291,9 +291,31 @@ class _NumericBuilder:
                 raise self.fail("constant power out of floating-point range")
             if float(p).is_integer():
                 exponent = _Num(value=int(p))  # x**3 as numpy's integer power, as lambdify prints it
+                if base.fn is not None and 2 <= abs(int(p)) <= MAX_PRODUCT_POWER:
+                    return self._apply(lambda b, q=int(p): integer_power(b, q), base)
         elif not (base.fn is None and base.value > 0):
             raise self.fail("a non-constant exponent needs a positive constant base (use exp(...))")
         return self._apply(lambda b, p: b ** p, base, exponent)
+
+
+# x**p for a small integer p as products (binary powering): numpy's float power calls libm's pow per
+# element, measured 828 µs for 4 096 points against 12.6 µs for x*x*x on an AVX-512 machine (and the
+# cubic sensor's h = x**3 is evaluated at every point of every row by the point filters); the products
+# are within a few ulps of pow
+MAX_PRODUCT_POWER = 32
+
+
+def integer_power(x: np.ndarray, p: int) -> np.ndarray:
+    """x**p for an integer 2 <= |p| <= MAX_PRODUCT_POWER by repeated squaring."""
+    q, result, square = abs(p), None, x
+    while True:
+        if q & 1:
+            result = square if result is None else result * square
+        q >>= 1
+        if not q:
+            break
+        square = square * square
+    return 1.0 / result if p < 0 else result
 
 
 def _check_ascii(text: str, field: str) -> None:
@@ -348,12 +370,17 @@ def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping
     except (RecursionError, MemoryError, OverflowError, ValueError, TypeError, ZeroDivisionError):
         raise SpecError(field, "expression cannot be evaluated safely") from None
 
+    def on_columns(cols: tuple[np.ndarray, ...], P: int) -> np.ndarray:
+        """The expression of the state columns ``cols`` (n arrays (P,)), as a new array (P,)."""
+        with np.errstate(all="ignore"):
+            value = node(cols)
+        return np.broadcast_to(np.asarray(value, dtype=float), (P,)).copy()
+
     def evaluate(X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
-        with np.errstate(all="ignore"):
-            value = node(tuple(X.T))
-        return np.broadcast_to(np.asarray(value, dtype=float), (X.shape[0],)).copy()
+        return on_columns(tuple(X.T), X.shape[0])
 
+    evaluate.on_columns = on_columns  # type: ignore[attr-defined]
     return evaluate
 
 
@@ -365,7 +392,12 @@ def numeric_many(
         X = np.atleast_2d(np.asarray(X, dtype=float))
         if not functions:
             return np.zeros((X.shape[0], 0))
-        return np.stack([f(X) for f in functions], axis=1)
+        if X.shape[1] < 8 or not all(hasattr(f, "on_columns") for f in functions):
+            return np.stack([f(X) for f in functions], axis=1)
+        # many states: each column made contiguous once for all the expressions (X.T's rows are strided
+        # by n: at 100 states every element of a column sits on its own cache line)
+        cols, P = tuple(np.ascontiguousarray(X.T)), X.shape[0]
+        return np.stack([f.on_columns(cols, P) for f in functions], axis=1)
 
     return evaluate
 

@@ -70,6 +70,7 @@ from ..gaussian import log_normal
 from ..measurement import Observation, check_first_gap, check_gate, check_rows, resolve_times
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .singles import SingleBlocks
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -257,6 +258,8 @@ class YauNiuFilter(ChunkedFilter):
         self.restart, self.seed = float(restart), int(seed)
         self.bandwidth = None if bandwidth is None else float(bandwidth)
         self._noise_root = symmetric_root(np.asarray(model.a, float))  # (aτ)^{1/2} = √τ a^{1/2}
+        root = self._noise_root
+        self._noise_diagonal = not np.count_nonzero(root - np.diag(np.diag(root)))
         self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
         owner = np.zeros(model.n, int)
         for b, coords in enumerate(self.blocks):
@@ -273,6 +276,9 @@ class YauNiuFilter(ChunkedFilter):
         self._block_observations = [Observation(SimpleNamespace(spec=model.spec, m=len(c),
                                                           R=np.asarray(model.R, float)[np.ix_(c, c)]))
                               for c in self._components]
+        # every block one coordinate with at most one sensor (independent sensors): one vectorised row
+        self._singles = (SingleBlocks(model, self.blocks, self._components)
+                         if SingleBlocks.applies(self.blocks, self._components) else None)
 
     def marginal(self, state: YauNiuState, variable: int, grid: np.ndarray,
                  resolution: int = 0) -> np.ndarray:
@@ -331,7 +337,12 @@ class YauNiuFilter(ChunkedFilter):
         kernel N(x + f(x)τ, aτ) on a fresh QMC normal set, each block matched to the kernel's exact
         mean and covariance under its weights."""
         drifted = X + self.model.f(X) * tau
-        moved = drifted + math.sqrt(tau) * (qmc_normals(len(X), X.shape[1], rng) @ self._noise_root)
+        Z = qmc_normals(len(X), X.shape[1], rng)
+        root = self._noise_root
+        noise = Z * np.diag(root) if self._noise_diagonal else Z @ root  # n² a point only where coupled
+        moved = drifted + math.sqrt(tau) * noise
+        if self._singles is not None:
+            return self._singles.kolmogorov(drifted, moved, W, tau)
         a = np.asarray(self.model.a, float)
         for coords, w in zip(self.blocks, W, strict=True):
             mean, cov = weighted_moments(drifted[:, coords], w)
@@ -365,11 +376,75 @@ class YauNiuFilter(ChunkedFilter):
 
     def _moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and (block-diagonal) covariance of the product over the blocks."""
+        if self._singles is not None:
+            return self._singles.moments(X, W)
         n = X.shape[1]
         mean, cov = np.empty(n), np.zeros((n, n))
         for coords, w in zip(self.blocks, W, strict=True):
             mean[coords], cov[np.ix_(coords, coords)] = weighted_moments(X[:, coords], w)
         return mean, cov
+
+    # -- the observation step and the restarts of one row ----------------------------------------
+    def _observe_blocks(self, k: int, X: np.ndarray, logW: np.ndarray, blocks: list, step: int, tau: float,
+                        rng: np.random.Generator, shared: np.ndarray):
+        """Row k's observation step and restarts, block by block (logW edited in place): (the points,
+        the row's predictive log-likelihood or None when nothing is observed, its sum of offsets, the
+        restarts made, the reason the row failed or None)."""
+        seen = any(keys[k] for *_, keys, _ in blocks)
+        hX = self.model.h(X)[None] if seen else None
+        gain = offsets = 0.0
+        restarts = 0
+        for b, (comps, block_obs, part, keys, terms) in enumerate(blocks):
+            if keys[k]:
+                factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], np.array([tau]),
+                                               keys[k:k + 1], terms.rows(k, k + 1, keys))[0]
+                total = logW[b] + factor  # Yau–Niu, log-domain update
+                block_gain = log_sum_exp(total)
+                if not math.isfinite(block_gain):
+                    return X, None, 0.0, restarts, _zero_likelihood(step)
+                logW[b] = total - block_gain
+                gain += block_gain + float(terms.offset[k])
+                offsets += float(terms.offset[k])
+            X, added, failure = self._restart_block(X, logW, b, rng, step, shared)
+            restarts += added
+            if failure is not None:
+                return X, None, 0.0, restarts, failure
+        return X, (gain if seen else None), offsets, restarts, None
+
+    def _observe_singles(self, k: int, X: np.ndarray, logW: np.ndarray, chunk: tuple, step: int, tau: float,
+                         rng: np.random.Generator, shared: np.ndarray):
+        """:meth:`_observe_blocks` for blocks of one coordinate, the update in one step for all
+        (solver/qmc/singles.py); the restarts, where the coverage fell, block by block."""
+        singles = self._singles
+        observed, gain, offsets = singles.observe(logW, self.model.h(X), chunk, k, tau)
+        if gain is None:
+            return X, None, 0.0, 0, _zero_likelihood(step)
+        restarts = 0
+        low = np.flatnonzero(singles.coverage(logW) < self.restart * logW.shape[1])
+        for b in low.tolist():
+            X, added, failure = self._restart_block(X, logW, b, rng, step, shared)
+            restarts += added
+            if failure is not None:
+                return X, None, 0.0, restarts, failure
+        return X, (gain if observed.any() else None), offsets, restarts, None
+
+    def _restart_block(self, X: np.ndarray, logW: np.ndarray, b: int, rng: np.random.Generator, step: int,
+                       shared: np.ndarray):
+        """Block b restarted where its coverage 1/Σw² fell below ``restart`` × N (Yau–Niu, local
+        resampling-restart): (the points, restarts made, the reason it cannot be or None)."""
+        w = np.exp(logW[b])
+        coverage = 1.0 / float(np.sum(w * w))
+        if coverage >= self.restart * len(w):
+            return X, 0, None
+        if coverage < 2.0:
+            return X, 0, (f"step {step}: the posterior collapsed onto {coverage:.2g} of {len(w)} points and "
+                          "the restart cannot recover it; use more points (discretization.points) or a "
+                          "smaller dt")
+        coords = self.blocks[b]
+        X = X.copy() if X is shared else X
+        X[:, coords] = self._restart(X[:, coords], w, rng)
+        logW[b] = -math.log(len(w))
+        return X, 1, None
 
     # -- Filter protocol ---------------------------------------------------------------------
     def run_arrays(self, state: YauNiuState, increments: np.ndarray,
@@ -384,7 +459,8 @@ class YauNiuFilter(ChunkedFilter):
         steps, times_out = chunk_clock(state, K, model.dt, times, taus)
         check_first_gap(taus, obs.discrete, self.method)
         gaps = np.full(K, model.dt) if taus is None else np.asarray(taus, float)
-        blocks = self._block_terms(rows, gaps)
+        singles = self._singles
+        chunk = singles.chunk_terms(rows, gaps) if singles is not None else self._block_terms(rows, gaps)
         mean_out, cov_out = np.empty((K, n)), np.empty((K, n, n))
         ll_inc, bad, pll = np.zeros(K), np.zeros(K, bool), np.full(K, np.nan)
         X, logW = state.points, state.log_weights.copy()
@@ -392,46 +468,21 @@ class YauNiuFilter(ChunkedFilter):
         done = 0 if state.degenerate else K
         mean, cov = self._moments(X, np.exp(logW))
         for k in range(done):
-            rng = np.random.default_rng([state.seed, int(steps[k])])
+            step = int(steps[k])
+            rng = np.random.default_rng([state.seed, step])
             if gaps[k] > 0:
                 X = self._kolmogorov(X, np.exp(logW), float(gaps[k]), rng)
-            hX = model.h(X)[None] if any(keys[k] for _, _, _, keys, _ in blocks) else None
-            gain = 0.0
-            for b, (coords, (comps, block_obs, part, keys, terms)) in enumerate(zip(self.blocks, blocks,
-                                                                                    strict=True)):
-                if keys[k]:
-                    factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], gaps[k:k + 1],
-                                                   keys[k:k + 1], terms.rows(k, k + 1, keys))[0]
-                    total = logW[b] + factor  # Yau–Niu, log-domain update
-                    block_gain = log_sum_exp(total)
-                    if not math.isfinite(block_gain):
-                        reason = (f"step {int(steps[k])}: the observation's likelihood is zero or not finite "
-                                  "at every point; reset the session, or use more points "
-                                  "(discretization.points)")
-                        break
-                    logW[b] = total - block_gain
-                    gain += block_gain + float(terms.offset[k])
-                w = np.exp(logW[b])
-                coverage = 1.0 / float(np.sum(w * w))
-                if coverage < self.restart * len(w):
-                    if coverage < 2.0:
-                        reason = (f"step {int(steps[k])}: the posterior collapsed onto {coverage:.2g} of "
-                                  f"{len(w)} points and the restart cannot recover it; use more points "
-                                  "(discretization.points) or a smaller dt")
-                        break
-                    X = X.copy() if X is state.points else X
-                    X[:, coords] = self._restart(X[:, coords], w, rng)
-                    logW[b] = -math.log(len(w))
-                    restarts += 1
-            else:
-                if hX is not None:
-                    pll[k] = gain
-                    ll_inc[k] = gain - sum(float(terms.offset[k]) for *_, keys, terms in blocks if keys[k])
-                mean, cov = self._moments(X, np.exp(logW))
-                mean_out[k], cov_out[k] = mean, cov
-                continue
-            done = k
-            break
+            observe = self._observe_singles if singles is not None else self._observe_blocks
+            X, gain, offsets, added, failure = observe(k, X, logW, chunk, step, float(gaps[k]), rng,
+                                                       state.points)
+            restarts += added
+            if failure is not None:
+                reason, done = failure, k
+                break
+            if gain is not None:
+                pll[k], ll_inc[k] = gain, gain - offsets
+            mean, cov = self._moments(X, np.exp(logW))
+            mean_out[k], cov_out[k] = mean, cov
         if done < K:
             mean_out[done:], cov_out[done:] = mean, cov
             bad[done:] = True
@@ -501,6 +552,11 @@ class YauNiuFilter(ChunkedFilter):
         if not (np.isfinite(X).all() and np.isfinite(logW).all()):
             raise InputError("state", "yau-niu points and log weights must be finite")
         return state
+
+
+def _zero_likelihood(step: int) -> str:
+    return (f"step {step}: the observation's likelihood is zero or not finite at every point; reset the "
+            "session, or use more points (discretization.points)")
 
 
 def build(model: Model, offline: Any = None, gate: float | None = None, **_: Any) -> YauNiuFilter:

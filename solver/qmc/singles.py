@@ -1,0 +1,135 @@
+"""Yau–Niu over independent coordinates: every block one coordinate with at most one sensor, in one step.
+
+Where nothing couples the coordinates (solver/qmc/yau_niu.py ``independent_blocks``: ten or a hundred
+independent cubic sensors), the exact filter is the product of n 1-D filters, and the Yau–Niu filter
+keeps one row of log weights per coordinate on a shared point set.  The generic row loops over the
+blocks in Python (about 1 ms a block: 119 ms a row at 100 states); here each part of the row is one
+array operation over all blocks at once (arrays (N, B) or (B, N)):
+
+* Kolmogorov step: the kernel's mean m_b = Σ_i w_bi (x_ib + f_b(x_i)τ) and variance
+  Var_w(x_b + f_bτ) + a_bb τ per coordinate, the moved points mapped affinely onto them (the 1-D case
+  of ``match_moments``);
+* observation step: each block's factor exp(h_b y_b/R_bb − ½h_b²τ/R_bb) (continuous increments), or the
+  discrete readings' Gaussian / Student-t density, by one call of a unit-noise Observation on the scaled
+  data y_b/√R_bb, h_b/√R_bb (the blocks as its rows, measurement.Observation.log_factors per row): the
+  quadratic forms are those of R_bb; log det R_bb, which the unit noise leaves out, is added back to the
+  block's log-likelihood (``log_r``);
+* moments: per coordinate, the covariance diagonal.
+
+Restarts stay per block (``YauNiuFilter._restart``), for the blocks whose coverage fell.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from ..measurement import Observation
+
+
+class SingleBlocks:
+    """The vectorised row parts for ``blocks`` of one coordinate each, block b seeing the observation
+    component ``components[b]`` (or none)."""
+
+    def __init__(self, model: Any, blocks: list[np.ndarray], components: list[np.ndarray]):
+        self.cols = np.array([int(c[0]) for c in blocks])
+        # block b is coordinate b (the usual order): whole arrays, no gathered copies
+        self.identity = bool(np.array_equal(self.cols, np.arange(model.n)))
+        self.comp = np.array([int(c[0]) if len(c) else -1 for c in components])
+        self.seen = self.comp >= 0
+        R = np.asarray(model.R, float)
+        r = np.array([R[c, c] if c >= 0 else 1.0 for c in self.comp])
+        self.scale = 1.0 / np.sqrt(r)
+        self.log_r = np.where(self.seen, -0.5 * np.log(r), 0.0)  # −½ log R_bb, left out by the unit noise
+        self.a = np.diag(np.asarray(model.a, float))[self.cols]
+        self.discrete = model.spec.measurement.kind == "discrete"
+        self.unit = Observation(SimpleNamespace(spec=model.spec, m=1, R=np.ones((1, 1))))
+
+    @staticmethod
+    def applies(blocks: list[np.ndarray], components: list[np.ndarray]) -> bool:
+        return len(blocks) > 1 and all(len(c) == 1 for c in blocks) and all(len(c) <= 1 for c in components)
+
+    # -- Kolmogorov step ------------------------------------------------------------------------
+    def kolmogorov(self, drifted: np.ndarray, moved: np.ndarray, W: np.ndarray, tau: float) -> np.ndarray:
+        """``moved`` (N, n) with each coordinate matched to the kernel's mean and variance under its
+        block's weights W (B, N); edited in place and returned (``drifted`` is used up)."""
+        D = drifted if self.identity else drifted[:, self.cols]
+        M = moved if self.identity else moved[:, self.cols]
+        mean = np.einsum("bi,ib->b", W, D)
+        D -= mean
+        np.square(D, out=D)
+        var = np.einsum("bi,ib->b", W, D) + self.a * tau
+        here = np.einsum("bi,ib->b", W, M)
+        M -= here
+        spread = np.einsum("bi,ib->b", W, M * M)
+        ok = spread > 1e-300  # a collapsed coordinate is only shifted (match_moments' rule)
+        ratio = np.sqrt(np.divide(var, spread, out=np.ones_like(var), where=ok))
+        M *= np.where(ok, ratio, 1.0)
+        M += mean
+        if not self.identity:
+            moved[:, self.cols] = M
+        return moved
+
+    def moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = X.shape[1]
+        D = X if self.identity else X[:, self.cols]
+        m = np.einsum("bi,ib->b", W, D)
+        D = D - m
+        v = np.einsum("bi,ib->b", W, D * D)
+        mean, cov = np.empty(n), np.zeros((n, n))
+        mean[self.cols] = m
+        cov[self.cols, self.cols] = v
+        return mean, cov
+
+    # -- observation step -----------------------------------------------------------------------
+    def chunk_terms(self, rows: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray, Any]:
+        """The chunk's scaled data (K·B, 1), keys (K·B,) and unit-noise row terms, block b of row k at
+        index k·B + b."""
+        K, B = len(rows), len(self.cols)
+        y = np.full((K, B), np.nan)
+        y[:, self.seen] = rows[:, self.comp[self.seen]] * self.scale[self.seen]
+        y = y.reshape(K * B, 1)
+        keys = Observation.pattern_keys(~np.isnan(y))
+        taus = np.repeat(np.asarray(gaps, float), B)
+        return y, keys, self.unit.row_terms(y, taus, keys)
+
+    def observe(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float):
+        """Row k's update of the log weights logW (B, N), in place: (observed blocks (B,) bool, the
+        row's predictive log-likelihood, its sum of offsets; None for both where some observed block's
+        likelihood is zero at every point)."""
+        y, keys, terms = chunk
+        B = len(self.cols)
+        part = slice(k * B, (k + 1) * B)
+        row_keys = keys[part]
+        observed = row_keys != 0
+        if not observed.any():
+            return observed, 0.0, 0.0
+        h = np.zeros((B, hX.shape[0], 1))
+        h[self.seen, :, 0] = (hX[:, self.comp[self.seen]] * self.scale[self.seen]).T
+        factors = self.unit.log_factors(h, y[part], np.full(B, tau), row_keys,
+                                        terms.rows(k * B, (k + 1) * B, keys))
+        every = bool(observed.all())
+        total = factors if every else factors[observed]
+        total += logW if every else logW[observed]  # Yau–Niu, log-domain update
+        top = total.max(axis=1)
+        if not np.isfinite(top).all():
+            return observed, None, None
+        total -= top[:, None]
+        gains = top + np.log(np.exp(total).sum(axis=1))
+        total += (top - gains)[:, None]
+        if every:
+            logW[...] = total
+        else:
+            logW[observed] = total
+        log_r = self.log_r[observed]
+        offsets = terms.offset[part][observed] + (0.0 if self.discrete else log_r)
+        gains = gains + (log_r if self.discrete else 0.0)
+        return observed, float(np.sum(gains + offsets)), float(np.sum(offsets))
+
+    @staticmethod
+    def coverage(logW: np.ndarray) -> np.ndarray:
+        """1/Σ_i w_bi² per block."""
+        w = np.exp(logW)
+        return 1.0 / np.einsum("bi,bi->b", w, w)
