@@ -55,6 +55,7 @@ n = 4 in memory; its JSON is about 3× that).  The per-row noise comes from a ge
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
@@ -64,7 +65,7 @@ import numpy as np
 from scipy.special import logsumexp, ndtri
 from scipy.stats import qmc
 
-from ..errors import InputError, SpecError
+from ..errors import InputError, SpecError, TooLarge
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
 from ..measurement import Observation, check_first_gap, check_gate, check_rows, resolve_times
@@ -78,8 +79,8 @@ DEFAULT_POINTS = 8192  # measured: see default_points
 RESTART = 0.5  # restart when 1/Σw² < RESTART·N
 MAX_BLOCK_COMPONENTS = 62  # observation components per block (Observation's pattern keys are int64 bits)
 GAUSSIAN_SCORE = 3.0  # a cloud within this many sampling sd of Gaussian skewness/kurtosis restarts as one
-MAX_BYTES = 4 << 30  # the point budget's memory ceiling
 WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ...
+STATE_NUMBER_BYTES = 56  # a state number as JSON: a Python float and its list slot (32), its text (~24)
 
 
 def default_points(n: int) -> int:
@@ -89,21 +90,35 @@ def default_points(n: int) -> int:
     return DEFAULT_POINTS
 
 
-def memory_needed(points: int, n: int, m: int) -> int:
-    """Bytes a row needs for ``points`` points in n dimensions with m observation components."""
-    return 8 * points * (WORKING_ARRAYS * n + 2 * m + 4)
+def memory_needed(points: int, n: int, m: int, blocks: int | None = None) -> int:
+    """Bytes a row needs for ``points`` points in n dimensions with m observation components: the
+    row's (N, n) and (N, m) work arrays, plus the state written as JSON (n coordinates and one log
+    weight per block per point; ``blocks`` None: n, the most there can be).  Nothing holds an N × N
+    matrix (the kernel-matrix form was dropped, see the module docstring)."""
+    blocks = n if blocks is None else blocks
+    return 8 * points * (WORKING_ARRAYS * n + 2 * m + 4) + STATE_NUMBER_BYTES * points * (n + blocks)
 
 
-def check_points(points: Any, n: int, m: int) -> int:
-    """The point budget, or SpecError('discretization.points') naming the memory it would need."""
+def memory_limit() -> int:
+    """The point budget's memory ceiling: this machine's physical memory."""
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_points(points: Any, n: int, m: int, blocks: int | None = None, limit: int | None = None) -> int:
+    """The point budget, or SpecError('discretization.points'): TooLarge (the service's 413) naming
+    the memory it would need, the limit (``limit``; None: :func:`memory_limit`) and the largest budget
+    that fits — checked before anything is allocated."""
     if isinstance(points, bool) or not isinstance(points, int) or points < 16:
         raise SpecError("discretization.points", "must be an integer of at least 16 (the QMC point budget)")
-    need = memory_needed(points, n, m)
-    if need > MAX_BYTES:
-        raise SpecError("discretization.points", f"{points} points in {n} dimensions need about "
-                                                 f"{need / 2**30:.1f} GiB per row, over the "
-                                                 f"{MAX_BYTES / 2**30:.0f} GiB limit; use at most "
-                                                 f"{MAX_BYTES // (need // points)} points")
+    limit = memory_limit() if limit is None else limit
+    need = memory_needed(points, n, m, blocks)
+    if need > limit:
+        fits = limit // (memory_needed(1, n, m, blocks))
+        raise TooLarge("discretization.points",
+                       f"{points} points in {n} dimensions would need about {need / 2**30:.1f} GiB of "
+                       f"memory ({memory_needed(1, n, m, blocks)} bytes a point), over the "
+                       f"{limit / 2**30:.1f} GiB this machine has; set discretization.points to at most "
+                       f"{fits} (the default, left out, is {DEFAULT_POINTS})")
     return points
 
 
@@ -246,7 +261,8 @@ class YauNiuFilter(ChunkedFilter):
         if points is None:
             points = model.spec.discretization.points
         points = default_points(model.n) if points is None else points
-        self.points = check_points(points, model.n, model.m)
+        self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
+        self.points = check_points(points, model.n, model.m, len(self.blocks))
         if not (0.0 < restart <= 1.0):
             raise SpecError("restart", "must be in (0, 1]: the share of the points the effective coverage "
                                        "may fall to before a restart")
@@ -257,7 +273,6 @@ class YauNiuFilter(ChunkedFilter):
         self.restart, self.seed = float(restart), int(seed)
         self.bandwidth = None if bandwidth is None else float(bandwidth)
         self._noise_root = symmetric_root(np.asarray(model.a, float))  # (aτ)^{1/2} = √τ a^{1/2}
-        self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
         owner = np.zeros(model.n, int)
         for b, coords in enumerate(self.blocks):
             owner[coords] = b
