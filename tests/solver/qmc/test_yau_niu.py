@@ -116,6 +116,49 @@ def test_irregular_times_and_missing_rows_match_kalman():
     assert np.isnan(result.predictive_loglik[::5]).all() and (result.loglik_increment[::5] == 0).all()
 
 
+def test_the_gate_rejects_an_outlier_row_as_the_kalman_filter_would():
+    """Row 60 of 120 moved 40 predictive sd off: gated (flagged, score within 3% of the exact Kalman
+    innovation's standard score, no log-likelihood increment), the estimates those of the Kalman
+    filter that skips the row (same tolerances); no other row gated; with the gate off (0) the row
+    is taken and collapses the points: degenerate from row 60 on."""
+    from yauyau.solver.measurement import standard_score
+
+    model = linear_model(4, points=16384)
+    rows = simulate(model, 120, np.random.default_rng(9)).increments.copy()
+    skipped = rows.copy()
+    skipped[60] = np.nan
+    # the exact innovation of row 60 given rows 0..59: v = dy − Hτ m⁻, S = Hτ P⁻ (Hτ)ᵀ + Rτ
+    n = model.n
+    F = model.f(np.eye(n)).T
+    H = model.h(np.eye(n)).T
+    mean, cov = np.full(n, 0.5), np.eye(n)
+    for row in rows[:60]:
+        phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), DT)
+        mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
+        Ho = H * DT
+        S = Ho @ cov @ Ho.T + model.R * DT
+        gain = np.linalg.solve(S, Ho @ cov).T
+        mean, cov = mean + gain @ (row - Ho @ mean), cov - gain @ Ho @ cov
+    phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), DT)
+    mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
+    S = (H * DT) @ cov @ (H * DT).T + model.R * DT
+    rows[60] = H @ mean * DT + 40.0 * np.sqrt(np.diag(S))
+    v = rows[60] - H @ mean * DT
+    exact = standard_score(float(v @ np.linalg.solve(S, v)), 2)
+    skipped = rows.copy()
+    skipped[60] = np.nan
+    flt = YauNiuFilter(model)
+    _, result = flt.run_arrays(flt.initial_state(), rows)
+    assert result.gated.tolist() == [k == 60 for k in range(120)] and result.gate == 6.0
+    assert abs(result.gate_score[60] / exact - 1.0) < 0.03, (result.gate_score[60], exact)
+    assert result.loglik_increment[60] == 0.0 and not result.degenerate.any()
+    rms, worst, variance = gaps_against(result, model, skipped, np.full(120, DT))
+    assert rms <= 0.02 and variance <= 0.05 and worst <= 0.06, (rms, worst, variance)
+    _, taken = flt.with_gate(0.0).run_arrays(flt.initial_state(), rows)
+    assert not taken.gated.any() and taken.gate == 0.0
+    assert taken.degenerate[60:].all() and not taken.degenerate[:60].any()  # what the gate prevents
+
+
 # -- ten independent cubic sensors ------------------------------------------------------------------
 def cubic_model(n: int, points: int | None = None):
     doc = _doc(n, [f"-0.5*x{i}" for i in range(n)], [f"x{i}**3" for i in range(n)], np.eye(n).tolist(),
