@@ -14,10 +14,11 @@ import json
 
 import numpy as np
 import pytest
+from helpers.linear_kalman import kalman as exact_kalman
+from helpers.linear_kalman import linear_model_matrices, transition
 from yauyau.solver.errors import SpecError
 from yauyau.solver.model import compile_model
 from yauyau.solver.qmc.yau_niu import YauNiuFilter, independent_blocks
-from yauyau.solver.reference.kalman import van_loan
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import spec_from_dict
 
@@ -51,28 +52,13 @@ def linear_model(n: int, **options):
 
 
 def kalman(model, rows, gaps):
-    """Means and variances of the exact filter of the linear model sampled at the gaps (K,): Van Loan's
-    flow over each gap, then the update by the observed components of dy = Hx τ + v, v ~ N(0, R τ)."""
-    n, m = model.n, model.m
-    X = np.eye(n)
-    F = model.f(X).T - model.f(np.zeros((1, n)))[0][:, None]  # f(x) = F x (no offset here)
-    H = model.h(X).T - model.h(np.zeros((1, n)))[0][:, None]
-    mean, cov = np.full(n, 0.5), np.eye(n)
-    means, variances = [], []
-    for row, tau in zip(rows, gaps, strict=True):
-        phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), tau)
-        mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
-        seen = ~np.isnan(row)
-        if seen.any():
-            Ho = H[seen] * tau
-            S = Ho @ cov @ Ho.T + model.R[np.ix_(seen, seen)] * tau
-            gain = np.linalg.solve(S, Ho @ cov).T
-            mean = mean + gain @ (row[seen] - Ho @ mean)
-            cov = cov - gain @ Ho @ cov
-        means.append(mean)
-        variances.append(np.diag(cov))
-    assert m == H.shape[0]
-    return np.array(means), np.array(variances)
+    """Means and variances of the exact filter of the linear model sampled at the gaps (K,)
+    (tests/helpers/linear_kalman.py: Van Loan's flow over each gap, then the update by the observed
+    components of dy = Hx τ + v, v ~ N(0, R τ))."""
+    F, H = linear_model_matrices(model)
+    n = model.n
+    means, variances, _ = exact_kalman(F, model.a, H, model.R, np.full(n, 0.5), np.eye(n), rows, gaps)
+    return means, variances
 
 
 def gaps_against(result, model, rows, gaps):
@@ -125,26 +111,13 @@ def test_the_gate_rejects_an_outlier_row_as_the_kalman_filter_would():
 
     model = linear_model(4, points=16384)
     rows = simulate(model, 120, np.random.default_rng(9)).increments.copy()
-    skipped = rows.copy()
-    skipped[60] = np.nan
-    # the exact innovation of row 60 given rows 0..59: v = dy − Hτ m⁻, S = Hτ P⁻ (Hτ)ᵀ + Rτ
-    n = model.n
-    F = model.f(np.eye(n)).T
-    H = model.h(np.eye(n)).T
-    mean, cov = np.full(n, 0.5), np.eye(n)
-    for row in rows[:60]:
-        phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), DT)
-        mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
-        Ho = H * DT
-        S = Ho @ cov @ Ho.T + model.R * DT
-        gain = np.linalg.solve(S, Ho @ cov).T
-        mean, cov = mean + gain @ (row - Ho @ mean), cov - gain @ Ho @ cov
-    phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), DT)
-    mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
-    S = (H * DT) @ cov @ (H * DT).T + model.R * DT
-    rows[60] = H @ mean * DT + 40.0 * np.sqrt(np.diag(S))
-    v = rows[60] - H @ mean * DT
-    exact = standard_score(float(v @ np.linalg.solve(S, v)), 2)
+    # the exact prediction of row 60 given rows 0..59, then that row moved 40 sd off it
+    F, H = linear_model_matrices(model)
+    means, _, _ = exact_kalman(F, model.a, H, model.R, np.full(4, 0.5), np.eye(4), rows[:60], np.full(60, DT))
+    ahead = transition(F, np.asarray(model.a, float), DT)[0] @ means[-1]
+    rows[60] = H @ ahead * DT + 40.0 * np.sqrt(DT * np.diag(model.R))  # the noise dominates S
+    _, _, d2 = exact_kalman(F, model.a, H, model.R, np.full(4, 0.5), np.eye(4), rows[:61], np.full(61, DT))
+    exact = standard_score(float(d2[60]), 2)
     skipped = rows.copy()
     skipped[60] = np.nan
     flt = YauNiuFilter(model)
