@@ -19,7 +19,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
-from yauyau.solver.errors import InputError, SpecError
+from yauyau.solver.errors import InputError, SpecError, TooLarge
 from yauyau.storage.errors import Conflict, NotFound, StoreError, Unavailable
 
 PROBLEM_TYPE = "application/problem+json"
@@ -137,6 +137,8 @@ def problem_of(exc: BaseException, instance: str | None = None) -> tuple[int, st
     if isinstance(exc, RequestValidationError):
         status, field, detail = _validation_problem(exc)
         return status, detail, field, None, None
+    if isinstance(exc, TooLarge):  # arrays that would not fit in memory
+        return 413, exc.message, exc.field, None, None
     if isinstance(exc, (SpecError, InputError)):
         return 422, exc.message, exc.field, None, None
     if isinstance(exc, NotFound):

@@ -17,6 +17,11 @@ class SpecError(YauyauError, ValueError):
         self.message = message
 
 
+class TooLarge(SpecError):
+    """A spec whose arrays would not fit in memory (the service answers 413): ``field`` names the size
+    to lower, the message the memory it would need, the limit and the largest value that fits."""
+
+
 class InputError(YauyauError, ValueError):
     """Bad online input (increments, points, ...); ``field`` names it."""
 

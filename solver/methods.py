@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from .errors import SpecError
+from .errors import SpecError, TooLarge
 from .measurement import check_gate
 from .registry import AUTO, METHODS, REGISTRY, check_method
 
@@ -95,7 +95,7 @@ def make_filter(model: "Model", offline: OfflineArrays | None = None, method: st
     try:
         flt = module.build(model, offline, form=form, precision=precision, gate=gate)
     except SpecError as exc:
-        if method == "yau-yau" or exc.field in ("form", "precision"):
+        if method == "yau-yau" or exc.field in ("form", "precision") or isinstance(exc, TooLarge):
             raise
         if requested == AUTO and offline is not None:  # the analysis was too optimistic
             return make_filter(model, offline, "yau-yau", form=form, precision=precision, gate=gate)

@@ -13,7 +13,8 @@ again by the next request.  A job is claimed under an exclusive lock on ``<id>.c
 requests that find it missing or dead at once, one starts it.  Before any
 work, a spec is checked (the spec's own rules, field by field) and refused with a 413 problem when
 it is larger than the service allows (basis size, mesh nodes, atlas centres:
-``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``/``_CENTRES``).
+``YAUYAU_MAX_PRECOMPUTE_BASIS``/``_NODES``/``_CENTRES``) or than the machine's memory holds (a
+yau-niu point budget, ``discretization.points``).
 
 The jobs wait in a queue shared by every worker and host of the store (19 specs posted in a second
 once started 19 processes, 2.1 GB): a new job is ``queued`` (no process), and a dispatcher, under an
@@ -64,6 +65,22 @@ def _atlas_centres(model: Any) -> int:
     return lattice(model).size
 
 
+def _check_point_budget(spec: Any) -> None:
+    """A yau-niu point budget whose arrays would not fit in this machine's memory: PrecomputeLimit
+    naming ``spec.discretization.points``, the memory it needs and the limit (before any work)."""
+    from yauyau.solver.errors import TooLarge
+    from yauyau.solver.qmc.yau_niu import check_points
+    from yauyau.solver.registry import AUTO, QMC_ONLY
+
+    points = spec.discretization.points
+    if points is None or spec.method not in (QMC_ONLY, AUTO):
+        return
+    try:
+        check_points(points, spec.n, spec.m)
+    except TooLarge as exc:
+        raise PrecomputeLimit(f"spec.{exc.field}", exc.message) from None
+
+
 class Jobs:
     """The precompute jobs of one model store directory."""
 
@@ -95,6 +112,7 @@ class Jobs:
             raise PrecomputeLimit("spec.discretization.mesh", f"{nodes} mesh nodes: this service precomputes "
                                   f"at most {self.max_nodes} (YAUYAU_MAX_PRECOMPUTE_NODES): set a coarser "
                                   "mesh, or run `yauyau precompute` on the spec into the service's store")
+        _check_point_budget(spec)
         model = compile_model(spec)  # the expressions parse and are finite: a 4xx now, not a failed job
         check_computable(model)  # a radius, diffusion or drift beyond a double's precision: 422 now
         centres = _atlas_centres(model)

@@ -38,11 +38,11 @@ class SingleBlocks:
         # block b is coordinate b (the usual order): whole arrays, no gathered copies
         self.identity = bool(np.array_equal(self.cols, np.arange(model.n)))
         self.comp = np.array([int(c[0]) if len(c) else -1 for c in components])
-        self.seen = self.comp >= 0
+        self.has_sensor = self.comp >= 0
         R = np.asarray(model.R, float)
         r = np.array([R[c, c] if c >= 0 else 1.0 for c in self.comp])
         self.scale = 1.0 / np.sqrt(r)
-        self.log_r = np.where(self.seen, -0.5 * np.log(r), 0.0)  # −½ log R_bb, left out by the unit noise
+        self.log_r = np.where(self.has_sensor, -0.5 * np.log(r), 0.0)  # −½ log R_bb: not in the unit noise
         self.a = np.diag(np.asarray(model.a, float))[self.cols]
         self.discrete = model.spec.measurement.kind == "discrete"
         self.unit = Observation(SimpleNamespace(spec=model.spec, m=1, R=np.ones((1, 1))))
@@ -89,25 +89,29 @@ class SingleBlocks:
         index k·B + b."""
         K, B = len(rows), len(self.cols)
         y = np.full((K, B), np.nan)
-        y[:, self.seen] = rows[:, self.comp[self.seen]] * self.scale[self.seen]
+        y[:, self.has_sensor] = rows[:, self.comp[self.has_sensor]] * self.scale[self.has_sensor]
         y = y.reshape(K * B, 1)
         keys = Observation.pattern_keys(~np.isnan(y))
         taus = np.repeat(np.asarray(gaps, float), B)
         return y, keys, self.unit.row_terms(y, taus, keys)
 
+    def seen(self, chunk: tuple, k: int) -> bool:
+        """Whether row k observes any block."""
+        B = len(self.cols)
+        return bool(chunk[1][k * B:(k + 1) * B].any())
+
     def observe(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float):
-        """Row k's update of the log weights logW (B, N), in place: (observed blocks (B,) bool, the
-        row's predictive log-likelihood, its sum of offsets; None for both where some observed block's
-        likelihood is zero at every point)."""
+        """Row k's update of the log weights logW (B, N), in place: (the row's predictive log-likelihood,
+        its sum of offsets, the gate's bound −2·that − Σ log det 2πS₀ (solver/measurement.py), the
+        observed components); the log-likelihood None where an observed block's likelihood is zero at
+        every point."""
         y, keys, terms = chunk
         B = len(self.cols)
         part = slice(k * B, (k + 1) * B)
         row_keys = keys[part]
         observed = row_keys != 0
-        if not observed.any():
-            return observed, 0.0, 0.0
         h = np.zeros((B, hX.shape[0], 1))
-        h[self.seen, :, 0] = (hX[:, self.comp[self.seen]] * self.scale[self.seen]).T
+        h[self.has_sensor, :, 0] = (hX[:, self.comp[self.has_sensor]] * self.scale[self.has_sensor]).T
         factors = self.unit.log_factors(h, y[part], np.full(B, tau), row_keys,
                                         terms.rows(k * B, (k + 1) * B, keys))
         every = bool(observed.all())
@@ -115,7 +119,7 @@ class SingleBlocks:
         total += logW if every else logW[observed]  # Yau–Niu, log-domain update
         top = total.max(axis=1)
         if not np.isfinite(top).all():
-            return observed, None, None
+            return None, 0.0, 0.0, 0
         total -= top[:, None]
         gains = top + np.log(np.exp(total).sum(axis=1))
         total += (top - gains)[:, None]
@@ -126,7 +130,9 @@ class SingleBlocks:
         log_r = self.log_r[observed]
         offsets = terms.offset[part][observed] + (0.0 if self.discrete else log_r)
         gains = gains + (log_r if self.discrete else 0.0)
-        return observed, float(np.sum(gains + offsets)), float(np.sum(offsets))
+        gain = float(np.sum(gains + offsets))
+        log_det = float(np.sum(terms.log_det_S0[part][observed] - 2.0 * log_r))
+        return gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum())
 
     @staticmethod
     def coverage(logW: np.ndarray) -> np.ndarray:

@@ -55,6 +55,7 @@ n = 4 in memory; its JSON is about 3× that).  The per-row noise comes from a ge
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
@@ -64,10 +65,18 @@ import numpy as np
 from scipy.special import logsumexp, ndtri
 from scipy.stats import qmc
 
-from ..errors import InputError, SpecError
+from ..errors import InputError, SpecError, TooLarge
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
-from ..measurement import Observation, check_first_gap, check_gate, check_rows, resolve_times
+from ..measurement import (
+    Observation,
+    check_first_gap,
+    check_gate,
+    check_rows,
+    gate_threshold,
+    resolve_times,
+    standard_score,
+)
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .singles import SingleBlocks
@@ -79,8 +88,8 @@ DEFAULT_POINTS = 8192  # measured: see default_points
 RESTART = 0.5  # restart when 1/Σw² < RESTART·N
 MAX_BLOCK_COMPONENTS = 62  # observation components per block (Observation's pattern keys are int64 bits)
 GAUSSIAN_SCORE = 3.0  # a cloud within this many sampling sd of Gaussian skewness/kurtosis restarts as one
-MAX_BYTES = 4 << 30  # the point budget's memory ceiling
 WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ...
+STATE_NUMBER_BYTES = 56  # a state number as JSON: a Python float and its list slot (32), its text (~24)
 
 
 def default_points(n: int) -> int:
@@ -90,21 +99,35 @@ def default_points(n: int) -> int:
     return DEFAULT_POINTS
 
 
-def memory_needed(points: int, n: int, m: int) -> int:
-    """Bytes a row needs for ``points`` points in n dimensions with m observation components."""
-    return 8 * points * (WORKING_ARRAYS * n + 2 * m + 4)
+def memory_needed(points: int, n: int, m: int, blocks: int | None = None) -> int:
+    """Bytes a row needs for ``points`` points in n dimensions with m observation components: the
+    row's (N, n) and (N, m) work arrays, plus the state written as JSON (n coordinates and one log
+    weight per block per point; ``blocks`` None: n, the most there can be).  Nothing holds an N × N
+    matrix (the kernel-matrix form was dropped, see the module docstring)."""
+    blocks = n if blocks is None else blocks
+    return 8 * points * (WORKING_ARRAYS * n + 2 * m + 4) + STATE_NUMBER_BYTES * points * (n + blocks)
 
 
-def check_points(points: Any, n: int, m: int) -> int:
-    """The point budget, or SpecError('discretization.points') naming the memory it would need."""
+def memory_limit() -> int:
+    """The point budget's memory ceiling: this machine's physical memory."""
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_points(points: Any, n: int, m: int, blocks: int | None = None, limit: int | None = None) -> int:
+    """The point budget, or SpecError('discretization.points'): TooLarge (the service's 413) naming
+    the memory it would need, the limit (``limit``; None: :func:`memory_limit`) and the largest budget
+    that fits — checked before anything is allocated."""
     if isinstance(points, bool) or not isinstance(points, int) or points < 16:
         raise SpecError("discretization.points", "must be an integer of at least 16 (the QMC point budget)")
-    need = memory_needed(points, n, m)
-    if need > MAX_BYTES:
-        raise SpecError("discretization.points", f"{points} points in {n} dimensions need about "
-                                                 f"{need / 2**30:.1f} GiB per row, over the "
-                                                 f"{MAX_BYTES / 2**30:.0f} GiB limit; use at most "
-                                                 f"{MAX_BYTES // (need // points)} points")
+    limit = memory_limit() if limit is None else limit
+    need = memory_needed(points, n, m, blocks)
+    if need > limit:
+        fits = limit // (memory_needed(1, n, m, blocks))
+        raise TooLarge("discretization.points",
+                       f"{points} points in {n} dimensions would need about {need / 2**30:.1f} GiB of "
+                       f"memory ({memory_needed(1, n, m, blocks)} bytes a point), over the "
+                       f"{limit / 2**30:.1f} GiB this machine has; set discretization.points to at most "
+                       f"{fits} (the default, left out, is {DEFAULT_POINTS})")
     return points
 
 
@@ -247,7 +270,8 @@ class YauNiuFilter(ChunkedFilter):
         if points is None:
             points = model.spec.discretization.points
         points = default_points(model.n) if points is None else points
-        self.points = check_points(points, model.n, model.m)
+        self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
+        self.points = check_points(points, model.n, model.m, len(self.blocks))
         if not (0.0 < restart <= 1.0):
             raise SpecError("restart", "must be in (0, 1]: the share of the points the effective coverage "
                                        "may fall to before a restart")
@@ -260,7 +284,6 @@ class YauNiuFilter(ChunkedFilter):
         self._noise_root = symmetric_root(np.asarray(model.a, float))  # (aτ)^{1/2} = √τ a^{1/2}
         root = self._noise_root
         self._noise_diagonal = not np.count_nonzero(root - np.diag(np.diag(root)))
-        self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
         owner = np.zeros(model.n, int)
         for b, coords in enumerate(self.blocks):
             owner[coords] = b
@@ -365,6 +388,60 @@ class YauNiuFilter(ChunkedFilter):
             Y = Y + h * (qmc_normals(N, d, rng) @ symmetric_root(cov))
         return match_moments(Y, np.full(N, 1.0 / N), mean, cov)
 
+    def _gate_score(self, k: int, gain: float, h: np.ndarray, predicted: np.ndarray, blocks,
+                    gaps: np.ndarray) -> float | None:
+        """The gate (solver/measurement.py): row k's predictive standard score when it is over the gate,
+        else None.  The measurement's score d² = g − log det(I + κ²S₀⁻¹C), g = −2 log p(row | past) −
+        log det 2πS₀, C = Cov(h_o) under the predicted weights, reads p(row | past) off the points; where
+        the noise is narrower than the points' spacing that estimate falls far below the true density
+        (a 3-sd reading of noise sd 1e-4 on 256 points: d = 2912), so a row is gated only when the
+        moment score vᵀS⁻¹v (v = y_o − κE[h_o], S = κ²C + S₀: the Gaussian prediction's, exact for a
+        linear model) is over the threshold too; the smaller of the two is reported.  The blocks'
+        components are independent under the product density and R is block-diagonal across them, so
+        both scores are sums over the blocks."""
+        obs = self.observation
+        seen = [(b, *parts) for b, parts in enumerate(blocks) if parts[3][k]]
+        patterns = [block_obs.pattern(int(keys[k])) for _, _, block_obs, _, keys, _ in seen]
+        components = sum(len(pat.index) for pat in patterns)
+        threshold = gate_threshold(obs.gate, components)
+        bound = -2.0 * gain - sum(float(terms.log_det_S0[k]) for *_, terms in seen)
+        if not bound > threshold:
+            return None
+        correction = moment = 0.0
+        for (b, comps, block_obs, part, keys, terms), pat in zip(seen, patterns, strict=True):
+            kappa2, scale = float(terms.kappa2[k]), block_obs.S0_scale(float(gaps[k]))
+            mean_h, cov_h = weighted_moments(h[:, comps[pat.index]], np.exp(predicted[b]))
+            correction += max(0.0, block_obs.covariance_correction(int(keys[k]), kappa2, cov_h, scale))
+            innovation = part[k, pat.index] - math.sqrt(kappa2) * mean_h
+            moment += float(innovation @ np.linalg.solve(kappa2 * cov_h + pat.R * scale, innovation))
+        score = min(bound - correction, moment)
+        return standard_score(score, components) if score > threshold else None
+
+    def _restarts(self, X: np.ndarray, logW: np.ndarray, rng: np.random.Generator,
+                  step: int) -> tuple[np.ndarray, int, str | None]:
+        """Local resampling-restart of every block whose effective coverage fell below ``restart`` × N
+        (its ``logW`` row reset in place; X is not written): (the points, how many blocks restarted,
+        None), or (X, 0, the reason) when a posterior collapsed onto fewer than two points."""
+        moved, count = X, 0
+        if self._singles is None:
+            candidates = range(len(self.blocks))
+        else:  # blocks of one coordinate: the coverage of all at once, the fallen ones only
+            candidates = np.flatnonzero(self._singles.coverage(logW) < self.restart * logW.shape[1]).tolist()
+        for b in candidates:
+            coords = self.blocks[b]
+            w = np.exp(logW[b])
+            coverage = 1.0 / float(np.sum(w * w))
+            if coverage < self.restart * len(w):
+                if coverage < 2.0:
+                    return X, 0, (f"step {int(step)}: the posterior collapsed onto {coverage:.2g} of "
+                                  f"{len(w)} points and the restart cannot recover it; use more points "
+                                  "(discretization.points) or a smaller dt")
+                moved = X.copy() if moved is X else moved
+                moved[:, coords] = self._restart(moved[:, coords], w, rng)
+                logW[b] = -math.log(len(w))
+                count += 1
+        return moved, count, None
+
     def _block_terms(self, rows: np.ndarray, gaps: np.ndarray):
         """Per block: its observation (the block's components only), rows, pattern keys and row terms."""
         out = []
@@ -384,73 +461,32 @@ class YauNiuFilter(ChunkedFilter):
             mean[coords], cov[np.ix_(coords, coords)] = weighted_moments(X[:, coords], w)
         return mean, cov
 
-    # -- the observation step and the restarts of one row ----------------------------------------
-    def _observe_blocks(self, k: int, X: np.ndarray, logW: np.ndarray, blocks: list, step: int, tau: float,
-                        rng: np.random.Generator, shared: np.ndarray):
-        """Row k's observation step and restarts, block by block (logW edited in place): (the points,
-        the row's predictive log-likelihood or None when nothing is observed, its sum of offsets, the
-        restarts made, the reason the row failed or None)."""
-        seen = any(keys[k] for *_, keys, _ in blocks)
-        hX = self.model.h(X)[None] if seen else None
+    # -- the observation step of one row --------------------------------------------------------
+    def _update_blocks(self, k: int, logW: np.ndarray, hX: np.ndarray, blocks: list,
+                       gaps: np.ndarray) -> tuple[float | None, float]:
+        """Row k's observation step, block by block (logW edited in place): (the row's predictive
+        log-likelihood, its sum of offsets), or (None, 0) where an observed block's likelihood is zero
+        at every point."""
         gain = offsets = 0.0
-        restarts = 0
         for b, (comps, block_obs, part, keys, terms) in enumerate(blocks):
             if keys[k]:
-                factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], np.array([tau]),
+                factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], gaps[k:k + 1],
                                                keys[k:k + 1], terms.rows(k, k + 1, keys))[0]
                 total = logW[b] + factor  # Yau–Niu, log-domain update
                 block_gain = log_sum_exp(total)
                 if not math.isfinite(block_gain):
-                    return X, None, 0.0, restarts, _zero_likelihood(step)
+                    return None, 0.0
                 logW[b] = total - block_gain
                 gain += block_gain + float(terms.offset[k])
                 offsets += float(terms.offset[k])
-            X, added, failure = self._restart_block(X, logW, b, rng, step, shared)
-            restarts += added
-            if failure is not None:
-                return X, None, 0.0, restarts, failure
-        return X, (gain if seen else None), offsets, restarts, None
-
-    def _observe_singles(self, k: int, X: np.ndarray, logW: np.ndarray, chunk: tuple, step: int, tau: float,
-                         rng: np.random.Generator, shared: np.ndarray):
-        """:meth:`_observe_blocks` for blocks of one coordinate, the update in one step for all
-        (solver/qmc/singles.py); the restarts, where the coverage fell, block by block."""
-        singles = self._singles
-        observed, gain, offsets = singles.observe(logW, self.model.h(X), chunk, k, tau)
-        if gain is None:
-            return X, None, 0.0, 0, _zero_likelihood(step)
-        restarts = 0
-        low = np.flatnonzero(singles.coverage(logW) < self.restart * logW.shape[1])
-        for b in low.tolist():
-            X, added, failure = self._restart_block(X, logW, b, rng, step, shared)
-            restarts += added
-            if failure is not None:
-                return X, None, 0.0, restarts, failure
-        return X, (gain if observed.any() else None), offsets, restarts, None
-
-    def _restart_block(self, X: np.ndarray, logW: np.ndarray, b: int, rng: np.random.Generator, step: int,
-                       shared: np.ndarray):
-        """Block b restarted where its coverage 1/Σw² fell below ``restart`` × N (Yau–Niu, local
-        resampling-restart): (the points, restarts made, the reason it cannot be or None)."""
-        w = np.exp(logW[b])
-        coverage = 1.0 / float(np.sum(w * w))
-        if coverage >= self.restart * len(w):
-            return X, 0, None
-        if coverage < 2.0:
-            return X, 0, (f"step {step}: the posterior collapsed onto {coverage:.2g} of {len(w)} points and "
-                          "the restart cannot recover it; use more points (discretization.points) or a "
-                          "smaller dt")
-        coords = self.blocks[b]
-        X = X.copy() if X is shared else X
-        X[:, coords] = self._restart(X[:, coords], w, rng)
-        logW[b] = -math.log(len(w))
-        return X, 1, None
+        return gain, offsets
 
     # -- Filter protocol ---------------------------------------------------------------------
     def run_arrays(self, state: YauNiuState, increments: np.ndarray,
                    times: ArrayLike | None = None) -> tuple[YauNiuState, ChunkResult]:
         """Advance over a chunk (K, m) of rows (NaN: a missing component; a NaN row: prediction only)
-        at ``times`` (absolute, strictly increasing) or one dt apart.  The gate is not applied."""
+        at ``times`` (absolute, strictly increasing) or one dt apart.  A row the gate rejects
+        (:meth:`_gate_score`) keeps the predicted weights: it only predicts, flagged ``gated``."""
         model = self.model
         obs = self.observation
         rows = check_rows(increments, model.m, "observations" if obs.discrete else "increments")
@@ -460,9 +496,11 @@ class YauNiuFilter(ChunkedFilter):
         check_first_gap(taus, obs.discrete, self.method)
         gaps = np.full(K, model.dt) if taus is None else np.asarray(taus, float)
         singles = self._singles
-        chunk = singles.chunk_terms(rows, gaps) if singles is not None else self._block_terms(rows, gaps)
+        chunk = singles.chunk_terms(rows, gaps) if singles is not None else None
+        blocks = self._block_terms(rows, gaps) if singles is None else None  # singles: only for the gate
         mean_out, cov_out = np.empty((K, n)), np.empty((K, n, n))
         ll_inc, bad, pll = np.zeros(K), np.zeros(K, bool), np.full(K, np.nan)
+        gated, scores = np.zeros(K, bool), np.full(K, np.nan)
         X, logW = state.points, state.log_weights.copy()
         restarts, reason = state.restarts, state.reason
         done = 0 if state.degenerate else K
@@ -472,15 +510,32 @@ class YauNiuFilter(ChunkedFilter):
             rng = np.random.default_rng([state.seed, step])
             if gaps[k] > 0:
                 X = self._kolmogorov(X, np.exp(logW), float(gaps[k]), rng)
-            observe = self._observe_singles if singles is not None else self._observe_blocks
-            X, gain, offsets, added, failure = observe(k, X, logW, chunk, step, float(gaps[k]), rng,
-                                                       state.points)
-            restarts += added
+            seen = singles.seen(chunk, k) if singles is not None else any(keys[k] for *_, keys, _ in blocks)
+            hX = model.h(X) if seen else None
+            predicted = logW.copy() if seen and obs.gating else None
+            gain, offsets, over = 0.0, 0.0, True
+            if seen and singles is not None:
+                gain, offsets, bound, components = singles.observe(logW, hX, chunk, k, float(gaps[k]))
+                over = gain is not None and bound > gate_threshold(obs.gate, components)
+            elif seen:
+                gain, offsets = self._update_blocks(k, logW, hX[None], blocks, gaps)
+            if gain is None:
+                reason, done = _zero_likelihood(step), k
+                break
+            if predicted is not None and over:  # singles: the cheap bound first, the blocks' terms if over
+                blocks = blocks if blocks is not None else self._block_terms(rows, gaps)
+                score = self._gate_score(k, gain, hX, predicted, blocks, gaps)
+                if score is not None:  # the gate: the row only predicts
+                    logW, gated[k], scores[k] = predicted, True, score
+            X, count, failure = self._restarts(X, logW, rng, step)
+            restarts += count
             if failure is not None:
                 reason, done = failure, k
                 break
-            if gain is not None:
-                pll[k], ll_inc[k] = gain, gain - offsets
+            if seen:
+                pll[k] = gain
+                if not gated[k]:
+                    ll_inc[k] = gain - offsets
             mean, cov = self._moments(X, np.exp(logW))
             mean_out[k], cov_out[k] = mean, cov
         if done < K:
@@ -499,7 +554,8 @@ class YauNiuFilter(ChunkedFilter):
                             reason=reason if degenerate else None)
         return new_state, ChunkResult(steps, times_out, mean_out, cov_out, None, loglik, ll_inc, bad,
                                       reason=new_state.reason if bad.any() else None,
-                                      predictive_loglik=pll, gate=None)  # not applied: "gate off"
+                                      predictive_loglik=pll, gated=gated, gate_score=scores,
+                                      gate=obs.gate)
 
     def estimate(self, state: YauNiuState) -> Estimate:
         mean, cov = self._moments(state.points, np.exp(state.log_weights))

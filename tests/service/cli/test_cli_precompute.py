@@ -109,3 +109,41 @@ def test_unwritable_store_and_bad_workers_exit_2(tmp_path: Path):
     assert done.returncode == 2 and "workers" in done.stderr and not (tmp_path / "s").exists()
     missing = yauyau("models", "--store", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and missing.stderr.startswith("yauyau models: error: store:")
+
+
+NIU_4D = """name = "niu-4d"
+state = ["a", "b", "c", "d"]
+drift = ["-a", "-b", "-c", "-d"]
+observation = ["a + b", "c + d"]
+method = "yau-niu"
+[initial]
+kind = "gaussian"
+mean = [0.0, 0.0, 0.0, 0.0]
+cov = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+[domain]
+radius = 8.0
+[discretization]
+dt = 0.01
+basis = 64
+points = POINTS
+"""
+
+
+def test_a_point_budget_beyond_memory_exits_2_naming_it(tmp_path: Path):
+    """10^12 yau-niu points in 4-D (over 300 TB): exit 2 before any allocation, one line naming
+    discretization.points, the memory it would need, this machine's and the budget that fits; that
+    budget itself is accepted."""
+    from yauyau.solver.qmc.yau_niu import memory_limit, memory_needed
+
+    spec_path, store = tmp_path / "big.toml", tmp_path / "store"
+    spec_path.write_text(NIU_4D.replace("POINTS", str(10**12)))
+    done = yauyau("precompute", str(spec_path), "--store", str(store))
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("yauyau precompute: error: discretization.points: "), done.stderr
+    line = done.stderr.strip()
+    assert len(line.splitlines()) == 1 and "Traceback" not in line
+    need, limit = memory_needed(10**12, 4, 2, 2), memory_limit()
+    assert f"{need / 2**30:.1f} GiB" in line and f"{limit / 2**30:.1f} GiB this machine has" in line
+    fits = int(line.split("at most ")[1].split()[0])
+    assert memory_needed(fits, 4, 2, 2) <= limit < memory_needed(fits + 1, 4, 2, 2)
+    assert done.stdout == "" and not any(store.glob("*.h5"))

@@ -79,6 +79,8 @@ def test_a_spec_posted_is_precomputed_in_the_background_and_served(api):
     ({"discretization": {"dt": 0.01, "basis": 48, "mesh": 3000}}, 413, "spec.discretization.mesh"),
     ({"drift": ["sin(x)"], "domain": {"radius": 6.0, "follow": True, "region": [[0.0, 300.0]]}}, 413,
      "spec.domain.region"),
+    ({"method": "yau-niu", "discretization": {"dt": 0.01, "basis": 48, "points": 10**13}}, 413,
+     "spec.discretization.points"),
     ({"drift": ["__import__('os')"]}, 422, "spec.drift[0]"),
     ({"domain": {"radius": -1.0}}, 422, "spec.domain.radius"),
     # the steady-state Kalman-Bucy covariance of a model that is not linear: refused now, not a failed job
@@ -92,6 +94,27 @@ def test_oversize_or_invalid_specs_are_refused_before_any_work(api, change, stat
     assert r.json()["field"].startswith(field), r.json()
     assert not (tmp_path / "store" / "jobs").exists() or not list((tmp_path / "store" / "jobs").iterdir())
     assert api.get("/v1/jobs/0123456789abcdef0123").status_code == 404
+
+
+def test_a_point_budget_beyond_memory_is_413_naming_need_limit_and_fix(api):
+    """yau-niu's arrays for 10^13 points would not fit (about 2 PB against this machine's memory):
+    413 problem+json naming the field, both sizes and the largest budget that fits, before any job."""
+    from yauyau.solver.qmc.yau_niu import memory_limit, memory_needed
+
+    spec = {**SPEC, "method": "yau-niu", "discretization": {"dt": 0.01, "basis": 48, "points": 10**13}}
+    r = api.post("/v1/models", json={"spec": spec})
+    assert r.status_code == 413 and r.headers["content-type"].startswith(PROBLEM), r.text
+    body = r.json()
+    detail = body["detail"]
+    assert body["field"] == "spec.discretization.points" and body["status"] == 413
+    assert f"{memory_needed(10**13, 1, 1) / 2**30:.1f} GiB" in detail
+    assert f"{memory_limit() / 2**30:.1f} GiB this machine has" in detail
+    assert "set discretization.points to at most" in detail
+    fits = int(detail.split("at most ")[1].split()[0])
+    ok = {**spec, "discretization": {**spec["discretization"], "points": fits}}
+    from yauyau.service.models.jobs import _check_point_budget
+
+    _check_point_budget(spec_from_dict(ok))  # the budget it names is accepted (no job started here)
 
 
 def test_a_job_whose_process_died_is_reported_and_started_again(tmp_path, monkeypatch):

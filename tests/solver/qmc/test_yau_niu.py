@@ -14,10 +14,11 @@ import json
 
 import numpy as np
 import pytest
+from helpers.linear_kalman import kalman as exact_kalman
+from helpers.linear_kalman import linear_model_matrices, transition
 from yauyau.solver.errors import SpecError
 from yauyau.solver.model import compile_model
 from yauyau.solver.qmc.yau_niu import YauNiuFilter, independent_blocks
-from yauyau.solver.reference.kalman import van_loan
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import spec_from_dict
 
@@ -51,28 +52,13 @@ def linear_model(n: int, **options):
 
 
 def kalman(model, rows, gaps):
-    """Means and variances of the exact filter of the linear model sampled at the gaps (K,): Van Loan's
-    flow over each gap, then the update by the observed components of dy = Hx τ + v, v ~ N(0, R τ)."""
-    n, m = model.n, model.m
-    X = np.eye(n)
-    F = model.f(X).T - model.f(np.zeros((1, n)))[0][:, None]  # f(x) = F x (no offset here)
-    H = model.h(X).T - model.h(np.zeros((1, n)))[0][:, None]
-    mean, cov = np.full(n, 0.5), np.eye(n)
-    means, variances = [], []
-    for row, tau in zip(rows, gaps, strict=True):
-        phi, shift, Qd = van_loan(F, np.asarray(model.a, float), np.zeros(n), tau)
-        mean, cov = phi @ mean + shift, phi @ cov @ phi.T + Qd
-        seen = ~np.isnan(row)
-        if seen.any():
-            Ho = H[seen] * tau
-            S = Ho @ cov @ Ho.T + model.R[np.ix_(seen, seen)] * tau
-            gain = np.linalg.solve(S, Ho @ cov).T
-            mean = mean + gain @ (row[seen] - Ho @ mean)
-            cov = cov - gain @ Ho @ cov
-        means.append(mean)
-        variances.append(np.diag(cov))
-    assert m == H.shape[0]
-    return np.array(means), np.array(variances)
+    """Means and variances of the exact filter of the linear model sampled at the gaps (K,)
+    (tests/helpers/linear_kalman.py: Van Loan's flow over each gap, then the update by the observed
+    components of dy = Hx τ + v, v ~ N(0, R τ))."""
+    F, H = linear_model_matrices(model)
+    n = model.n
+    means, variances, _ = exact_kalman(F, model.a, H, model.R, np.full(n, 0.5), np.eye(n), rows, gaps)
+    return means, variances
 
 
 def gaps_against(result, model, rows, gaps):
@@ -114,6 +100,36 @@ def test_irregular_times_and_missing_rows_match_kalman():
     rms, worst, variance = gaps_against(result, model, rows, gaps)
     assert rms <= 0.02 and variance <= 0.05 and worst <= 0.06, (rms, worst, variance)
     assert np.isnan(result.predictive_loglik[::5]).all() and (result.loglik_increment[::5] == 0).all()
+
+
+def test_the_gate_rejects_an_outlier_row_as_the_kalman_filter_would():
+    """Row 60 of 120 moved 40 predictive sd off: gated (flagged, score within 3% of the exact Kalman
+    innovation's standard score, no log-likelihood increment), the estimates those of the Kalman
+    filter that skips the row (same tolerances); no other row gated; with the gate off (0) the row
+    is taken and collapses the points: degenerate from row 60 on."""
+    from yauyau.solver.measurement import standard_score
+
+    model = linear_model(4, points=16384)
+    rows = simulate(model, 120, np.random.default_rng(9)).increments.copy()
+    # the exact prediction of row 60 given rows 0..59, then that row moved 40 sd off it
+    F, H = linear_model_matrices(model)
+    means, _, _ = exact_kalman(F, model.a, H, model.R, np.full(4, 0.5), np.eye(4), rows[:60], np.full(60, DT))
+    ahead = transition(F, np.asarray(model.a, float), DT)[0] @ means[-1]
+    rows[60] = H @ ahead * DT + 40.0 * np.sqrt(DT * np.diag(model.R))  # the noise dominates S
+    _, _, d2 = exact_kalman(F, model.a, H, model.R, np.full(4, 0.5), np.eye(4), rows[:61], np.full(61, DT))
+    exact = standard_score(float(d2[60]), 2)
+    skipped = rows.copy()
+    skipped[60] = np.nan
+    flt = YauNiuFilter(model)
+    _, result = flt.run_arrays(flt.initial_state(), rows)
+    assert result.gated.tolist() == [k == 60 for k in range(120)] and result.gate == 6.0
+    assert abs(result.gate_score[60] / exact - 1.0) < 0.03, (result.gate_score[60], exact)
+    assert result.loglik_increment[60] == 0.0 and not result.degenerate.any()
+    rms, worst, variance = gaps_against(result, model, skipped, np.full(120, DT))
+    assert rms <= 0.02 and variance <= 0.05 and worst <= 0.06, (rms, worst, variance)
+    _, taken = flt.with_gate(0.0).run_arrays(flt.initial_state(), rows)
+    assert not taken.gated.any() and taken.gate == 0.0
+    assert taken.degenerate[60:].all() and not taken.degenerate[:60].any()  # what the gate prevents
 
 
 # -- ten independent cubic sensors ------------------------------------------------------------------
