@@ -232,6 +232,29 @@ def test_ten_cubic_sensors_read_at_irregular_times_match_ten_point_mass_filters(
     assert np.isnan(result.predictive_loglik[::25]).all() and not result.degenerate.any()
 
 
+def test_the_gate_rejects_an_outlier_row_of_ten_independent_sensors():
+    """The vectorised row of independent sensors keeps the gate: row 40 of 100 with one sensor's
+    reading 40 noise sd off is gated (flagged, score > 10; measured 22.3 sd: the row's ten components
+    together) and the row only predicts — against the ten point-mass filters that skip the whole row
+    (means rms ≤ 0.05; measured 0.0057); no other row gated."""
+    n = 10
+    r = np.full(n, 0.5)
+    doc = _doc(n, [f"-0.5*x{i}" for i in range(n)], [f"x{i}**3" for i in range(n)], np.diag(r).tolist(),
+               [0.5] * n, np.eye(n).tolist(), points=4096, kind="discrete")
+    model = compile_model(spec_from_dict(doc))
+    rows = simulate(model, 100, np.random.default_rng(21)).observations.copy()
+    rows[40, 3] += 40.0 * np.sqrt(r[3])
+    flt = YauNiuFilter(model)
+    assert flt._singles is not None
+    _, result = flt.run_arrays(flt.initial_state(), rows)
+    assert result.gated.tolist() == [k == 40 for k in range(100)] and result.gate_score[40] > 10
+    skipped = rows.copy()
+    skipped[40] = np.nan
+    reference, _ = point_mass_discrete(skipped, np.full(100, DT), r)
+    rms = float(np.sqrt(np.mean((result.mean - reference) ** 2)))
+    assert rms <= 0.05, rms
+
+
 def test_blocks_follow_the_couplings():
     ring = linear_model(4)
     assert [b.tolist() for b in independent_blocks(ring)] == [[0, 1, 2, 3]]
