@@ -32,6 +32,7 @@ FRAGMENTS = [
     ("blas_threads", "blas.md"),
     ("engine_batch", "engine-batch.md"),
     ("filters", "filters.md"),
+    ("range_2d", "range-2d.md"),
     ("exact_filters", "exact.md"),
     ("measurements", "measurements.md"),
     ("yau_jia", "yau-jia.md"),
