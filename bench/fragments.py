@@ -33,6 +33,7 @@ FRAGMENTS = [
     ("engine_batch", "engine-batch.md"),
     ("filters", "filters.md"),
     ("peer_gap", "peer-gap.md"),
+    ("range_2d", "range-2d.md"),
     ("exact_filters", "exact.md"),
     ("measurements", "measurements.md"),
     ("yau_jia", "yau-jia.md"),

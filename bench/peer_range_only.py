@@ -1,20 +1,23 @@
-"""The peers on constant-velocity range-only tracking: `particles`' bootstrap filter and FilterPy's UKF.
+"""The peers on a linear-Gaussian state seen through a nonlinear sensor: `particles`' bootstrap filter
+and FilterPy's UKF (constant-velocity range-only tracking; a linear drift with a cubic sensor).
 
     bench/out/peers-venv/bin/python bench/peer_range_only.py IN.npz OUT.npz
 
 Runs in its OWN virtual environment (bench/out/peers-venv, made by
 ``python -m bench.measurements --setup-peers``: particles pins numpy < 2, which yauyau does not
-support), so bench/yau_jia.py calls this script as a subprocess.  This file imports nothing from
-yauyau.
+support), so bench/yau_jia.py and bench/range_2d.py call this script as a subprocess.  This file
+imports nothing from yauyau.
 
 The sampled model (state x = (p, v), p and v of ``dims`` coordinates each):
 
-    x_k = Φ x_{k−1} + N(0, Q),   Δy_k ~ N(h(x_k) dt, R dt),   h(x) = √(offset + |p|²),
+    x_k = Φ x_{k−1} + N(0, Q),   Δy_k ~ N(h(x_k) dt, R dt),
 
-with Φ and Q the exact transition of the constant-velocity model over dt (computed by the caller).
+with Φ and Q the exact Gaussian transition of the linear drift over dt (computed by the caller) and
+h chosen by ``sensor``: "range" (the default), h(x) = √(offset + |p|²) with p the first half of x;
+"cube1", h(x) = x1·x1·x1.
 
 IN.npz: ``increments`` (S, K), ``seeds`` (S,), ``Phi``, ``Q``, ``prior_mean``, ``prior_cov``,
-``dt``, ``noise_var``, ``offset``, ``particles`` (N).
+``dt``, ``noise_var``, ``offset``, ``particles`` (N), optionally ``sensor`` ("range" or "cube1").
 OUT.npz: ``pf_means`` (S, K, n), ``pf_seconds`` (S,) (CPU time of ``SMC.run``), ``ukf_means``,
 ``ukf_seconds`` (S,), ``versions`` — all with one BLAS thread.
 """
@@ -31,8 +34,12 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+SENSOR = "range"  # set by main() from IN.npz
+
 
 def sensor(x: np.ndarray, dims: int, offset: float) -> np.ndarray:
+    if SENSOR == "cube1":
+        return x[..., 0] * x[..., 0] * x[..., 0]
     return np.sqrt(offset + (x[..., :dims] ** 2).sum(-1))
 
 
@@ -43,7 +50,7 @@ def bootstrap(data, seed: int, N: int, Phi, Q, mean0, cov0, dt, r, offset):
 
     dims = len(mean0) // 2
 
-    class RangeCV(ssm.StateSpaceModel):
+    class LinearGaussian(ssm.StateSpaceModel):
         def PX0(self):
             return dists.MvNormal(loc=mean0, cov=cov0)
 
@@ -53,7 +60,7 @@ def bootstrap(data, seed: int, N: int, Phi, Q, mean0, cov0, dt, r, offset):
         def PY(self, t, xp, x):
             return dists.Normal(loc=sensor(x, dims, offset) * dt, scale=np.sqrt(r * dt))
 
-    fk = ssm.Bootstrap(ssm=RangeCV(), data=data)
+    fk = ssm.Bootstrap(ssm=LinearGaussian(), data=data)
     np.random.seed(seed)
     alg = particles.SMC(fk=fk, N=N, collect=[particles.collectors.Moments()])
     start = time.process_time()
@@ -84,6 +91,10 @@ def unscented(data, Phi, Q, mean0, cov0, dt, r, offset):
 def main(argv: list[str]) -> int:
     src, dst = argv[1], argv[2]
     d = np.load(src)
+    global SENSOR
+    SENSOR = str(d["sensor"]) if "sensor" in d.files else "range"
+    if SENSOR not in ("range", "cube1"):
+        raise SystemExit(f"sensor must be 'range' or 'cube1', got {SENSOR!r}")
     args = (d["Phi"], d["Q"], d["prior_mean"], d["prior_cov"], float(d["dt"]), float(d["noise_var"]),
             float(d["offset"]))
     pf_means, pf_seconds, ukf_means, ukf_seconds = [], [], [], []
