@@ -44,7 +44,7 @@ def _spec(name: str, discrete: bool = False, noise: float = 0.1) -> dict:
     doc = {"name": name, "state": [f"x{i}" for i in range(N)], "drift": drift,
            "observation": ["x0 + 0.2*x1", "x1 + 0.2*x2"], "observation_noise": (noise * np.eye(2)).tolist(),
            "method": "yau-niu", "initial": {"kind": "gaussian", "mean": M0.tolist(), "cov": P0.tolist()},
-           "domain": {"radius": 8.0}, "discretization": {"dt": 0.01, "basis": 64}}
+           "discretization": {"dt": 0.01}}  # no [domain] nor basis: yau-niu needs neither
     if discrete:
         doc["measurement"] = {"kind": "discrete"}
     return doc
@@ -239,3 +239,23 @@ def test_many_streams_batched_answer_as_each_alone(api):
         estimates = [e for seq in (0, 1) for e in orjson.loads(sessions.store._stored_text(batched[i], seq))
                      ["estimates"]]
         _against_kalman(estimates, model, data[i], np.full(80, 0.01))
+
+
+def test_a_session_whose_points_would_not_fit_here_is_413(tmp_path, monkeypatch):
+    """A model stored where memory sufficed (10^6 points: about 0.8 GB a row), served on a machine of
+    100 MB (memory_limit patched): POST /v1/sessions is 413 problem+json naming discretization.points,
+    before any point is drawn."""
+    import yauyau.solver.qmc.yau_niu as yau_niu
+
+    doc = _spec("niu-4d-big")
+    doc["discretization"] = {"dt": 0.01, "points": 10**6}
+    mid = yauyau.precompute(spec_from_dict(doc), tmp_path / "store")
+    monkeypatch.setattr(yau_niu, "memory_limit", lambda: 100 * 2**20)
+    monkeypatch.setattr(yau_niu, "qmc_normals", lambda *a: pytest.fail("points drawn"))
+    app = create_app(Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3"))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        r = client.post("/v1/sessions", json={"model": mid})
+    assert r.status_code == 413 and r.headers["content-type"].startswith(PROBLEM), r.text
+    body = r.json()
+    assert body["field"] == "discretization.points" and "0.1 GiB this machine has" in body["detail"]
+    assert "set discretization.points to at most" in body["detail"]

@@ -290,3 +290,31 @@ def test_smoothing_is_refused_by_name_without_a_dead_end():
     message = err.value.message
     assert err.value.field == "method" and "yau-niu" in message and "no backward pass" in message
     assert "at most 3 states" in message and "smooths any model" not in message
+
+
+def test_domain_and_basis_may_be_left_out_for_yau_niu_only():
+    """A yau-niu spec without [domain] nor discretization.basis loads: the ball is the prior's (mean a
+    mixture's weighted mean, radius 6 sd beyond the farthest component mean), basis the smallest; it
+    runs as the same spec stating them (bit for bit, the same id).  The same spec for another method
+    is still refused naming domain, and a density prior still needs its domain."""
+    doc = _doc(4, [f"-x{i}" for i in range(4)], ["x0", "x2"], np.eye(2).tolist(), [0.0, 1.0, 0.0, 0.0],
+               np.diag([1.0, 4.0, 1.0, 1.0]).tolist(), points=512)
+    bare = {k: v for k, v in doc.items() if k != "domain"}
+    bare["discretization"] = {"dt": DT, "points": 512}
+    spec = spec_from_dict(bare)
+    assert spec.domain.center == [0.0, 1.0, 0.0, 0.0] and spec.domain.radius == 12.0
+    assert spec.discretization.basis == 2
+    stated = spec_from_dict({**doc, "domain": {"radius": 12.0, "center": [0.0, 1.0, 0.0, 0.0]},
+                             "discretization": {"dt": DT, "basis": 2, "points": 512}})
+    assert spec.canonical_json() == stated.canonical_json()
+    rows = simulate(compile_model(spec), 30, np.random.default_rng(12)).increments
+    runs = [YauNiuFilter(compile_model(s)) for s in (spec, stated)]
+    assert np.array_equal(*(f.run_arrays(f.initial_state(), rows)[1].mean for f in runs))
+    mixture = {**bare, "initial": {"kind": "mixture", "weights": [1.0, 1.0], "means": [[-2.0] * 4, [2.0] * 4],
+                                   "covs": [np.eye(4).tolist()] * 2}}
+    assert spec_from_dict(mixture).domain.radius == pytest.approx(4.0 + 6.0)
+    density = {"kind": "density", "expression": "exp(-x0**2 - x1**2 - x2**2 - x3**2)"}
+    for other in ({**bare, "method": "yau-yau"}, {**bare, "initial": density}):
+        with pytest.raises(SpecError) as caught:
+            spec_from_dict(other)
+        assert caught.value.field.startswith(("domain", "discretization.basis")), caught.value
