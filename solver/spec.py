@@ -93,6 +93,37 @@ class ProblemSpec(Strict):
     measurement: Measurement = Field(default_factory=Measurement)
 
 
+QMC_BASIS = 2  # the basis size a yau-niu spec that leaves it out is written with (yau-niu has no basis)
+PRIOR_BALL_SDS = 6.0  # a yau-niu spec without [domain]: the ball of the prior's mean ± this many sd
+
+
+def prior_ball(prior: Any) -> dict[str, Any] | None:
+    """The ``[domain]`` of a yau-niu spec that leaves it out: centred on a gaussian prior's mean (a
+    mixture's weighted mean), radius PRIOR_BALL_SDS × its largest standard deviation beyond the farthest
+    component mean; None for a density prior or one that does not parse (its own error is reported)."""
+    if hasattr(prior, "model_dump"):
+        prior = prior.model_dump()
+    try:
+        kind = prior.get("kind", "gaussian")
+        if kind == "gaussian":
+            means, covs, weights = [prior["mean"]], [prior["cov"]], [1.0]
+        elif kind == "mixture":
+            means, covs, weights = prior["means"], prior["covs"], prior["weights"]
+        else:
+            return None
+        means = np.asarray(means, float)
+        weights = np.asarray(weights, float) / np.sum(weights)
+        center = weights @ means
+        sds = [math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(c, float)).max()), 0.0)) for c in covs]
+        reach = max(float(np.linalg.norm(mu - center)) + PRIOR_BALL_SDS * sd
+                    for mu, sd in zip(means, sds, strict=True))
+    except (AttributeError, KeyError, TypeError, ValueError, np.linalg.LinAlgError):
+        return None
+    if not (math.isfinite(reach) and reach > 0 and np.all(np.isfinite(center))):
+        return None
+    return {"radius": min(reach, 1e6), "center": center.tolist()}
+
+
 class DiscretisationSpec(Strict):
     """How the offline stage represents the problem: the domain ball and the time step/resolution."""
 
@@ -160,6 +191,26 @@ class ModelSpec(Strict):
             if not math.isfinite(value):
                 raise ValueError(f"parameter '{name}' must be finite")
         return params
+
+    @model_validator(mode="before")
+    @classmethod
+    def _qmc_needs_no_mesh(cls, data: Any) -> Any:
+        """Method "yau-niu" builds no mesh nor basis: its points cover the prior.  Left out, its
+        ``[domain]`` is the ball around the prior (:func:`prior_ball`: the checks of f and h on the ball
+        run there) and ``discretization.basis`` the smallest allowed, QMC_BASIS (never used); both are
+        written into the canonical JSON, so the id is that of the spec stating them.  A density prior
+        lives on its ``[domain]``: it still needs one.  Other methods are untouched."""
+        if not isinstance(data, dict) or data.get("method") != QMC_ONLY:
+            return data
+        data = dict(data)
+        if data.get("domain") is None:
+            ball = prior_ball(data.get("initial"))
+            if ball is not None:
+                data["domain"] = ball
+        table = data.get("discretization")
+        if isinstance(table, dict) and "basis" not in table:
+            data["discretization"] = {**table, "basis": QMC_BASIS}
+        return data
 
     @model_validator(mode="after")
     def _shapes(self) -> "ModelSpec":

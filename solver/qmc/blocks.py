@@ -1,4 +1,7 @@
-"""Yau–Niu over independent coordinates: every block one coordinate with at most one sensor, in one step.
+"""Yau–Niu's blocks: the coordinates nothing couples, and one-coordinate blocks in one step.
+
+:func:`independent_blocks` splits the coordinates into blocks that no term couples, over which the
+exact filter factorises.  :class:`SingleBlocks`: every block one coordinate with at most one sensor.
 
 Where nothing couples the coordinates (solver/qmc/yau_niu.py ``independent_blocks``: ten or a hundred
 independent cubic sensors), the exact filter is the product of n 1-D filters, and the Yau–Niu filter
@@ -27,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..measurement import Observation
+from ..spec import GaussianPrior
 
 
 class SingleBlocks:
@@ -100,11 +104,12 @@ class SingleBlocks:
         B = len(self.cols)
         return bool(chunk[1][k * B:(k + 1) * B].any())
 
-    def observe(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float):
+    def observe(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float, temper: float):
         """Row k's update of the log weights logW (B, N), in place: (the row's predictive log-likelihood,
         its sum of offsets, the gate's bound −2·that − Σ log det 2πS₀ (solver/measurement.py), the
-        observed components); the log-likelihood None where an observed block's likelihood is zero at
-        every point."""
+        observed components, the log factors (up to a constant of each block) of the observed blocks
+        whose coverage fell under ``temper`` × N, for the progressive correction); the log-likelihood
+        None where an observed block's likelihood is zero at every point."""
         y, keys, terms = chunk
         B = len(self.cols)
         part = slice(k * B, (k + 1) * B)
@@ -115,11 +120,10 @@ class SingleBlocks:
         factors = self.unit.log_factors(h, y[part], np.full(B, tau), row_keys,
                                         terms.rows(k * B, (k + 1) * B, keys))
         every = bool(observed.all())
-        total = factors if every else factors[observed]
-        total += logW if every else logW[observed]  # Yau–Niu, log-domain update
+        total = factors + logW if every else factors[observed] + logW[observed]  # Yau–Niu, log domain
         top = total.max(axis=1)
         if not np.isfinite(top).all():
-            return None, 0.0, 0.0, 0
+            return None, 0.0, 0.0, 0, {}
         total -= top[:, None]
         gains = top + np.log(np.exp(total).sum(axis=1))
         total += (top - gains)[:, None]
@@ -132,10 +136,53 @@ class SingleBlocks:
         gains = gains + (log_r if self.discrete else 0.0)
         gain = float(np.sum(gains + offsets))
         log_det = float(np.sum(terms.log_det_S0[part][observed] - 2.0 * log_r))
-        return gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum())
+        low = np.flatnonzero(observed & (self.coverage(logW) < temper * logW.shape[1]))
+        return (gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum()),
+                {int(b): factors[b] for b in low})
 
     @staticmethod
     def coverage(logW: np.ndarray) -> np.ndarray:
         """1/Σ_i w_bi² per block."""
         w = np.exp(logW)
         return 1.0 / np.einsum("bi,bi->b", w, w)
+
+
+def independent_blocks(model: Any) -> list[np.ndarray]:
+    """The coordinates split into blocks that no term couples: f_i depending on x_j, a_ij ≠ 0, an
+    observation component depending on both, correlated observation noise (R_kl ≠ 0) or prior
+    (a mixture or density prior couples everything).  The exact filter factorises over them."""
+    n = model.n
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def join(group) -> None:
+        group = list(group)
+        for j in group[1:]:
+            parent[find(j)] = find(group[0])
+
+    index = {s: i for i, s in enumerate(model.symbols)}
+    for i, expr in enumerate(model.drift):
+        join([i] + [index[s] for s in expr.free_symbols if s in index])
+    a = np.asarray(model.a, float)
+    for i, j in zip(*np.nonzero(a), strict=True):
+        join([int(i), int(j)])
+    uses = [[index[s] for s in expr.free_symbols if s in index] for expr in model.observation]
+    for used in uses:
+        join(used)
+    R = np.asarray(model.R, float)
+    for k, l in zip(*np.nonzero(R), strict=True):
+        join(uses[k] + uses[l])
+    prior = model.spec.initial
+    if isinstance(prior, GaussianPrior):
+        for i, j in zip(*np.nonzero(np.asarray(prior.cov, float)), strict=True):
+            join([int(i), int(j)])
+    else:
+        join(range(n))
+    roots = [find(i) for i in range(n)]
+    order = list(dict.fromkeys(roots))
+    return [np.array([i for i in range(n) if roots[i] == r]) for r in order]
