@@ -35,6 +35,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+from peer_range_only import run_bootstrap  # noqa: E402  (this folder: the script's sys.path[0])
 
 
 class Setup:
@@ -61,7 +62,6 @@ class Setup:
 
 
 def bootstrap(setup: Setup, data, seed: int, N: int):
-    import particles
     from particles import distributions as dists
     from particles import state_space_models as ssm
 
@@ -97,13 +97,7 @@ def bootstrap(setup: Setup, data, seed: int, N: int):
         def PY(self, t, xp, x):
             return dists.MvNormal(loc=setup.sensor(x) * dt, scale=math.sqrt(dt), cov=eye)
 
-    fk = ssm.Bootstrap(ssm=Cubic(), data=data)
-    np.random.seed(seed)
-    alg = particles.SMC(fk=fk, N=N, collect=[particles.collectors.Moments()])
-    start = time.process_time()
-    alg.run()
-    seconds = time.process_time() - start
-    return np.array([m["mean"] for m in alg.summaries.moments]), seconds
+    return run_bootstrap(ssm.Bootstrap(ssm=Cubic(), data=data), seed, N)
 
 
 def unscented(setup: Setup, data):
