@@ -44,7 +44,6 @@ def sensor(x: np.ndarray, dims: int, offset: float) -> np.ndarray:
 
 
 def bootstrap(data, seed: int, N: int, Phi, Q, mean0, cov0, dt, r, offset):
-    import particles
     from particles import distributions as dists
     from particles import state_space_models as ssm
 
@@ -60,7 +59,14 @@ def bootstrap(data, seed: int, N: int, Phi, Q, mean0, cov0, dt, r, offset):
         def PY(self, t, xp, x):
             return dists.Normal(loc=sensor(x, dims, offset) * dt, scale=np.sqrt(r * dt))
 
-    fk = ssm.Bootstrap(ssm=LinearGaussian(), data=data)
+    return run_bootstrap(ssm.Bootstrap(ssm=LinearGaussian(), data=data), seed, N)
+
+
+def run_bootstrap(fk, seed: int, N: int):
+    """particles' SMC on the Feynman–Kac model ``fk`` with N particles, numpy's global generator seeded:
+    the filtering means (K, n) and the CPU seconds of ``SMC.run``."""
+    import particles
+
     np.random.seed(seed)
     alg = particles.SMC(fk=fk, N=N, collect=[particles.collectors.Moments()])
     start = time.process_time()
