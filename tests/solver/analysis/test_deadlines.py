@@ -51,12 +51,16 @@ def attack_file(tmp_path: Path, **changes) -> Path:
 
 
 def assert_bounded(report: dict, limit: float) -> None:
-    """The report of an analysis stopped by its time limit: the general engine, and the limit named
-    (the conditions not decided within it, the process stopped at it, or the algebra stopped by it)."""
+    """The report of an analysis stopped by one of its bounds: the general engine, and the bound named
+    — the time limit (the conditions not decided within it, the process stopped at it, or the algebra
+    stopped by it), or the algebra's expression-size guard, which an idle fast machine reaches first
+    (the final CI run of stop 46, an unloaded AVX-512 machine: "expression size 4000" within 2 s; under
+    load the 2 s come first).  That the run ends near the limit is the subprocess timeout's business."""
     assert report["recommendation"]["method"] == "yau-yau", report["recommendation"]
     named = (f"within time {limit:g} s", f"time limit of {limit:g} s")
+    stopped_by = report["estimation_algebra"]["stopped_by"] or ""
     assert (any(any(words in note for words in named) for note in report["notes"])
-            or report["estimation_algebra"]["stopped_by"] == f"time {limit:g} s"), report
+            or stopped_by == f"time {limit:g} s" or stopped_by.startswith("expression size")), report
 
 
 @pytest.mark.slow
