@@ -3,11 +3,10 @@
 :func:`independent_blocks` splits the coordinates into blocks that no term couples, over which the
 exact filter factorises.  :class:`SingleBlocks`: every block one coordinate with at most one sensor.
 
-Where nothing couples the coordinates (solver/qmc/yau_niu.py ``independent_blocks``: ten or a hundred
-independent cubic sensors), the exact filter is the product of n 1-D filters, and the Yau–Niu filter
-keeps one row of log weights per coordinate on a shared point set.  The generic row loops over the
-blocks in Python (about 1 ms a block: 119 ms a row at 100 states); here each part of the row is one
-array operation over all blocks at once (arrays (N, B) or (B, N)):
+Ten or a hundred independent cubic sensors: the exact filter is the product of n 1-D filters, and the
+Yau–Niu filter keeps one row of log weights per coordinate on a shared point set.  The generic row
+loops over the blocks in Python (about 1 ms a block: 119 ms a row at 100 states); here each part of
+the row is one array operation over all blocks at once (arrays (N, B) or (B, N)):
 
 * Kolmogorov step: the kernel's mean m_b = Σ_i w_bi (x_ib + f_b(x_i)τ) and variance
   Var_w(x_b + f_bτ) + a_bb τ per coordinate, the moved points mapped affinely onto them (the 1-D case
@@ -125,8 +124,11 @@ class SingleBlocks:
         if not np.isfinite(top).all():
             return None, 0.0, 0.0, 0, {}
         total -= top[:, None]
-        gains = top + np.log(np.exp(total).sum(axis=1))
+        e = np.exp(total)  # one exponential for both the log-sum-exp and the coverage 1/Σw²
+        sums = e.sum(axis=1)
+        gains = top + np.log(sums)
         total += (top - gains)[:, None]
+        coverage = sums * sums / np.einsum("bi,bi->b", e, e)
         if every:
             logW[...] = total
         else:
@@ -136,7 +138,7 @@ class SingleBlocks:
         gains = gains + (log_r if self.discrete else 0.0)
         gain = float(np.sum(gains + offsets))
         log_det = float(np.sum(terms.log_det_S0[part][observed] - 2.0 * log_r))
-        low = np.flatnonzero(observed & (self.coverage(logW) < temper * logW.shape[1]))
+        low = np.flatnonzero(observed)[coverage < temper * logW.shape[1]]
         return (gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum()),
                 {int(b): factors[b] for b in low})
 
