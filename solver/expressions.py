@@ -381,6 +381,7 @@ def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping
         return on_columns(tuple(X.T), X.shape[0])
 
     evaluate.on_columns = on_columns  # type: ignore[attr-defined]
+    evaluate.node = node  # type: ignore[attr-defined]  # numeric_many's: many expressions, one errstate
     return evaluate
 
 
@@ -392,12 +393,18 @@ def numeric_many(
         X = np.atleast_2d(np.asarray(X, dtype=float))
         if not functions:
             return np.zeros((X.shape[0], 0))
-        if X.shape[1] < 8 or not all(hasattr(f, "on_columns") for f in functions):
+        if X.shape[1] < 8 or not all(hasattr(f, "node") for f in functions):
             return np.stack([f(X) for f in functions], axis=1)
         # many states: each column made contiguous once for all the expressions (X.T's rows are strided
-        # by n: at 100 states every element of a column sits on its own cache line)
-        cols, P = tuple(np.ascontiguousarray(X.T)), X.shape[0]
-        return np.stack([f.on_columns(cols, P) for f in functions], axis=1)
+        # by n: at 100 states every element of a column sits on its own cache line); points whose
+        # columns are contiguous (Fortran order) get theirs back the same way, without a transpose
+        columns = X.T.flags.c_contiguous
+        cols, P = tuple(X.T if columns else np.ascontiguousarray(X.T)), X.shape[0]
+        out = np.empty((len(functions), P))
+        with np.errstate(all="ignore"):
+            for j, f in enumerate(functions):
+                out[j] = f.node(cols)  # a scalar (a constant expression) fills its row
+        return out.T if columns else np.ascontiguousarray(out.T)
 
     return evaluate
 

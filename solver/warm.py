@@ -6,7 +6,8 @@ solver/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yau
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
 1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
 double and single precision: the same calls, with the same array types, as any model's chunks; and a
-1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py).
+1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py), and a 2-D Yau–Niu filter of
+independent sensors through its (solver/qmc/kernels.py).
 """
 
 from __future__ import annotations
@@ -57,5 +58,16 @@ def warm_kernels() -> float | None:
     flt = make_filter(compile_model(spec_from_dict(toy)), None, "yau-jia")
     rows = np.array([[0.05], [np.nan], [0.04], [5.0]])
     flt.run_arrays(flt.initial_state(), rows, np.array([0.05, 0.1, 2.0, 2.05]))
+    # the Yau–Niu row of independent one-coordinate blocks (solver/qmc/kernels.py): increments, Gaussian
+    # and Student-t readings, a missing component
+    two = {**_TOY, "state": ["x", "y"], "drift": ["-x", "-y"], "observation": ["x", "y**3"],
+           "observation_noise": [[1.0, 0.0], [0.0, 1.0]], "method": "yau-niu",
+           "initial": {"kind": "gaussian", "mean": [0.0, 0.0], "cov": [[0.5, 0.0], [0.0, 0.5]]},
+           "discretization": {"dt": 0.05, "points": 64}}
+    rows = np.array([[0.05, 0.01], [np.nan, 0.02]])
+    for measurement in ({"kind": "continuous"}, {"kind": "discrete"},
+                        {"kind": "discrete", "likelihood": "student-t", "dof": 4}):
+        flt = make_filter(compile_model(spec_from_dict({**two, "measurement": measurement})), None, "yau-niu")
+        flt.run_arrays(flt.initial_state(), rows)
     _DONE.append(time.perf_counter() - started)
     return _DONE[0]

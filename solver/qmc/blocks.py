@@ -18,18 +18,29 @@ the row is one array operation over all blocks at once (arrays (N, B) or (B, N))
   block's log-likelihood (``log_r``);
 * moments: per coordinate, the covariance diagonal.
 
+The noise of the Kolmogorov step is each block's own 1-D QMC set (``cloud.lattice_normals``: a randomly
+shifted lattice, in a random order per block and row) instead of a row of an n-dimensional Sobol set:
+the blocks' filters are separate, so only each coordinate's own set matters, and the lattice has the
+least discrepancy there at the cost of N inverse-CDF values (a 100-D Sobol set with its scrambling and
+N·n values was 12 ms of a 44 ms row).  With the compiled kernels on (``YAUYAU_KERNEL``, solver/jit.py)
+the row runs in the kernels of solver/qmc/kernels.py on the points in Fortran order (each coordinate
+contiguous), the numpy path staying the reference (tests/solver/qmc/test_singles_kernels.py).
+
 Restarts stay per block (``YauNiuFilter._restart``), for the blocks whose coverage fell.
 """
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
+from .. import jit
 from ..measurement import Observation
 from ..spec import GaussianPrior
+from .cloud import lattice_normals
 
 
 class SingleBlocks:
@@ -47,6 +58,7 @@ class SingleBlocks:
         self.scale = 1.0 / np.sqrt(r)
         self.log_r = np.where(self.has_sensor, -0.5 * np.log(r), 0.0)  # −½ log R_bb: not in the unit noise
         self.a = np.diag(np.asarray(model.a, float))[self.cols]
+        self.root = np.sqrt(np.maximum(self.a, 0.0))
         self.discrete = model.spec.measurement.kind == "discrete"
         self.unit = Observation(SimpleNamespace(spec=model.spec, m=1, R=np.ones((1, 1))))
 
@@ -55,6 +67,31 @@ class SingleBlocks:
         return len(blocks) > 1 and all(len(c) == 1 for c in blocks) and all(len(c) <= 1 for c in components)
 
     # -- Kolmogorov step ------------------------------------------------------------------------
+    def kolmogorov_step(self, X: np.ndarray, f: Any, W: np.ndarray, tau: float,
+                        rng: np.random.Generator) -> np.ndarray:
+        """The Kolmogorov step over τ of every block (YauNiuFilter._kolmogorov) on the lattice noise
+        (:func:`lattice_normals`).  Compiled (solver/qmc/kernels.py, ``YAUYAU_KERNEL``): X, which
+        must be the caller's own array, is moved in place and made Fortran-ordered (each coordinate
+        contiguous); numpy: a new array."""
+        N, B = X.shape[0], len(self.cols)
+        Q, perm, offset = lattice_normals(N, B, rng)
+        sd = math.sqrt(tau) * self.root
+        if self.identity and jit.enabled():
+            from . import kernels
+
+            X = X if X.T.flags.c_contiguous else np.asfortranarray(X)
+            F = f(X)
+            kernels.kolmogorov(X.T, np.ascontiguousarray(F.T), W, Q, perm, offset, sd, self.a * tau, tau)
+            return X
+        drifted = X + f(X) * tau
+        moved = drifted.copy()
+        noise = Q[(perm[:, None] + offset[None, :]) % N] * sd
+        if self.identity:
+            moved += noise
+        else:
+            moved[:, self.cols] += noise
+        return self.kolmogorov(drifted, moved, W, tau)
+
     def kolmogorov(self, drifted: np.ndarray, moved: np.ndarray, W: np.ndarray, tau: float) -> np.ndarray:
         """``moved`` (N, n) with each coordinate matched to the kernel's mean and variance under its
         block's weights W (B, N); edited in place and returned (``drifted`` is used up)."""
@@ -77,10 +114,16 @@ class SingleBlocks:
 
     def moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = X.shape[1]
-        D = X if self.identity else X[:, self.cols]
-        m = np.einsum("bi,ib->b", W, D)
-        D = D - m
-        v = np.einsum("bi,ib->b", W, D * D)
+        if self.identity and X.T.flags.c_contiguous and jit.enabled():
+            from . import kernels
+
+            m, v = np.empty(n), np.empty(n)
+            kernels.moments(X.T, np.ascontiguousarray(W), m, v)
+        else:
+            D = X if self.identity else X[:, self.cols]
+            m = np.einsum("bi,ib->b", W, D)
+            D = D - m
+            v = np.einsum("bi,ib->b", W, D * D)
         mean, cov = np.empty(n), np.zeros((n, n))
         mean[self.cols] = m
         cov[self.cols, self.cols] = v
@@ -104,11 +147,14 @@ class SingleBlocks:
         return bool(chunk[1][k * B:(k + 1) * B].any())
 
     def observe(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float, temper: float):
-        """Row k's update of the log weights logW (B, N), in place: (the row's predictive log-likelihood,
+        """Row k's update of the log weights logW (B, N), in place (compiled: also where the likelihood is
+        zero, which leaves logW for the caller to restore): (the row's predictive log-likelihood,
         its sum of offsets, the gate's bound −2·that − Σ log det 2πS₀ (solver/measurement.py), the
         observed components, the log factors (up to a constant of each block) of the observed blocks
         whose coverage fell under ``temper`` × N, for the progressive correction); the log-likelihood
         None where an observed block's likelihood is zero at every point."""
+        if jit.enabled():
+            return self._observe_compiled(logW, hX, chunk, k, tau, temper)
         y, keys, terms = chunk
         B = len(self.cols)
         part = slice(k * B, (k + 1) * B)
@@ -133,14 +179,52 @@ class SingleBlocks:
             logW[...] = total
         else:
             logW[observed] = total
+        low = np.flatnonzero(observed)[coverage < temper * logW.shape[1]]
+        return self._row_sums(gains, observed, terms, part, {int(b): factors[b] for b in low})
+
+    def _observe_compiled(self, logW: np.ndarray, hX: np.ndarray, chunk: tuple, k: int, tau: float,
+                          temper: float):
+        """:meth:`observe` by the kernels of solver/qmc/kernels.py (same results to rounding)."""
+        from . import kernels
+
+        y, keys, terms = chunk
+        B, N = logW.shape
+        part = slice(k * B, (k + 1) * B)
+        observed = keys[part] != 0
+        kind = (kernels.CONTINUOUS if not self.discrete else
+                kernels.GAUSSIAN if self.unit.likelihood == "gaussian" else kernels.STUDENT)
+        dof = float(self.unit.dof) if kind == kernels.STUDENT else 1.0
+        top = np.empty(B)
+        HT = np.ascontiguousarray(hX.T)
+        comp = np.maximum(self.comp, 0)
+        kernels.log_factors(logW, HT, comp, self.scale, y[part, 0], observed, kind, tau,
+                            terms.constant[part], terms.quadratic[part], dof, top)
+        if not np.isfinite(top[observed]).all():  # logW is the caller's to restore
+            return None, 0.0, 0.0, 0, {}
+        every = bool(observed.all())
+        E = np.exp(logW) if every else np.zeros((B, N))
+        if not every:
+            np.exp(logW, out=E, where=observed[:, None])
+        sums, coverage = np.ones(B), np.full(B, np.inf)
+        kernels.normalise(E, observed, logW, sums, coverage)
+        gains = (top + np.log(sums))[observed]
+        factors = {}
+        for b in np.flatnonzero(observed & (coverage < temper * N)):
+            h = (hX[:, self.comp[b]] * self.scale[b])[None, :, None]
+            factors[int(b)] = self.unit.log_factors(h, y[k * B + b:k * B + b + 1], np.array([tau]),
+                                                    keys[k * B + b:k * B + b + 1],
+                                                    terms.rows(k * B + b, k * B + b + 1, keys))[0]
+        return self._row_sums(gains, observed, terms, part, factors)
+
+    def _row_sums(self, gains: np.ndarray, observed: np.ndarray, terms: Any, part: slice, factors: dict):
+        """(the row's predictive log-likelihood, its offsets, the gate's bound, the observed count,
+        ``factors``) from each observed block's log-sum-exp ``gains`` (:meth:`observe`)."""
         log_r = self.log_r[observed]
         offsets = terms.offset[part][observed] + (0.0 if self.discrete else log_r)
         gains = gains + (log_r if self.discrete else 0.0)
         gain = float(np.sum(gains + offsets))
         log_det = float(np.sum(terms.log_det_S0[part][observed] - 2.0 * log_r))
-        low = np.flatnonzero(observed)[coverage < temper * logW.shape[1]]
-        return (gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum()),
-                {int(b): factors[b] for b in low})
+        return gain, float(np.sum(offsets)), -2.0 * gain - log_det, int(observed.sum()), factors
 
     @staticmethod
     def coverage(logW: np.ndarray) -> np.ndarray:

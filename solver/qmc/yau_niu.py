@@ -12,6 +12,7 @@ cover where the density lives.  σ is carried as N points x_i with log weights �
 1. Kolmogorov step (Yau–Niu, the transition kernel between point sets): every point moves by the
    Euler kernel of dx = f dt + G dv, x ↦ x + f(x)τ + (aτ)^{1/2} z with z a fresh QMC normal set
    (randomly permuted: reusing a Sobol index across rows correlates the points' noises, measured);
+   (blocks of one coordinate: each its own shifted 1-D lattice, solver/qmc/blocks.py);
    then the cloud is mapped affinely so that its weighted mean and covariance are exactly those of
    the kernel, m = Σ w_i(x_i + f_iτ), P = Cov_w(x + fτ) + aτ (second-order moment matching: exact
    for linear drift; chosen by measurement, see below).
@@ -265,13 +266,13 @@ class YauNiuFilter(ChunkedFilter):
         """The Kolmogorov step over τ (Yau–Niu, offline–online split: the A part): the Euler transition
         kernel N(x + f(x)τ, aτ) on a fresh QMC normal set, each block matched to the kernel's exact
         mean and covariance under its weights."""
+        if self._singles is not None:  # blocks of one coordinate: lattice noise, compiled where on
+            return self._singles.kolmogorov_step(X, self.model.f, W, tau, rng)
         drifted = X + self.model.f(X) * tau
         Z = qmc_normals(len(X), X.shape[1], rng)
         root = self._noise_root
         noise = Z * np.diag(root) if self._noise_diagonal else Z @ root  # n² a point only where coupled
         moved = drifted + math.sqrt(tau) * noise
-        if self._singles is not None:
-            return self._singles.kolmogorov(drifted, moved, W, tau)
         a = np.asarray(self.model.a, float)
         for coords, w in zip(self.blocks, W, strict=True):
             mean, cov = weighted_moments(drifted[:, coords], w)
@@ -358,7 +359,7 @@ class YauNiuFilter(ChunkedFilter):
                     break
                 trial = logw + low * factor
                 w = np.exp(trial - log_sum_exp(trial))
-                X = X.copy()
+                X = X.copy(order="K")
                 X[:, coords] = self._restart(X[:, coords], w, rng)
                 logw, remaining, count = np.full(N, -math.log(N)), remaining - low, count + 1
                 h = self.model.h(X)[None]
@@ -386,7 +387,7 @@ class YauNiuFilter(ChunkedFilter):
                     return X, 0, (f"step {int(step)}: the posterior collapsed onto {coverage:.2g} of "
                                   f"{len(w)} points and the restart cannot recover it; use more points "
                                   "(discretization.points) or a smaller dt")
-                moved = X.copy() if moved is X else moved
+                moved = X.copy(order="K") if moved is X else moved
                 moved[:, coords] = self._restart(moved[:, coords], w, rng)
                 logW[b] = -math.log(len(w))
                 count += 1
@@ -454,14 +455,16 @@ class YauNiuFilter(ChunkedFilter):
         ll_inc, bad, pll = np.zeros(K), np.zeros(K, bool), np.full(K, np.nan)
         gated, scores = np.zeros(K, bool), np.full(K, np.nan)
         X, logW = state.points, state.log_weights.copy()
+        if singles is not None:  # the row moves its own copy in place, each coordinate contiguous
+            X = np.array(X, order="F")
         restarts, reason = state.restarts, state.reason
         done = 0 if state.degenerate else K
-        mean, cov = self._moments(X, np.exp(logW))
+        W = np.exp(logW)  # the weights, kept with logW from row to row
+        mean, cov = self._moments(X, W)
         for k in range(done):
             step = int(steps[k])
             rng = np.random.default_rng([state.seed, step])
             if gaps[k] > 0:
-                W = np.exp(logW)
                 pieces = max(1, math.ceil(float(gaps[k]) / model.dt - 1e-9))  # Euler steps of at most dt
                 for _ in range(pieces):
                     X = self._kolmogorov(X, W, float(gaps[k]) / pieces, rng)
@@ -476,6 +479,7 @@ class YauNiuFilter(ChunkedFilter):
             elif seen:
                 gain, offsets, factors = self._update_blocks(k, logW, hX[None], blocks, gaps)
             if gain is None:
+                logW = predicted  # (the compiled update leaves its partial work in logW)
                 reason, done = _zero_likelihood(step), k
                 break
             if singles is not None and blocks is None and ((obs.gating and over) or factors):
@@ -496,7 +500,8 @@ class YauNiuFilter(ChunkedFilter):
                 pll[k] = gain
                 if not gated[k]:
                     ll_inc[k] = gain - offsets
-            mean, cov = self._moments(X, np.exp(logW))
+            W = np.exp(logW)
+            mean, cov = self._moments(X, W)
             mean_out[k], cov_out[k] = mean, cov
         if done < K:
             mean_out[done:], cov_out[done:] = mean, cov

@@ -59,3 +59,45 @@ def test_the_warm_up_is_off_with_the_numpy_kernel(monkeypatch):
 
     monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
     assert warm_kernels() is None
+
+
+NIU_PROBE = """
+import json
+import numpy as np
+from yauyau.solver import compile_model
+from yauyau.solver.methods import make_filter
+from yauyau.solver.qmc import kernels
+from yauyau.solver.spec import spec_from_dict
+from yauyau.solver.warm import warm_kernels
+
+n = 12
+doc = {"name": "sensors", "state": [f"x{i}" for i in range(n)], "drift": [f"-0.5*x{i}" for i in range(n)],
+       "observation": [f"x{i}**3" for i in range(n)], "observation_noise": np.eye(n).tolist(),
+       "method": "yau-niu", "initial": {"kind": "gaussian", "mean": [0.5] * n, "cov": np.eye(n).tolist()},
+       "discretization": {"dt": 0.01, "points": 256}}
+warm_kernels()
+loops = ("kolmogorov", "log_factors", "normalise", "moments")
+count = lambda: sum(len(getattr(kernels, f).signatures) for f in loops)
+warmed = count()
+rows = np.random.default_rng(0).normal(size=(5, n)) * 0.1
+rows[1, 3] = np.nan
+rows[2] = np.nan
+for measurement in ({"kind": "continuous"}, {"kind": "discrete"},
+                    {"kind": "discrete", "likelihood": "student-t", "dof": 5}):
+    flt = make_filter(compile_model(spec_from_dict({**doc, "measurement": measurement})), None, "yau-niu")
+    state, _ = flt.run_arrays(flt.initial_state(), rows)
+    flt.run_arrays(state, rows, state.t + np.array([0.01, 0.035, 0.04, 0.06, 0.07]))
+print(json.dumps({"warmed": warmed, "after": count()}))
+"""
+
+
+@pytest.mark.slow  # a fresh cache: every kernel compiled (~70 s on a loaded machine)
+def test_no_yau_niu_chunk_compiles_after_the_warm_up(tmp_path):
+    """The same for the Yau–Niu row of independent sensors (solver/qmc/kernels.py), 12 states."""
+    env = dict(os.environ, YAUYAU_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("YAUYAU_KERNEL", None)
+    done = subprocess.run([sys.executable, "-c", NIU_PROBE], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["warmed"] >= 4 and out["after"] == out["warmed"], out

@@ -1,0 +1,137 @@
+"""The Yau–Niu filter's row for independent one-coordinate blocks, compiled by numba (solver/qmc/blocks.py).
+
+Each kernel does for all B blocks what :class:`~solver.qmc.blocks.SingleBlocks`'s numpy path does with
+about thirty whole-array passes: the Kolmogorov step with its moment matching (:func:`kolmogorov`), the
+observation factors shifted by each block's maximum (:func:`log_factors`), the normalisation and
+coverage (:func:`normalise`) and the moments (:func:`moments`).  Arrays are (B, N), one contiguous row
+per block, so that one block's passes stay in the cache.  The exponential between the second and third
+is numpy's (its SIMD exp is ~8× a scalar loop's here).  Results agree with the numpy path to rounding
+(tests/solver/qmc/test_singles_kernels.py).  Importing this module imports numba.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..jit import writable_cache_dir
+
+CACHE_DIR = writable_cache_dir()
+_previous_cache_dir = numba.config.CACHE_DIR
+if CACHE_DIR is not None:
+    numba.config.CACHE_DIR = str(CACHE_DIR)
+kernel = numba.njit(cache=CACHE_DIR is not None, nogil=True, error_model="numpy")
+
+CONTINUOUS, GAUSSIAN, STUDENT = 0, 1, 2  # the measurement's kind (solver/measurement.py)
+
+
+@kernel
+def kolmogorov(XT, FT, W, Q, perm, offset, sd, var_add, tau):
+    """The Euler kernel N(x + f(x)τ, aτ) of every block b on the row XT[b] (moved in place), the noise of
+    point i being Q[(perm[i] + offset[b]) mod N] × sd[b], then each block mapped affinely onto the
+    kernel's mean Σ w (x + fτ) and variance Var_w(x + fτ) + var_add[b] under its weights W[b]
+    (SingleBlocks.kolmogorov)."""
+    B, N = XT.shape
+    for b in range(B):
+        x, f, w = XT[b], FT[b], W[b]
+        mean = 0.0
+        for i in range(N):
+            d = x[i] + f[i] * tau
+            x[i] = d
+            mean += w[i] * d
+        var = 0.0
+        for i in range(N):
+            e = x[i] - mean
+            var += w[i] * (e * e)
+        var += var_add[b]
+        here = 0.0
+        s, k = sd[b], offset[b]
+        for i in range(N):
+            j = perm[i] + k
+            if j >= N:
+                j -= N
+            x[i] += s * Q[j]
+            here += w[i] * x[i]
+        spread = 0.0
+        for i in range(N):
+            e = x[i] - here
+            spread += w[i] * (e * e)
+        ratio = math.sqrt(var / spread) if spread > 1e-300 else 1.0  # match_moments' rule: only shifted
+        for i in range(N):
+            x[i] = (x[i] - here) * ratio + mean
+
+
+@kernel
+def log_factors(logW, HT, comp, scale, y, observed, kind, tau, constant, quadratic, dof, top):
+    """logW[b] += log e(h) − top[b] in place for each observed block b, top[b] the maximum of logW[b] +
+    log e(h) (not finite: a NaN, or −inf at every point — the caller's zero likelihood, logW[b] then
+    left unshifted); h its sensor's values HT[comp[b]] scaled by scale[b] and the unit-noise measurement
+    on y[b]: ``kind`` CONTINUOUS y h − ½h²τ, GAUSSIAN y h − ½h² + constant, STUDENT −½(ν + 1)
+    log(1 + max(q − 2yh + h², 0)/ν) + constant (solver/measurement.py log_factors)."""
+    B, N = logW.shape
+    for b in range(B):
+        if not observed[b]:
+            continue
+        h, lw = HT[comp[b]], logW[b]
+        s, yb, c = scale[b], y[b], constant[b]
+        best, nan = -np.inf, False
+        for i in range(N):
+            hs = h[i] * s
+            if kind == CONTINUOUS:
+                v = yb * hs - 0.5 * hs * hs * tau
+            elif kind == GAUSSIAN:
+                v = yb * hs - 0.5 * hs * hs + c
+            else:
+                q = max(quadratic[b] - 2.0 * yb * hs + hs * hs, 0.0) / dof
+                v = -0.5 * (dof + 1.0) * math.log1p(q) + c
+            v += lw[i]
+            lw[i] = v
+            if v > best:
+                best = v
+            elif v != v:
+                nan = True
+        top[b] = np.nan if nan else best
+        if -np.inf < best < np.inf and not nan:
+            for i in range(N):
+                lw[i] -= best
+
+
+@kernel
+def normalise(E, observed, logW, sums, coverage):
+    """For each observed block, from E[b] = exp(logW[b]) (logW shifted by its maximum): logW[b] −=
+    log Σ E, sums[b] = Σ E and the coverage (Σ E)²/Σ E² (1/Σ w²)."""
+    B, N = E.shape
+    for b in range(B):
+        if not observed[b]:
+            continue
+        e, lw = E[b], logW[b]
+        s, s2 = 0.0, 0.0
+        for i in range(N):
+            s += e[i]
+            s2 += e[i] * e[i]
+        log_s = math.log(s)
+        for i in range(N):
+            lw[i] -= log_s
+        sums[b] = s
+        coverage[b] = s * s / s2
+
+
+@kernel
+def moments(XT, W, mean, var):
+    """The weighted mean and variance of each block's coordinate XT[b] under its weights W[b]."""
+    B, N = XT.shape
+    for b in range(B):
+        w, x = W[b], XT[b]
+        m = 0.0
+        for i in range(N):
+            m += w[i] * x[i]
+        v = 0.0
+        for i in range(N):
+            d = x[i] - m
+            v += w[i] * (d * d)
+        mean[b], var[b] = m, v
+
+
+numba.config.CACHE_DIR = _previous_cache_dir
