@@ -102,6 +102,7 @@ if TYPE_CHECKING:
     from numpy.typing import ArrayLike
 
 DEFAULT_POINTS = 8192  # measured: see default_points
+SINGLE_POINTS = 4096  # the same, for independent one-coordinate blocks
 RESTART = 0.5  # restart when 1/Σw² < RESTART·N
 TEMPER = 0.05  # an update leaving 1/Σw² < TEMPER·N is redone in powers (progressive correction)
 MAX_TEMPER_STAGES = 20
@@ -110,11 +111,13 @@ WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noi
 STATE_NUMBER_BYTES = 56  # a state number as JSON: a Python float and its list slot (32), its text (~24)
 
 
-def default_points(n: int) -> int:
-    """The default point budget, 8192 for every dimension (measured on the linear 4-D model: rms mean
-    gap to Kalman 0.028 at 4096, 0.009 at 8192, 0.007 at 16384, at 5, 6 and 11 ms a row; blocks of
-    one coordinate need fewer, but a coupled block does not know it is small)."""
-    return DEFAULT_POINTS
+def default_points(n: int, singles: bool = False) -> int:
+    """The default point budget: 8192 for every dimension (measured on the linear 4-D model: rms mean
+    gap to Kalman 0.028 at 4096, 0.009 at 8192, 0.007 at 16384, at 5, 6 and 11 ms a row), SINGLE_POINTS
+    where every block is one coordinate (independent sensors, each block a 1-D filter on its own
+    lattice noise: ten cubic sensors 0.0107 from their exact filters at 4096 points, 0.0119 at 8192;
+    bench/results/yau-niu.md), which keeps 100 of them in real time at dt = 0.01 (9.1 ms a row)."""
+    return SINGLE_POINTS if singles else DEFAULT_POINTS
 
 
 def memory_needed(points: int, n: int, m: int, blocks: int | None = None) -> int:
@@ -145,7 +148,8 @@ def check_points(points: Any, n: int, m: int, blocks: int | None = None, limit: 
                        f"{points} points in {n} dimensions would need about {need / 2**30:.1f} GiB of "
                        f"memory ({memory_needed(1, n, m, blocks)} bytes a point), over the "
                        f"{limit / 2**30:.1f} GiB this machine has; set discretization.points to at most "
-                       f"{fits} (the default, left out, is {DEFAULT_POINTS})")
+                       f"{fits} (the default, left out, is {DEFAULT_POINTS}; {SINGLE_POINTS} where every "
+                       "block is one coordinate)")
     return points
 
 
@@ -176,9 +180,7 @@ class YauNiuFilter(ChunkedFilter):
                  blocks: bool = True):
         if points is None:
             points = model.spec.discretization.points
-        points = default_points(model.n) if points is None else points
         self.blocks = independent_blocks(model) if blocks else [np.arange(model.n)]
-        self.points = check_points(points, model.n, model.m, len(self.blocks))
         if not (0.0 < restart <= 1.0):
             raise SpecError("restart", "must be in (0, 1]: the share of the points the effective coverage "
                                        "may fall to before a restart")
@@ -207,8 +209,10 @@ class YauNiuFilter(ChunkedFilter):
                                                           R=np.asarray(model.R, float)[np.ix_(c, c)]))
                               for c in self._components]
         # every block one coordinate with at most one sensor (independent sensors): one vectorised row
-        self._singles = (SingleBlocks(model, self.blocks, self._components)
-                         if SingleBlocks.applies(self.blocks, self._components) else None)
+        singles = SingleBlocks.applies(self.blocks, self._components)
+        points = default_points(model.n, singles) if points is None else points
+        self.points = check_points(points, model.n, model.m, len(self.blocks))
+        self._singles = SingleBlocks(model, self.blocks, self._components) if singles else None
 
     def marginal(self, state: YauNiuState, variable: int, grid: np.ndarray,
                  resolution: int = 0) -> np.ndarray:
