@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
@@ -109,6 +110,8 @@ MAX_TEMPER_STAGES = 20
 MAX_BLOCK_COMPONENTS = 62  # observation components per block (Observation's pattern keys are int64 bits)
 WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ...
 STATE_NUMBER_BYTES = 56  # a state number as JSON: a Python float and its list slot (32), its text (~24)
+NUMBA_START_SECONDS = 1.3  # numba's import and the load of its cached kernels, CPU (solver/jit.py)
+COMPILED_SAVING_SECONDS = 30e-9  # what the compiled row of one-coordinate blocks saves a point-coordinate
 
 
 def default_points(n: int, singles: bool = False) -> int:
@@ -213,6 +216,17 @@ class YauNiuFilter(ChunkedFilter):
         points = default_points(model.n, singles) if points is None else points
         self.points = check_points(points, model.n, model.m, len(self.blocks))
         self._singles = SingleBlocks(model, self.blocks, self._components) if singles else None
+
+    @property
+    def compiled_min_rows(self) -> int:
+        """A one-shot command's break-even (solver/jit.py ``choose_for_rows``): numba's start-up against
+        what the compiled row of one-coordinate blocks saves, ~30 ns a point-coordinate (28 at 10 states,
+        49 at 100: bench/results/yau-niu-speed.md), so 106 rows for 100 sensors at 4096 points; never
+        for coupled blocks, whose row has no compiled part."""
+        if self._singles is None:
+            return sys.maxsize
+        saving = COMPILED_SAVING_SECONDS * self.points * self.model.n
+        return max(1, math.ceil(NUMBA_START_SECONDS / saving))
 
     def marginal(self, state: YauNiuState, variable: int, grid: np.ndarray,
                  resolution: int = 0) -> np.ndarray:

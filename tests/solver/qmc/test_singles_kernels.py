@@ -114,3 +114,24 @@ def test_lattice_noise_is_a_normal_qmc_set():
     noise = Q[(perm[:, None] + offset[None, :]) % N]
     assert not np.array_equal(noise[:, 0], noise[:, 1])
     assert np.allclose(np.sort(noise, axis=0), np.sort(Q)[:, None])
+
+
+def test_a_one_shot_command_compiles_only_where_the_rows_repay_numba(monkeypatch):
+    """The CLI's kernel choice (solver/jit.py choose_for_rows with the filter's ``compiled_min_rows``):
+    100 sensors at 4096 points repay numba's start-up within ~100 rows, 10 within ~1000; a coupled
+    block, whose row has nothing compiled, never takes numba."""
+    from yauyau.solver import jit
+
+    monkeypatch.delenv("YAUYAU_KERNEL", raising=False)
+    hundred, ten = YauNiuFilter(sensors(100, 4096)), YauNiuFilter(sensors(10, 4096))
+    assert 50 <= hundred.compiled_min_rows <= 200 and 500 <= ten.compiled_min_rows <= 2000
+    with jit.one_shot():
+        assert jit.choose_for_rows(300, hundred.compiled_min_rows) == "compiled"
+    with jit.one_shot():
+        assert jit.choose_for_rows(300, ten.compiled_min_rows) == "numpy"
+    doc = {"name": "ring", "state": ["a", "b"], "drift": ["-a + 0.5*tanh(b)", "-b"], "observation": ["a**3"],
+           "method": "yau-niu", "discretization": {"dt": DT, "points": 256},
+           "initial": {"kind": "gaussian", "mean": [0.0, 0.0], "cov": np.eye(2).tolist()}}
+    coupled = YauNiuFilter(compile_model(spec_from_dict(doc)))
+    with jit.one_shot():
+        assert jit.choose_for_rows(10**9, coupled.compiled_min_rows) == "numpy"
