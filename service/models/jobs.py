@@ -69,7 +69,7 @@ def _check_point_budget(spec: Any) -> None:
     """A yau-niu point budget whose arrays would not fit in this machine's memory: PrecomputeLimit
     naming ``spec.discretization.points``, the memory it needs and the limit (before any work)."""
     from yauyau.solver.errors import TooLarge
-    from yauyau.solver.qmc.yau_niu import check_points
+    from yauyau.solver.qmc.budget import check_points
     from yauyau.solver.registry import AUTO, QMC_ONLY
 
     points = spec.discretization.points

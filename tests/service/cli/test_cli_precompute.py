@@ -133,7 +133,7 @@ def test_a_point_budget_beyond_memory_exits_2_naming_it(tmp_path: Path):
     """10^12 yau-niu points in 4-D (over 300 TB): exit 2 before any allocation, one line naming
     discretization.points, the memory it would need, this machine's and the budget that fits; that
     budget itself is accepted."""
-    from yauyau.solver.qmc.yau_niu import memory_limit, memory_needed
+    from yauyau.solver.qmc.budget import memory_limit, memory_needed
 
     spec_path, store = tmp_path / "big.toml", tmp_path / "store"
     spec_path.write_text(NIU_4D.replace("POINTS", str(10**12)))

@@ -99,7 +99,7 @@ def test_oversize_or_invalid_specs_are_refused_before_any_work(api, change, stat
 def test_a_point_budget_beyond_memory_is_413_naming_need_limit_and_fix(api):
     """yau-niu's arrays for 10^13 points would not fit (about 2 PB against this machine's memory):
     413 problem+json naming the field, both sizes and the largest budget that fits, before any job."""
-    from yauyau.solver.qmc.yau_niu import memory_limit, memory_needed
+    from yauyau.solver.qmc.budget import memory_limit, memory_needed
 
     spec = {**SPEC, "method": "yau-niu", "discretization": {"dt": 0.01, "basis": 48, "points": 10**13}}
     r = api.post("/v1/models", json={"spec": spec})

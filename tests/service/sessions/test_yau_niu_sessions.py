@@ -25,7 +25,7 @@ from yauyau.service.sessions.manager import ChunkRequest
 from yauyau.service.settings import Settings
 from yauyau.solver.measurement import standard_score
 from yauyau.solver.model import compile_model
-from yauyau.solver.qmc.yau_niu import DEFAULT_POINTS
+from yauyau.solver.qmc.budget import DEFAULT_POINTS
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import spec_from_dict
 
@@ -245,12 +245,13 @@ def test_a_session_whose_points_would_not_fit_here_is_413(tmp_path, monkeypatch)
     """A model stored where memory sufficed (10^6 points: about 0.8 GB a row), served on a machine of
     100 MB (memory_limit patched): POST /v1/sessions is 413 problem+json naming discretization.points,
     before any point is drawn."""
+    import yauyau.solver.qmc.budget as budget
     import yauyau.solver.qmc.yau_niu as yau_niu
 
     doc = _spec("niu-4d-big")
     doc["discretization"] = {"dt": 0.01, "points": 10**6}
     mid = yauyau.precompute(spec_from_dict(doc), tmp_path / "store")
-    monkeypatch.setattr(yau_niu, "memory_limit", lambda: 100 * 2**20)
+    monkeypatch.setattr(budget, "memory_limit", lambda: 100 * 2**20)
     monkeypatch.setattr(yau_niu, "qmc_normals", lambda *a: pytest.fail("points drawn"))
     app = create_app(Settings(store=tmp_path / "store", session_db=tmp_path / "s.sqlite3"))
     with TestClient(app, raise_server_exceptions=False) as client:
