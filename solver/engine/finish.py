@@ -211,7 +211,9 @@ def new_state(engine: Any, state: YauYauState, out: Outcome, ready: Prepared,
     masses = out.masses[:done]
     increments_ll = np.log(masses) + ready.top[:done]
     # sequential sums from the carried value: identical however the data are chunked
-    loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+    running = np.empty(done + 1)
+    running[0], running[1:] = state.loglik, increments_ll
+    loglik = np.cumsum(running)[1:]
     predictive = np.full(K, np.nan)
     predictive[:done] = out.pll[:done] + ready.terms.offset[:done]
     predictive[out.missing] = np.nan
