@@ -8,7 +8,7 @@ of 100, and ``run_batch`` of 64 states with a 100-row chunk each (the service's 
 thread.  Each round runs each revision in a fresh process (the earlier one from a temporary
 ``git worktree``), alternating; the table gives the medians over rounds.  The difference between the
 chunk sizes is the fixed cost of a chunk (the Python around the compiled rows).  Prints the table; it
-writes no fragment (the figures go to the analysis of bench/results/compiled.md by hand).
+writes no fragment.
 """
 
 from __future__ import annotations
