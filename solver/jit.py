@@ -71,7 +71,7 @@ def choose_for_rows(rows: int, min_rows: int = COMPILED_MIN_ROWS) -> str:
 
 
 def _numba_installed() -> bool:
-    return importlib.util.find_spec("numba") is not None
+    return "numba" in sys.modules or importlib.util.find_spec("numba") is not None  # imported: no search
 
 
 def cache_dir() -> Path:

@@ -174,7 +174,6 @@ class Observation:
         groups = self.groups(keys)
         with np.errstate(over="ignore", invalid="ignore"):  # a row of 1e307: inf, the gate's business
             self._fill_terms(rows, taus, groups, offset, log_det_S0, threshold, constant, quadratic)
-        with np.errstate(over="ignore"):
             kappa2 = taus * taus if not self.discrete else np.ones(K)
         return RowTerms(offset=offset, log_det_S0=log_det_S0, kappa2=kappa2, threshold=threshold,
                         constant=constant, quadratic=quadratic, groups=groups)

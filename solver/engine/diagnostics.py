@@ -90,20 +90,22 @@ class Diagnostics:
             leak = self.leak_from(sums[:, 0], sums[:, 1], -sums[:, 3], masses)
         leaking = leak > self.leak_limit
         variances = np.diagonal(cov, axis1=1, axis2=2)
-        unresolved = ~np.all(np.isfinite(cov.reshape(len(cov), -1)) & np.isfinite(masses)[:, None], axis=1)
-        unresolved |= np.any(variances <= 0.0, axis=1)
-        rim = np.zeros(len(masses), dtype=bool)
+        unresolved = ~(np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(masses))
+        unresolved |= (variances <= 0.0).any(axis=1)
+        flagged = leaking | unresolved  # one mask, one test: the usual chunk has no flag at all
+        rim = growing = np.zeros(len(masses), dtype=bool)
         if self._rim.size and sums is not None:
             rim = sums[:, 2] > RIM_FRACTION * masses
         elif self._rim.size:
             rim = (sigma[:, self._rim] * self.weights[self._rim]).sum(axis=1) > RIM_FRACTION * masses
+        flagged |= rim
         # growth: ∫σ_k for a unit-mass σ_{k-1}, the update factor divided by its maximum (None: unchecked)
-        growing = np.zeros(len(masses), dtype=bool)
         if growth is not None:
             growing = ~(growth <= 1.0 + MASS_GROWTH_LIMIT)
-        if not (rim.any() or unresolved.any() or leaking.any() or growing.any()):
+            flagged |= growing
+        if not flagged.any():
             return None, None
-        bad = int(np.argmax(rim | unresolved | leaking | growing))
+        bad = int(np.argmax(flagged))
         if growing[bad]:
             # ∫σ_k for σ_{k-1} of mass 1 is ∫ e^{log e_k − max log e_k} e^{dt L}σ_{k-1} ≤ 1:
             # more means the propagator creates mass, and the log-likelihood gains more than the

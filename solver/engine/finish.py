@@ -113,6 +113,7 @@ def finish(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray,
     if out.sigma is None or jit.enabled():  # compiled: the sums of the fused rows, whether fused or not
         sums = summary if out.sigma is None else summarise(engine, out.sigma[:out.done])
         assert sums is not None
+        out.summary = sums  # the checks read its sums too, as a fused chunk's do
         done = out.done
         out.mean, out.cov, out.mode = moments_from(sums.moments[:done], out.masses[:done], sums.mode[:done],
                                                    moment_pairs(engine.nodes.shape[1]), engine.nodes,
@@ -181,14 +182,16 @@ def check_plausible(engine: Any, state: YauYauState, out: Outcome, ready: Prepar
     done, top, top_before = out.done, ready.top, ready.top_before
     with np.errstate(over="ignore", invalid="ignore"):
         growth = out.masses[:done] * np.exp(top[:done] - top_before[:done])
+    # compiled, fused or not: the checks' sums the kernel left (no second pass over σ); else from σ
+    checks = None if out.summary is None else out.summary.checks[:done]
     if out.sigma is None:
-        assert out.summary is not None
-        bad, why = engine.diagnostics.first_implausible(None, out.masses[:done], out.cov, growth,
-                                                        out.summary.checks[:done])
+        assert checks is not None
+        bad, why = engine.diagnostics.first_implausible(None, out.masses[:done], out.cov, growth, checks)
         if bad is not None or out.reason is not None:
             raise Recompute(why)
     else:
-        bad, why = engine.diagnostics.first_implausible(out.sigma[:done], out.masses[:done], out.cov, growth)
+        bad, why = engine.diagnostics.first_implausible(out.sigma[:done], out.masses[:done], out.cov, growth,
+                                                        checks)
     if bad is None:
         if out.reason is not None:  # the hot loop stopped at step `done` (no positive mass, overflow)
             out.reason = engine.explained(out.sigma, state, out.rows, out.steps, out.skip, done, out.reason,
@@ -208,7 +211,9 @@ def new_state(engine: Any, state: YauYauState, out: Outcome, ready: Prepared,
     masses = out.masses[:done]
     increments_ll = np.log(masses) + ready.top[:done]
     # sequential sums from the carried value: identical however the data are chunked
-    loglik = np.cumsum(np.concatenate([[state.loglik], increments_ll]))[1:]
+    running = np.empty(done + 1)
+    running[0], running[1:] = state.loglik, increments_ll
+    loglik = np.cumsum(running)[1:]
     predictive = np.full(K, np.nan)
     predictive[:done] = out.pll[:done] + ready.terms.offset[:done]
     predictive[out.missing] = np.nan

@@ -28,6 +28,8 @@ explanation and the state there need σ).
 
 from __future__ import annotations
 
+import weakref
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -58,22 +60,19 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
     from . import compiled  # numba: imported on the first chunk
     obs, K, N, dtype = engine.observation, len(rows), engine.N, engine.arith.dtype
     gaps = np.full(K, engine.model.dt) if taus is None else taus
-    keys = obs.pattern_keys(~np.isnan(rows))
+    keys = np.full(K, (1 << rows.shape[1]) - 1, dtype=np.int64)  # every component observed (fusable)
     terms = obs.row_terms(rows, gaps, keys)
-    key = int(keys[0])
-    hR, half = engine.update_terms(key)
-    exponent_terms = np.ascontiguousarray(np.vstack([hR, half[None]]), dtype=float)
-    y = np.ascontiguousarray(rows[:, obs.pattern(key).index], dtype=float)
+    fixed = _fixed(engine, int(keys[0]))
+    y = np.ascontiguousarray(rows[:, fixed.index], dtype=float)
     missing = np.zeros(K, dtype=bool)
     gate = Gate(obs, terms, keys, gaps, engine, None) if obs.gating and gating else None
     floor_exponents = (np.full(K, -np.inf) if gate is None else
                        np.ascontiguousarray(gate.floor_exponents(missing), dtype=float))
     initial = np.append(state.coefficients, state.mass).astype(dtype)
     carried, following = initial.copy(), np.empty_like(initial)
-    real, pairs = np.empty(0), np.empty(0, dtype=complex)
-    triangular = _no_schur(dtype)
+    real, pairs, triangular = fixed.real, fixed.pairs, fixed.no_schur
     if taus is None:
-        P, projection = engine.observation_propagator, engine.projection
+        P, projection = fixed.propagator, fixed.projection
     else:
         flow = engine.flow
         carried[:N] = flow.to_modal(carried[:N].astype(float))
@@ -83,17 +82,16 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
             pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
         else:
             triangular = _schur_arguments(flow.powers, taus, N, dtype)
-    summary = summary_rows(engine)
+    summary = fixed.summary
     sums = np.empty((K, summary.shape[0]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
     constants = np.ascontiguousarray(terms.constant, dtype=float) if obs.discrete else np.zeros(K)
-    weights = np.ascontiguousarray(engine.weights, dtype=float)
     done = compiled.run_fused(0, K, np.asfortranarray(P), np.asfortranarray(projection), carried, following,
-                              carried.item(N), exponent_terms, y, np.ascontiguousarray(gaps, dtype=float),
-                              constants, bool(obs.discrete), np.array([engine.arith.negligible], dtype=dtype),
-                              floor_exponents, summary, weights, sums, negative, mode, top, masses,
-                              engine.arith.tiny, engine.arith.huge, taus is not None and not triangular[0],
-                              real, pairs, *triangular)
+                              carried.item(N), fixed.exponent_terms, y,
+                              np.ascontiguousarray(gaps, dtype=float), constants, bool(obs.discrete),
+                              fixed.negligible, floor_exponents, summary, fixed.weights, sums, negative, mode,
+                              top, masses, engine.arith.tiny, engine.arith.huge,
+                              taus is not None and not triangular[0], real, pairs, *triangular)
     if done < K:
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
@@ -101,12 +99,52 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
     features = summary.shape[0] - 3
     ready = Prepared(gaps, keys, terms, np.empty((K, 0)), top, top.copy(), missing.copy(), missing,
                      missing.copy(), gate, initial)
-    result = Summary(sums[:, :features], np.column_stack([sums[:, features:], negative]), mode)
+    checks = np.empty((K, 4))
+    checks[:, :3], checks[:, 3] = sums[:, features:], negative
+    result = Summary(sums[:, :features], checks, mode)
     try:
         return engine.finish(state, rows, steps, times, taus, ready, None, masses, carried.copy(), K, None,
                              summary=result)
     except Recompute:
         return None
+
+
+@dataclass(frozen=True, eq=False)
+class _Fixed:
+    """What every fused chunk of one engine and pattern of observed components passes unchanged (made
+    once: the arrays are only read)."""
+
+    index: np.ndarray  # the observed components
+    exponent_terms: np.ndarray  # [h_o R_oo⁻¹; ½h_oᵀR_oo⁻¹h_o] (|o| + 1, Q)
+    propagator: np.ndarray  # Fortran order, the matrices' precision
+    projection: np.ndarray
+    summary: np.ndarray  # finish.py summary_rows
+    weights: np.ndarray
+    negligible: np.ndarray  # (1,) in the matrices' precision
+    real: np.ndarray  # placeholders of the modal flow's rates (regular rows)
+    pairs: np.ndarray
+    no_schur: tuple  # :func:`_no_schur`
+
+
+_FIXED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # engine -> {pattern key: _Fixed}
+
+
+def _fixed(engine: Any, key: int) -> _Fixed:
+    """:class:`_Fixed` of ``engine`` for the pattern ``key``, cached per engine object (a translated or
+    framed copy is another object, with its own)."""
+    found = _FIXED.setdefault(engine, {}).get(key)
+    if found is None:
+        dtype = engine.arith.dtype
+        hR, half = engine.update_terms(key)
+        found = _Fixed(index=engine.observation.pattern(key).index,
+                       exponent_terms=np.ascontiguousarray(np.vstack([hR, half[None]]), dtype=float),
+                       propagator=np.asfortranarray(engine.observation_propagator),
+                       projection=np.asfortranarray(engine.projection), summary=summary_rows(engine),
+                       weights=np.ascontiguousarray(engine.weights, dtype=float),
+                       negligible=np.array([engine.arith.negligible], dtype=dtype), real=np.empty(0),
+                       pairs=np.empty(0, dtype=complex), no_schur=_no_schur(dtype))
+        _FIXED[engine][key] = found
+    return found
 
 
 def _schur_arguments(powers: Any, taus: np.ndarray, N: int, dtype: Any) -> tuple:

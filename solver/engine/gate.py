@@ -9,6 +9,7 @@ A gated row only predicts.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -48,10 +49,18 @@ class Gate:
         self.obs, self.keys, self.gaps, self.engine = obs, keys, gaps, engine
         self.shifts = shifts  # (K, n) in a moving frame: h at each row's moved nodes
         self.terms = terms
-        self.bias = terms.bound_bias().tolist()
-        self.threshold = terms.threshold.tolist()
         self.scores: dict[int, float] = {}  # gated row -> d²
         self.attempted: dict[int, float] = {}  # gated row -> log E_pred[e] of the rejected update
+
+    @cached_property
+    def bias(self) -> list[float]:
+        """Per row, the bound's bias (the slow steps read it; a fused chunk never does)."""
+        return self.terms.bound_bias().tolist()
+
+    @cached_property
+    def threshold(self) -> list[float]:
+        """Per row, the d² threshold (inf: not gated)."""
+        return self.terms.threshold.tolist()
 
     def size(self, k: int) -> int:
         return int(self.keys[k]).bit_count()
@@ -64,7 +73,8 @@ class Gate:
         with np.errstate(invalid="ignore"):
             exponent = 0.5 * (self.terms.bound_bias()[part] - threshold)
         exponent[np.asarray(missing) | ~np.isfinite(threshold)] = -np.inf
-        return np.nan_to_num(exponent, nan=np.inf, posinf=np.inf, neginf=-np.inf)
+        exponent[np.isnan(exponent)] = np.inf
+        return exponent
 
     def floors(self, top: np.ndarray, missing: np.ndarray, start: int = 0) -> list[float]:
         """Per row, the ∫σ below which the cheap bound is over the threshold: exp((bias − threshold)/2
