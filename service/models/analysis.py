@@ -12,6 +12,7 @@ Retry-After.  The chunk path never waits on an analysis.
 
 from __future__ import annotations
 
+import gc
 import threading
 
 from yauyau.solver.analysis.isolated import AnalysisBusy, AnalysisRunner
@@ -31,6 +32,9 @@ def warm_analysis(app) -> threading.Thread:
     def warm() -> None:
         analysis_runner(app).warm()
         warm_kernels()  # the engine's compiled row loops: numba's import and cache, not in a chunk
+        # numba's modules and the compiled loops live as long as the process: out of the cyclic
+        # collector's scans like the start-up's (app.py), which froze before they were imported
+        gc.freeze()
 
     thread = threading.Thread(target=warm, name="warm-up", daemon=True)
     thread.start()
