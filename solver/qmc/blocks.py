@@ -20,7 +20,8 @@ the row is one array operation over all blocks at once (arrays (N, B) or (B, N))
 
 The noise of the Kolmogorov step is each block's own 1-D QMC set (``cloud.lattice_normals``: a randomly
 shifted lattice, in a random order per block and row) instead of a row of an n-dimensional Sobol set:
-the blocks' filters are separate, so only each coordinate's own set matters, and the lattice has the
+the blocks' filters are separate, so only each coordinate's own set matters (their restarts draw from
+the lattice too: over 6 paths × 2 seeds of ten sensors as close as from Sobol), and the lattice has the
 least discrepancy there at the cost of N inverse-CDF values (a 100-D Sobol set with its scrambling and
 N·n values was 12 ms of a 44 ms row).  With the compiled kernels on (``YAUYAU_KERNEL``, solver/jit.py)
 the row runs in the kernels of solver/qmc/kernels.py on the points in Fortran order (each coordinate

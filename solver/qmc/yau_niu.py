@@ -264,7 +264,7 @@ class YauNiuFilter(ChunkedFilter):
         shrink = math.sqrt(1.0 - h * h)
         Y = shrink * X[picks] + (1.0 - shrink) * mean
         if h > 0:
-            Y = Y + h * (qmc_normals(N, d, rng) @ symmetric_root(cov))
+            Y = Y + h * (qmc_normals(N, d, rng, lattice=self._singles is not None) @ symmetric_root(cov))
         return match_moments(Y, np.full(N, 1.0 / N), mean, cov)
 
     def _gate_score(self, k: int, gain: float, h: np.ndarray, predicted: np.ndarray, blocks,
