@@ -24,9 +24,8 @@ cover where the density lives.  σ is carried as N points x_i with log weights �
    ``restart`` × N, the points are resampled (systematic, by the weights) and spread by the
    multi-scale kernel: x ↦ √(1−h²)x + (1−√(1−h²))m + h P^{1/2} z (Liu–West shrinkage, which keeps
    the mean and covariance; h = ``bandwidth``: h = 1 is a Gaussian restart on a fresh QMC set,
-   h = 0 plain resampling, whose duplicates the next row's noise parts), then matched to the
-   posterior's mean and covariance.  A posterior that collapsed onto fewer than two points cannot be
-   restarted: the row is flagged degenerate.
+   h → 0 plain resampling), then matched to the posterior's mean and covariance.  A posterior that
+   collapsed onto fewer than two points cannot be restarted: the row is flagged degenerate.
 
 Where the coordinates split into blocks that nothing couples (drift, diffusion, sensor, noise, prior:
 :func:`independent_blocks`), the exact filter is the product of the blocks' filters, and each block
@@ -46,10 +45,7 @@ the Kalman filter (linear 4-D, 300 rows of dt = 0.01) and ten 1-D point-mass fil
 * the restart's bandwidth: a Gaussian restart (h = 1) is best for the linear model (max variance
   gap 4.7% against 7.6% at h = 0.5) and worst for the cubic sensors (rms 0.080 against 0.010 at
   Silverman's h = 0.2): ``multiscale_bandwidth`` (solver/qmc/cloud.py) picks one per restart
-  (0.0296 / 4.7% linear, 0.0087 cubic); for a non-Gaussian cloud between rows, plain resampling
-  (h = 0) then measured better than Silverman's h on the coupled 4-state ring (rms gap 0.54 against
-  0.66 × a 10⁴-particle filter's at 32 768 points, 8 seeds) and as good on the cubic sensors, so
-  Silverman's h is kept only for the restarts inside the progressive correction;
+  (0.0296 / 4.7% linear, 0.0087 cubic);
 * the restart threshold 0.5 (0.7: cubic 0.012, linear max gap 0.048; 0.9: cubic 0.024);
 * a gap longer than dt (irregular times, discrete readings) is moved in Euler steps of at most dt:
   in one step of up to 0.3, 60 readings of the linear 4-D model were 0.045 rms from Kalman (0.030 split);
@@ -256,17 +252,15 @@ class YauNiuFilter(ChunkedFilter):
             moved[:, coords] = match_moments(moved[:, coords], w, mean, cov)
         return moved
 
-    def _restart(self, X: np.ndarray, w: np.ndarray, rng: np.random.Generator,
-                 smooth: bool = False) -> np.ndarray:
+    def _restart(self, X: np.ndarray, w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Local resampling-restart (Yau–Niu) of one block's points X (N, d): systematic resampling by
-        the weights, the multi-scale (Liu–West) kernel of bandwidth h about the posterior
-        (:func:`multiscale_bandwidth`; ``smooth``: inside the progressive correction), matched to its
-        mean and covariance."""
+        the weights, the multi-scale (Liu–West) kernel of bandwidth h about the posterior, matched to
+        its mean and covariance."""
         N, d = X.shape
         mean, cov = weighted_moments(X, w)
         cdf = np.cumsum(w)
         picks = np.minimum(np.searchsorted(cdf, (rng.random() + np.arange(N)) / N * cdf[-1]), N - 1)
-        h = self.bandwidth if self.bandwidth is not None else multiscale_bandwidth(X, w, mean, cov, smooth)
+        h = self.bandwidth if self.bandwidth is not None else multiscale_bandwidth(X, w, mean, cov)
         shrink = math.sqrt(1.0 - h * h)
         Y = shrink * X[picks] + (1.0 - shrink) * mean
         if h > 0:
@@ -338,7 +332,7 @@ class YauNiuFilter(ChunkedFilter):
                 trial = logw + low * factor
                 w = np.exp(trial - log_sum_exp(trial))
                 X = X.copy(order="K")
-                X[:, coords] = self._restart(X[:, coords], w, rng, smooth=True)
+                X[:, coords] = self._restart(X[:, coords], w, rng)
                 logw, remaining, count = np.full(N, -math.log(N)), remaining - low, count + 1
                 h = self.model.h(X)[None]
                 factor = block_obs.log_factors(h[:, :, comps], part[k:k + 1], gaps[k:k + 1], keys[k:k + 1],
@@ -509,7 +503,7 @@ class YauNiuFilter(ChunkedFilter):
     def density(self, state: YauNiuState, points: np.ndarray) -> np.ndarray:
         """The product over the blocks of the multi-scale kernel estimates
         Σ_i w_i N(x_b; √(1−h²)x_ib + (1−√(1−h²))m_b, h²P_b) (h: the bandwidth, at least Silverman's
-        for N points): a smooth estimate of the density the points carry."""
+        for N points): the density the restart would sample."""
         X = np.atleast_2d(np.asarray(points, float))
         n = self.model.n
         if X.ndim != 2 or X.shape[1] != n or not np.all(np.isfinite(X)):
