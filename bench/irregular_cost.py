@@ -140,8 +140,9 @@ def render(results: dict, load: float, rows: int) -> list[str]:
              "increments; "
              "irregular: gaps 0.5–1.5 dt), CPU time, one BLAS thread, medians, compiled loops; load average "
              f"{load:.1f} on {os.cpu_count()} cores at the start.  *form*: the flow the engine picks for "
-             "irregular rows (modal: cond(V) ≤ 1e7; schur: solver/engine/powers.py); *schur forced*: that "
-             "form where the modal one would do; *expm*: the former fallback for cond(V) > 1e10, "
+             f"irregular rows (modal: cond(V) ≤ {semigroup.MAX_CONDITION:.0e} in double precision; schur: "
+             "solver/engine/powers.py); *schur forced*: that "
+             "form where the modal one would do; *expm*: the fallback before the Schur form, "
              "expm(τA) per gap (a few rows).  *error*: the flow against scipy.linalg.expm(τA) on random "
              "vectors, τ in [0.1 dt, 100 dt].  *block*: the largest block a Bavely–Stewart block "
              "diagonalisation (Sylvester solutions ≤ 1e3) leaves.", "",

@@ -224,9 +224,10 @@ def test_fused_chunks_are_the_numpy_rows(monkeypatch, _fused_chunks, name, preci
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("name", ["cubic_sensor", "two_sensors", "yau_jia_1d"])
 def test_fused_chunks_in_the_schur_form(monkeypatch, _fused_chunks, name, precision):
-    """Irregular rows of an ill-conditioned generator (yau_jia_1d's is: cond(V) ≈ 1e10; the others
-    forced there) run fused too, each row's flow e^{τT} by the Schur tables inside the row: the whole
-    chunk in one compiled loop, within RTOL of the numpy path (which applies the same tables)."""
+    """Irregular rows of an ill-conditioned generator (all forced there: yau_jia_1d's is at cond(V) ≈
+    9e9 at its default basis, under double precision's cap) run fused too, each row's flow e^{τT} by the
+    Schur tables inside the row: the whole chunk in one compiled loop, within RTOL of the numpy path
+    (which applies the same tables)."""
     model, offline = _offline(name)
     monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
     times = random_times(np.random.default_rng(5), K, model.dt)

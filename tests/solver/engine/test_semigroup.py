@@ -97,3 +97,34 @@ def test_double_well_rows_through_the_schur_form_match_the_exponential(monkeypat
         assert np.max(np.abs(a.mean - b.mean)) <= 1e-9
         assert np.max(np.abs(a.cov - b.cov)) <= 1e-9
         assert np.max(np.abs(a.loglik - b.loglik)) <= 1e-9 * max(1.0, np.max(np.abs(b.loglik)))
+
+
+def test_a_generator_between_the_caps_runs_modal_within_its_rounding(monkeypatch):
+    """The double well on basis 96 (cond(V) ≈ 5e8: above single precision's cap, under double's) takes
+    the modal form: its flow within 1e-17·cond(V) × 10 of expm(τA) (measured 3e-9), and 300 rows at
+    random gaps within 1e-7 of the expm form's means, covariances and log-likelihoods (measured 1e-11):
+    rounding far under the engine's gap to the optimal filter, at the modal form's cost."""
+    doc = dict(DOUBLE_WELL, name="double-well-96", discretization={"dt": DT, "basis": 96})
+    flow = _flow(doc)
+    assert 1e7 < flow.condition <= MAX_CONDITION and flow.form == "modal"
+    rng = np.random.default_rng(2)
+    drawn = np.exp(rng.uniform(np.log(0.1 * DT), np.log(100 * DT), 4))
+    for tau in np.concatenate([[0.1 * DT, 100 * DT], drawn]):
+        c = rng.standard_normal(flow.N)
+        truth = sla.expm(tau * flow.generator) @ c
+        assert np.linalg.norm(flow.apply(tau, c) - truth) <= 1e-16 * flow.condition * np.linalg.norm(truth)
+    model, offline = _offline(doc)
+    modal = YauYauFilter(model, offline)
+    assert modal.flow.form == "modal"  # made now (the flow is made on first use)
+    monkeypatch.setattr(powers, "MAX_TABLE_BYTES", 0)
+    monkeypatch.setattr("yauyau.solver.engine.semigroup.MAX_CONDITION", 0.0)
+    expm = YauYauFilter(model, offline)
+    assert modal.flow.form == "modal" and expm.flow.form == "expm"
+    times = random_times(rng, 300, DT)
+    _, rows = simulate_irregular(model, times, "continuous", rng)
+    _, a = modal.run_arrays(modal.initial_state(), rows, times)
+    _, b = expm.run_arrays(expm.initial_state(), rows, times)
+    assert not a.degenerate.any() and not b.degenerate.any()
+    assert np.max(np.abs(a.mean - b.mean)) <= 1e-7
+    assert np.max(np.abs(a.cov - b.cov)) <= 1e-7
+    assert np.max(np.abs(a.loglik - b.loglik)) <= 1e-7 * max(1.0, np.max(np.abs(b.loglik)))
