@@ -1,16 +1,18 @@
 """Float arrays inside a JSON state, exactly and compactly: {"dtype": "<f8", "shape": [...], "base64": ...}
 (the raw little-endian float64 bytes in base64: 10.7 bytes a number where a JSON list of floats takes
-about 20, and encoded and decoded ~3.5x faster).  The Yau–Niu state's points and log weights
+about 20, and encoded and decoded 2.7-3.7x faster).  The Yau–Niu state's points and log weights
 (solver/qmc/yau_niu.py) are stored so; :func:`unpack` also reads the list form states were stored in
 before.
 
-Chosen by measurement (/tmp script, load ~1 on 2 shared cores, one BLAS thread; medians of 7 of
-encode + orjson dumps + loads + decode, states after 57 rows): 4-D linear model at 8192 points, 40 960
-numbers — JSON list 806 774 bytes in 7.4 ms, base64 436 951 bytes in 2.0 ms, zlib (level 1) + base64
-417 275 in 13.2 ms, byte-shuffled + zlib + base64 382 783 in 9.4 ms, base85 409 639 in 57 ms; 100
-cubic sensors at 4096 points, 819 200 numbers — JSON list 15.7 MB in 185 ms, base64 8.74 MB in 54 ms,
-zlib + base64 8.11 MB in 276 ms, shuffled + zlib 7.34 MB in 197 ms.  Float64 mantissas barely compress
-(at most 16% saved, at 4-5x the CPU), so the bytes are stored as they are.
+Chosen by measurement (bench/yau_niu_state.py, bench/results/yau-niu-state.md; load 1.2-1.9 on 2
+cores, one BLAS thread; medians of 7 of encode + orjson dumps + loads + decode, states after 57 rows):
+4-D linear ring at 8192 points, 40 960 numbers: JSON lists 806 765 bytes in 7.3 ms, base64 437 026 in
+2.0 ms, zlib (level 1) + base64 417 266 in 12.9 ms, byte-shuffled + zlib + base64 382 774 in 9.3 ms;
+100 cubic sensors at 4096 points, 819 200 numbers: JSON lists 15.7 MB in 141 ms, base64 8.74 MB in
+52 ms, zlib + base64 8.11 MB in 273 ms, shuffled + zlib 7.34 MB in 194 ms (base85: 10.0 bytes a number
+but 26x base64's CPU).  Float64 mantissas barely compress (at most 16% saved, at 4-6x the CPU), so the
+bytes are stored as they are.  Over HTTP a 100-state session's chunk of one row cost the server 318 ms
+of CPU as lists, 137 ms so.
 """
 
 from __future__ import annotations
