@@ -37,6 +37,17 @@ def pack(array: np.ndarray) -> dict[str, Any]:
             "base64": base64.b64encode(data.tobytes()).decode("ascii")}
 
 
+def pack_finite(array: np.ndarray, minus_inf: bool = False) -> dict[str, Any] | list:
+    """:func:`pack`, or the JSON list when the array holds NaN or infinity (-inf allowed where
+    ``minus_inf``): the session store refuses a state of non-finite numbers before writing it, as it
+    did when the state was lists, where base64 would hide them until the next read."""
+    if minus_inf:
+        bad = bool(np.isnan(array).any() or np.isposinf(array).any())
+    else:
+        bad = not bool(np.isfinite(array).all())
+    return array.tolist() if bad else pack(array)
+
+
 def unpack(value: Any, field: str, shape: tuple[int | None, ...]) -> np.ndarray:
     """The float array :func:`pack` wrote (or a JSON list of numbers, the older form) of ``shape``
     (None: any length), as a new writable float64 array; InputError(``field``) when the value is

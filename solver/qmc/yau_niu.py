@@ -57,10 +57,11 @@ the Kalman filter (linear 4-D, 300 rows of dt = 0.01) and ten 1-D point-mass fil
 
 The state is the points and log weights: N(n + B) numbers (B blocks).  ``to_dict`` writes each array
 as {"dtype": "<f8", "shape": [...], "base64": ...}, the base64 of its float64 bytes (solver/qmc/packed.py,
-chosen by measurement there; ``state_from_dict`` still reads the lists of numbers states were stored
-in before): 10.7 bytes a number, 437 257 bytes at the default N = 8192 for the 4-D linear model (one
-block; 813 049 as lists; tests/service/sessions/test_yau_niu_sessions.py), 8.7 MB for 100 states at
-4096 points (15.7 MB), rewritten with every chunk.  The per-row noise comes from a generator seeded by
+chosen by measurement there; an array of NaN or infinity stays a list, which the session store refuses;
+``state_from_dict`` still reads the lists states were stored in before): 10.7 bytes a number,
+437 257 bytes at the default N = 8192 for the 4-D linear model (one block; 813 049 as lists;
+tests/service/sessions/test_yau_niu_sessions.py), 8.7 MB for 100 states at 4096 points (15.7 MB),
+rewritten with every chunk.  The per-row noise comes from a generator seeded by
 (seed, step), so a chunked run is bit-identical to one run.
 """
 
@@ -100,7 +101,7 @@ from .cloud import (
     symmetric_root,
     weighted_moments,
 )
-from .packed import pack, unpack
+from .packed import pack_finite, unpack
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -124,7 +125,7 @@ class YauNiuState(StepState):
     seed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"points": pack(self.points), "log_weights": pack(self.log_weights),  # bit for bit
+        return {"points": pack_finite(self.points), "log_weights": pack_finite(self.log_weights, True),
                 "step": self.step, "t": self.t, "loglik": self.loglik,
                 "loglik_increment": self.loglik_increment, "degenerate": self.degenerate,
                 "reason": self.reason, "restarts": self.restarts, "seed": self.seed}

@@ -136,3 +136,25 @@ def test_a_malformed_state_names_its_field(case):
     with pytest.raises(InputError) as caught:
         flt.state_from_dict([])
     assert caught.value.field == "state"
+
+
+def test_a_state_of_non_finite_numbers_is_refused_by_the_store(case, tmp_path):
+    """A NaN point or a +inf log weight leaves to_dict as a list (not base64, where the store could not
+    see it), so the session store refuses the state before writing it, as it did the list form; a -inf
+    log weight (a zero weight) is packed and stored."""
+    from yauyau.storage.errors import StoreError
+    from yauyau.storage.session_store import SqliteSessionStore
+
+    flt, state, _ = case
+    store = SqliteSessionStore(tmp_path / "sessions.sqlite")
+    X, L, zero = state.points.copy(), state.log_weights.copy(), state.log_weights.copy()
+    X[1, 2] = np.nan
+    L[0, 4] = np.inf
+    zero[0, 4] = -np.inf
+    for bad in (replace(state, points=X), replace(state, log_weights=L)):
+        with pytest.raises(StoreError) as caught:
+            store.create("m", "yau-niu", bad.to_dict())
+        assert caught.value.field == "state" and "NaN or infinity" in str(caught.value)
+    sid = store.create("m", "yau-niu", replace(state, log_weights=zero).to_dict())
+    back = flt.state_from_dict(store.get(sid).state)
+    assert _bits(back.log_weights) == _bits(zero) and _bits(back.points) == _bits(state.points)
