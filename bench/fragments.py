@@ -40,6 +40,7 @@ FRAGMENTS = [
     ("yau_jia_speed", "yau-jia-speed.md"),
     ("yau_niu", "yau-niu.md"),
     ("yau_niu_speed", "yau-niu-speed.md"),
+    ("yau_niu_state", "yau-niu-state.md"),
     ("engine_revision", "engine-revision.md"),
     ("cli_speed", "cli.md"),
     ("default_mesh", "default-mesh.md"),

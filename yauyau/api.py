@@ -500,7 +500,8 @@ class OnlineFilter:
 
     # -- state ------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """The state as JSON-safe data (carried log-likelihood and the watch included)."""
+        """The state as JSON-safe data (carried log-likelihood and the watch included; yau-niu's points
+        and log weights as {"dtype": "<f8", "shape", "base64"} of their bytes: exact)."""
         from .solver.watch import join_state
 
         return join_state(self.state, self.watch)

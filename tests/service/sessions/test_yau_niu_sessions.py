@@ -13,6 +13,7 @@ state the store keeps is the points and their log weights.
 
 from __future__ import annotations
 
+import base64
 import sqlite3
 
 import numpy as np
@@ -28,6 +29,7 @@ from yauyau.solver.model import compile_model
 from yauyau.solver.qmc.budget import DEFAULT_POINTS
 from yauyau.solver.simulate import simulate
 from yauyau.solver.spec import spec_from_dict
+from yauyau.storage.session_base import session_checksum
 
 import yauyau
 
@@ -116,7 +118,8 @@ def test_chunks_match_kalman_exactly_once_and_the_state_size(api):
     """300 increments in three chunks: the estimates match the Kalman filter and equal the Python filter
     run in one piece; seq 1 sent again returns the same bytes and leaves the stored state as it was;
     other data under seq 1 is 409, a gap is 409.  The stored state is the 8192 points × 4 coordinates
-    and one row of log weights (the ring is one coupled block) as JSON: 8192 × 5 numbers."""
+    and one row of log weights (the ring is one coupled block), 8192 × 5 numbers, each array the base64
+    of its float64 bytes in the JSON (solver/qmc/packed.py), equal bit for bit to the one-piece run's."""
     model = api.models["continuous"]
     rows = simulate(model, 300, np.random.default_rng(21)).increments
     sid = _session(api, "continuous")
@@ -141,12 +144,63 @@ def test_chunks_match_kalman_exactly_once_and_the_state_size(api):
     assert info["step"] == 300 and info["next_seq"] == 3
 
     stored = orjson.loads(state)
-    assert np.asarray(stored["points"]).shape == (DEFAULT_POINTS, N)
-    assert np.asarray(stored["log_weights"]).shape == (1, DEFAULT_POINTS)
+    assert stored["points"]["shape"] == [DEFAULT_POINTS, N]
+    assert stored["log_weights"]["shape"] == [1, DEFAULT_POINTS]
+    back = flt.filter.state_from_dict(stored)  # the one-piece run's state, bit for bit
+    assert back.points.tobytes() == np.ascontiguousarray(flt.state.points).tobytes()
+    assert back.log_weights.tobytes() == flt.state.log_weights.tobytes()
     numbers = DEFAULT_POINTS * (N + 1)
     print(f"yau-niu state: {len(state)} bytes for {DEFAULT_POINTS} points in {N}-D "
-          f"({len(state) / numbers:.1f} bytes a number)")
-    assert 15 * numbers < len(state) < 26 * numbers  # docs/models.md: about 20 bytes a number
+          f"({len(state) / numbers:.2f} bytes a number)")
+    # docs/models.md: the base64 of 8 bytes a number (10.67 bytes) and a few hundred of the rest
+    assert 8 * 4 / 3 * numbers < len(state) < 8 * 4 / 3 * numbers + 2000
+
+
+def _rewrite_state(api, sid: str, change) -> None:
+    """The session's stored state replaced by ``change(state)``, sealed with the row's checksum (as the
+    store writes it): a session stored before the packed form, or a damaged one the checksum passes."""
+    with sqlite3.connect(api.db) as db:
+        model, method, seq, text, options, owner = db.execute(
+            "SELECT model_id, method, next_seq, state, options, owner FROM sessions WHERE id = ?",
+            (sid,)).fetchone()
+        text = orjson.dumps(change(orjson.loads(text))).decode()
+        db.execute("UPDATE sessions SET state = ?, checksum = ? WHERE id = ?",
+                   (text, session_checksum(sid, model, method, seq, text, options, owner), sid))
+
+
+def _as_lists(state: dict) -> dict:
+    """The state as it was stored before the packed form: the arrays as JSON lists of numbers."""
+    for name in ("points", "log_weights"):
+        packed = state[name]
+        raw = np.frombuffer(base64.b64decode(packed["base64"]), "<f8").reshape(packed["shape"])
+        state[name] = raw.tolist()
+    return state
+
+
+def test_a_session_stored_as_lists_goes_on_and_a_damaged_state_is_a_problem(api):
+    """A session whose state was stored before the packed form (lists of numbers) takes its next chunk
+    and answers as the one-piece run, bit for bit; a state whose base64 is damaged (and whose checksum
+    passes) is a 4xx problem+json naming state.points.base64, no traceback."""
+    model = api.models["continuous"]
+    rows = simulate(model, 40, np.random.default_rng(26)).increments
+    sid = _session(api, "continuous")
+    first = _answer(_post(api, sid, 0, rows[:20]))["estimates"]
+    _rewrite_state(api, sid, _as_lists)
+    assert isinstance(orjson.loads(_stored_state(api, sid))["points"], list)
+    second = _answer(_post(api, sid, 1, rows[20:]))["estimates"]
+    whole = yauyau.open_filter(api.store, api.ids["continuous"]).run(rows)
+    assert np.array_equal(whole.mean, _means(first + second)[0])
+    assert isinstance(orjson.loads(_stored_state(api, sid))["points"], dict)  # written back packed
+
+    def damage(state: dict) -> dict:
+        state["points"]["base64"] = state["points"]["base64"][:-5] + "!"
+        return state
+
+    _rewrite_state(api, sid, damage)
+    for r in (api.post(f"/v1/sessions/{sid}/observations", json={"seq": 2, "increments": _rows(rows[:2])}),
+              api.get(f"/v1/sessions/{sid}")):
+        assert 400 <= r.status_code < 500 and r.headers["content-type"].startswith(PROBLEM), r.text
+        assert r.json()["field"] == "state.points.base64" and "base64" in r.json()["detail"], r.text
 
 
 def test_discrete_readings_at_irregular_times_with_partly_missing_rows(api):
