@@ -230,8 +230,10 @@ def _search_mode(flt: Filter, state: FilterState, estimate: Estimate) -> np.ndar
         values = np.asarray(flt.density(state, points), dtype=float)
         start = points[int(np.argmax(np.nan_to_num(values, nan=-np.inf)))]
 
+    density = getattr(flt, "mode_density", flt.density)  # a point cloud's: smoothed for its gradient
+
     def neg_log(x: np.ndarray) -> float:
-        value = float(np.asarray(flt.density(state, x[None, :]), dtype=float)[0])
+        value = float(np.asarray(density(state, x[None, :]), dtype=float)[0])
         return -np.log(value) if value > 0.0 and np.isfinite(value) else np.inf
 
     result = minimize(neg_log, start, method="Nelder-Mead",

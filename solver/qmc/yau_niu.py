@@ -93,6 +93,7 @@ from ..spec import DensityPrior, GaussianPrior, MixturePrior
 from .blocks import SingleBlocks, independent_blocks
 from .budget import check_points, default_points
 from .cloud import (
+    gradient_bandwidth,
     log_sum_exp,
     match_moments,
     multiscale_bandwidth,
@@ -201,7 +202,12 @@ class YauNiuFilter(ChunkedFilter):
         heaviest points (a grid search over n ≥ 4 dimensions cannot be held in memory)."""
         heaviest = np.argsort(state.log_weights.sum(axis=0))[-candidates:]
         X = state.points[heaviest]
-        return X[int(np.argmax(self.density(state, X)))].copy()
+        return X[int(np.argmax(self.mode_density(state, X)))].copy()
+
+    def mode_density(self, state: YauNiuState, points: np.ndarray) -> np.ndarray:
+        """:meth:`density` at the bandwidth for its gradient (:func:`gradient_bandwidth`): what the mode
+        search climbs (solver/summaries.py)."""
+        return self.density(state, points, gradient=True)
 
     # -- prior ------------------------------------------------------------------------------
     def initial_state(self, prior: Any | None = None) -> YauNiuState:
@@ -504,23 +510,25 @@ class YauNiuFilter(ChunkedFilter):
                         loglik_increment=state.loglik_increment, degenerate=state.degenerate,
                         reason=state.reason)
 
-    def density(self, state: YauNiuState, points: np.ndarray) -> np.ndarray:
+    def density(self, state: YauNiuState, points: np.ndarray, gradient: bool = False) -> np.ndarray:
         """The product over the blocks of the multi-scale kernel estimates
         Σ_i w_i N(x_b; √(1−h²)x_ib + (1−√(1−h²))m_b, h²P_b) (h: the bandwidth, at least Silverman's
-        for N points): the density the restart would sample."""
+        for N points — with ``gradient``, at least :func:`gradient_bandwidth`): the density the restart
+        would sample."""
         X = np.atleast_2d(np.asarray(points, float))
         n = self.model.n
         if X.ndim != 2 or X.shape[1] != n or not np.all(np.isfinite(X)):
             raise InputError("points", f"must be finite points of shape (P, {n})")
         log_density = np.zeros(len(X))
         for coords, logw in zip(self.blocks, state.log_weights, strict=True):
-            log_density += self._block_log_density(state.points[:, coords], logw, X[:, coords])
+            log_density += self._block_log_density(state.points[:, coords], logw, X[:, coords], gradient)
         return np.exp(log_density)
 
-    def _block_log_density(self, centres: np.ndarray, logw: np.ndarray, X: np.ndarray) -> np.ndarray:
+    def _block_log_density(self, centres: np.ndarray, logw: np.ndarray, X: np.ndarray,
+                           gradient: bool = False) -> np.ndarray:
         N, d = centres.shape
         mean, cov = weighted_moments(centres, np.exp(logw))
-        h = max(self.bandwidth or 0.0, silverman(N, d))
+        h = max(self.bandwidth or 0.0, (gradient_bandwidth if gradient else silverman)(N, d))
         shrink = math.sqrt(1.0 - h * h)
         kernel = h * h * cov + 1e-12 * np.eye(d)
         shrunk = shrink * centres + (1.0 - shrink) * mean
