@@ -6,8 +6,8 @@ solver/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yau
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
 1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
 double and single precision: the same calls, with the same array types, as any model's chunks; and a
-1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py), and a 2-D Yau–Niu filter of
-independent sensors through its (solver/qmc/kernels.py).
+1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py), and 2-D Yau–Niu filters of
+independent sensors and of a coupled block through theirs (solver/qmc/kernels.py).
 """
 
 from __future__ import annotations
@@ -69,5 +69,9 @@ def warm_kernels() -> float | None:
                         {"kind": "discrete", "likelihood": "student-t", "dof": 4}):
         flt = make_filter(compile_model(spec_from_dict({**two, "measurement": measurement})), None, "yau-niu")
         flt.run_arrays(flt.initial_state(), rows)
+    # ... and of a coupled block (solver/qmc/coupled.py)
+    ring = {**two, "drift": ["-x + 0.5*tanh(y)", "-y"]}
+    flt = make_filter(compile_model(spec_from_dict(ring)), None, "yau-niu")
+    flt.run_arrays(flt.initial_state(), rows)
     _DONE.append(time.perf_counter() - started)
     return _DONE[0]

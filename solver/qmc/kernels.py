@@ -23,6 +23,9 @@ _previous_cache_dir = numba.config.CACHE_DIR
 if CACHE_DIR is not None:
     numba.config.CACHE_DIR = str(CACHE_DIR)
 kernel = numba.njit(cache=CACHE_DIR is not None, nogil=True, error_model="numpy")
+# sums in any order (SIMD reductions) and fused multiply-adds: rounding only, never NaN/inf assumptions
+sums = numba.njit(cache=CACHE_DIR is not None, nogil=True, error_model="numpy",
+                  fastmath={"reassoc", "contract"})
 
 CONTINUOUS, GAUSSIAN, STUDENT = 0, 1, 2  # the measurement's kind (solver/measurement.py)
 
@@ -132,6 +135,73 @@ def moments(XT, W, mean, var):
             d = x[i] - m
             v += w[i] * (d * d)
         mean[b], var[b] = m, v
+
+
+@sums
+def euler(XT, F, Z, perm, root, sqrt_tau, tau, GT, DT, MT):
+    """The coupled blocks' Euler kernel before its moment matching (solver/qmc/coupled.py), coordinates
+    as rows (n, N) but F (N, n): GT = Z[perm]ᵀ (the noise in the points' order), DT = (X + Fτ)ᵀ and
+    MT = DT + √τ·rootᵀGT."""
+    n, N = XT.shape
+    for i in range(N):  # the gather, point by point (Z's rows are the Sobol points)
+        p = perm[i]
+        for m in range(n):
+            GT[m, i] = Z[p, m]
+            DT[m, i] = XT[m, i] + F[i, m] * tau
+    for j in range(n):
+        d, g = DT[j], MT[j]
+        for i in range(N):
+            g[i] = d[i]
+        for m in range(n):
+            a = sqrt_tau * root[m, j]
+            if a == 0.0:
+                continue
+            z = GT[m]
+            for i in range(N):
+                g[i] += z[i] * a
+
+
+@sums
+def block_moments(XT, owner, W, mean, cov):
+    """The weighted mean and within-block covariance of the points, coordinates as rows XT (n, N),
+    coordinate j under its block's weights W[owner[j]]: two passes, the mean first (as
+    cloud.weighted_moments), zero across blocks."""
+    n, N = XT.shape
+    for j in range(n):
+        w, x = W[owner[j]], XT[j]
+        m = 0.0
+        for i in range(N):
+            m += w[i] * x[i]
+        mean[j] = m
+    for j in range(n):
+        w, x, mj = W[owner[j]], XT[j], mean[j]
+        for k in range(j + 1):
+            if owner[k] != owner[j]:
+                cov[j, k] = cov[k, j] = 0.0
+                continue
+            y, mk = XT[k], mean[k]
+            c = 0.0
+            for i in range(N):
+                c += w[i] * (x[i] - mj) * (y[i] - mk)
+            cov[j, k] = cov[k, j] = c
+
+
+@sums
+def affine(MT, here, A, mean, out):
+    """outᵀ = mean + (M − here) A, coordinates as rows (n, N): the moment matching's map
+    (cloud.match_moments), A block-diagonal over the blocks."""
+    n, N = MT.shape
+    for j in range(n):
+        o = out[j]
+        for i in range(N):
+            o[i] = mean[j]
+        for m in range(n):
+            a = A[m, j]
+            if a == 0.0:
+                continue
+            x, h = MT[m], here[m]
+            for i in range(N):
+                o[i] += (x[i] - h) * a
 
 
 numba.config.CACHE_DIR = _previous_cache_dir

@@ -68,7 +68,6 @@ rewritten with every chunk.  The per-row noise comes from a generator seeded by
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
@@ -76,6 +75,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import logsumexp
 
+from .. import jit
 from ..errors import InputError, SpecError
 from ..filtering import ChunkedFilter, ChunkResult, Estimate, StepState, chunk_clock
 from ..gaussian import log_normal
@@ -102,6 +102,7 @@ from .cloud import (
     symmetric_root,
     weighted_moments,
 )
+from .coupled import CoupledBlocks
 from .packed import pack_finite, unpack
 
 if TYPE_CHECKING:
@@ -112,7 +113,7 @@ TEMPER = 0.05  # an update leaving 1/Σw² < TEMPER·N is redone in powers (prog
 MAX_TEMPER_STAGES = 20
 MAX_BLOCK_COMPONENTS = 62  # observation components per block (Observation's pattern keys are int64 bits)
 NUMBA_START_SECONDS = 1.3  # numba's import and the load of its cached kernels, CPU (solver/jit.py)
-COMPILED_SAVING_SECONDS = 30e-9  # what the compiled row of one-coordinate blocks saves a point-coordinate
+COMPILED_SAVING_SECONDS = 30e-9  # what the compiled row saves a point-coordinate
 
 
 @dataclass(frozen=True)
@@ -153,8 +154,6 @@ class YauNiuFilter(ChunkedFilter):
         self.restart, self.seed = float(restart), int(seed)
         self.bandwidth = None if bandwidth is None else float(bandwidth)
         self._noise_root = symmetric_root(np.asarray(model.a, float))  # (aτ)^{1/2} = √τ a^{1/2}
-        root = self._noise_root
-        self._noise_diagonal = not np.count_nonzero(root - np.diag(np.diag(root)))
         owner = np.zeros(model.n, int)
         for b, coords in enumerate(self.blocks):
             owner[coords] = b
@@ -175,15 +174,14 @@ class YauNiuFilter(ChunkedFilter):
         points = default_points(model.n, singles) if points is None else points
         self.points = check_points(points, model.n, model.m, len(self.blocks))
         self._singles = SingleBlocks(model, self.blocks, self._components) if singles else None
+        self._coupled = CoupledBlocks(model, self.blocks, self._noise_root)
 
     @property
     def compiled_min_rows(self) -> int:
         """A one-shot command's break-even (solver/jit.py ``choose_for_rows``): numba's start-up against
-        what the compiled row of one-coordinate blocks saves, ~30 ns a point-coordinate (28 at 10 states,
-        49 at 100: bench/results/yau-niu-speed.md), so 106 rows for 100 sensors at 4096 points; never
-        for coupled blocks, whose row has no compiled part."""
-        if self._singles is None:
-            return sys.maxsize
+        what the compiled row saves, ~30 ns a point-coordinate (one-coordinate blocks: 28 at 10 states,
+        49 at 100, bench/results/yau-niu-speed.md; the coupled ring: 27), so 106 rows for 100 sensors
+        at 4096 points and 1 600 for the ring at 8192."""
         saving = COMPILED_SAVING_SECONDS * self.points * self.model.n
         return max(1, math.ceil(NUMBA_START_SECONDS / saving))
 
@@ -250,17 +248,7 @@ class YauNiuFilter(ChunkedFilter):
         mean and covariance under its weights."""
         if self._singles is not None:  # blocks of one coordinate: lattice noise, compiled where on
             return self._singles.kolmogorov_step(X, self.model.f, W, tau, rng)
-        drifted = X + self.model.f(X) * tau
-        Z = qmc_normals(len(X), X.shape[1], rng)
-        root = self._noise_root
-        noise = Z * np.diag(root) if self._noise_diagonal else Z @ root  # n² a point only where coupled
-        moved = drifted + math.sqrt(tau) * noise
-        a = np.asarray(self.model.a, float)
-        for coords, w in zip(self.blocks, W, strict=True):
-            mean, cov = weighted_moments(drifted[:, coords], w)
-            cov = cov + a[np.ix_(coords, coords)] * tau
-            moved[:, coords] = match_moments(moved[:, coords], w, mean, cov)
-        return moved
+        return self._coupled.kolmogorov_step(X, W, tau, rng)
 
     def _restart(self, X: np.ndarray, w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Local resampling-restart (Yau–Niu) of one block's points X (N, d): systematic resampling by
@@ -388,11 +376,7 @@ class YauNiuFilter(ChunkedFilter):
         """Mean and (block-diagonal) covariance of the product over the blocks."""
         if self._singles is not None:
             return self._singles.moments(X, W)
-        n = X.shape[1]
-        mean, cov = np.empty(n), np.zeros((n, n))
-        for coords, w in zip(self.blocks, W, strict=True):
-            mean[coords], cov[np.ix_(coords, coords)] = weighted_moments(X[:, coords], w)
-        return mean, cov
+        return self._coupled.moments(X, W)
 
     # -- the observation step of one row --------------------------------------------------------
     def _update_blocks(self, k: int, logW: np.ndarray, hX: np.ndarray, blocks: list,
@@ -437,7 +421,7 @@ class YauNiuFilter(ChunkedFilter):
         ll_inc, bad, pll = np.zeros(K), np.zeros(K, bool), np.full(K, np.nan)
         gated, scores = np.zeros(K, bool), np.full(K, np.nan)
         X, logW = state.points, state.log_weights.copy()
-        if singles is not None:  # the row moves its own copy in place, each coordinate contiguous
+        if singles is not None or jit.enabled():  # each coordinate contiguous (singles: moved in place)
             X = np.array(X, order="F")
         restarts, reason = state.restarts, state.reason
         done = 0 if state.degenerate else K

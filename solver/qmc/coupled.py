@@ -1,0 +1,103 @@
+"""Yau–Niu's Kolmogorov step and moments for blocks of coupled coordinates (solver/qmc/yau_niu.py).
+
+The Kolmogorov step of one row over τ: every point moves by the Euler kernel of dx = f dt + G dv,
+
+    x ↦ x + f(x)τ + τ^{1/2} a^{1/2} z,     z from a scrambled Sobol normal set in random order,
+
+and then each block is mapped affinely, x ↦ m + C^{1/2}P^{-1/2}(x − x̄), so that its weighted mean and
+covariance are the kernel's exactly: m = Σ w_i(x_i + f_iτ), C = Cov_w(x + fτ) + a_bb τ (second-order
+moment matching; P, x̄ the moved cloud's own).  The moments of the row's output are each block's
+weighted mean and covariance.
+
+With the compiled kernels on (``YAUYAU_KERNEL``, solver/jit.py) the drift, the noise and the four
+moments are a few passes over the points' coordinates, each contiguous (the points are kept in Fortran
+order), and the affine map one more (solver/qmc/kernels.py ``euler``, ``block_moments``, ``affine``;
+numpy's path makes about fifteen whole-array passes); the noise and the small matrices are the same,
+so both paths agree to rounding (tests/solver/qmc/test_coupled_kernels.py).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .. import jit
+from .cloud import match_moments, sobol_normals, symmetric_root, weighted_moments
+
+
+class CoupledBlocks:
+    """The Kolmogorov step and the moments of ``blocks`` (lists of coordinates, each with its own row of
+    weights) for a model whose diffusion is a = ``root``²."""
+
+    def __init__(self, model: Any, blocks: list[np.ndarray], root: np.ndarray):
+        self.blocks = blocks
+        self.model = model
+        self.root = np.ascontiguousarray(root, dtype=float)
+        self.diagonal = not np.count_nonzero(root - np.diag(np.diag(root)))
+        self.a = np.asarray(model.a, float)
+        self.owner = np.zeros(model.n, np.int64)
+        for b, coords in enumerate(blocks):
+            self.owner[coords] = b
+
+    def kolmogorov_step(self, X: np.ndarray, W: np.ndarray, tau: float,
+                        rng: np.random.Generator) -> np.ndarray:
+        """The moved points (a new array) after one Euler step over τ, each block matched to the kernel's
+        mean and covariance under its weights W (B, N)."""
+        Z, perm = sobol_normals(len(X), X.shape[1], rng)
+        if jit.enabled():
+            return self._step_compiled(X, W, tau, Z, perm)
+        drifted = X + self.model.f(X) * tau
+        noise = Z[perm]
+        noise = noise * np.diag(self.root) if self.diagonal else noise @ self.root  # n² a point if coupled
+        moved = drifted + math.sqrt(tau) * noise
+        for coords, w in zip(self.blocks, W, strict=True):
+            mean, cov = weighted_moments(drifted[:, coords], w)
+            cov = cov + self.a[np.ix_(coords, coords)] * tau
+            moved[:, coords] = match_moments(moved[:, coords], w, mean, cov)
+        return moved
+
+    def _step_compiled(self, X: np.ndarray, W: np.ndarray, tau: float, Z: np.ndarray,
+                       perm: np.ndarray) -> np.ndarray:
+        """:meth:`kolmogorov_step` by the kernels: the new points in Fortran order (each coordinate
+        contiguous; X in either order)."""
+        from . import kernels
+
+        N, n = X.shape
+        XT = np.ascontiguousarray(X.T)  # no copy for Fortran-ordered points
+        F = np.asarray(self.model.f(X), dtype=float)
+        GT, DT, MT = np.empty((n, N)), np.empty((n, N)), np.empty((n, N))
+        kernels.euler(XT, F, Z, perm, self.root, math.sqrt(tau), tau, GT, DT, MT)
+        W = np.ascontiguousarray(W)
+        drift_mean, moved_mean = np.empty(n), np.empty(n)
+        drift_cov, moved_cov = np.empty((n, n)), np.empty((n, n))
+        kernels.block_moments(DT, self.owner, W, drift_mean, drift_cov)
+        kernels.block_moments(MT, self.owner, W, moved_mean, moved_cov)
+        A = np.zeros((n, n))
+        for coords in self.blocks:
+            block = np.ix_(coords, coords)
+            A[block] = self._map(moved_cov[block], drift_cov[block] + self.a[block] * tau)
+        kernels.affine(MT, moved_mean, A, drift_mean, DT)
+        return DT.T
+
+    @staticmethod
+    def _map(P: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """P^{-1/2}C^{1/2} (cloud.match_moments' map; the identity, a shift only, where P is singular)."""
+        lam = np.diag(P) if P.shape == (1, 1) else np.linalg.eigvalsh(P)
+        if lam[0] <= 1e-12 * max(lam[-1], 1e-300):
+            return np.eye(len(P))
+        return symmetric_root(P, -0.5) @ symmetric_root(C)
+
+    def moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and (block-diagonal) covariance of the product over the blocks."""
+        n = X.shape[1]
+        mean, cov = np.empty(n), np.zeros((n, n))
+        if jit.enabled() and X.flags.f_contiguous:
+            from . import kernels
+
+            kernels.block_moments(X.T, self.owner, np.ascontiguousarray(W), mean, cov)
+            return mean, cov
+        for coords, w in zip(self.blocks, W, strict=True):
+            mean[coords], cov[np.ix_(coords, coords)] = weighted_moments(X[:, coords], w)
+        return mean, cov
