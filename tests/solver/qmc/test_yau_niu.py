@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from helpers.linear_kalman import kalman as exact_kalman
 from helpers.linear_kalman import linear_model_matrices, transition
+from helpers.ring import ring_bootstrap
 from yauyau.solver.errors import SpecError
 from yauyau.solver.model import compile_model
 from yauyau.solver.qmc.yau_niu import YauNiuFilter, independent_blocks
@@ -425,9 +426,6 @@ def test_domain_and_basis_may_be_left_out_for_yau_niu_only():
 
 
 # -- a coupled nonlinear ring against a 10⁶-particle reference ----------------------------------------
-RING_SUBSTEPS = 4  # Euler–Maruyama steps a row in the particle filters below
-
-
 def ring_model(points: int):
     """dx_i = (−x_i + 0.5 tanh x_{i+1}) dt + dW_i (indices mod 4), dy_i = x_i³ dt + dw_i, x(0) ~ N(0.5, I):
     every coordinate coupled to the next, so one block of 4 states."""
@@ -435,31 +433,6 @@ def ring_model(points: int):
     doc = _doc(4, drift, [f"x{i}**3" for i in range(4)], np.eye(4).tolist(), [0.5] * 4, np.eye(4).tolist(),
                points=points)
     return compile_model(spec_from_dict(doc))
-
-
-def ring_bootstrap(rows: np.ndarray, N: int, seed: int) -> np.ndarray:
-    """Means of a bootstrap particle filter of the ring: N particles from the prior at t = 0, moved by
-    RING_SUBSTEPS Euler–Maruyama steps a row, weighted by exp(hᵀΔy − ½|h|²dt), systematic resampling
-    when the effective sample size falls below N/2."""
-    rng = np.random.default_rng(seed)
-    K, n = rows.shape
-    small = DT / RING_SUBSTEPS
-    X = 0.5 + rng.standard_normal((N, n))
-    logw = np.zeros(N)
-    means = np.empty((K, n))
-    for k in range(K):
-        for _ in range(RING_SUBSTEPS):
-            X += (0.5 * np.tanh(np.roll(X, -1, axis=1)) - X) * small
-            X += np.sqrt(small) * rng.standard_normal((N, n))
-        h = X**3
-        logw += h @ rows[k] - 0.5 * DT * np.einsum("ij,ij->i", h, h)
-        w = np.exp(logw - logw.max())
-        w /= w.sum()
-        means[k] = w @ X
-        if 1.0 / (w @ w) < N / 2:
-            picks = np.minimum(np.searchsorted(np.cumsum(w), (rng.random() + np.arange(N)) / N), N - 1)
-            X, logw = X[picks], np.zeros(N)
-    return means
 
 
 @pytest.mark.slow
