@@ -227,14 +227,19 @@ def _strayed(carried, mass, first, d, reach, shell_limit):
 
 @_jit
 def run_moving(start, stop, propagator, observing, projection, carried, following, mass, factor, observed,
-               floors, sigma, scratch, masses, tiny, huge, d, reach, shell_limit, quiet, last):
+               floors, sigma, scratch, masses, tiny, huge, d, reach, shell_limit, quiet, last, modal, taus,
+               real_rates, pair_rates):
     """Rows start..stop−1 on a ball that moves (loop_moving: the carried vector holds the trigger's d
-    offsets and the shell's mass after ∫σ).  Returns (row, strayed): the row it stopped at as
-    :func:`run_rows` does, or (k + 1, True) after a row k ≠ ``last``, k ≥ ``quiet``, whose trigger
-    fired (the driver moves the ball)."""
+    offsets and the shell's mass after ∫σ; ``modal``: irregular rows at gaps ``taus``, the modal
+    coefficients first scaled by e^{τ_kΛ}, :func:`_scale_flow`).  Returns (row, strayed): the row it
+    stopped at as :func:`run_rows` does, or (k + 1, True) after a row k ≠ ``last``, k ≥ ``quiet``,
+    whose trigger fired (the driver moves the ball)."""
     ints, scalars = buffers(propagator)
     first = propagator.shape[1]
+    scale = np.empty(3, propagator.dtype)
     for k in range(start, stop):
+        if modal:
+            _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
         new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
                         sigma, scratch, ints, scalars)
         masses[k] = new_mass

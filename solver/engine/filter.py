@@ -87,8 +87,8 @@ if TYPE_CHECKING:  # types only
     from .follow import FollowingFilter
     from .frame import AffineFrame
 
-    # (follower, velocity, moves): a ball that moves inside the loop (solver/engine/recentring.py)
-    Follow = tuple[FollowingFilter, np.ndarray | None, list[tuple[int, np.ndarray]]]
+    # (follower, velocity, moves, irregular): a ball that moves inside the loop (engine/recentring.py)
+    Follow = tuple[FollowingFilter, np.ndarray | None, list[tuple[int, np.ndarray]], bool]
 
 _MIN_PRIOR_MASS = 0.5  # of a gaussian/mixture prior on the ball
 MAX_CHUNK_PIECES = 8192  # pieces filtered at once (the rest of a chunk follows, block by block)
@@ -306,13 +306,13 @@ class YauYauFilter(ChunkedFilter):
         return self._chunk(state, increments, times, until=until)
 
     def run_moving(self, state: YauYauState, increments: np.ndarray, follower: FollowingFilter,
-                   velocity: np.ndarray | None,
-                   moves: list[tuple[int, np.ndarray]]) -> tuple[YauYauState, ChunkResult]:
-        """Regular rows on a ball that moves inside the loop (solver/engine/recentring.py; ``moves``
-        gets (row, new centre) per move): ``state.center`` is the ball's centre, the result has each
-        row's, and the chunk may end early (after a row the loop could not move from: the caller
+                   velocity: np.ndarray | None, moves: list[tuple[int, np.ndarray]],
+                   times: np.ndarray | None = None) -> tuple[YauYauState, ChunkResult]:
+        """Rows at ``times`` (None: one dt apart) on a ball that moves inside the loop (recentring.py;
+        ``moves`` gets (row, new centre) per move): ``state.center`` is the ball's centre, the result has
+        each row's, and the chunk may end early (after a row the loop could not move from: the caller
         re-centres)."""
-        return self._chunk(state, increments, None, follow=(follower, velocity, moves))
+        return self._chunk(state, increments, times, follow=(follower, velocity, moves, times is not None))
 
     def _chunk(self, state: YauYauState, increments: np.ndarray, times: np.ndarray | None = None,
                until: Until | None = None,
@@ -370,7 +370,7 @@ class YauYauFilter(ChunkedFilter):
         """The hot loop of the chunk's kind (solver/engine/loops.py): (σ_k, ∫σ_k, carried, done, reason).
         ``carried`` is [coefficients, ∫σ] (N+1,); ``skip`` the rows that only predict."""
         if moving is not None:
-            return loop_moving(self, carried, log_factor, top, skip, gate, moving)
+            return loop_moving(self, carried, log_factor, top, skip, gate, moving, taus)
         factor = update_factors(self.arith, log_factor)
         if taus is not None:
             return loop_irregular(self, carried, factor, log_factor, top, skip, gate, taus)

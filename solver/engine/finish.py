@@ -106,6 +106,8 @@ def finish(engine: Any, state: YauYauState, rows: np.ndarray, steps: np.ndarray,
     nodal σ_k of its good steps, ``masses`` their ∫σ_k, ``carried`` the vector after the last; or
     ``sigma`` None and the ``summary`` of a fused chunk, whose every row was good and which raises
     :class:`Recompute` where σ is needed)."""
+    if ready.moving is not None:  # a moving ball's loop carries nodal coefficients out, whatever the gaps
+        taus = None
     out = Outcome(rows, steps, times, sigma, masses, carried, done, reason, shifts=ready.shifts,
                   skip=ready.skip, missing=ready.missing, summary=summary)
     stop_at_overflow(engine, out, ready, taus)

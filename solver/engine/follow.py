@@ -31,10 +31,11 @@ translated), so it is built once per offset and kept (:class:`Carry`).  A block 
 before a row whose mean strays beyond ``follow_distance`` + 0.1 of R (one that degenerates runs again,
 shorter), so a fast state is caught before it reaches the wall.
 
-Where every move is a kept carry (a mesh with steps, regular rows: ``moves_in_loop``), the engine's
-loop applies the same trigger and carry after any row (solver/engine/recentring.py; with an atlas it also
-switches to the new centre's propagator): a block's fixed cost is then paid once per chunk instead of
-once per move.
+Where every move is a kept carry (a mesh with steps: ``moves_in_loop``), the engine's loop applies the
+same trigger and carry after any row (solver/engine/recentring.py; with an atlas it also switches to the
+new centre's propagator, or for irregular rows its modal flow): a block's fixed cost is then paid once per
+chunk instead of once per move.  Irregular rows do so where the flow is modal and no gap is filtered in
+pieces, outside a moving frame; else they run in blocks.
 """
 
 from __future__ import annotations
@@ -119,6 +120,7 @@ class FollowingFilter(ChunkedFilter):
         self.atlas = getattr(engine.offline, "atlas", None)  # solver/engine/atlas.py: a propagator per centre
         self._bases: OrderedDict[int, Any] = OrderedDict()
         self._predicts: OrderedDict[int, np.ndarray] = OrderedDict()  # an atlas centre's, for the loop
+        self._modal: OrderedDict[tuple, Any] = OrderedDict()  # a centre's modal flow, for irregular rows
         if self.atlas is None and needs_atlas(engine.model):
             raise SpecError("domain.region", "these offline arrays have no atlas (the region was added after "
                                              "they were solved): precompute the spec again")
@@ -255,18 +257,32 @@ class FollowingFilter(ChunkedFilter):
         """The chunk in blocks, re-centring between them (module docstring)."""
         rows = check_rows(increments, self.model.m,
                           "observations" if self.observation.discrete else "increments")
-        K = len(rows)
+        K, taus = len(rows), None
         if times is not None:
             from ..measurement import check_first_gap, resolve_times
 
-            check_first_gap(resolve_times(state.t, state.step > 0, K, self.model.dt, times),
-                            self.observation.discrete)
+            taus = resolve_times(state.t, state.step > 0, K, self.model.dt, times)
+            check_first_gap(taus, self.observation.discrete)
             times = np.asarray(times, dtype=float)
         if K == 0 or state.degenerate:
             new, result = self.runner(state.center).run_arrays(state, rows, times)
             return self._placed(new, state.center), _with_centers(result, state.center)
-        if self.moves_in_loop and times is None:
-            return self._run_moving(state, rows)
+        if self.moves_in_loop and (taus is None or self._irregular_in_loop(state, rows, taus)):
+            return self._run_moving(state, rows, times)
+        return self._run_blocks(state, rows, times)
+
+    def _irregular_in_loop(self, state: YauYauState, rows: np.ndarray, taus: np.ndarray) -> bool:
+        """Whether irregular rows move the ball inside the loop: the modal flow at the ball's centre, no
+        moving frame, no gap long enough to be filtered in pieces (solver/engine/pieces.py)."""
+        from .pieces import row_pieces
+
+        return (self.frame is None and row_pieces(self.home, rows, taus) is None
+                and self.modal_at(state.center, self.home.arith.dtype) is not None)
+
+    def _run_blocks(self, state: YauYauState, rows: np.ndarray,
+                    times: np.ndarray | None) -> tuple[YauYauState, ChunkResult]:
+        """The chunk in blocks of the centred engine, re-centring between them (module docstring)."""
+        K = len(rows)
         parts, start, block, velocity, jitter = [], 0, FIRST_BLOCK, None, 0.0
         along = list(self.directions)
         while start < K:
@@ -306,16 +322,24 @@ class FollowingFilter(ChunkedFilter):
                 break
         return state, concat_results(parts)
 
-    def _run_moving(self, state: YauYauState, rows: np.ndarray) -> tuple[YauYauState, ChunkResult]:
+    def _run_moving(self, state: YauYauState, rows: np.ndarray,
+                    times: np.ndarray | None = None) -> tuple[YauYauState, ChunkResult]:
         """The chunk through the loop of the home engine (or the frame's), which re-centres the ball itself
         (solver/engine/recentring.py); between passes (where the loop could not move on) the block logic's
-        re-centre, or its degenerate reason."""
+        re-centre, or its degenerate reason.  Irregular rows (``times``) from a centre whose flow is not
+        modal go on in blocks."""
         parts, start, K, velocity = [], 0, len(rows), None
         along = list(self.directions)
         while start < K:
+            if times is not None and not state.degenerate \
+                    and self.modal_at(state.center, self.home.arith.dtype) is None:
+                state, part = self._run_blocks(state, rows[start:], times[start:])
+                parts.append(part)
+                break
             before, moves = state.last.mean[along], []
             engine = self.home if self.frame is None else self.runner(state.center)  # nodes at home
-            new, part = engine.run_moving(state, rows[start:], self, velocity, moves)
+            new, part = engine.run_moving(state, rows[start:], self, velocity, moves,
+                                          None if times is None else times[start:])
             length = len(part.mean)  # rows with estimates (fewer when it degenerated)
             if length and self.frame is None:  # (in a frame the loop leads by nothing)
                 drift = (part.mean[-1, along] - before) / length  # per row
@@ -335,7 +359,7 @@ class FollowingFilter(ChunkedFilter):
             parts.append(dataclasses.replace(part, center=centers, recentred=moved))
             start += len(part.step)
             if state.degenerate and start < K:  # the rest stays degenerate
-                state = self._stay(state, rows[start:], None, parts)
+                state = self._stay(state, rows[start:], None if times is None else times[start:], parts)
                 break
         return state, concat_results(parts)
 
@@ -361,6 +385,22 @@ class FollowingFilter(ChunkedFilter):
             return with_zero_column(self.atlas.offline(k).propagator_fp, self.home.arith.dtype)
 
         return kept(self._predicts, k, make, CACHE)
+
+    def modal_at(self, center: np.ndarray, dtype: DTypeLike) -> tuple[Any, np.ndarray] | None:
+        """For irregular rows moving in the loop: the flow e^{τA} of the ball at ``center`` (an atlas
+        centre's generator, else the home one: solver/engine/semigroup.py) and the loop's projection in
+        its modal coordinates, [V⁻¹ΦᵀW; wᵀ; the trigger's rows of :meth:`watch_arrays`]; None where
+        that flow is not modal (the Schur form, expm)."""
+        key = (None if self.atlas is None else self.atlas.lattice.index(center), np.dtype(dtype).str)
+
+        def make():
+            flow = (self.home if key[0] is None else self._atlas_engine(key[0])).flow
+            if flow.form != "modal":
+                return None
+            watch = self.watch_arrays(dtype)[0][self.home.N + 1:]
+            return flow, np.asfortranarray(np.vstack([flow.C, watch]), dtype=dtype)
+
+        return kept(self._modal, key, make, CACHE)
 
     def h_at(self, center: np.ndarray, carry: "Carry | None" = None,
              before: np.ndarray | None = None) -> tuple[np.ndarray, dict]:

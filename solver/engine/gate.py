@@ -10,14 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..measurement import Observation, RowTerms
-
-if TYPE_CHECKING:  # types only
-    from .recentring import Recentring
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,7 +34,7 @@ class Prepared:
     initial: np.ndarray  # [coefficients, ∫σ] in the loop's precision
     shifts: np.ndarray | None = None  # (K, n) each row's node shift in a moving frame (engine/frame.py)
     origin: np.ndarray | None = None  # the centre the shifts are from
-    moving: Recentring | None = None  # solver/engine/recentring.py: a ball that moves inside the loop
+    moving: Any = None  # a Recentring (solver/engine/recentring.py): a ball that moves inside the loop
 
 
 class Gate:

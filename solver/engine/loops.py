@@ -7,7 +7,8 @@
   or, where those would not fit, the nodal flow Φe^{τA} of each gap).
 * :func:`loop_moving` — a ball that moves inside the loop (solver/engine/recentring.py): after a row
   whose mean or outer-shell mass calls for it, the carried density moves onto a ball around the mean;
-  the update factors come a window at a time.
+  the update factors come a window at a time.  Irregular rows there run in the ball's modal
+  coordinates, as :func:`loop_irregular`'s.
 
 Each returns (σ_k, ∫σ_k, carried, done, reason): the nodal σ_k of the good steps (pre-projection, K×Q,
 each relative to a unit-mass σ_{k−1}), their ∫σ_k, the carried vector [c, ∫σ] after the last, the
@@ -290,22 +291,28 @@ class ModalScale:
 
 
 def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: np.ndarray,
-                skip: list[bool], gate: Gate | None, moving: Recentring) -> Result:
-    """Rows one dt apart on a ball that moves inside the loop (solver/engine/recentring.py): the carried
-    vector holds the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer
-    shell's Σwσ); past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean."""
+                skip: list[bool], gate: Gate | None, moving: Recentring,
+                taus: np.ndarray | None = None) -> Result:
+    """Rows on a ball that moves inside the loop (solver/engine/recentring.py): the carried vector holds
+    the trigger's sums after ∫σ (Σw(x − c)_iσ along the moving directions, then the outer shell's Σwσ);
+    past ±reach·∫σ, or the shell over its limit, the ball moves onto the mean.  Rows one dt apart take
+    the stored propagator (an atlas centre's); rows at gaps ``taus`` the ball's modal flow, as
+    :func:`loop_irregular` (d = V⁻¹a scaled by e^{τΛ}, then ΦV and [V⁻¹ΦᵀW; wᵀ; the trigger's rows]),
+    a move carrying Φ V d into the new ball's modal coordinates; the carried vector it returns is
+    the nodal coefficients a = V d again."""
     rows = Rows(engine, moving.factor, log_factor, top, skip, gate)
-    N, K = engine.N, len(log_factor)
+    N, K, flow = engine.N, len(log_factor), moving.flow
     # the windows write the rows' floors and mark impossible rows unobserved: where the loop reads them
     moving.observed, moving.floors = ((rows.observed_array, rows.floor_array) if rows.compiled
                                       else (rows.observed, rows.floors))
     carried = np.concatenate([carried, np.zeros(moving.d + 1, dtype=carried.dtype)])
+    if flow is not None:
+        carried[:N] = flow.to_modal(carried[:N].astype(float))
     carried, following = carried.copy(), np.empty_like(carried)
     if rows.compiled:
-        return moving_compiled(rows, moving, carried, following)
-    P, P_observe = engine.propagator, engine.observation_propagator
-    if moving.predict is not None:  # an atlas centre's propagator
-        P = P_observe = moving.predict
+        return _nodal(moving_compiled(rows, moving, carried, following, taus), moving, N)
+    P, P_observe = moving.matrices()
+    scale = None if flow is None else ModalScale(flow, taus, carried, following, N, engine.arith.dtype)
     step = rows.step
     watch, shell = tuple(range(N + 1, N + 1 + moving.d)), N + 1 + moving.d
     reach, shell_limit = moving.reach, moving.shell_limit
@@ -313,39 +320,55 @@ def loop_moving(engine: Any, carried: np.ndarray, log_factor: np.ndarray, top: n
     for k in range(K):
         if k == next_window:  # the update factors of the next rows at the ball's centre
             next_window = moving.window(k)
+        if scale is not None:
+            scale.apply(k)
         mass = step(k, P, P_observe, moving.project, carried, following, mass)
         if rows.reason is not None:
-            return rows.result(k, carried)
+            return _nodal(rows.result(k, carried), moving, N)
         carried, following = following, carried
+        if scale is not None:
+            scale.swap()
         if not watch or k == K - 1 or not _strayed(carried, mass, watch, reach, shell, shell_limit) \
                 or k < moving.quiet:
             continue
         moved = moving.move(k, carried, following, mass)
         if moved is None:  # the loop cannot move on: the chunk ends after row k
             moving.stopped = k + 1
-            return rows.result(k + 1, carried)
+            return _nodal(rows.result(k + 1, carried), moving, N)
         if moved > 0.0:
             mass = moved
             carried, following = following, carried
             next_window = moving.window(k + 1)
-            if moving.predict is not None:
-                P = P_observe = moving.predict
-    return rows.result(K, carried)
+            P, P_observe = moving.matrices()
+            if scale is not None:  # the new ball's rates (an atlas centre's), on the swapped buffers
+                scale = ModalScale(moving.flow, taus, carried, following, N, engine.arith.dtype)
+    return _nodal(rows.result(K, carried), moving, N)
 
 
-def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.ndarray) -> Result:
+def _nodal(result: Result, moving: Recentring, N: int) -> Result:
+    """The carried vector of :func:`loop_moving` back in nodal coefficients a = V d where it ran in the
+    ball's modal coordinates (each ball its own V: the engine's state does not keep them)."""
+    if moving.flow is None:
+        return result
+    sigma, masses, carried, done, reason = result
+    carried = carried.astype(float)
+    carried[:N] = moving.flow.from_modal(carried[:N])
+    return sigma, masses, carried, done, reason
+
+
+def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.ndarray,
+                    taus: np.ndarray | None = None) -> Result:
     """:func:`loop_moving` with the rows between windows, slow steps and moves in the compiled loop
-    (solver/engine/compiled.py ``run_moving``); the windows, slow steps and moves in Python, as there."""
+    (solver/engine/compiled.py ``run_moving``, irregular rows scaled there by e^{τΛ} with libm's exp, as
+    the fused rows); the windows, slow steps and moves in Python, as there."""
     from . import compiled  # numba: imported on the first chunk
 
     engine = rows.engine
     N, K, d = engine.N, len(rows.factor), moving.d
     tiny, huge = engine.arith.tiny, engine.arith.huge
     watch, shell = tuple(range(N + 1, N + 1 + d)), N + 1 + d
-    P, P_observe = engine.propagator, engine.observation_propagator
-    if moving.predict is not None:  # an atlas centre's propagator
-        P = P_observe = moving.predict
-    P, P_observe, projection = (np.asfortranarray(m) for m in (P, P_observe, moving.project))
+    gaps = np.zeros(0) if taus is None else np.ascontiguousarray(taus, dtype=float)
+    P, P_observe, projection, rates = _moving_arrays(moving)
     masses, sigma, scratch, observed = rows.masses, rows.sigma, rows.scratch, rows.observed_array
     mass, next_window, k = carried.item(N), 0, 0
     while k < K:
@@ -354,7 +377,8 @@ def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.
         stop = K if next_window < 0 else next_window
         j, strayed = compiled.run_moving(k, stop, P, P_observe, projection, carried, following, mass,
                                          rows.factor, observed, rows.floor_array, sigma, scratch, masses,
-                                         tiny, huge, d, moving.reach, moving.shell_limit, moving.quiet, K - 1)
+                                         tiny, huge, d, moving.reach, moving.shell_limit, moving.quiet, K - 1,
+                                         moving.flow is not None, gaps, *rates)
         if (j - k) % 2:  # the compiled loop swapped the buffers after each row it finished
             carried, following = following, carried
         if j > k:
@@ -384,10 +408,18 @@ def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.
             mass = moved
             carried, following = following, carried
             next_window = moving.window(j)
-            if moving.predict is not None:
-                P = P_observe = np.asfortranarray(moving.predict)
+            P, P_observe, projection, rates = _moving_arrays(moving)
         k = j
     return rows.result(K, carried)
+
+
+def _moving_arrays(moving: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The compiled moving loop's (P, P of observed rows, projection, (real rates, pair rates)) on the
+    current ball (rates empty for rows one dt apart)."""
+    P, P_observe = moving.matrices()
+    flow = moving.flow
+    rates = (np.zeros(0), np.zeros(0, complex)) if flow is None else (flow.real_rates, flow.pair_rates)
+    return (*(np.asfortranarray(m) for m in (P, P_observe, moving.project)), rates)
 
 
 def _strayed(carried: np.ndarray, mass: float, watch: tuple[int, ...], reach: float, shell: int,

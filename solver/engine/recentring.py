@@ -21,6 +21,10 @@ Each row's ball is the home ball shifted by ``shifts[k]`` (the moments read it a
 In a moving frame (solver/engine/frame.py) the centre also rides ċ = Ac + b between moves: a window computes
 the frame's path over its rows (from the centre a move left, after one) and h at each row's nodes.
 With an atlas (``[domain] region``) a move also switches to the new centre's stored propagator.
+Irregular rows (gaps τ_k) run in the modal coordinates d = V⁻¹a of the ball's flow e^{τA}
+(solver/engine/semigroup.py; an atlas centre's own generator): d scaled by e^{τ_kΛ}, then Φ V and the
+projection [V⁻¹ΦᵀW; wᵀ; the trigger's rows]; a move evaluates Φ V d at the old nodes, carries it and
+projects into the new ball's modal coordinates (:meth:`FollowingFilter.modal_at`).
 What the loop cannot do — leave ``[domain] region``, a carry that leaves no mass, an observation
 function not finite at the new nodes — ends the pass after that row (``stopped``); the block logic of
 solver/engine/follow.py then re-centres or reports the degenerate reason.
@@ -53,7 +57,7 @@ class Recentring:
 
     def __init__(self, engine: Any, follower: FollowingFilter, state: YauYauState, rows: np.ndarray,
                  gaps: np.ndarray, keys: np.ndarray, terms: RowTerms, missing: np.ndarray,
-                 velocity: np.ndarray | None, moves: list[tuple[int, np.ndarray]]):
+                 velocity: np.ndarray | None, moves: list[tuple[int, np.ndarray]], irregular: bool = False):
         self.engine, self.follower, self.frame = engine, follower, engine.frame
         self.rows, self.gaps, self.keys, self.terms, self.missing = rows, gaps, keys, terms, missing
         K, Q = len(rows), len(engine.nodes)
@@ -83,6 +87,19 @@ class Recentring:
         self.gate = None
         self.h, self.cache = follower.h_at(center)
         self.predict = follower.propagator_at(center)  # an atlas centre's (None: the engine's)
+        self.flow = None  # irregular rows: the ball's modal flow, its coordinates the carried vector's
+        if irregular:
+            self.flow, self.project = follower.modal_at(center, self.dtype)
+            self.basis = self.flow.B
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """The loop's (P, P of observed rows) on the current ball: the modal flow's ΦV (irregular rows,
+        scaled by e^{τΛ} before each row), an atlas centre's propagator, or the engine's."""
+        if self.flow is not None:
+            return self.flow.B, self.flow.B
+        if self.predict is not None:
+            return self.predict, self.predict
+        return self.engine.propagator, self.engine.observation_propagator
 
     # -- the update factors ---------------------------------------------------------------------
     def window(self, start: int) -> int:
@@ -180,15 +197,21 @@ class Recentring:
         h, cache = follower.h_at(target) if self.frame is not None else follower.h_at(target, carry, self.h)
         if not np.all(np.isfinite(h)):
             return None
-        predict = follower.propagator_at(target)
+        predict = follower.propagator_at(target) if self.flow is None else None
+        modal = None if self.flow is None else follower.modal_at(target, self.dtype)
+        if self.flow is not None and modal is None:  # not a modal flow there: the rows go on in blocks
+            return None
         arith = self.engine.arith
-        nodal = arith.gemv(1.0, self.basis, carried)
+        nodal = arith.gemv(1.0, self.basis, carried)  # (irregular rows: Φ V d = Φ a)
         moved = carry.apply(nodal).astype(self.dtype, copy=False)
-        arith.gemv(1.0, self.project, moved, 0.0, following, 0, 1, 0, 1, 0, 1)
+        project = self.project if modal is None else modal[1]  # (into the new ball's modal coordinates)
+        arith.gemv(1.0, project, moved, 0.0, following, 0, 1, 0, 1, 0, 1)
         new_mass = following.item(self.engine.N)
         if not arith.tiny < new_mass < arith.huge:
             return None
         self.h, self.cache, self.predict = h, cache, predict
+        if modal is not None:
+            self.flow, self.project, self.basis = modal[0], modal[1], modal[0].B
         if self.frame is None:
             self.shifts[k + 1:] = target - self.origin
         else:  # the window from row k + 1 computes the path from here

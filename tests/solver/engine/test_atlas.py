@@ -17,11 +17,12 @@ import h5py
 import numpy as np
 import pytest
 from helpers.atlas import SIN, reference_means
+from helpers.irregular_refs import GridReference, simulate_irregular
 from helpers.loop_moves import assert_loop_moves_as_blocks
 from yauyau.service.cli import main
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.atlas import MAX_CENTERS, lattice, lattice_step
-from yauyau.solver.engine.filter import build
+from yauyau.solver.engine.filter import YauYauFilter, build
 from yauyau.solver.engine.follow import FollowingFilter
 from yauyau.solver.errors import InputError, SpecError
 from yauyau.solver.filtering import concat_results
@@ -326,6 +327,32 @@ def test_with_an_atlas_a_move_inside_the_loop_is_the_move_between_blocks(sin):
     flt = build(model, offline)
     assert flt.atlas is not None
     assert_loop_moves_as_blocks(flt, simulate(model, 900, np.random.default_rng(6)))
+
+
+def test_irregular_rows_move_onto_each_centres_flow_inside_the_loop_and_match_the_fine_grid(sin, monkeypatch):
+    """Gaps drawn in [0.5, 1.5]·dt and two missing rows: the loop moves the ball and switches to the new
+    centre's modal flow (its own generator's eigenbasis), no block runs; truth: the fine-grid filter at
+    the same times (helpers/irregular_refs.py, exact in time).  Measured: mean 2.2e-3, variance 0.29%,
+    43 moves (the block logic, before: 5.2e-3, 0.94%, 29 moves)."""
+    model, offline = sin
+    times = np.cumsum(np.random.default_rng(4).uniform(0.5, 1.5, 1500) * model.dt)
+    _, rows = simulate_irregular(model, times, "continuous", np.random.default_rng(5))
+    rows[[40, 41]] = np.nan
+    blocks = []
+    original = YauYauFilter.run_until
+    monkeypatch.setattr(YauYauFilter, "run_until", lambda *args: blocks.append(1) or original(*args))
+    flt = build(model, offline)
+    _, result = flt.run_arrays(flt.initial_state(), rows, times)
+    doc = json.loads(json.dumps(SIN))
+    doc["domain"] = {"radius": 45.0, "center": [27.5]}  # [-17.5, 72.5]: the whole path
+    exact = GridReference(compile_model(spec_from_dict(doc)), cells=2400, method="expm_multiply").run(
+        rows, times, "continuous")
+    gap = np.abs(result.mean[:, 0] - exact.mean[:, 0]).max()
+    var = np.abs(result.cov[:, 0, 0] / exact.cov[:, 0, 0] - 1).max()
+    print(f"{int(result.recentred.sum())} moves, mean {gap:.2e}, variance {var:.2e}")
+    assert not blocks and not result.degenerate.any() and result.recentred.sum() > 20
+    assert gap <= 0.005 and var <= 0.01
+    assert len(np.unique(result.center[:, 0])) > 5  # several centres of the atlas, each its own flow
 
 
 def test_the_loops_propagator_at_a_centre_is_the_one_stored_for_it(sin):

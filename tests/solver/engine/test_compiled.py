@@ -24,6 +24,7 @@ from helpers import EXAMPLES, ROOT
 from helpers.irregular_refs import random_times, simulate_irregular
 from yauyau.solver import compile_model, jit, load_spec, spec_from_dict
 from yauyau.solver.engine import compiled as compiled_loops
+from yauyau.solver.engine import filter as engine_filter
 from yauyau.solver.engine import loops, powers, semigroup
 from yauyau.solver.methods import make_filter
 from yauyau.solver.offline.pipeline import precompute
@@ -284,6 +285,32 @@ def test_a_ball_that_moves_inside_the_compiled_loop(monkeypatch, name, precision
     _, rows = simulate_irregular(model, times, model.spec.measurement.kind, np.random.default_rng(8))
     result, _, compiled = _both(monkeypatch, model, offline, precision, rows, None)
     assert compiled >= len(rows) and result.recentred is not None and result.recentred.any()
+
+
+@pytest.mark.parametrize("precision", ["double", "single"])
+@pytest.mark.parametrize("name", ["random_walk_trend", "sin_drift_atlas"])
+def test_irregular_rows_on_a_ball_that_moves_inside_the_compiled_loop(monkeypatch, _fused_chunks, name,
+                                                                       precision):
+    """Gaps of 0.5–1.5 dt (none filtered in pieces), a missing row and a gated outlier: the rows run in
+    the moving loop in the ball's modal coordinates (an atlas: each centre's own flow), the compiled
+    loop scaling by e^{τΛ} with libm's exp as the fused rows do: within RTOL of the numpy loop."""
+    model, offline = _offline(name)
+    times = np.cumsum(np.random.default_rng(9).uniform(0.5, 1.5, 6 * K) * model.dt)
+    rows = _rows(model, times, 8)
+    moved, original = [], loops.loop_moving
+
+    def counted(*args):  # (..., moving, taus): whether the moving loop ran irregular rows
+        moved.append(args[-1] is not None)
+        return original(*args)
+
+    monkeypatch.setattr(engine_filter, "loop_moving", counted)
+    numpy_run = _run(monkeypatch, "numpy", model, offline, precision, rows, times)
+    compiled_run = _run(monkeypatch, "compiled", model, offline, precision, rows, times)
+    assert moved and all(moved) and not _fused_chunks  # irregular rows, in the moving loop only
+    _close(numpy_run, compiled_run, precision)
+    result = compiled_run[1]
+    assert result.recentred.sum() >= 3 and result.gated[K // 3] and not result.degenerate.any()
+    np.testing.assert_array_equal(result.center, numpy_run[1].center)
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
