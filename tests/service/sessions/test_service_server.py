@@ -38,6 +38,14 @@ def _post_chunk(client, url, sid, seq, rows):
     return r.json()
 
 
+def _create(client, url: str, body: dict) -> str:
+    """A new session's id (a refusal fails with the server's answer: one run on a loaded CI machine got
+    no id here and said nothing more)."""
+    answer = client.post(url + "/v1/sessions", json=body)
+    assert answer.status_code == 201, (answer.status_code, answer.text)
+    return answer.json()["id"]
+
+
 @pytest.mark.parametrize("kind", ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store, tmp_path, request, kind):
     """SQLite: the restarted server has two workers sharing the file.  PostgreSQL: two servers on
@@ -54,9 +62,9 @@ def test_sigkill_mid_stream_then_restart_gives_identical_estimates(example_store
     servers = [server]
     try:
         with httpx.Client() as client:
-            reference = client.post(server.url + "/v1/sessions", json=body).json()["id"]
+            reference = _create(client, server.url, body)
             expected = [_post_chunk(client, server.url, reference, k, c) for k, c in enumerate(chunks)]
-            sid = client.post(server.url + "/v1/sessions", json=body).json()["id"]
+            sid = _create(client, server.url, body)
             got = [_post_chunk(client, server.url, sid, k, chunks[k]) for k in range(3)]
 
         # kill 1: while chunk 3 is in flight (it may or may not have been applied)
