@@ -109,7 +109,14 @@ def match_moments(X: np.ndarray, w: np.ndarray, mean: np.ndarray, cov: np.ndarra
     """The points mapped affinely, x ↦ mean + C^{1/2}P^{-1/2}(x − x̄), so that their weighted mean and
     covariance are ``mean`` and ``cov`` = C (P, x̄: the cloud's own; only shifted where P is singular)."""
     here, P = weighted_moments(X, w)
+    A = moment_map(P, cov)
+    return X - here + mean if A is None else mean + (X - here) @ A
+
+
+def moment_map(P: np.ndarray, cov: np.ndarray) -> np.ndarray | None:
+    """P^{-1/2}C^{1/2} (C = ``cov``): the matrix that takes a cloud of covariance P to C; None where P is
+    singular (the cloud is then only shifted)."""
     lam = np.diag(P) if P.shape == (1, 1) else np.linalg.eigvalsh(P)
     if lam[0] <= 1e-12 * max(lam[-1], 1e-300):
-        return X - here + mean
-    return mean + (X - here) @ (symmetric_root(P, -0.5) @ symmetric_root(cov))
+        return None
+    return symmetric_root(P, -0.5) @ symmetric_root(cov)

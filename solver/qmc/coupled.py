@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from .. import jit
-from .cloud import match_moments, sobol_normals, symmetric_root, weighted_moments
+from .cloud import match_moments, moment_map, sobol_normals, weighted_moments
 
 
 class CoupledBlocks:
@@ -77,17 +77,10 @@ class CoupledBlocks:
         A = np.zeros((n, n))
         for coords in self.blocks:
             block = np.ix_(coords, coords)
-            A[block] = self._map(moved_cov[block], drift_cov[block] + self.a[block] * tau)
+            A_block = moment_map(moved_cov[block], drift_cov[block] + self.a[block] * tau)
+            A[block] = np.eye(len(coords)) if A_block is None else A_block  # singular: only shifted
         kernels.affine(MT, moved_mean, A, drift_mean, DT)
         return DT.T
-
-    @staticmethod
-    def _map(P: np.ndarray, C: np.ndarray) -> np.ndarray:
-        """P^{-1/2}C^{1/2} (cloud.match_moments' map; the identity, a shift only, where P is singular)."""
-        lam = np.diag(P) if P.shape == (1, 1) else np.linalg.eigvalsh(P)
-        if lam[0] <= 1e-12 * max(lam[-1], 1e-300):
-            return np.eye(len(P))
-        return symmetric_root(P, -0.5) @ symmetric_root(C)
 
     def moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and (block-diagonal) covariance of the product over the blocks."""
