@@ -10,7 +10,8 @@ from ..errors import SpecError, TooLarge
 
 DEFAULT_POINTS = 8192  # measured: see default_points
 SINGLE_POINTS = 4096  # the same, for independent one-coordinate blocks
-WORKING_ARRAYS = 8  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ...
+WORKING_ARRAYS = 9  # (N, n) float arrays alive during a row: points, drift, noise, deviations, ..., and the
+# bank's normal set (solver/qmc/bank.py: one set where sets would pass its MAX_BYTES, else up to MAX_BYTES)
 STATE_NUMBER_BYTES = 56  # a state number as JSON: a Python float and its list slot (32), its text (~24)
 
 

@@ -4,11 +4,11 @@ moments, the affine moment matching, the multi-scale restart bandwidth."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 from scipy.special import ndtri
-from scipy.stats import qmc
+
+from .bank import sobol_set
 
 GAUSSIAN_SCORE = 3.0  # a cloud within this many sampling sd of Gaussian skewness/kurtosis restarts as one
 
@@ -56,17 +56,8 @@ def qmc_normals(N: int, n: int, rng: np.random.Generator, lattice: bool = False)
     if lattice and n == 1:
         Q, perm, _ = lattice_normals(N, 0, rng)
         return Q[perm][:, None]
-    Z, perm = sobol_normals(N, n, rng)
-    return Z[perm]
-
-
-def sobol_normals(N: int, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A scrambled Sobol normal set (N, n) in Sobol's order and the random order its points are taken
-    in (:func:`qmc_normals` is ``Z[perm]``; a compiled caller gathers it itself)."""
-    with warnings.catch_warnings():  # N need not be a power of 2 (the balance is then approximate)
-        warnings.simplefilter("ignore", UserWarning)
-        u = qmc.Sobol(n, scramble=True, seed=rng).random(N)
-    return ndtri(np.clip(u, 1e-16, 1.0 - 1e-16)), rng.permutation(N)
+    Z = sobol_set(N, n, rng)
+    return Z[rng.permutation(N)]
 
 
 def lattice_normals(N: int, B: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

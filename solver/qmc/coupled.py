@@ -2,7 +2,8 @@
 
 The Kolmogorov step of one row over τ: every point moves by the Euler kernel of dx = f dt + G dv,
 
-    x ↦ x + f(x)τ + τ^{1/2} a^{1/2} z,     z from a scrambled Sobol normal set in random order,
+    x ↦ x + f(x)τ + τ^{1/2} a^{1/2} z,     z from a scrambled Sobol normal set in random order
+                                           (the filter's bank: solver/qmc/bank.py),
 
 and then each block is mapped affinely, x ↦ m + C^{1/2}P^{-1/2}(x − x̄), so that its weighted mean and
 covariance are the kernel's exactly: m = Σ w_i(x_i + f_iτ), C = Cov_w(x + fτ) + a_bb τ (second-order
@@ -24,7 +25,8 @@ from typing import Any
 import numpy as np
 
 from .. import jit
-from .cloud import match_moments, moment_map, sobol_normals, weighted_moments
+from .bank import NormalBank
+from .cloud import match_moments, moment_map, weighted_moments
 
 
 class CoupledBlocks:
@@ -35,22 +37,21 @@ class CoupledBlocks:
         self.blocks = blocks
         self.model = model
         self.root = np.ascontiguousarray(root, dtype=float)
-        self.diagonal = not np.count_nonzero(root - np.diag(np.diag(root)))
         self.a = np.asarray(model.a, float)
         self.owner = np.zeros(model.n, np.int64)
         for b, coords in enumerate(blocks):
             self.owner[coords] = b
 
-    def kolmogorov_step(self, X: np.ndarray, W: np.ndarray, tau: float,
-                        rng: np.random.Generator) -> np.ndarray:
+    def kolmogorov_step(self, X: np.ndarray, W: np.ndarray, tau: float, rng: np.random.Generator,
+                        bank: NormalBank) -> np.ndarray:
         """The moved points (a new array) after one Euler step over τ, each block matched to the kernel's
-        mean and covariance under its weights W (B, N)."""
-        Z, perm = sobol_normals(len(X), X.shape[1], rng)
+        mean and covariance under its weights W (B, N); the noise drawn from ``bank``."""
+        Z, offset, cols, signs = bank.draw(rng)
+        root = bank.root(self.root, cols, signs)
         if jit.enabled():
-            return self._step_compiled(X, W, tau, Z, perm)
+            return self._step_compiled(X, W, tau, Z, offset, root)
         drifted = X + self.model.f(X) * tau
-        noise = Z[perm]
-        noise = noise * np.diag(self.root) if self.diagonal else noise @ self.root  # n² a point if coupled
+        noise = np.roll(Z, -offset, axis=0) @ root  # n² a point (the compiled kernel skips the root's zeros)
         moved = drifted + math.sqrt(tau) * noise
         for coords, w in zip(self.blocks, W, strict=True):
             mean, cov = weighted_moments(drifted[:, coords], w)
@@ -58,8 +59,8 @@ class CoupledBlocks:
             moved[:, coords] = match_moments(moved[:, coords], w, mean, cov)
         return moved
 
-    def _step_compiled(self, X: np.ndarray, W: np.ndarray, tau: float, Z: np.ndarray,
-                       perm: np.ndarray) -> np.ndarray:
+    def _step_compiled(self, X: np.ndarray, W: np.ndarray, tau: float, Z: np.ndarray, offset: int,
+                       root: np.ndarray) -> np.ndarray:
         """:meth:`kolmogorov_step` by the kernels: the new points in Fortran order (each coordinate
         contiguous; X in either order)."""
         from . import kernels
@@ -68,7 +69,7 @@ class CoupledBlocks:
         XT = np.ascontiguousarray(X.T)  # no copy for Fortran-ordered points
         F = np.asarray(self.model.f(X), dtype=float)
         GT, DT, MT = np.empty((n, N)), np.empty((n, N)), np.empty((n, N))
-        kernels.euler(XT, F, Z, perm, self.root, math.sqrt(tau), tau, GT, DT, MT)
+        kernels.euler(XT, F, Z, offset, root, math.sqrt(tau), tau, GT, DT, MT)
         W = np.ascontiguousarray(W)
         drift_mean, moved_mean = np.empty(n), np.empty(n)
         drift_cov, moved_cov = np.empty((n, n)), np.empty((n, n))

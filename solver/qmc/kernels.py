@@ -138,13 +138,15 @@ def moments(XT, W, mean, var):
 
 
 @sums
-def euler(XT, F, Z, perm, root, sqrt_tau, tau, GT, DT, MT):
+def euler(XT, F, Z, offset, root, sqrt_tau, tau, GT, DT, MT):
     """The coupled blocks' Euler kernel before its moment matching (solver/qmc/coupled.py), coordinates
-    as rows (n, N) but F (N, n): GT = Z[perm]ᵀ (the noise in the points' order), DT = (X + Fτ)ᵀ and
-    MT = DT + √τ·rootᵀGT."""
+    as rows (n, N) but F (N, n): GT = Z[(i + offset) mod N]ᵀ (the noise in the points' order: a bank's
+    set taken from ``offset`` on, solver/qmc/bank.py), DT = (X + Fτ)ᵀ and MT = DT + √τ·rootᵀGT."""
     n, N = XT.shape
-    for i in range(N):  # the gather, point by point (Z's rows are the Sobol points)
-        p = perm[i]
+    for i in range(N):  # the gather, point by point (Z's rows are the set's points, in a random order)
+        p = i + offset
+        if p >= N:
+            p -= N
         for m in range(n):
             GT[m, i] = Z[p, m]
             DT[m, i] = XT[m, i] + F[i, m] * tau

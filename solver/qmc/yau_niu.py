@@ -10,8 +10,10 @@ cover where the density lives.  σ is carried as N points x_i with log weights �
 (σ ≈ Σ_i e^{ℓ_i} δ_{x_i}; Yau–Niu, log-domain likelihood).  One row over a gap τ:
 
 1. Kolmogorov step (Yau–Niu, the transition kernel between point sets): every point moves by the
-   Euler kernel of dx = f dt + G dv, x ↦ x + f(x)τ + (aτ)^{1/2} z with z a fresh QMC normal set
-   (randomly permuted: reusing a Sobol index across rows correlates the points' noises, measured);
+   Euler kernel of dx = f dt + G dv, x ↦ x + f(x)τ + (aτ)^{1/2} z with z a QMC normal set in a new
+   random order each row (reusing a Sobol index across rows correlates the points' noises, measured),
+   drawn from the filter's bank of scrambled sets built once (solver/qmc/bank.py: the data-free part
+   of the step, offline; blocks of one coordinate use a new lattice instead, which costs nothing);
    (blocks of one coordinate: each its own shifted 1-D lattice, solver/qmc/blocks.py);
    then the cloud is mapped affinely so that its weighted mean and covariance are exactly those of
    the kernel, m = Σ w_i(x_i + f_iτ), P = Cov_w(x + fτ) + aτ (second-order moment matching: exact
@@ -23,7 +25,7 @@ cover where the density lives.  σ is carried as N points x_i with log weights �
 3. Local resampling-restart (Yau–Niu): when the effective coverage 1/Σw_i² falls below
    ``restart`` × N, the points are resampled (systematic, by the weights) and spread by the
    multi-scale kernel: x ↦ √(1−h²)x + (1−√(1−h²))m + h P^{1/2} z (Liu–West shrinkage, which keeps
-   the mean and covariance; h = ``bandwidth``: h = 1 is a Gaussian restart on a fresh QMC set,
+   the mean and covariance; h = ``bandwidth``: h = 1 is a Gaussian restart on a QMC set (the bank's),
    h → 0 plain resampling), then matched to the posterior's mean and covariance.  A posterior that
    collapsed onto fewer than two points cannot be restarted: the row is flagged degenerate.
 
@@ -90,6 +92,7 @@ from ..measurement import (
 )
 from ..model import Model
 from ..spec import DensityPrior, GaussianPrior, MixturePrior
+from .bank import Banks, NormalBank
 from .blocks import SingleBlocks, independent_blocks
 from .budget import check_points, default_points
 from .cloud import (
@@ -175,6 +178,7 @@ class YauNiuFilter(ChunkedFilter):
         self.points = check_points(points, model.n, model.m, len(self.blocks))
         self._singles = SingleBlocks(model, self.blocks, self._components) if singles else None
         self._coupled = CoupledBlocks(model, self.blocks, self._noise_root)
+        self._banks = Banks(model.n)  # the coupled rows' QMC normal sets (solver/qmc/bank.py)
 
     @property
     def compiled_min_rows(self) -> int:
@@ -239,18 +243,22 @@ class YauNiuFilter(ChunkedFilter):
             logw = logw - total
         else:
             raise SpecError("initial", "unsupported prior kind")
+        if self._singles is None:
+            self._banks.get(self.seed, N)  # the rows' normal sets now, not in the first chunk
         return YauNiuState(points=X, log_weights=np.tile(logw, (len(self.blocks), 1)), seed=self.seed)
 
     # -- one row ----------------------------------------------------------------------------
-    def _kolmogorov(self, X: np.ndarray, W: np.ndarray, tau: float, rng: np.random.Generator) -> np.ndarray:
+    def _kolmogorov(self, X: np.ndarray, W: np.ndarray, tau: float, rng: np.random.Generator,
+                    bank: NormalBank | None) -> np.ndarray:
         """The Kolmogorov step over τ (Yau–Niu, offline–online split: the A part): the Euler transition
-        kernel N(x + f(x)τ, aτ) on a fresh QMC normal set, each block matched to the kernel's exact
+        kernel N(x + f(x)τ, aτ) on a QMC normal set (``bank``'s), each block matched to the kernel's exact
         mean and covariance under its weights."""
         if self._singles is not None:  # blocks of one coordinate: lattice noise, compiled where on
             return self._singles.kolmogorov_step(X, self.model.f, W, tau, rng)
-        return self._coupled.kolmogorov_step(X, W, tau, rng)
+        return self._coupled.kolmogorov_step(X, W, tau, rng, bank)
 
-    def _restart(self, X: np.ndarray, w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def _restart(self, X: np.ndarray, w: np.ndarray, rng: np.random.Generator,
+                 bank: NormalBank | None) -> np.ndarray:
         """Local resampling-restart (Yau–Niu) of one block's points X (N, d): systematic resampling by
         the weights, the multi-scale (Liu–West) kernel of bandwidth h about the posterior, matched to
         its mean and covariance."""
@@ -262,7 +270,8 @@ class YauNiuFilter(ChunkedFilter):
         shrink = math.sqrt(1.0 - h * h)
         Y = shrink * X[picks] + (1.0 - shrink) * mean
         if h > 0:
-            Y = Y + h * (qmc_normals(N, d, rng, lattice=self._singles is not None) @ symmetric_root(cov))
+            Z = qmc_normals(N, d, rng, lattice=True) if bank is None else bank.normals(rng, d)
+            Y = Y + h * (Z @ symmetric_root(cov))
         return match_moments(Y, np.full(N, 1.0 / N), mean, cov)
 
     def _gate_score(self, k: int, gain: float, h: np.ndarray, predicted: np.ndarray, blocks,
@@ -295,7 +304,8 @@ class YauNiuFilter(ChunkedFilter):
         return standard_score(score, components) if score > threshold else None
 
     def _temper(self, X: np.ndarray, predicted: np.ndarray, logW: np.ndarray, factors: dict[int, np.ndarray],
-                blocks, k: int, gaps: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+                blocks, k: int, gaps: np.ndarray, rng: np.random.Generator,
+                bank: NormalBank | None) -> tuple[np.ndarray, int]:
         """Progressive correction (tempering) of every block whose update left an effective coverage
         under TEMPER × N (an observation far in the prediction's tail): from the predicted weights, the
         factor is applied in powers β₁ + β₂ + … = 1, each the largest that keeps the coverage at
@@ -330,7 +340,7 @@ class YauNiuFilter(ChunkedFilter):
                 trial = logw + low * factor
                 w = np.exp(trial - log_sum_exp(trial))
                 X = X.copy(order="K")
-                X[:, coords] = self._restart(X[:, coords], w, rng)
+                X[:, coords] = self._restart(X[:, coords], w, rng, bank)
                 logw, remaining, count = np.full(N, -math.log(N)), remaining - low, count + 1
                 h = self.model.h(X)[None]
                 factor = block_obs.log_factors(h[:, :, comps], part[k:k + 1], gaps[k:k + 1], keys[k:k + 1],
@@ -338,7 +348,7 @@ class YauNiuFilter(ChunkedFilter):
             logW[b] = total
         return X, count
 
-    def _restarts(self, X: np.ndarray, logW: np.ndarray, rng: np.random.Generator,
+    def _restarts(self, X: np.ndarray, logW: np.ndarray, rng: np.random.Generator, bank: NormalBank | None,
                   step: int) -> tuple[np.ndarray, int, str | None]:
         """Local resampling-restart of every block whose effective coverage fell below ``restart`` × N
         (its ``logW`` row reset in place; X is not written): (the points, how many blocks restarted,
@@ -358,7 +368,7 @@ class YauNiuFilter(ChunkedFilter):
                                   f"{len(w)} points and the restart cannot recover it; use more points "
                                   "(discretization.points) or a smaller dt")
                 moved = X.copy(order="K") if moved is X else moved
-                moved[:, coords] = self._restart(moved[:, coords], w, rng)
+                moved[:, coords] = self._restart(moved[:, coords], w, rng, bank)
                 logW[b] = -math.log(len(w))
                 count += 1
         return moved, count, None
@@ -427,13 +437,14 @@ class YauNiuFilter(ChunkedFilter):
         done = 0 if state.degenerate else K
         W = np.exp(logW)  # the weights, kept with logW from row to row
         mean, cov = self._moments(X, W)
+        bank = None if singles is not None else self._banks.get(state.seed, len(X))
         for k in range(done):
             step = int(steps[k])
             rng = np.random.default_rng([state.seed, step])
             if gaps[k] > 0:
                 pieces = max(1, math.ceil(float(gaps[k]) / model.dt - 1e-9))  # Euler steps of at most dt
                 for _ in range(pieces):
-                    X = self._kolmogorov(X, W, float(gaps[k]) / pieces, rng)
+                    X = self._kolmogorov(X, W, float(gaps[k]) / pieces, rng, bank)
             seen = singles.seen(chunk, k) if singles is not None else any(keys[k] for *_, keys, _ in blocks)
             hX = model.h(X) if seen else None
             predicted = logW.copy() if seen else None
@@ -455,9 +466,9 @@ class YauNiuFilter(ChunkedFilter):
                 if score is not None:  # the gate: the row only predicts
                     logW, gated[k], scores[k] = predicted, True, score
             if predicted is not None and not gated[k] and factors:
-                X, count = self._temper(X, predicted, logW, factors, blocks, k, gaps, rng)
+                X, count = self._temper(X, predicted, logW, factors, blocks, k, gaps, rng, bank)
                 restarts += count
-            X, count, failure = self._restarts(X, logW, rng, step)
+            X, count, failure = self._restarts(X, logW, rng, bank, step)
             restarts += count
             if failure is not None:
                 reason, done = failure, k
