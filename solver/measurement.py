@@ -269,9 +269,11 @@ class Observation:
     def _row_terms(h_rows: np.ndarray, pat: Pattern) -> tuple[np.ndarray, np.ndarray]:
         """h_o R_oo⁻¹ (k, |o|, P) and ½h_oᵀR_oo⁻¹h_o (k, P) of h per row (k, P, m)."""
         h_o = h_rows[:, :, pat.index]
-        hR = np.ascontiguousarray(np.einsum("kpi,ij->kjp", h_o, pat.R_inv))
-        half = 0.5 * np.einsum("kpi,ij,kpj->kp", h_o, pat.R_inv, h_o)
-        return hR, half
+        hR = np.einsum("kpi,ij->kpj", h_o, pat.R_inv)
+        # two two-operand einsums: numpy's three-operand one loops generically (3× the time at 65 536
+        # points); each element still sums over i, then j, in order, whatever the chunk's K
+        half = 0.5 * np.einsum("kpj,kpj->kp", hR, h_o)
+        return np.ascontiguousarray(hR.transpose(0, 2, 1)), half
 
     def point_terms(self, h_points: np.ndarray, key: int, cache: dict | None = None):
         """h_o R_oo⁻¹ (|o|, P) and ½h_oᵀR_oo⁻¹h_o (P,) of h at the points (P, m) for the pattern ``key``

@@ -19,11 +19,14 @@ The offset replaces a random order per row (0.7 ms at 65 536 points) and makes t
 The signed order is folded into the diffusion's root, M[c_j] = s_j · (a^{1/2})_j, so the row's noise
 costs what it did (:meth:`NormalBank.root`).
 
-Measured (/work/tmp scripts, summarised in bench/results/yau-niu.md's notes) on the 4-state ring against
+Measured (one-off scripts, summarised in bench/results/yau-niu-speed.md) on the 4-state ring against
 bench/yau_niu.py's 10⁶-particle truth, 300 rows, seeds 0–4, rms mean gap median (mean), with a new
 scrambled set and a random order each row as before: 0.0145 (0.0160) at 32 768 points, 0.0120 (0.0136) at
 65 536; one set: 0.0183 (0.0179), 0.0152 (0.0146); eight sets, random orders: 0.0167 (0.0163), 0.0123
-(0.0124); eight sets, offsets (kept): 0.0158 (0.0150), 0.0090 (0.0104).
+(0.0124); eight sets, offsets: 0.0158 (0.0150), 0.0090 (0.0104).  On the 4-D linear model against the
+Kalman filter (8192 points, 300 increments, 4 paths × 4 seeds) eight sets left the rms mean gap 20%
+larger than a new set each row (median 0.0119 against 0.0096) and 32 sets did not (0.0096; worst
+variance median 4.8% against 5.2%): hence 32.
 """
 
 from __future__ import annotations
