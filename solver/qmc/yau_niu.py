@@ -13,8 +13,8 @@ cover where the density lives.  σ is carried as N points x_i with log weights �
    Euler kernel of dx = f dt + G dv, x ↦ x + f(x)τ + (aτ)^{1/2} z with z a QMC normal set in a new
    random order each row (reusing a Sobol index across rows correlates the points' noises, measured),
    drawn from the filter's bank of scrambled sets built once (solver/qmc/bank.py: the data-free part
-   of the step, offline; blocks of one coordinate use a new lattice instead, which costs nothing);
-   (blocks of one coordinate: each its own shifted 1-D lattice, solver/qmc/blocks.py);
+   of the step, offline); blocks of one coordinate: each its own shifted 1-D lattice a row, which costs
+   next to nothing (solver/qmc/blocks.py);
    then the cloud is mapped affinely so that its weighted mean and covariance are exactly those of
    the kernel, m = Σ w_i(x_i + f_iτ), P = Cov_w(x + fτ) + aτ (second-order moment matching: exact
    for linear drift; chosen by measurement, see below).
