@@ -81,11 +81,13 @@ class NormalBank:
 
     def normals(self, rng: np.random.Generator, d: int) -> np.ndarray:
         """N standard normal deviates in d ≤ n dimensions, in random order (a restart's spread)."""
-        return deviates(*self.draw(rng))[:, :d]
+        Z, offset, cols, signs = self.draw(rng)
+        return deviates(Z, offset, cols[:d], signs[:d])
 
 
 def deviates(Z: np.ndarray, offset: int, cols: np.ndarray, signs: np.ndarray) -> np.ndarray:
-    """A draw's deviates (N, n): point i takes s_j · Z[(i + offset) mod N, c_j]."""
+    """A draw's deviates (N, len(cols)): point i takes s_j · Z[(i + offset) mod N, c_j] (the first
+    coordinates of the signed order only, where ``cols`` and ``signs`` are cut short)."""
     return np.roll(Z[:, cols], -offset, axis=0) * signs
 
 
