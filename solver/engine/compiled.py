@@ -45,9 +45,6 @@ def _bind(name: str, arguments: int = 11):
 
 _dgemv = _bind("dgemv")
 _sgemv = _bind("sgemv")
-_dtrmv = _bind("dtrmv", 8)
-_strmv = _bind("strmv", 8)
-UPPER, NON_UNIT = ord("U"), ord("N")
 
 CACHE_DIR = writable_cache_dir()
 # numba picks a function's cache directory when it is decorated: ours, then numba's own setting back
@@ -75,22 +72,37 @@ def gemv(alpha, matrix, x, y, ints, scalars):
 
 
 @_jit
-def _product(matrix, row, lower, subs, w, saved, ints, scalars):
-    """w ← M w in place for a quasi-upper-triangular M: trmv('U', 'N', 'N') as scipy calls it, then the
-    2×2 blocks' subdiagonal terms (powers.py's SchurPowers.product: ``subs[row]`` are M's entries)."""
-    before = lower.size
-    for j in range(before):
-        saved[j] = w[lower[j] - 1]
-    ints[1] = matrix.shape[0]
-    ints[2] = UPPER
-    uplo, trans, diag, n, inc = (ints[2:3].ctypes, ints[0:1].ctypes, ints[0:1].ctypes, ints[1:2].ctypes,
-                                 ints[3:4].ctypes)
-    if scalars.itemsize == 4:
-        _strmv(uplo, trans, diag, n, matrix.ctypes, n, w.ctypes, inc)
-    else:
-        _dtrmv(uplo, trans, diag, n, matrix.ctypes, n, w.ctypes, inc)
-    for j in range(before):
-        w[lower[j]] = w[lower[j]] + subs[row, j] * saved[j]
+def _packed_product(packed, row, lower, subs, w, out):
+    """w ← M w for a quasi-upper-triangular M, ``packed`` its upper triangle column by column (powers.py's
+    SchurPowers.product, whose BLAS tpmv sums in another order): out = Σ_j M[:j+1, j]·w_j four columns
+    at a time, then the 2×2 blocks' subdiagonal terms (``subs[row]`` are M's entries), copied to w."""
+    n = w.shape[0]
+    for i in range(n):
+        out[i] = 0.0
+    j = 0
+    while j + 4 <= n:
+        x0, x1, x2, x3 = w[j], w[j + 1], w[j + 2], w[j + 3]
+        s0 = j * (j + 1) // 2
+        s1 = s0 + j + 1
+        s2 = s1 + j + 2
+        s3 = s2 + j + 3
+        c0, c1, c2, c3 = packed[s0:s1], packed[s1:s2], packed[s2:s3], packed[s3:s3 + j + 4]
+        for i in range(j + 1):
+            out[i] += c0[i] * x0 + c1[i] * x1 + c2[i] * x2 + c3[i] * x3
+        out[j + 1] += c1[j + 1] * x1 + c2[j + 1] * x2 + c3[j + 1] * x3
+        out[j + 2] += c2[j + 2] * x2 + c3[j + 2] * x3
+        out[j + 3] += c3[j + 3] * x3
+        j += 4
+    while j < n:
+        x0 = w[j]
+        s0 = j * (j + 1) // 2
+        for i in range(j + 1):
+            out[i] += packed[s0 + i] * x0
+        j += 1
+    for q in range(lower.size):
+        out[lower[q]] += subs[row, q] * w[lower[q] - 1]
+    for i in range(n):
+        w[i] = out[i]
 
 
 @_jit
@@ -169,25 +181,23 @@ def run_modal(start, stop, propagator, projection, carried, following, mass, fac
 
 @_jit
 def _advance(carried, schur, tables, lower, subs, indices, remainder, degree, w, saved, ints, scalars):
-    """carried[:N] ← e^{τT} carried[:N]: powers.py's SchurPowers.advance, the same BLAS calls and
-    elementwise operations in the same order (Horner's Taylor polynomial with T, then the row's tables;
-    ``tables[m]`` holds E_mᵀ in C order)."""
-    n = schur.shape[0]
+    """carried[:N] ← e^{τT} carried[:N]: powers.py's SchurPowers.advance, the same steps in the same
+    order (Horner's Taylor polynomial with T, then the row's tables; ``schur`` and ``tables[m]`` packed;
+    ``saved`` a buffer of N)."""
+    n = w.shape[0]
     for q in range(n):
         w[q] = carried[q]
     if remainder != 0.0:
         for i in range(degree, 0, -1):
-            _product(schur, 0, lower, subs, w, saved, ints, scalars)
+            _packed_product(schur, 0, lower, subs, w, saved)
             scalars[0] = remainder / i  # in the matrices' precision, as numpy's scalar
             a = scalars[0]
             for q in range(n):
-                w[q] = w[q] * a
-            for q in range(n):
-                w[q] = w[q] + carried[q]
+                w[q] = w[q] * a + carried[q]  # two roundings, as numpy's two operations
     for j in range(indices.shape[0]):
         m = indices[j]
         if m >= 0:
-            _product(tables[m], m + 1, lower, subs, w, saved, ints, scalars)
+            _packed_product(tables[m], m + 1, lower, subs, w, saved)
     for q in range(n):
         carried[q] = w[q]
 

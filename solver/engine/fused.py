@@ -152,13 +152,13 @@ def _schur_arguments(powers: Any, taus: np.ndarray, N: int, dtype: Any) -> tuple
     the tables, the 2×2 blocks' subdiagonal rows and entries, each row's plan and remainder, the Taylor
     degree and two buffers."""
     indices, remainders = powers.plan(taus)
-    w, saved = np.empty(N, dtype=dtype), np.empty(powers.lower.size, dtype=dtype)
+    w, saved = np.empty(N, dtype=dtype), np.empty(N, dtype=dtype)
     return (True, powers.T, powers.stack, powers.lower, powers.subs, indices, remainders, powers.degree, w,
             saved)
 
 
 def _no_schur(dtype: Any) -> tuple:
     """Placeholders of the same array types as :func:`_schur_arguments` (one compiled signature)."""
-    return (False, np.empty((2, 2), dtype=dtype, order="F"), np.empty((0, 2, 2), dtype=dtype),
+    return (False, np.empty(3, dtype=dtype), np.empty((0, 3), dtype=dtype),
             np.empty(0, dtype=np.int64), np.empty((1, 0), dtype=dtype), np.empty((0, 1), dtype=np.int64),
             np.empty(0), 0, np.empty(0, dtype=dtype), np.empty(0, dtype=dtype))

@@ -183,11 +183,11 @@ def schur_rows(rows: Rows, flow: SpectralFlow, taus: np.ndarray, carried: np.nda
                mass: float) -> Result:
     """:func:`loop_irregular` in the Schur coordinates of an ill-conditioned generator: each row first
     takes the carried coefficients through e^{τ_kT} (solver/engine/powers.py: its Taylor polynomial and
-    tables, gemv by gemv), then the engine's two products with ΦU and [UᵀΦᵀW; wᵀ]."""
+    tables, product by product), then the engine's two products with ΦU and [UᵀΦᵀW; wᵀ]."""
     powers, engine, N, K = flow.powers, rows.engine, rows.engine.N, len(taus)
     assert powers is not None
     indices, remainders = powers.plan(taus)
-    w, saved = np.empty(N, dtype=engine.arith.dtype), np.empty(powers.lower.size, dtype=engine.arith.dtype)
+    w, saved = np.empty(N, dtype=engine.arith.dtype), np.empty(N, dtype=engine.arith.dtype)
     if rows.compiled:
         k, carried, _, _ = run_compiled(rows, 0, K, (flow.B, flow.B, flow.C), carried, following, mass,
                                         schur=(powers.T, powers.stack, powers.lower, powers.subs, indices,

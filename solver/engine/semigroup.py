@@ -134,7 +134,7 @@ class SpectralFlow:
         d = self.to_modal(c).astype(self.dtype)
         if self.powers is not None:
             indices, remainders = self.powers.plan(np.array([float(tau)]))
-            w, saved = np.empty_like(d), np.empty(self.powers.lower.size, dtype=d.dtype)
+            w, saved = np.empty_like(d), np.empty_like(d)
             self.powers.advance(d, indices[0], float(remainders[0]), w, saved)
         else:
             real, pairs = self.scales(np.array([float(tau)]))

@@ -124,8 +124,9 @@ def _fused_chunks(monkeypatch):
 _FUSED: list[int] = []
 
 
-def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=None) -> tuple:
-    """Both paths on the same rows: the same results and state, the same rows through the slow path.
+def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=None, rtol=None) -> tuple:
+    """Both paths on the same rows: the same results and state (within ``rtol`` where given), the same rows
+    through the slow path.
     Returns (the result, the slow path's (row, reason or None), the rows given to the compiled loops,
     fused chunks' included)."""
     slow: list = []
@@ -156,8 +157,8 @@ def _both(monkeypatch, model, offline, precision, rows, times, gate=None, tiny=N
     slow.clear()
     assert not compiled_rows
     compiled_run = _run(monkeypatch, "compiled", model, offline, precision, rows, times, gate, tiny)
-    if any(done > 0 for done in _FUSED):  # some chunks (pieces of long gaps) all observed: fused
-        _close(numpy_run, compiled_run, precision)
+    if rtol is not None or any(done > 0 for done in _FUSED):  # fused chunks (pieces of long gaps)
+        _close(numpy_run, compiled_run, precision, rtol)
     else:
         _same(numpy_run, compiled_run, precision)
     assert slow == numpy_slow
@@ -175,14 +176,19 @@ RTOL = {"double": 1e-10, "single": 1e-5}
 # there whichever kernel runs (1.0e-7 measured on the AVX-512 machine); absolute, for that row only (and
 # for the gate's score, the same predictive density)
 OUTLIER_LOGLIK_ATOL = {"double": 1e-6, "single": 1e-2}
+# the Schur form's products sum in another order on the two paths (numba's column loop, BLAS's tpmv on
+# the numpy path): to rounding even where the rest is bit for bit.  In single precision each path's
+# moments are 3–5e-5 of their scale from the double-precision run's (measured on two_sensors and
+# yau_jia_1d, 120 rows), the two paths 1.2e-5 from each other
+RTOL_SCHUR = {"double": 1e-10, "single": 1e-4}
 
 
-def _close_array(a, b, precision: str, name: str) -> None:
+def _close_array(a, b, precision: str, name: str, rtol: float | None = None) -> None:
     if isinstance(a, np.ndarray) and a.dtype.kind == "f":
         assert a.dtype == b.dtype and np.array_equal(np.isnan(a), np.isnan(b)), name
         a2, b2 = np.nan_to_num(a).reshape(len(a), -1), np.nan_to_num(b).reshape(len(b), -1)
         scale = np.maximum(np.abs(a2).max(axis=0, initial=0.0), 1e-300)
-        within = np.abs(a2 - b2) <= RTOL[precision] * scale
+        within = np.abs(a2 - b2) <= (rtol or RTOL[precision]) * scale
         if name in ("predictive_loglik", "gate_score") and len(a2) == K:
             within[K // 3] = np.abs(a2[K // 3] - b2[K // 3]) <= OUTLIER_LOGLIK_ATOL[precision]
         assert np.all(within), name
@@ -192,13 +198,14 @@ def _close_array(a, b, precision: str, name: str) -> None:
         assert a == b, name
 
 
-def _close(numpy_run, fused_run, precision: str) -> None:
+def _close(numpy_run, fused_run, precision: str, rtol: float | None = None) -> None:
     (state_a, result_a), (state_b, result_b) = numpy_run, fused_run
     for field in dataclasses.fields(result_a):
-        _close_array(getattr(result_a, field.name), getattr(result_b, field.name), precision, field.name)
-    a, b = state_a.coefficients, state_b.coefficients
-    assert np.all(np.abs(a - b) <= RTOL[precision] * np.abs(a).max())
-    assert state_a.mass == pytest.approx(state_b.mass, rel=RTOL[precision])
+        _close_array(getattr(result_a, field.name), getattr(result_b, field.name), precision, field.name,
+                     rtol)
+    a, b, rtol = state_a.coefficients, state_b.coefficients, rtol or RTOL[precision]
+    assert np.all(np.abs(a - b) <= rtol * np.abs(a).max())
+    assert state_a.mass == pytest.approx(state_b.mass, rel=rtol)
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
@@ -227,8 +234,8 @@ def test_fused_chunks_are_the_numpy_rows(monkeypatch, _fused_chunks, name, preci
 def test_fused_chunks_in_the_schur_form(monkeypatch, _fused_chunks, name, precision):
     """Irregular rows of an ill-conditioned generator (all forced there: yau_jia_1d's is at cond(V) ≈
     9e9 at its default basis, under double precision's cap) run fused too, each row's flow e^{τT} by the
-    Schur tables inside the row: the whole chunk in one compiled loop, within RTOL of the numpy path
-    (which applies the same tables)."""
+    Schur tables inside the row: the whole chunk in one compiled loop, within RTOL_SCHUR of the numpy
+    path (which applies the same tables)."""
     model, offline = _offline(name)
     monkeypatch.setattr(semigroup, "MAX_CONDITION", 1.0)
     times = random_times(np.random.default_rng(5), K, model.dt)
@@ -240,7 +247,7 @@ def test_fused_chunks_in_the_schur_form(monkeypatch, _fused_chunks, name, precis
     assert flt.flow.powers is not None  # the Schur form
     fused_run = _run(monkeypatch, "compiled", model, offline, precision, rows, times)
     assert _fused_chunks and min(_fused_chunks) > 0  # every chunk fused to its end (a long gap: pieces)
-    _close(numpy_run, fused_run, precision)
+    _close(numpy_run, fused_run, precision, RTOL_SCHUR[precision])
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
@@ -326,7 +333,8 @@ def test_the_flow_of_an_ill_conditioned_generator(monkeypatch, name, precision, 
     gaps = np.random.default_rng(4).choice([1.0, 2.0, 3.5], size=K) * model.dt
     gaps[50:70] = 1.5 * model.dt  # a longer run of equal gaps
     times = np.cumsum(gaps)
-    _, slow, compiled = _both(monkeypatch, model, offline, precision, _rows(model, times, 5), times)
+    _, slow, compiled = _both(monkeypatch, model, offline, precision, _rows(model, times, 5), times,
+                              rtol=RTOL_SCHUR[precision] if form == "schur" else None)
     assert compiled and slow  # the outlier's row: rejected, accepted or degenerate, the same on both paths
 
 
