@@ -406,6 +406,19 @@ def numeric_many(
                 out[j] = f.node(cols)  # a scalar (a constant expression) fills its row
         return out.T if columns else np.ascontiguousarray(out.T)
 
+    def on_rows(XT: np.ndarray) -> np.ndarray:
+        """The functions at points given as coordinate rows XT (n, P): (len(functions), P), each row
+        written once (no strided stack); the same numbers as ``evaluate(XT.T).T``."""
+        XT = np.asarray(XT, dtype=float)
+        if not all(hasattr(f, "node") for f in functions):
+            return np.ascontiguousarray(evaluate(XT.T).T)
+        cols, out = tuple(XT), np.empty((len(functions), XT.shape[1]))
+        with np.errstate(all="ignore"):
+            for j, f in enumerate(functions):
+                out[j] = f.node(cols)
+        return out
+
+    evaluate.rows = on_rows  # type: ignore[attr-defined]
     return evaluate
 
 

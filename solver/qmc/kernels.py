@@ -138,9 +138,9 @@ def moments(XT, W, mean, var):
 
 
 @sums
-def euler(XT, F, Z, offset, root, sqrt_tau, tau, GT, DT, MT):
+def euler(XT, FT, Z, offset, root, sqrt_tau, tau, GT, DT, MT):
     """The coupled blocks' Euler kernel before its moment matching (solver/qmc/coupled.py), coordinates
-    as rows (n, N) but F (N, n): GT = Z[(i + offset) mod N]ᵀ (the noise in the points' order: a bank's
+    and the drift as rows (n, N): GT = Z[(i + offset) mod N]ᵀ (the noise in the points' order: a bank's
     set taken from ``offset`` on, solver/qmc/bank.py), DT = (X + Fτ)ᵀ and MT = DT + √τ·rootᵀGT."""
     n, N = XT.shape
     for i in range(N):  # the gather, point by point (Z's rows are the set's points, in a random order)
@@ -149,7 +149,10 @@ def euler(XT, F, Z, offset, root, sqrt_tau, tau, GT, DT, MT):
             p -= N
         for m in range(n):
             GT[m, i] = Z[p, m]
-            DT[m, i] = XT[m, i] + F[i, m] * tau
+    for m in range(n):
+        x, f, d = XT[m], FT[m], DT[m]
+        for i in range(N):
+            d[i] = x[i] + f[i] * tau
     for j in range(n):
         d, g = DT[j], MT[j]
         for i in range(N):
@@ -204,6 +207,37 @@ def affine(MT, here, A, mean, out):
             x, h = MT[m], here[m]
             for i in range(N):
                 o[i] += (x[i] - h) * a
+
+
+@kernel
+def block_log_factor(HT, cols, R_inv, y, penalty, constant, hr, half, out):
+    """A coupled block's Gaussian log factor at each point p (solver/measurement.py ``log_factors`` for
+    one row whose points are its own; each element the same operations in the same order): out[p] =
+    Σ_j y_j (hR)_j − penalty·½Σ_j (hR)_j h_j + constant, h = HT[cols, p] the observed components of the
+    row's sensor values as rows HT (m, P), hR = h R_oo⁻¹ (``penalty``: τ for increments, 1 for
+    discrete readings; ``hr`` (|o|, P) and ``half`` (P,) buffers).  Pass by pass over contiguous rows."""
+    o, P = cols.shape[0], HT.shape[1]
+    for j in range(o):
+        r = hr[j]
+        h, a = HT[cols[0]], R_inv[0, j]
+        for p in range(P):
+            r[p] = h[p] * a
+        for i in range(1, o):
+            h, a = HT[cols[i]], R_inv[i, j]
+            for p in range(P):
+                r[p] += h[p] * a
+    for j in range(o):
+        h, r, c = HT[cols[j]], hr[j], y[j]
+        if j == 0:
+            for p in range(P):
+                half[p] = r[p] * h[p]
+                out[p] = c * r[p]
+        else:
+            for p in range(P):
+                half[p] += r[p] * h[p]
+                out[p] += c * r[p]
+    for p in range(P):
+        out[p] = out[p] - penalty * (0.5 * half[p]) + constant
 
 
 numba.config.CACHE_DIR = _previous_cache_dir

@@ -105,7 +105,7 @@ from .cloud import (
     symmetric_root,
     weighted_moments,
 )
-from .coupled import CoupledBlocks
+from .coupled import CoupledBlocks, block_log_factor, sensor_rows
 from .packed import pack_finite, unpack
 
 if TYPE_CHECKING:
@@ -391,15 +391,14 @@ class YauNiuFilter(ChunkedFilter):
     # -- the observation step of one row --------------------------------------------------------
     def _update_blocks(self, k: int, logW: np.ndarray, hX: np.ndarray, blocks: list,
                        gaps: np.ndarray) -> tuple[float | None, float, dict[int, np.ndarray]]:
-        """Row k's observation step, block by block (logW edited in place): (the row's predictive
-        log-likelihood, its sum of offsets, each observed block's log factor), or None for the first
-        where an observed block's likelihood is zero at every point."""
+        """Row k's observation step at the sensor values hX (P, m), block by block (logW edited in
+        place): (the row's predictive log-likelihood, its sum of offsets, each observed block's log
+        factor), or None for the first where an observed block's likelihood is zero at every point."""
         gain = offsets = 0.0
         factors: dict[int, np.ndarray] = {}
         for b, (comps, block_obs, part, keys, terms) in enumerate(blocks):
             if keys[k]:
-                factor = block_obs.log_factors(hX[:, :, comps], part[k:k + 1], gaps[k:k + 1],
-                                               keys[k:k + 1], terms.rows(k, k + 1, keys))[0]
+                factor = block_log_factor(block_obs, hX, comps, part, gaps, keys, terms, k)
                 total = logW[b] + factor  # Yau–Niu, log-domain update
                 block_gain = log_sum_exp(total)
                 if not math.isfinite(block_gain):
@@ -446,7 +445,8 @@ class YauNiuFilter(ChunkedFilter):
                 for _ in range(pieces):
                     X = self._kolmogorov(X, W, float(gaps[k]) / pieces, rng, bank)
             seen = singles.seen(chunk, k) if singles is not None else any(keys[k] for *_, keys, _ in blocks)
-            hX = model.h(X) if seen else None
+            columns = singles is None and X.flags.f_contiguous  # coupled: each component contiguous
+            hX = None if not seen else sensor_rows(model.h, X.T).T if columns else model.h(X)
             predicted = logW.copy() if seen else None
             gain, offsets, over, factors = 0.0, 0.0, True, {}
             if seen and singles is not None:
@@ -454,7 +454,7 @@ class YauNiuFilter(ChunkedFilter):
                 gain, offsets, bound, components, factors = row
                 over = gain is not None and bound > gate_threshold(obs.gate, components)
             elif seen:
-                gain, offsets, factors = self._update_blocks(k, logW, hX[None], blocks, gaps)
+                gain, offsets, factors = self._update_blocks(k, logW, hX, blocks, gaps)
             if gain is None:
                 logW = predicted  # (the compiled update leaves its partial work in logW)
                 reason, done = _zero_likelihood(step), k

@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 from helpers import ROOT
 from yauyau.solver.errors import SpecError
-from yauyau.solver.expressions import numeric_expression, parse_expression, state_symbols, vectorize
+from yauyau.solver.expressions import (
+    numeric_expression,
+    numeric_many,
+    parse_expression,
+    state_symbols,
+    vectorize,
+)
 
 CASES = [
     "x**3", "-0.2*x + y", "x*y**2 - 3.5*sin(x) + cos(y)/2", "tanh(x) + sech(y)", "atan2(y, x) + atan(x)",
@@ -35,6 +41,30 @@ def test_numeric_builder_agrees_with_sympy(text):
     X = np.random.default_rng(0).uniform(-3, 3, size=(500, 2))
     a, b = numeric(X), exact(X)
     assert a.shape == (500,) and np.allclose(a, b, rtol=1e-12, atol=1e-12), np.max(np.abs(a - b))
+
+
+@pytest.mark.parametrize("n", [2, 9])
+def test_many_expressions_on_points_or_on_coordinate_rows_agree_with_sympy(n):
+    """numeric_many's two layouts: points (P, n) -> (P, m), and coordinate rows (n, P) -> (m, P) (the
+    coupled Yau–Niu rows' ``rows``: each row written once), Fortran- or C-ordered, against SymPy; a
+    constant expression fills its row."""
+    import sympy
+
+    texts = [*CASES[:6], "2.5"]
+    states = {"x": 0, "y": 1, **{f"z{i}": i for i in range(2, n)}}
+    params = {"theta": 0.7, "kappa": -1.3}
+    many = numeric_many([numeric_expression(t, states, params, f"f[{i}]") for i, t in enumerate(texts)])
+    symbols = state_symbols(n)
+    names = {"x": symbols[0], "y": symbols[1], **{k: sympy.Rational(repr(v)) for k, v in params.items()}}
+    X = np.random.default_rng(1).uniform(-3, 3, size=(400, n))
+    exact = np.stack([np.broadcast_to(vectorize(parse_expression(t, names, "f"), symbols)(X), (400,))
+                      for t in texts], axis=1)
+    for points in (X, np.asfortranarray(X)):
+        on_points, on_rows = many(points), many.rows(points.T)
+        assert on_points.shape == (400, len(texts)) and on_rows.shape == (len(texts), 400)
+        assert on_rows.flags.c_contiguous
+        assert np.allclose(on_points, exact, rtol=1e-12, atol=1e-12)
+        assert np.allclose(on_rows.T, exact, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("text, message", [
