@@ -162,6 +162,7 @@ class SchurPowers:
         below = saved[: self.before.size]
         np.take(w, self.before, out=below)
         out = self.tpmv(self.N, packed, w, overwrite_x=1)
-        assert out is w  # in place: w is contiguous and of the tables' dtype
+        if out is not w:  # in place where w is contiguous and of the tables' dtype (the loops' buffers)
+            w[:] = out
         if below.size:
             w[self.lower] += self.subs[row] * below
