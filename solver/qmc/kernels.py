@@ -137,18 +137,26 @@ def moments(XT, W, mean, var):
         mean[b], var[b] = m, v
 
 
+@kernel
+def gather(Z, offset, GT):
+    """GT = Z[(i + offset) mod N]ᵀ: a bank's set (N, n) from ``offset`` on, as coordinate rows (n, N),
+    point by point (Z's rows are the set's points, in a random order)."""
+    N, n = Z.shape
+    for i in range(N):
+        p = i + offset
+        if p >= N:
+            p -= N
+        for m in range(n):
+            GT[m, i] = Z[p, m]
+
+
 @sums
 def euler(XT, FT, Z, offset, root, sqrt_tau, tau, GT, DT, MT):
     """The coupled blocks' Euler kernel before its moment matching (solver/qmc/coupled.py), coordinates
     and the drift as rows (n, N): GT = Z[(i + offset) mod N]ᵀ (the noise in the points' order: a bank's
     set taken from ``offset`` on, solver/qmc/bank.py), DT = (X + Fτ)ᵀ and MT = DT + √τ·rootᵀGT."""
     n, N = XT.shape
-    for i in range(N):  # the gather, point by point (Z's rows are the set's points, in a random order)
-        p = i + offset
-        if p >= N:
-            p -= N
-        for m in range(n):
-            GT[m, i] = Z[p, m]
+    gather(Z, offset, GT)
     for m in range(n):
         x, f, d = XT[m], FT[m], DT[m]
         for i in range(N):
@@ -238,6 +246,75 @@ def block_log_factor(HT, cols, R_inv, y, penalty, constant, hr, half, out):
                 out[p] += c * r[p]
     for p in range(P):
         out[p] = out[p] - penalty * (0.5 * half[p]) + constant
+
+
+@kernel
+def systematic(w, u0, picks):
+    """Systematic resampling by the weights w: picks[i] the first j with Σ_{l≤j} w_l ≥ (u0 + i)/N · Σw
+    (numpy's cumsum and searchsorted of the restart, in one merge pass)."""
+    N = w.shape[0]
+    cdf = np.empty(N)
+    total = 0.0
+    for i in range(N):
+        total += w[i]
+        cdf[i] = total
+    j = 0
+    for i in range(N):
+        u = (u0 + i) / N * total
+        while j < N and cdf[j] < u:
+            j += 1
+        picks[i] = min(j, N - 1)
+
+
+@sums
+def shape_sums(XT, w, mean, B, third, fourth):
+    """The weighted third and fourth moments of the whitened cloud z = (x − mean) B along each axis
+    (cloud.multiscale_bandwidth's), coordinates as rows XT (d, N): pass by pass over contiguous rows."""
+    d, N = XT.shape
+    z = np.empty(N)
+    for k in range(d):
+        for i in range(N):
+            z[i] = 0.0
+        for j in range(d):
+            x, m, b = XT[j], mean[j], B[j, k]
+            for i in range(N):
+                z[i] += (x[i] - m) * b
+        t, f = 0.0, 0.0
+        for i in range(N):
+            z2 = z[i] * z[i]
+            t += w[i] * (z2 * z[i])
+            f += w[i] * (z2 * z2)
+        third[k], fourth[k] = t, f
+
+
+@sums
+def spread(XT, picks, shrink, mean, Z, offset, M, GT, YT):
+    """The restart's points as rows YT (d, N): y_i = shrink·x_{picks[i]} + (1 − shrink)·mean + Σ_m
+    Z[(i + offset) mod N, m] M[m] (a bank's set from ``offset`` on, gathered into GT (n, N) as
+    :func:`euler` does; M the signed order and the kernel's h·cov^{1/2} folded together, zero rows
+    skipped)."""
+    d, N = YT.shape
+    n = Z.shape[1]
+    for j in range(d):
+        x, y, b = XT[j], YT[j], (1.0 - shrink) * mean[j]
+        for i in range(N):
+            y[i] = shrink * x[picks[i]] + b
+    used = False
+    for m in range(n):
+        for j in range(d):
+            used = used or M[m, j] != 0.0
+    if not used:
+        return
+    gather(Z, offset, GT)
+    for j in range(d):
+        y = YT[j]
+        for m in range(n):
+            a = M[m, j]
+            if a == 0.0:
+                continue
+            g = GT[m]
+            for i in range(N):
+                y[i] += g[i] * a
 
 
 numba.config.CACHE_DIR = _previous_cache_dir

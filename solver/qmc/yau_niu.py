@@ -106,6 +106,7 @@ from .cloud import (
     weighted_moments,
 )
 from .coupled import CoupledBlocks, block_log_factor, sensor_rows
+from .coupled import restart as coupled_restart
 from .packed import pack_finite, unpack
 
 if TYPE_CHECKING:
@@ -262,6 +263,8 @@ class YauNiuFilter(ChunkedFilter):
         """Local resampling-restart (Yau–Niu) of one block's points X (N, d): systematic resampling by
         the weights, the multi-scale (Liu–West) kernel of bandwidth h about the posterior, matched to
         its mean and covariance."""
+        if bank is not None and jit.enabled():  # a coupled block: the same steps by the kernels
+            return coupled_restart(X, w, rng, bank, self.bandwidth)
         N, d = X.shape
         mean, cov = weighted_moments(X, w)
         cdf = np.cumsum(w)

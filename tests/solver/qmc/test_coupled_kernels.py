@@ -66,6 +66,7 @@ def assert_same(numpy_run, compiled_run, rtol=1e-9):
 
 
 def test_the_coupled_ring_with_restarts_in_chunks(monkeypatch):
+    """The row and its restarts (coupled.restart by the kernels on the compiled path) against numpy's."""
     model = coupled(RING, [f"x{i}**3" for i in range(4)])
     rows = simulate(model, 60, np.random.default_rng(3)).increments
     numpy_run, compiled_run = both_paths(monkeypatch, model, rows, chunks=(25,))
@@ -115,3 +116,32 @@ def test_the_kernels_moments_against_their_definition(owner):
             want = (sum(w[i] * (X[j, i] - mean[j]) * (X[k, i] - mean[k]) for i in range(500))
                     if owner[j] == owner[k] else 0.0)
             assert cov[j, k] == pytest.approx(want, rel=1e-12, abs=1e-15)
+
+
+def test_the_restart_kernels_against_their_definitions():
+    """Systematic resampling: point i takes the first j whose cumulative weight reaches (u + i)/N of
+    the total (the inverse CDF at a stratified grid, written out here); the shape sums: Σ w z³ and
+    Σ w z⁴ of the whitened cloud along each axis."""
+    rng = np.random.default_rng(8)
+    N = 300
+    w = rng.random(N) ** 4
+    w[::7] = 0.0  # points the resampling must never pick
+    w /= w.sum()
+    picks = np.empty(N, np.int64)
+    kernels.systematic(w, 0.37, picks)
+    cumulative = np.cumsum(w)
+    for i in range(N):
+        u = (0.37 + i) / N * cumulative[-1]
+        first = next(j for j in range(N) if cumulative[j] >= u)
+        assert picks[i] == first and w[picks[i]] > 0.0
+    counts = np.bincount(picks, minlength=N)
+    assert np.all(np.abs(counts - N * w) < 1.0)  # systematic: each count within 1 of N·w
+    X = rng.standard_normal((3, N)) * [[1.0], [2.0], [0.5]] + 1.0
+    mean = w @ X.T
+    B = np.linalg.cholesky(np.linalg.inv(np.cov(X, aweights=w)))
+    third, fourth = np.empty(3), np.empty(3)
+    kernels.shape_sums(np.ascontiguousarray(X), w, mean, B, third, fourth)
+    for k in range(3):
+        z = [sum((X[j, i] - mean[j]) * B[j, k] for j in range(3)) for i in range(N)]
+        assert third[k] == pytest.approx(sum(w[i] * z[i] ** 3 for i in range(N)), rel=1e-10, abs=1e-12)
+        assert fourth[k] == pytest.approx(sum(w[i] * z[i] ** 4 for i in range(N)), rel=1e-10)
