@@ -19,7 +19,9 @@ Its numbers agree with the numpy path to rounding (libm's exp, BLAS's sums), not
 The products call the very BLAS ``dgemv``/``sgemv`` that scipy.linalg.blas calls on the numpy path
 (scipy.linalg.cython_blas, by address: the results are bit-identical), and the elementwise products
 are single IEEE operations (numba does not contract them into FMAs), so both paths give the same
-numbers.  Importing this module imports numba; solver/engine/loops.py does so on first use only.
+numbers — except the Schur form's triangular products (:func:`_packed_product`, a column loop over
+packed matrices where the numpy path calls BLAS tpmv: faster than BLAS at these sizes, equal to
+rounding).  Importing this module imports numba; solver/engine/loops.py does so on first use only.
 """
 
 from __future__ import annotations
