@@ -2,10 +2,10 @@
 
 ``YAUYAU_KERNEL`` = ``compiled`` (the default where numba is installed): the whole-chunk row loops of
 solver/engine/compiled.py; ``numpy``: the reference path of solver/engine/loops.py (one Python step a
-row around the same BLAS calls).  Both give the same σ, ∫σ, log-likelihoods and states bit for bit
-where numpy's exp is libm's, the moments to rounding (BLAS sums; fused chunks, solver/engine/fused.py:
-1e-12 relative in double; tests/solver/engine/test_compiled.py).  Read here only, on each chunk: a
-test or a user may switch it at run time.
+row around the same BLAS calls).  Both give the same σ, ∫σ, log-likelihoods, moments and states to
+rounding (the compiled factors' exponential is a vectorised polynomial within 2 ulp of numpy's, the
+moments' sums BLAS's; tests/solver/engine/test_compiled.py: 1e-10 relative in double).  Read here
+only, on each chunk: a test or a user may switch it at run time.
 
 A one-shot command that knows its input (``yauyau filter``) calls :func:`choose_for_rows`: below
 ``COMPILED_MIN_ROWS`` rows it takes the numpy path for the whole process, because numba's import and

@@ -14,17 +14,21 @@ loops: after j rows it is in ``following`` when j is odd.
 
 :func:`run_fused` (driven by solver/engine/fused.py) also computes each row's update factor and the sums
 its moments and checks read inside the row, for chunks whose rows are all observed: no K×Q arrays.
-Its numbers agree with the numpy path to rounding (libm's exp, BLAS's sums), not bit for bit.
+Its numbers agree with the numpy path to rounding (the factors' exponential is this module's
+:func:`exp_shifted`, within 2 ulp of numpy's; BLAS's sums), not bit for bit; the loops that keep σ
+take the same exponential and sums (a compiled chunk's numbers do not depend on whether it ran fused).
 
 The products call the very BLAS ``dgemv``/``sgemv`` that scipy.linalg.blas calls on the numpy path
-(scipy.linalg.cython_blas, by address: the results are bit-identical), and the elementwise products
-are single IEEE operations (numba does not contract them into FMAs), so both paths give the same
-numbers — except the Schur form's triangular products (:func:`_packed_product`, a column loop over
-packed matrices where the numpy path calls BLAS tpmv: faster than BLAS at these sizes, equal to
-rounding).  Importing this module imports numba; solver/engine/loops.py does so on first use only.
+(scipy.linalg.cython_blas, by address: bit-identical on the same inputs), and the elementwise products
+are single IEEE operations (numba does not contract them into FMAs); the two paths differ by the
+factors' exponential and the Schur form's triangular products (:func:`_packed_product`, a column loop
+over packed matrices where the numpy path calls BLAS tpmv: faster than BLAS at these sizes), both to
+rounding.  Importing this module imports numba; solver/engine/loops.py does so on first use only.
 """
 
 from __future__ import annotations
+
+import math
 
 import numba
 import numpy as np
@@ -35,6 +39,7 @@ from numba.extending import get_cython_function_address
 from ..jit import writable_cache_dir
 
 TRANS_N = ord("N")
+TRANS_T = ord("T")
 
 
 def _bind(name: str, arguments: int = 11):
@@ -54,6 +59,18 @@ _previous_cache_dir = numba.config.CACHE_DIR
 if CACHE_DIR is not None:
     numba.config.CACHE_DIR = str(CACHE_DIR)
 _jit = numba.njit(cache=CACHE_DIR is not None, nogil=True)
+# FMAs allowed (the exponential's polynomial only: its rounding is its own, stated below)
+_jit_fma = numba.njit(cache=CACHE_DIR is not None, nogil=True, fastmath={"contract"})
+
+# exp for the update factors: Cody–Waite reduction x = k·ln 2 + r, |r| ≤ ln 2 / 2 (k·LN2_HI is exact for
+# |k| < 2^11: LN2_HI's low bits are zero), r's Taylor polynomial of degree 12 (truncation ≤ (ln 2/2)^13/13!
+# ≈ 1.7e-16 relative) and 2^k from its bits; within 2 ulp of libm's on [−708, 0]
+# (tests/solver/engine/test_compiled.py).  Written so that LLVM vectorises it: libm's exp is one call a
+# number, 0.98 against 0.19 µs for the 159 nodes of examples/cubic_sensor.toml's rows
+LOG2E = 1.4426950408889634
+LN2_HI = 6.93147180369123816490e-01
+LN2_LO = 1.90821492927058770002e-10
+EXP_LOW, EXP_HIGH = -708.0, 709.0  # beyond: 0 and inf (libm's: subnormal, or finite up to 709.78)
 
 
 @_jit
@@ -71,6 +88,41 @@ def gemv(alpha, matrix, x, y, ints, scalars):
     else:
         _dgemv(trans, m, n, scalars[0:1].ctypes, matrix.ctypes, m, x.ctypes, inc, scalars[1:2].ctypes,
                y.ctypes, inc)
+
+
+@_jit
+def summary_buffers(columns):
+    """:func:`buffers` for the summary's ``gemv`` with ``columns`` (Q, S) transposed: y = columnsᵀ · x,
+    S dot products of length Q (BLAS's gemv('T'); gemv('N') on the (S, Q) rows cost 2.7× as much at
+    S = 5)."""
+    ints, scalars = buffers(columns)
+    ints[0] = TRANS_T
+    return ints, scalars
+
+
+@_jit_fma
+def exp_shifted(x, shift, out, bits):
+    """out = exp(x − shift) (x − shift ≤ 0: a factor relative to its largest; ``out`` not ``x``, ``bits``
+    an int64 buffer of x's size): the module's polynomial exponential, 0 under EXP_LOW, inf over
+    EXP_HIGH, NaN kept."""
+    for q in range(x.shape[0]):
+        v = x[q] - shift
+        w = v if v > EXP_LOW else EXP_LOW
+        w = w if w < EXP_HIGH else EXP_HIGH
+        k = math.floor(w * LOG2E + 0.5)
+        r = (w - k * LN2_HI) - k * LN2_LO
+        p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (
+            1.0 / 720.0 + r * (1.0 / 5040.0 + r * (1.0 / 40320.0 + r * (1.0 / 362880.0 + r * (
+                1.0 / 3628800.0 + r * (1.0 / 39916800.0 + r * (1.0 / 479001600.0))))))))))))
+        bits[q] = (np.int64(k) + 1023) << 52
+        out[q] = p
+    scale = bits.view(np.float64)
+    for q in range(x.shape[0]):
+        v = x[q] - shift
+        e = out[q] * scale[q]
+        e = e if v >= EXP_LOW else 0.0
+        e = e if v <= EXP_HIGH else np.inf
+        out[q] = e if v == v else v
 
 
 @_jit
@@ -266,14 +318,15 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
 
 @_jit
 def _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants, discrete,
-               limit, factor, row, wide, summary, sums, weights, negative, mode, top, ints, scalars,
+               limit, factor, row, wide, ex, bits, summary, sums, weights, negative, mode, top, ints, scalars,
                wide_ints, wide_scalars):
     """Row k with its update factor and its moments' sums in the row (fused.py): the exponent
     Σ_j y_kj (hR⁻¹)_jq − τ_k·½hᵀR⁻¹h_q (continuous) or − ½hᵀR⁻¹h_q + c_k (discrete Gaussian) in
-    measurement.py's order, its max ``top[k]``, e = exp(exponent − top) in the matrices' precision (0
-    under ``limit``), σ = s ⊙ e, Πσ into ``following``; then ``sums[k]`` = the summary rows · σ
-    (dgemv), ``negative[k]`` = Σ w min(σ, 0) and ``mode[k]`` = argmax σ (the first largest, as
-    np.argmax).  False: an exponent not finite (the caller's Python path decides)."""
+    measurement.py's order, its max ``top[k]``, e = exp(exponent − top) (:func:`exp_shifted`) rounded to
+    the matrices' precision (0 under ``limit``), σ = s ⊙ e, Πσ into ``following``; then ``sums[k]`` =
+    the summary's columnsᵀ · σ (gemv('T')), ``negative[k]`` = Σ w min(σ, 0) and ``mode[k]`` = argmax σ
+    (the first largest, as np.argmax).  False: an exponent not finite (the caller's Python path
+    decides)."""
     hR, half = terms[:-1], terms[-1]
     gemv(1.0 / mass, propagator, carried, row, ints, scalars)
     best = -np.inf
@@ -292,9 +345,10 @@ def _fused_row(k, propagator, projection, carried, following, mass, terms, y, ta
         if a > best:
             best = a
     top[k] = best
+    exp_shifted(wide, best, ex, bits)
     low, index, peak = 0.0, 0, -np.inf
     for q in range(row.shape[0]):
-        factor[0] = np.exp(wide[q] - best)  # in the matrices' precision, as numpy's astype
+        factor[0] = ex[q]  # in the matrices' precision, as numpy's astype
         if factor[0] < limit[0]:
             factor[0] = 0.0
         v = row[q] * factor[0]
@@ -343,9 +397,10 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
     that needs the Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
     exp(floor_exponent − top)), or ``stop``."""
     ints, scalars = buffers(propagator)
-    wide_ints, wide_scalars = buffers(summary)
+    wide_ints, wide_scalars = summary_buffers(summary)
     n = propagator.shape[1] - 1
     row, factor = np.empty(propagator.shape[0], propagator.dtype), np.empty(1, propagator.dtype)
+    ex, bits = np.empty(propagator.shape[0]), np.empty(propagator.shape[0], np.int64)
     wide, scale = np.empty(propagator.shape[0]), np.empty(3, propagator.dtype)
     for k in range(start, stop):
         if modal:
@@ -354,8 +409,8 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
             _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
                      scalars)
         if not _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants,
-                          discrete, limit, factor, row, wide, summary, sums, weights, negative, mode, top,
-                          ints, scalars, wide_ints, wide_scalars):
+                          discrete, limit, factor, row, wide, ex, bits, summary, sums, weights, negative,
+                          mode, top, ints, scalars, wide_ints, wide_scalars):
             return k
         new_mass = float(following[n])
         masses[k] = new_mass
@@ -370,7 +425,7 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
 def sum_rows(sigma, summary, weights, sums, negative, mode):
     """What :func:`_fused_row` keeps of each row of a chunk's σ (K, Q) that the loops kept: the same
     operations in the same order (a compiled chunk's moments do not depend on whether it ran fused)."""
-    wide_ints, wide_scalars = buffers(summary)
+    wide_ints, wide_scalars = summary_buffers(summary)
     wide = np.empty(sigma.shape[1])
     for k in range(sigma.shape[0]):
         low, index, peak = 0.0, 0, -np.inf
@@ -387,11 +442,13 @@ def sum_rows(sigma, summary, weights, sums, negative, mode):
 
 @_jit
 def exp_factors(log_factor, limit, factor):
-    """factor = exp(log factor) in the matrices' precision, 0 under ``limit``: :func:`_fused_row`'s
-    exponential (libm's), for the compiled loops that keep σ."""
+    """factor = exp(log factor) (:func:`exp_shifted`, as :func:`_fused_row`'s) in the matrices'
+    precision, 0 under ``limit``: for the compiled loops that keep σ."""
+    wide, bits = np.empty(log_factor.shape[1]), np.empty(log_factor.shape[1], np.int64)
     for k in range(log_factor.shape[0]):
+        exp_shifted(log_factor[k], 0.0, wide, bits)
         for q in range(log_factor.shape[1]):
-            factor[k, q] = np.exp(log_factor[k, q])
+            factor[k, q] = wide[q]
             if factor[k, q] < limit[0]:
                 factor[k, q] = 0.0
 

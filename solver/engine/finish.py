@@ -47,12 +47,12 @@ _SUMMARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def summary_rows(engine: Any) -> np.ndarray:
-    """The rows the compiled kernel sums σ against (S, Q), Fortran order: the moments' features, then the
-    diagnostics' functionals (engine/diagnostics.py)."""
+    """The rows the compiled kernel sums σ against, as columns (Q, S) in Fortran order (its gemv('T')):
+    the moments' features, then the diagnostics' functionals (engine/diagnostics.py)."""
     found = _SUMMARIES.get(engine)
     if found is None:
         features = moment_features(engine.weights, engine.nodes, moment_pairs(engine.nodes.shape[1]))
-        found = np.asfortranarray(np.vstack([features, engine.diagnostics.functionals()]), dtype=float)
+        found = np.asfortranarray(np.vstack([features, engine.diagnostics.functionals()]).T, dtype=float)
         _SUMMARIES[engine] = found
     return found
 
@@ -62,8 +62,8 @@ def summarise(engine: Any, sigma: np.ndarray) -> Summary:
     from . import compiled  # numba: imported on the first chunk
 
     summary = summary_rows(engine)
-    K, features = len(sigma), summary.shape[0] - 3
-    sums, negative, mode = np.empty((K, summary.shape[0])), np.empty(K), np.empty(K, dtype=np.int64)
+    K, features = len(sigma), summary.shape[1] - 3
+    sums, negative, mode = np.empty((K, summary.shape[1])), np.empty(K), np.empty(K, dtype=np.int64)
     compiled.sum_rows(np.ascontiguousarray(sigma), summary, np.ascontiguousarray(engine.weights, dtype=float),
                       sums, negative, mode)
     return Summary(sums[:, :features], np.column_stack([sums[:, features:], negative]), mode)

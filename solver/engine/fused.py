@@ -12,13 +12,13 @@ operations of solver/measurement.py ``log_factors``, in its order: bit for bit),
 · σ, the diagnostics' functionals · σ, Σ w min(σ, 0) and argmax σ: solver/engine/finish.py
 ``Summary``).  Neither the factors (K×Q), nor their exponents, nor σ (K×Q) are stored.
 
-The factor's exponential is libm's (numpy's may be a vectorised one that differs in the last bit), and
-the sums are BLAS's (numpy's einsum adds in another order): the fused chunk agrees with the numpy path
-to rounding (tests/solver/engine/test_compiled.py: 1e-12 relative in double, 1e-5 in single, per
-column).  The exponents and ``top`` are bit-identical; where numpy's exp is libm's (this machine) so
-are ∫σ, the log-likelihoods and the state.  The compiled loops that keep σ use the same exp
-(loops.py ``update_factors``) and the same sums (finish.py ``summarise``): a compiled chunk's numbers
-do not depend on whether it ran fused, so they do not depend on how the rows are chunked.
+The factor's exponential is solver/engine/compiled.py's ``exp_shifted`` (a polynomial LLVM vectorises,
+within 2 ulp of numpy's), and the sums are BLAS's (numpy's einsum adds in another order): the fused
+chunk agrees with the numpy path to rounding (tests/solver/engine/test_compiled.py: 1e-10 relative in
+double, 1e-5 in single, per column).  The exponents and ``top`` are bit-identical.  The compiled loops
+that keep σ use the same exp (loops.py ``update_factors``) and the same sums (finish.py
+``summarise``): a compiled chunk's numbers do not depend on whether it ran fused, so they do not
+depend on how the rows are chunked.
 
 Anything rarer goes back to the path that keeps σ, for the whole chunk (:func:`run_fused` returns
 None): a row whose ∫σ is outside (tiny, huge) or under the gate's floor (the slow path needs s and
@@ -83,7 +83,7 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
         else:
             triangular = _schur_arguments(flow.powers, taus, N, dtype)
     summary = fixed.summary
-    sums = np.empty((K, summary.shape[0]))
+    sums = np.empty((K, summary.shape[1]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
     constants = np.ascontiguousarray(terms.constant, dtype=float) if obs.discrete else np.zeros(K)
     done = compiled.run_fused(0, K, np.asfortranarray(P), np.asfortranarray(projection), carried, following,
@@ -96,7 +96,7 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
         carried = following
-    features = summary.shape[0] - 3
+    features = summary.shape[1] - 3
     ready = Prepared(gaps, keys, terms, np.empty((K, 0)), top, top.copy(), missing.copy(), missing,
                      missing.copy(), gate, initial)
     checks = np.empty((K, 4))

@@ -20,9 +20,9 @@ Where numba is (``YAUYAU_KERNEL``, solver/jit.py), the three loops run their row
 compiled loops of solver/engine/compiled.py, which stop at a row that needs the slow path (or, on a
 moving ball, after a row whose trigger fired): :func:`run_compiled` and :func:`moving_compiled` take
 that row's slow step (or the move, or the next window of factors) here and re-enter at the next row —
-the same numbers bit for bit where numpy's exp is libm's (the compiled kernel's factors are libm's:
-:func:`update_factors`; its moments BLAS sums, solver/engine/finish.py ``summarise``, to rounding); the
-Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
+the same numbers to rounding (the compiled kernel's factors are its polynomial exponential,
+:func:`update_factors`, within 2 ulp of numpy's; its moments BLAS sums, solver/engine/finish.py
+``summarise``); the Python loops stay the reference, ``YAUYAU_KERNEL=numpy``.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ Result = tuple[np.ndarray, np.ndarray, np.ndarray, int, "str | None"]
 
 def update_factors(arith: Any, log_factor: np.ndarray) -> np.ndarray:
     """e_k = exp(log e_k − max) in the loop's precision, 0 under ``negligible`` (K, Q): numpy's exp, or
-    with the compiled kernel the fused rows' (libm's, solver/engine/compiled.py ``exp_factors``)."""
+    with the compiled kernel the fused rows' (solver/engine/compiled.py ``exp_factors``)."""
     if jit.enabled() and log_factor.size:
         from . import compiled  # numba: imported on the first chunk
 
