@@ -130,7 +130,7 @@ def _check_session_db(settings) -> None:
 def run(args):
     import uvicorn
     from yauyau.service.http.connections import FD_RESERVE, descriptor_limit, plan
-    from yauyau.service.http.protocol import MAX_HEAD_BYTES, ServiceProtocol
+    from yauyau.service.http.protocol import MAX_HEAD_BYTES, protocol_class
     from yauyau.service.http.tenants import serve_notes
     from yauyau.storage.errors import StoreError
 
@@ -154,6 +154,6 @@ def run(args):
               "the limit or lower the cap", file=sys.stderr)
     uvicorn.run("yauyau.service.http.app:create_app", factory=True, host=settings.host, port=settings.port,
                 workers=settings.workers, log_level=settings.log_level, access_log=False,
-                http=ServiceProtocol, h11_max_incomplete_event_size=MAX_HEAD_BYTES, backlog=backlog,
+                http=protocol_class(), h11_max_incomplete_event_size=MAX_HEAD_BYTES, backlog=backlog,
                 ws_max_size=settings.max_body_bytes)  # a bigger stream message: closed with 1009
     return 0

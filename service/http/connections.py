@@ -154,7 +154,7 @@ def connection_guard(loop) -> ConnectionGuard:
 
 
 class QuietLogger:
-    """uvicorn's logger for one connection, except that a request h11 finds invalid is counted for the
+    """uvicorn's logger for one connection, except that a request the parser finds invalid is counted for the
     periodic warning instead of a line each (a client decides how many it sends)."""
 
     INVALID = "Invalid HTTP request received."

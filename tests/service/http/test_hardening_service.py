@@ -22,7 +22,7 @@ from helpers import EXAMPLES
 from helpers.server import ROWS, chunk, new_session, running
 from helpers.specs import dos_spec
 from uvicorn.protocols.http.h11_impl import H11Protocol
-from yauyau.service.http.protocol import ServiceProtocol
+from yauyau.service.http.protocol import ServiceProtocol, ServiceToolsProtocol, protocol_class
 
 PROBLEM = "application/problem+json"
 ABS_SPEC = {"name": "range-1d", "state": ["x"], "drift": ["-0.5*x"], "observation": ["2*abs(x)"],
@@ -300,7 +300,9 @@ def accepted_nodelay(protocol: type) -> int:
     with socket.create_server(("127.0.0.1", 0)) as listener:
         inherited = socket.fromfd(listener.fileno(), socket.AF_INET, socket.SOCK_STREAM)
         assert inherited.proto == 0
-        server = uvicorn.Server(uvicorn.Config(_hello, http=Recorder, lifespan="off", log_level="warning"))
+        # asyncio's loop: uvloop (which `serve` takes where it is installed) sets the option itself
+        server = uvicorn.Server(uvicorn.Config(_hello, http=Recorder, lifespan="off", log_level="warning",
+                                               loop="asyncio"))
         thread = threading.Thread(target=server.run, kwargs={"sockets": [inherited]})
         thread.start()
         try:
@@ -324,7 +326,8 @@ def test_connections_a_worker_accepts_through_an_inherited_socket_have_tcp_nodel
     protocol on such a socket leaves the option off (the stall's condition reproduced); the service's
     sets it."""
     assert accepted_nodelay(H11Protocol) == 0
-    assert accepted_nodelay(ServiceProtocol) != 0
+    assert accepted_nodelay(ServiceProtocol) != 0 and accepted_nodelay(ServiceToolsProtocol) != 0
+    assert protocol_class() is ServiceToolsProtocol  # httptools is a dependency: `serve` speaks it
 
 
 # -- 10. strictness over HTTP ------------------------------------------------------------------
