@@ -13,7 +13,8 @@ re-enters at the next row.  The carried vector alternates between the two buffer
 loops: after j rows it is in ``following`` when j is odd.
 
 :func:`run_fused` (driven by solver/engine/fused.py) also computes each row's update factor and the sums
-its moments and checks read inside the row, for chunks whose rows are all observed: no K×Q arrays.
+its moments and checks read inside the row, for chunks whose rows are all observed: no K×Q arrays (and
+on regular rows, where the nodes are fewer than 2(N + 1), one product a row: s = PΠσ/∫σ).
 Its numbers agree with the numpy path to rounding (the factors' exponential is this module's
 :func:`exp_shifted`, within 2 ulp of numpy's; BLAS's sums), not bit for bit; the loops that keep σ
 take the same exponential and sums (a compiled chunk's numbers do not depend on whether it ran fused).
@@ -317,18 +318,16 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
 
 
 @_jit
-def _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants, discrete,
-               limit, factor, row, wide, ex, bits, summary, sums, weights, negative, mode, top, ints, scalars,
-               wide_ints, wide_scalars):
-    """Row k with its update factor and its moments' sums in the row (fused.py): the exponent
+def _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary, sums,
+               weights, negative, mode, top, wide_ints, wide_scalars):
+    """Row k's update and its moments' sums (fused.py), ``row`` holding s_k: the exponent
     Σ_j y_kj (hR⁻¹)_jq − τ_k·½hᵀR⁻¹h_q (continuous) or − ½hᵀR⁻¹h_q + c_k (discrete Gaussian) in
     measurement.py's order, its max ``top[k]``, e = exp(exponent − top) (:func:`exp_shifted`) rounded to
-    the matrices' precision (0 under ``limit``), σ = s ⊙ e, Πσ into ``following``; then ``sums[k]`` =
+    the matrices' precision (0 under ``limit``), σ = s ⊙ e in ``row``; then ``sums[k]`` =
     the summary's columnsᵀ · σ (gemv('T')), ``negative[k]`` = Σ w min(σ, 0) and ``mode[k]`` = argmax σ
     (the first largest, as np.argmax).  False: an exponent not finite (the caller's Python path
     decides)."""
     hR, half = terms[:-1], terms[-1]
-    gemv(1.0 / mass, propagator, carried, row, ints, scalars)
     best = -np.inf
     for q in range(row.shape[0]):
         a = y[k, 0] * hR[0, q]
@@ -359,7 +358,6 @@ def _fused_row(k, propagator, projection, carried, following, mass, terms, y, ta
         if v > peak:
             peak, index = v, q
     negative[k], mode[k] = low, index
-    gemv(1.0, projection, row, following, ints, scalars)
     gemv(1.0, summary, wide, sums[k], wide_ints, wide_scalars)
     return True
 
@@ -388,18 +386,21 @@ def _scale_flow(carried, tau, real_rates, pair_rates, scale):
 def run_fused(start, stop, propagator, projection, carried, following, mass, terms, y, taus, constants,
               discrete, limit, floor_exponents, summary, weights, sums, negative, mode, top, masses, tiny,
               huge, modal, real_rates, pair_rates, triangular, schur, tables, lower, subs, indices,
-              remainders, degree, w, saved):
+              remainders, degree, w, saved, combined, operator):
     """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
     each row (:func:`_fused_row`): no K×Q arrays.  Irregular rows first take the carried coefficients
     through the row's flow: ``modal``, scaled by e^{τ_kΛ} (:func:`_scale_flow`); ``triangular``, through
     e^{τ_kT} in the Schur coordinates of an ill-conditioned generator (:func:`_advance`, with
-    :func:`run_schur`'s arguments; placeholders of the same types otherwise).  Returns the first row
-    that needs the Python path (an exponent not finite, ∫σ out of (tiny, huge) or under the gate's floor
-    exp(floor_exponent − top)), or ``stop``."""
+    :func:`run_schur`'s arguments; placeholders of the same types otherwise).  ``combined`` (regular
+    rows, ``operator`` = PΠ, Q × Q): after the chunk's first row, s_k = PΠσ_{k−1}/∫σ_{k−1} in one
+    product, ∫σ_k = Σ w σ_k (``weights``, the projection's last row) and Πσ only after the last row.
+    Returns the first row that needs the Python path (an exponent not finite, ∫σ out of (tiny, huge) or
+    under the gate's floor exp(floor_exponent − top)), or ``stop``."""
     ints, scalars = buffers(propagator)
     wide_ints, wide_scalars = summary_buffers(summary)
     n = propagator.shape[1] - 1
     row, factor = np.empty(propagator.shape[0], propagator.dtype), np.empty(1, propagator.dtype)
+    previous = np.empty(propagator.shape[0], propagator.dtype)
     ex, bits = np.empty(propagator.shape[0]), np.empty(propagator.shape[0], np.int64)
     wide, scale = np.empty(propagator.shape[0]), np.empty(3, propagator.dtype)
     for k in range(start, stop):
@@ -408,16 +409,26 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
         elif triangular:
             _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
                      scalars)
-        if not _fused_row(k, propagator, projection, carried, following, mass, terms, y, taus, constants,
-                          discrete, limit, factor, row, wide, ex, bits, summary, sums, weights, negative,
-                          mode, top, ints, scalars, wide_ints, wide_scalars):
+        if combined and k > start:
+            gemv(1.0 / mass, operator, previous, row, ints, scalars)  # s_k = PΠσ_{k−1}/∫σ_{k−1}
+        else:
+            gemv(1.0 / mass, propagator, carried, row, ints, scalars)
+        if not _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary,
+                          sums, weights, negative, mode, top, wide_ints, wide_scalars):
             return k
-        new_mass = float(following[n])
+        if combined and k + 1 < stop:
+            new_mass = 0.0
+            for q in range(row.shape[0]):
+                new_mass += weights[q] * row[q]
+            previous, row = row, previous
+        else:
+            gemv(1.0, projection, row, following, ints, scalars)
+            new_mass = float(following[n])
         masses[k] = new_mass
         if not tiny < new_mass < huge or new_mass < np.exp(floor_exponents[k] - top[k]):
             return k
         mass = new_mass
-        carried, following = following, carried
+        carried, following = following, carried  # combined: only the last row's is written (the same buffer)
     return stop
 
 

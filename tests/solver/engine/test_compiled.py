@@ -216,6 +216,34 @@ def test_fused_chunks_are_the_numpy_rows(monkeypatch, _fused_chunks, name, preci
         _fused_chunks.clear()
 
 
+def test_fused_chunks_with_one_product_a_row(monkeypatch, _fused_chunks):
+    """examples/cubic_sensor.toml as bundled (Q = 159 nodes, N = 128): fewer nodes than 2(N + 1), so the
+    fused rows take s_{k+1} = PΠσ_k/∫σ_k in one product (fused.py ``_operator``), Πσ after the last row
+    only: within RTOL of the numpy path's two products a row, over 600 rows in one chunk and in chunks
+    of 7."""
+    from yauyau.solver.engine import fused
+
+    model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
+    offline = precompute(model)
+    flt = make_filter(model, offline, "yau-yau")
+    assert fused._operator(flt) is not None
+    assert fused._operator(make_filter(model, offline, "yau-yau", precision="single")) is None
+    times = model.dt * np.arange(1, 601)
+    _, rows = simulate_irregular(model, times, "continuous", np.random.default_rng(21))
+    numpy_run = _run(monkeypatch, "numpy", model, offline, "double", rows, None)
+    fused_run = _run(monkeypatch, "compiled", model, offline, "double", rows, None)
+    assert _fused_chunks == [600]
+    _close(numpy_run, fused_run, "double")
+    monkeypatch.setenv("YAUYAU_KERNEL", "compiled")
+    state = flt.initial_state()
+    means = []
+    for start in range(0, 600, 7):
+        state, result = flt.run_arrays(state, rows[start:start + 7])
+        means.append(result.mean)
+    _close_array(numpy_run[1].mean, np.concatenate(means), "double", "mean")
+    assert state.loglik == pytest.approx(numpy_run[0].loglik, rel=RTOL["double"])
+
+
 @pytest.mark.parametrize("precision", ["double", "single"])
 @pytest.mark.parametrize("name", ["cubic_sensor", "two_sensors", "yau_jia_1d"])
 def test_fused_chunks_in_the_schur_form(monkeypatch, _fused_chunks, name, precision):
