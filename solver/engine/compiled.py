@@ -386,14 +386,16 @@ def _scale_flow(carried, tau, real_rates, pair_rates, scale):
 def run_fused(start, stop, propagator, projection, carried, following, mass, terms, y, taus, constants,
               discrete, limit, floor_exponents, summary, weights, sums, negative, mode, top, masses, tiny,
               huge, modal, real_rates, pair_rates, triangular, schur, tables, lower, subs, indices,
-              remainders, degree, w, saved, combined, operator):
+              remainders, degree, w, saved, combined, operator, nodal, from_nodal):
     """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
     each row (:func:`_fused_row`): no K×Q arrays.  Irregular rows first take the carried coefficients
     through the row's flow: ``modal``, scaled by e^{τ_kΛ} (:func:`_scale_flow`); ``triangular``, through
     e^{τ_kT} in the Schur coordinates of an ill-conditioned generator (:func:`_advance`, with
     :func:`run_schur`'s arguments; placeholders of the same types otherwise).  ``combined`` (regular
     rows, ``operator`` = PΠ, Q × Q): after the chunk's first row, s_k = PΠσ_{k−1}/∫σ_{k−1} in one
-    product, ∫σ_k = Σ w σ_k (``weights``, the projection's last row) and Πσ only after the last row.
+    product, ∫σ_k = Σ w σ_k (``weights``, the projection's last row; the carried vector's ∫σ too) and
+    Πσ only after the last row, whose σ is left in ``nodal``; ``from_nodal``: the first row too, from
+    the previous chunk's ``nodal`` (:func:`nodal_matches`), so that chunks continue bit for bit.
     Returns the first row that needs the Python path (an exponent not finite, ∫σ out of (tiny, huge) or
     under the gate's floor exp(floor_exponent − top)), or ``stop``."""
     ints, scalars = buffers(propagator)
@@ -411,16 +413,21 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
                      scalars)
         if combined and k > start:
             gemv(1.0 / mass, operator, previous, row, ints, scalars)  # s_k = PΠσ_{k−1}/∫σ_{k−1}
+        elif combined and from_nodal:
+            gemv(1.0 / mass, operator, nodal, row, ints, scalars)
         else:
             gemv(1.0 / mass, propagator, carried, row, ints, scalars)
         if not _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary,
                           sums, weights, negative, mode, top, wide_ints, wide_scalars):
             return k
-        if combined and k + 1 < stop:
-            new_mass = 0.0
-            for q in range(row.shape[0]):
-                new_mass += weights[q] * row[q]
-            previous, row = row, previous
+        if combined:
+            new_mass = _mass(weights, row)
+            if k + 1 < stop:
+                previous, row = row, previous
+            else:
+                gemv(1.0, projection, row, following, ints, scalars)
+                following[n] = new_mass
+                nodal[:] = row
         else:
             gemv(1.0, projection, row, following, ints, scalars)
             new_mass = float(following[n])
@@ -430,6 +437,29 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
         mass = new_mass
         carried, following = following, carried  # combined: only the last row's is written (the same buffer)
     return stop
+
+
+@_jit
+def _mass(weights, row):
+    """∫σ = Σ w σ in one pass (the combined rows' mass, :func:`run_fused`)."""
+    total = 0.0
+    for q in range(row.shape[0]):
+        total += weights[q] * row[q]
+    return total
+
+
+@_jit
+def nodal_matches(projection, nodal, weights, carried):
+    """Whether σ ``nodal`` is the one whose Πσ and Σ w σ :func:`run_fused` left as ``carried`` (c, ∫σ):
+    a state's ``nodal`` continues its chunk only then (the coefficients changed since: not)."""
+    ints, scalars = buffers(projection)
+    out = np.empty(projection.shape[0], projection.dtype)
+    gemv(1.0, projection, nodal, out, ints, scalars)
+    n = projection.shape[0] - 1
+    for i in range(n):
+        if out[i] != carried[i]:
+            return False
+    return _mass(weights, nodal) == carried[n]
 
 
 @_jit

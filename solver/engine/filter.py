@@ -257,7 +257,7 @@ class YauYauFilter(ChunkedFilter):
 
     def state_from_dict(self, data: dict[str, Any]) -> YauYauState:
         """Inverse of :meth:`YauYauState.to_dict` (validated; bad fields raise InputError('state.…'))."""
-        return state_from_dict(data, self.N, self.model.n, self.form, self.precision)
+        return state_from_dict(data, self.N, self.model.n, self.form, self.precision, len(self.nodes))
 
     def estimate(self, state: YauYauState) -> Estimate:
         """The last good estimate; flagged (with the reason) when the state is degenerate."""

@@ -32,7 +32,7 @@ explanation and the state there need σ).
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -85,6 +85,9 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
             pairs = np.ascontiguousarray(flow.pair_rates, dtype=complex)
         else:
             triangular = _schur_arguments(flow.powers, taus, N, dtype)
+    combined = taus is None and fixed.operator is not None
+    from_nodal = combined and _continues(state, fixed.projection, fixed.weights, initial)
+    nodal = state.nodal.copy() if from_nodal else np.empty(len(engine.nodes), dtype=dtype)
     summary = fixed.summary
     sums = np.empty((K, summary.shape[1]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
@@ -95,8 +98,8 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
                               fixed.negligible, floor_exponents, summary, fixed.weights, sums, negative, mode,
                               top, masses, engine.arith.tiny, engine.arith.huge,
                               taus is not None and not triangular[0], real, pairs, *triangular,
-                              taus is None and fixed.operator is not None,
-                              fixed.no_operator if fixed.operator is None else fixed.operator)
+                              combined, fixed.no_operator if fixed.operator is None else fixed.operator,
+                              nodal, from_nodal)
     if done < K:
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
@@ -108,10 +111,22 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
     checks[:, :3], checks[:, 3] = sums[:, features:], negative
     result = Summary(sums[:, :features], checks, mode)
     try:
-        return engine.finish(state, rows, steps, times, taus, ready, None, masses, carried.copy(), K, None,
-                             summary=result)
+        new_state, chunk = engine.finish(state, rows, steps, times, taus, ready, None, masses, carried.copy(),
+                                         K, None, summary=result)
     except Recompute:
         return None
+    return (replace(new_state, nodal=nodal) if combined and not new_state.degenerate else new_state), chunk
+
+
+def _continues(state: Any, projection: np.ndarray, weights: np.ndarray, initial: np.ndarray) -> bool:
+    """Whether the state's ``nodal`` σ is the one its (c, ∫σ) came from (compiled.nodal_matches)."""
+    from . import compiled
+
+    nodal = state.nodal
+    if nodal is None or nodal.shape != (projection.shape[1],):
+        return False
+    return compiled.nodal_matches(projection, np.ascontiguousarray(nodal, dtype=projection.dtype), weights,
+                                  initial)
 
 
 @dataclass(frozen=True, eq=False)

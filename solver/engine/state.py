@@ -41,6 +41,9 @@ class YauYauState:
     form: str = "stable"
     precision: str = "double"
     center: np.ndarray | None = None  # the ball's centre when it follows the state (solver/engine/follow.py)
+    # σ at the nodes after the last row, where the fused rows take one product a row (solver/engine/fused.py):
+    # the next chunk's first row continues from it, as the uninterrupted run's next row does
+    nodal: np.ndarray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe; floats as Python floats (repr round-trips exactly)."""
@@ -50,6 +53,8 @@ class YauYauState:
                "coefficients": self.coefficients.tolist(), "mass": self.mass, "last": self.last.to_dict()}
         if self.center is not None:
             out["center"] = np.asarray(self.center, dtype=float).tolist()
+        if self.nodal is not None:
+            out["nodal"] = np.asarray(self.nodal, dtype=float).tolist()
         return out
 
     @property
@@ -58,9 +63,11 @@ class YauYauState:
         return self.coefficients / self.mass
 
 
-def state_from_dict(data: Any, size: int, n: int, form: str, precision: str) -> YauYauState:
+def state_from_dict(data: Any, size: int, n: int, form: str, precision: str,
+                    nodes: int | None = None) -> YauYauState:
     """Inverse of :meth:`YauYauState.to_dict` for a filter with ``size`` basis functions, state
-    dimension ``n``, ``form`` and ``precision`` (validated; bad fields raise InputError('state.…'))."""
+    dimension ``n``, ``form`` and ``precision`` (validated; bad fields raise InputError('state.…'));
+    ``nodal`` is read where given with ``nodes`` values."""
     if not isinstance(data, dict):
         raise InputError("state", "must be an object")
     if data.get("method") != "yau-yau":
@@ -80,7 +87,10 @@ def state_from_dict(data: Any, size: int, n: int, form: str, precision: str) -> 
     mass = _finite_float(data.get("mass"), "state.mass")
     if not mass > 0.0:
         raise InputError("state.mass", "must be positive")
-    return YauYauState(coefficients=coefficients, mass=mass, step=step,
+    nodal = data.get("nodal")
+    if nodal is not None:
+        nodal = None if nodes is None else _float_array(nodal, "state.nodal", (nodes,))
+    return YauYauState(coefficients=coefficients, mass=mass, step=step, nodal=nodal,
                        t=_finite_float(data.get("t"), "state.t"),
                        loglik=_finite_float(data.get("loglik"), "state.loglik"),
                        last=_estimate_from_dict(data.get("last"), n),

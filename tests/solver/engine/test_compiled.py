@@ -220,7 +220,8 @@ def test_fused_chunks_with_one_product_a_row(monkeypatch, _fused_chunks):
     """examples/cubic_sensor.toml as bundled (Q = 159 nodes, N = 128): fewer nodes than 2(N + 1), so the
     fused rows take s_{k+1} = PΠσ_k/∫σ_k in one product (fused.py ``_operator``), Πσ after the last row
     only: within RTOL of the numpy path's two products a row, over 600 rows in one chunk and in chunks
-    of 7."""
+    of 7: the chunks continue from the state's nodal σ, bit for bit the uninterrupted run (a state whose
+    coefficients were changed since does not)."""
     from yauyau.solver.engine import fused
 
     model = compile_model(load_spec(EXAMPLES / "cubic_sensor.toml"))
@@ -241,7 +242,15 @@ def test_fused_chunks_with_one_product_a_row(monkeypatch, _fused_chunks):
         state, result = flt.run_arrays(state, rows[start:start + 7])
         means.append(result.mean)
     _close_array(numpy_run[1].mean, np.concatenate(means), "double", "mean")
-    assert state.loglik == pytest.approx(numpy_run[0].loglik, rel=RTOL["double"])
+    assert np.array_equal(np.concatenate(means), fused_run[1].mean) and state.loglik == fused_run[0].loglik
+    assert state.to_dict() == fused_run[0].to_dict() and len(state.to_dict()["nodal"]) == 159
+    moved = dataclasses.replace(state, coefficients=state.coefficients * (1.0 + 1e-9))
+    assert fused._continues(state, *_fixed_projection(flt), np.append(state.coefficients, state.mass))
+    assert not fused._continues(moved, *_fixed_projection(flt), np.append(moved.coefficients, moved.mass))
+
+
+def _fixed_projection(flt):
+    return np.asfortranarray(flt.projection), np.ascontiguousarray(flt.weights, dtype=float)
 
 
 @pytest.mark.parametrize("precision", ["double", "single"])
