@@ -131,10 +131,12 @@ def render(results: dict, steps: int) -> str:
         for label, (gap, good, reason) in gaps.items():
             lines.append(f"| {label} | {gap:.2e} | {good} | {reason or '—'} |")
         lines.append("")
-    lines += ["The hot loop is two gemv calls per observation (propagator (Q, N+1) and projector "
-              "with the quadrature weights as an extra row (N+1, Q)); the update exponents of the whole "
-              "chunk are computed at once and the moments after the loop, so `run_arrays` is within "
-              "about 2× of the BLAS floor.  The chunk-of-1 API pays validation and an Estimate per call.  "
+    lines += ["The BLAS floor is two gemv calls per observation called from Python (propagator (Q, N+1) "
+              "and projector with the quadrature weights as an extra row (N+1, Q)); the compiled rows "
+              "(solver/engine/compiled.py) call them without Python between, and on regular rows in double "
+              "precision with Q < 2(N + 1) take one Q × Q product PΠ instead (solver/engine/fused.py), so "
+              "`run_arrays` can be under the floor.  The chunk-of-1 API pays validation and an Estimate "
+              "per call.  "
               "`precision=\"single\"` halves the memory traffic of the two products.  Q ≈ 2N nodes is the "
               "offline default; `mesh = 40` (Q = 159) halves the cost at a larger but still < 0.01 gap.  "
               "The literal seed form diverges on the cubic sensor (its factor exp(hᵀR⁻¹Δy) reaches e^70 "
