@@ -302,11 +302,9 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
     ints, scalars = buffers(propagator)
     first = propagator.shape[1]
     scale = np.empty(3, propagator.dtype)
-    wide, ex = np.empty(real_rates.shape[0]), np.empty(real_rates.shape[0])
-    bits = np.empty(real_rates.shape[0], np.int64)
     for k in range(start, stop):
         if modal:
-            _scale_flow(carried, taus[k], real_rates, pair_rates, scale, wide, ex, bits)
+            _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
         new_mass = _row(k, propagator, observing, projection, carried, following, mass, factor, observed,
                         sigma, scratch, ints, scalars)
         masses[k] = new_mass
@@ -365,17 +363,13 @@ def _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide,
 
 
 @_jit
-def _scale_flow(carried, tau, real_rates, pair_rates, scale, wide, ex, bits):
+def _scale_flow(carried, tau, real_rates, pair_rates, scale):
     """e^{τΛ} on the modal coefficients in place, the scales made here (semigroup.py's ``scales`` for
-    one τ: exp(τλ) — the real modes' by :func:`exp_shifted`, through the buffers ``wide``, ``ex`` and
-    ``bits`` of at least their number — rounded to the matrices' precision through ``scale``), then
-    :func:`scale_modal`'s operations."""
+    one τ: exp(τλ) rounded to the matrices' precision through ``scale``), then :func:`scale_modal`'s
+    operations."""
     r = real_rates.shape[0]
     for i in range(r):
-        wide[i] = tau * real_rates[i]
-    exp_shifted(wide[:r], 0.0, ex[:r], bits[:r])
-    for i in range(r):
-        scale[0] = ex[i]
+        scale[0] = np.exp(tau * real_rates[i])
         carried[i] = carried[i] * scale[0]
     for j in range(pair_rates.shape[0]):
         z = np.exp(tau * pair_rates[j])
@@ -413,7 +407,7 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
     wide, scale = np.empty(propagator.shape[0]), np.empty(3, propagator.dtype)
     for k in range(start, stop):
         if modal:
-            _scale_flow(carried, taus[k], real_rates, pair_rates, scale, wide, ex, bits)
+            _scale_flow(carried, taus[k], real_rates, pair_rates, scale)
         elif triangular:
             _advance(carried, schur, tables, lower, subs, indices[k], remainders[k], degree, w, saved, ints,
                      scalars)

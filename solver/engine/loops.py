@@ -359,8 +359,8 @@ def _nodal(result: Result, moving: Recentring, N: int) -> Result:
 def moving_compiled(rows: Rows, moving: Any, carried: np.ndarray, following: np.ndarray,
                     taus: np.ndarray | None = None) -> Result:
     """:func:`loop_moving` with the rows between windows, slow steps and moves in the compiled loop
-    (solver/engine/compiled.py ``run_moving``, irregular rows scaled there by e^{τΛ} with the compiled
-    exponential, as the fused rows); the windows, slow steps and moves in Python, as there."""
+    (solver/engine/compiled.py ``run_moving``, irregular rows scaled there by e^{τΛ} with libm's exp, as
+    the fused rows); the windows, slow steps and moves in Python, as there."""
     from . import compiled  # numba: imported on the first chunk
 
     engine = rows.engine

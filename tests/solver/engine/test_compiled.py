@@ -324,8 +324,7 @@ def test_irregular_rows_on_a_ball_that_moves_inside_the_compiled_loop(monkeypatc
                                                                        precision):
     """Gaps of 0.5–1.5 dt (none filtered in pieces), a missing row and a gated outlier: the rows run in
     the moving loop in the ball's modal coordinates (an atlas: each centre's own flow), the compiled
-    loop scaling by e^{τΛ} with the compiled exponential as the fused rows do: within RTOL of the numpy
-    loop."""
+    loop scaling by e^{τΛ} with libm's exp as the fused rows do: within RTOL of the numpy loop."""
     model, offline = _offline(name)
     times = np.cumsum(np.random.default_rng(9).uniform(0.5, 1.5, 6 * K) * model.dt)
     rows = _rows(model, times, 8)
