@@ -4,10 +4,10 @@ The compiled loops (solver/engine/compiled.py) are compiled on first use, per ar
 the first time on a machine, about 0.7 s in each later process (numba's import and its on-disk cache,
 solver/jit.py ``cache_dir``).  :func:`warm_kernels` pays that up front — ``yauyau precompute``
 (which fills the cache), and the service's start-up (so no timed request pays it) — by running a tiny
-1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ), in
-double and single precision: the same calls, with the same array types, as any model's chunks; and a
-1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py), and 2-D Yau–Niu filters of
-independent sensors and of a coupled block through theirs (solver/qmc/kernels.py).
+1-D filter through every compiled loop (regular, irregular, a moving ball, fused or keeping σ, streams
+stepped together), in double and single precision: the same calls, with the same array types, as any
+model's chunks; and a 1-D Yau–Jia filter through its kernels (solver/exact/yau_jia_fast.py), and 2-D
+Yau–Niu filters of independent sensors and of a coupled block through theirs (solver/qmc/kernels.py).
 """
 
 from __future__ import annotations
@@ -52,6 +52,11 @@ def warm_kernels() -> float | None:
                 flt.run_arrays(state, rows)
                 if not follow:
                     flt.run_arrays(state, rows, times)
+    # streams stepped together where the rows take one product PΠ (solver/engine/compiled_batch.py)
+    batched = {**_TOY, "discretization": {"dt": 0.05, "basis": 8, "mesh": 4}}
+    model = compile_model(spec_from_dict(batched))
+    flt = make_filter(model, precompute(model), "yau-yau")
+    flt.run_batch([flt.initial_state()] * 2, [chunks[0]] * 2)
     # the Yau–Jia filter's kernels (solver/exact/yau_jia_fast.py): observed, missing and gated rows, a gap
     # in pieces; their array types do not depend on the dimension
     toy = {**_TOY, "observation": ["sqrt(1 + x**2)"], "method": "yau-jia"}

@@ -23,6 +23,10 @@ that keep σ use the same exp (loops.py ``update_factors``) and the same sums (f
 ``summarise``): a compiled chunk's numbers do not depend on whether it ran fused, so they do not
 depend on how the rows are chunked.
 
+Chunks of several states of one engine whose regular rows take one product a row step together in
+:func:`run_fused_batch` (solver/engine/compiled_batch.py: one dgemm a row for all of them; called by
+solver/engine/batch.py).
+
 Anything rarer goes back to the path that keeps σ, for the whole chunk (:func:`run_fused` returns
 None): a row whose ∫σ is outside (tiny, huge) or under the gate's floor (the slow path needs s and
 the log factor), an exponent that is not finite, or a step the checks find implausible (its
@@ -61,18 +65,10 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
     if not fusable(engine, rows, taus):  # before the import: the numpy kernel never imports numba
         return None
     from . import compiled  # numba: imported on the first chunk
-    obs, K, N, dtype = engine.observation, len(rows), engine.N, engine.arith.dtype
-    gaps = np.full(K, engine.model.dt) if taus is None else taus
-    keys = np.full(K, (1 << rows.shape[1]) - 1, dtype=np.int64)  # every component observed (fusable)
-    terms = obs.row_terms(rows, gaps, keys)
-    fixed = _fixed(engine, int(keys[0]))
-    y = np.ascontiguousarray(rows[:, fixed.index], dtype=float)
-    missing = np.zeros(K, dtype=bool)
-    gate = Gate(obs, terms, keys, gaps, engine, None) if obs.gating and gating else None
-    floor_exponents = (np.full(K, -np.inf) if gate is None else
-                       np.ascontiguousarray(gate.floor_exponents(missing), dtype=float))
-    initial = np.append(state.coefficients, state.mass).astype(dtype)
-    carried, following = initial.copy(), np.empty_like(initial)
+    K, N, dtype = len(rows), engine.N, engine.arith.dtype
+    given = _inputs(engine, state, rows, taus, gating)
+    fixed, carried = given.fixed, given.initial.copy()
+    following = np.empty_like(carried)
     real, pairs, triangular = fixed.real, fixed.pairs, fixed.no_schur
     if taus is None:
         P, projection = fixed.propagator, fixed.projection
@@ -86,36 +82,123 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
         else:
             triangular = _schur_arguments(flow.powers, taus, N, dtype)
     combined = taus is None and fixed.operator is not None
-    from_nodal = combined and _continues(state, fixed.projection, fixed.weights, initial)
+    from_nodal = combined and _continues(state, fixed.projection, fixed.weights, given.initial)
     nodal = state.nodal.copy() if from_nodal else np.empty(len(engine.nodes), dtype=dtype)
     summary = fixed.summary
     sums = np.empty((K, summary.shape[1]))
     negative, mode, top, masses = np.empty(K), np.empty(K, dtype=np.int64), np.empty(K), np.empty(K)
-    constants = np.ascontiguousarray(terms.constant, dtype=float) if obs.discrete else np.zeros(K)
     done = compiled.run_fused(0, K, np.asfortranarray(P), np.asfortranarray(projection), carried, following,
-                              carried.item(N), fixed.exponent_terms, y,
-                              np.ascontiguousarray(gaps, dtype=float), constants, bool(obs.discrete),
-                              fixed.negligible, floor_exponents, summary, fixed.weights, sums, negative, mode,
-                              top, masses, engine.arith.tiny, engine.arith.huge,
-                              taus is not None and not triangular[0], real, pairs, *triangular,
-                              combined, fixed.no_operator if fixed.operator is None else fixed.operator,
-                              nodal, from_nodal)
+                              carried.item(N), fixed.exponent_terms, given.y, given.gaps, given.constants,
+                              bool(engine.observation.discrete), fixed.negligible, given.floor_exponents,
+                              summary, fixed.weights, sums, negative, mode, top, masses, engine.arith.tiny,
+                              engine.arith.huge, taus is not None and not triangular[0], real, pairs,
+                              *triangular, combined,
+                              fixed.no_operator if fixed.operator is None else fixed.operator, nodal,
+                              from_nodal)
     if done < K:
         return None
     if K % 2:  # the compiled loop swapped the buffers after each row
         carried = following
-    features = summary.shape[1] - 3
-    ready = Prepared(gaps, keys, terms, np.empty((K, 0)), top, top.copy(), missing.copy(), missing,
-                     missing.copy(), gate, initial)
+    return _finished(engine, state, rows, steps, times, taus, given, (sums, negative, mode, top, masses),
+                     carried.copy(), nodal if combined else None)
+
+
+def batch_fusable(engine: Any, rows: np.ndarray) -> bool:
+    """Whether a chunk of regular rows can run in :func:`run_fused_batch` (fused, one product PΠ a row)."""
+    return fusable(engine, rows, None) and _fixed(engine, (1 << rows.shape[1]) - 1).operator is not None
+
+
+def run_fused_batch(engine: Any, items: list[tuple], gating: bool = True) -> list[tuple | None]:
+    """Chunks of regular rows of several states, each :func:`batch_fusable`, their rows stepped together
+    (solver/engine/compiled_batch.py): per item (state, rows, steps, times), sorted longest first, its
+    (new state, ChunkResult) as :func:`run_fused` gives it alone up to rounding, or None where it must run
+    alone."""
+    from .compiled_batch import run_fused_batch as kernel
+
+    S, Kmax, N = len(items), len(items[0][1]), engine.N
+    given = [_inputs(engine, state, rows, None, gating) for state, rows, _, _ in items]
+    fixed = given[0].fixed
+    Q, F, m = len(engine.nodes), fixed.summary.shape[1], given[0].y.shape[1]
+    lengths = np.array([len(rows) for _, rows, _, _ in items], dtype=np.int64)
+    y, constants = np.zeros((S, Kmax, m)), np.zeros((S, Kmax))
+    floors = np.full((S, Kmax), -np.inf)
+    nodal, from_nodal = np.empty((S, Q)), np.zeros(S, dtype=bool)
+    for j, ((state, _, _, _), ready) in enumerate(zip(items, given, strict=True)):
+        K = lengths[j]
+        y[j, :K], constants[j, :K], floors[j, :K] = ready.y, ready.constants, ready.floor_exponents
+        if _continues(state, fixed.projection, fixed.weights, ready.initial):
+            nodal[j], from_nodal[j] = state.nodal, True
+    initial = np.stack([ready.initial for ready in given])
+    sums = np.empty((S, Kmax, F))
+    negative, mode, top, masses = (np.empty((S, Kmax)), np.empty((S, Kmax), dtype=np.int64),
+                                   np.empty((S, Kmax)), np.empty((S, Kmax)))
+    following, done = np.empty((S, N + 1)), np.empty(S, dtype=np.int64)
+    kernel(lengths, fixed.operator, fixed.propagator, fixed.projection, initial, from_nodal, nodal,
+           fixed.exponent_terms, y, np.full(Kmax, engine.model.dt), constants,
+           bool(engine.observation.discrete), fixed.negligible, floors, fixed.summary, fixed.weights, sums,
+           negative, mode, top, masses, engine.arith.tiny, engine.arith.huge, following, done)
+    out: list[tuple | None] = []
+    for j, ((state, rows, steps, times), ready) in enumerate(zip(items, given, strict=True)):
+        K = lengths[j]
+        out.append(None if done[j] < K else _finished(
+            engine, state, rows, steps, times, None, ready,
+            (sums[j, :K], negative[j, :K], mode[j, :K], top[j, :K], masses[j, :K]), following[j].copy(),
+            nodal[j].copy()))
+    return out
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """One fused chunk's inputs: what :func:`_inputs` makes of its rows before the compiled loop."""
+
+    fixed: _Fixed
+    gaps: np.ndarray  # (K,) each row's τ
+    keys: np.ndarray  # (K,) the observed components' pattern (all)
+    terms: Any  # measurement.py row_terms
+    y: np.ndarray  # (K, |o|) the observed components
+    gate: Gate | None
+    floor_exponents: np.ndarray  # (K,) the gate's floors (−inf: none)
+    constants: np.ndarray  # (K,) discrete rows' constants (0 for increments)
+    initial: np.ndarray  # [c, ∫σ] carried in, the matrices' precision
+
+
+def _inputs(engine: Any, state: Any, rows: np.ndarray, taus: np.ndarray | None, gating: bool) -> _Inputs:
+    obs, K = engine.observation, len(rows)
+    gaps = np.full(K, engine.model.dt) if taus is None else np.ascontiguousarray(taus, dtype=float)
+    keys = np.full(K, (1 << rows.shape[1]) - 1, dtype=np.int64)  # every component observed (fusable)
+    terms = obs.row_terms(rows, gaps, keys)
+    fixed = _fixed(engine, int(keys[0]))
+    gate = Gate(obs, terms, keys, gaps, engine, None) if obs.gating and gating else None
+    floor_exponents = (np.full(K, -np.inf) if gate is None else
+                       np.ascontiguousarray(gate.floor_exponents(np.zeros(K, dtype=bool)), dtype=float))
+    constants = np.ascontiguousarray(terms.constant, dtype=float) if obs.discrete else np.zeros(K)
+    initial = np.append(state.coefficients, state.mass).astype(engine.arith.dtype)
+    return _Inputs(fixed, gaps, keys, terms, np.ascontiguousarray(rows[:, fixed.index], dtype=float), gate,
+                   floor_exponents, constants, initial)
+
+
+def _finished(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, times: np.ndarray,
+              taus: np.ndarray | None, given: _Inputs, kept: tuple, carried: np.ndarray,
+              nodal: np.ndarray | None):
+    """(new state, ChunkResult) from the compiled loop's ``kept`` (sums, negative, mode, top, masses) and
+    the [c, ∫σ] ``carried`` after the last row (``nodal``: its σ, where the rows took one product), or
+    None where the checks need σ."""
+    sums, negative, mode, top, masses = kept
+    K, missing = len(rows), np.zeros(len(rows), dtype=bool)
+    features = sums.shape[1] - 3
+    ready = Prepared(given.gaps, given.keys, given.terms, np.empty((K, 0)), top, top.copy(), missing.copy(),
+                     missing, missing.copy(), given.gate, given.initial)
     checks = np.empty((K, 4))
     checks[:, :3], checks[:, 3] = sums[:, features:], negative
     result = Summary(sums[:, :features], checks, mode)
     try:
-        new_state, chunk = engine.finish(state, rows, steps, times, taus, ready, None, masses, carried.copy(),
-                                         K, None, summary=result)
+        new_state, chunk = engine.finish(state, rows, steps, times, taus, ready, None, masses, carried, K,
+                                         None, summary=result)
     except Recompute:
         return None
-    return (replace(new_state, nodal=nodal) if combined and not new_state.degenerate else new_state), chunk
+    if nodal is not None and not new_state.degenerate:
+        new_state = replace(new_state, nodal=nodal)
+    return new_state, chunk
 
 
 def _continues(state: Any, projection: np.ndarray, weights: np.ndarray, initial: np.ndarray) -> bool:

@@ -19,7 +19,7 @@ PROBE = """
 import json, sys
 import numpy as np
 from yauyau.solver import compile_model, load_spec
-from yauyau.solver.engine import compiled
+from yauyau.solver.engine import compiled, compiled_batch
 from yauyau.solver.methods import make_filter
 from yauyau.solver.offline.pipeline import precompute
 from yauyau.solver.warm import warm_kernels
@@ -30,12 +30,14 @@ model = compile_model(spec)
 offline = precompute(model)
 seconds = warm_kernels()
 loops = ("run_rows", "run_modal", "run_moving", "run_fused", "sum_rows", "exp_factors")
-count = lambda: sum(len(getattr(compiled, f).signatures) for f in loops)
+count = lambda: (sum(len(getattr(compiled, f).signatures) for f in loops)
+                 + len(compiled_batch.run_fused_batch.signatures))
 warmed = count()
 for precision in ("double", "single"):
     flt = make_filter(model, offline, "yau-yau", precision=precision)
     rows = np.zeros((6, len(spec.observation)))
     flt.run_arrays(flt.initial_state(), rows)
+    flt.run_batch([flt.initial_state()] * 2, [rows] * 2)
     if not spec.domain.follow:
         flt.run_arrays(flt.initial_state(), rows, spec.discretization.dt * np.array([1, 2.5, 3, 4.2, 6, 7]))
 print(json.dumps({"seconds": seconds, "warmed": warmed, "after": count(), "again": warm_kernels()}))
@@ -51,7 +53,8 @@ def test_no_chunk_compiles_after_the_warm_up(example, tmp_path):
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert isinstance(out["seconds"], float) and out["again"] == 0.0  # warmed here, then nothing left to do
-    assert out["warmed"] == 12 and out["after"] == out["warmed"]  # 6 kernels x (double, single): nothing new
+    # 6 kernels x (double, single) and the batched one (double): nothing new
+    assert out["warmed"] == 13 and out["after"] == out["warmed"]
 
 
 def test_the_warm_up_is_off_with_the_numpy_kernel(monkeypatch):

@@ -18,6 +18,12 @@ def ou_doc() -> dict:
     return doc
 
 
+@pytest.fixture(scope="module", name="ou_doc")
+def ou_doc_fixture() -> dict:
+    """:func:`ou_doc` for a test that varies it."""
+    return ou_doc()
+
+
 @pytest.fixture(scope="module")
 def ou():
     model = compile_model(spec_from_dict(ou_doc()))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.irregular_refs import kalman_irregular
 from yauyau.solver import compile_model, spec_from_dict
 from yauyau.solver.engine.batch import BATCH_RTOL, MAX_BATCH_BYTES
 from yauyau.solver.engine.filter import YauYauFilter
@@ -165,3 +166,88 @@ def test_other_filters_take_a_batch_one_by_one(ou):
     for (_, r1), (_, r2) in zip([kalman.run_arrays(s, c) for s, c in zip(states, chunks, strict=True)],
                                   kalman.run_batch(states, chunks), strict=True):
         np.testing.assert_array_equal(r1.mean, r2.mean)
+
+
+@pytest.fixture(scope="module", params=["continuous", "discrete"])
+def ou_one_product(request, ou_doc):
+    """The OU model on a mesh of ~1.8 nodes per basis function (Q = 175 < 2(N + 1)): its regular rows
+    take one product PΠ a row, alone (fused.py) and together (compiled_batch.py)."""
+    doc = dict(ou_doc)
+    doc["discretization"] = {**doc["discretization"], "mesh": 44}
+    if request.param == "discrete":
+        doc["measurement"] = {"kind": "discrete"}
+    model = compile_model(spec_from_dict(doc))
+    return model, precompute(model)
+
+
+def _spy_batches(monkeypatch) -> list[int]:
+    """The sizes of the groups the compiled batched kernel stepped (solver/engine/fused.py)."""
+    import yauyau.solver.engine.fused as fused
+
+    sizes: list[int] = []
+    kernel = fused.run_fused_batch
+
+    def spy(engine, items, gating=True):
+        sizes.append(len(items))
+        return kernel(engine, items, gating)
+
+    monkeypatch.setattr(fused, "run_fused_batch", spy)
+    return sizes
+
+
+def test_one_product_batches_match_the_exact_kalman_filter(ou_one_product, monkeypatch):
+    """Streams of unequal lengths stepped by the compiled batched kernel, chunk after chunk, against the
+    exact sampled-time Kalman filter on each stream's whole data."""
+    from yauyau.solver import jit
+
+    if not jit.enabled():
+        pytest.skip("the compiled kernels are off (YAUYAU_KERNEL=numpy or no numba)")
+    model, offline = ou_one_product
+    engine = YauYauFilter(model, offline)
+    assert len(engine.nodes) + 1 < 2 * (engine.N + 1)
+    sizes = _spy_batches(monkeypatch)
+    lengths = [300, 120, 299, 37, 1, 300]
+    paths = [simulate(model, K, np.random.default_rng(80 + i)).rows for i, K in enumerate(lengths)]
+    states = [engine.initial_state() for _ in paths]
+    means: list[list[np.ndarray]] = [[] for _ in paths]
+    variances: list[list[np.ndarray]] = [[] for _ in paths]
+    for start in range(0, 300, 100):  # three rounds: the second and third continue from the states' σ
+        pieces = [(i, p[start:start + 100]) for i, p in enumerate(paths) if len(p) > start]
+        results = engine.run_batch([states[i] for i, _ in pieces], [c for _, c in pieces])
+        for (i, _), (state, result) in zip(pieces, results, strict=True):
+            states[i] = state
+            means[i].append(result.mean[:, 0])
+            variances[i].append(result.cov[:, 0, 0])
+            assert not result.degenerate.any()
+    assert sizes == [6, 4, 3]  # every round's chunks in the kernel (the 1-row one too)
+    kind = "discrete" if engine.observation.discrete else "continuous"
+    for i, path in enumerate(paths):
+        exact = kalman_irregular([[-0.5]], [0.0], model.a, [[1.0]], [0.0], model.R, [1.0], [[0.5]], path,
+                                 model.dt * np.arange(1, len(path) + 1), kind)
+        assert np.max(np.abs(np.concatenate(means[i]) - exact.mean[:, 0])) < 1e-3
+        assert np.max(np.abs(np.concatenate(variances[i]) / exact.cov[:, 0, 0] - 1.0)) < 0.01
+        if kind == "discrete":  # the cumulative log-likelihood is log p(z_1..k)
+            assert abs(states[i].loglik - exact.loglik[-1]) < 1e-2
+
+
+def test_one_product_batches_are_each_state_stepped_alone(cubic, monkeypatch):
+    """The compiled batched kernel against each state stepped alone, by the compiled fused rows and by
+    the numpy reference path: states at different points of their streams (some continuing from their
+    last σ), unequal lengths, an outlier the gate rejects (that state leaves the kernel and runs alone)."""
+    from yauyau.solver import jit
+
+    if not jit.enabled():
+        pytest.skip("the compiled kernels are off (YAUYAU_KERNEL=numpy or no numba)")
+    model, offline = cubic
+    engine = YauYauFilter(model, offline)
+    sizes = _spy_batches(monkeypatch)
+    chunks = _chunks(model, [100, 100, 64, 250, 3, 99, 100, 17], seed=9)
+    chunks[5][50] = 40.0
+    warm = _chunks(model, [30] * len(chunks), seed=200)
+    starts = [engine.run_arrays(engine.initial_state(), w)[0] if i % 3 else engine.initial_state()
+              for i, w in enumerate(warm)]
+    together = engine.run_batch(starts, chunks)
+    assert sizes == [len(chunks)] and together[5][1].gated[50]
+    _assert_same([engine.run_arrays(s, c) for s, c in zip(starts, chunks, strict=True)], together)
+    monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
+    _assert_same([engine.run_arrays(s, c) for s, c in zip(starts, chunks, strict=True)], together)
