@@ -86,7 +86,10 @@ def run_batch(engine: Any, states: list[YauYauState], chunks: list[ArrayLike],
     members = [m for m in out if isinstance(m, _Member)]
     for group in _groups(members, len(engine.nodes), np.dtype(engine.arith.dtype).itemsize):
         group = _fused_together(engine, group, out, times)
-        if not group:
+        if len(group) < 2:  # alone: run_arrays itself (its fused rows where they apply), the same bits
+            for member in group:
+                out[member.index] = engine.run_arrays(member.state, member.rows,
+                                                      None if times is None else times[member.index])
             continue
         for member in group:  # the update factors of this group only: memory bounded by the group
             member.ready = engine.prepare(member.state, member.rows, None, gating=True)
@@ -153,12 +156,7 @@ def _propagate_together(engine: Any, group: list[_Member]) -> list[tuple | None]
     """The hot loop of :meth:`YauYauFilter.propagate` for the group's states at once (sorted longest
     first).  Per member: (σ_k (K, Q), ∫σ_k (K,), carried (N+1,), K, None) as the single loop returns
     them, or None when the member needs a slow step (dropped: its row is zeroed and left to ride).
-    A group of one runs the single loop itself (the same bits as ``run_arrays``)."""
-    if len(group) == 1:
-        ready = group[0].ready
-        loop = engine.propagate(ready.initial, ready.log_factor, ready.top, ready.skip.tolist(), ready.gate,
-                                 None)
-        return [None if loop[4] is not None else loop]
+    The group has two members at least (one alone runs ``run_arrays`` itself)."""
     arith, N = engine.arith, engine.N
     dtype = arith.dtype
     S, Kmax, Q = len(group), len(group[0].rows), len(engine.nodes)
