@@ -52,11 +52,14 @@ def warm_kernels() -> float | None:
                 flt.run_arrays(state, rows)
                 if not follow:
                     flt.run_arrays(state, rows, times)
-    # streams stepped together where the rows take one product PΠ (solver/engine/compiled_batch.py)
+    # streams stepped together (solver/engine/compiled_batch.py; in double the rows take one product PΠ
+    # on this mesh, in single two: the same array types as any model's)
     batched = {**_TOY, "discretization": {"dt": 0.05, "basis": 8, "mesh": 4}}
     model = compile_model(spec_from_dict(batched))
-    flt = make_filter(model, precompute(model), "yau-yau")
-    flt.run_batch([flt.initial_state()] * 2, [chunks[0]] * 2)
+    offline = precompute(model)
+    for precision in ("double", "single"):
+        flt = make_filter(model, offline, "yau-yau", precision=precision)
+        flt.run_batch([flt.initial_state()] * 2, [chunks[0]] * 2)
     # the Yau–Jia filter's kernels (solver/exact/yau_jia_fast.py): observed, missing and gated rows, a gap
     # in pieces; their array types do not depend on the dimension
     toy = {**_TOY, "observation": ["sqrt(1 + x**2)"], "method": "yau-jia"}

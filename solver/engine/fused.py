@@ -23,9 +23,8 @@ that keep σ use the same exp (loops.py ``update_factors``) and the same sums (f
 ``summarise``): a compiled chunk's numbers do not depend on whether it ran fused, so they do not
 depend on how the rows are chunked.
 
-Chunks of several states of one engine whose regular rows take one product a row step together in
-:func:`run_fused_batch` (solver/engine/compiled_batch.py: one dgemm a row for all of them; called by
-solver/engine/batch.py).
+Chunks of regular rows of several states of one engine step together in :func:`run_fused_batch`
+(solver/engine/compiled_batch.py: gemms a row for all of them; called by solver/engine/batch.py).
 
 Anything rarer goes back to the path that keeps σ, for the whole chunk (:func:`run_fused` returns
 None): a row whose ∫σ is outside (tiny, huge) or under the gate's floor (the slow path needs s and
@@ -104,8 +103,8 @@ def run_fused(engine: Any, state: Any, rows: np.ndarray, steps: np.ndarray, time
 
 
 def batch_fusable(engine: Any, rows: np.ndarray) -> bool:
-    """Whether a chunk of regular rows can run in :func:`run_fused_batch` (fused, one product PΠ a row)."""
-    return fusable(engine, rows, None) and _fixed(engine, (1 << rows.shape[1]) - 1).operator is not None
+    """Whether a chunk of regular rows can run in :func:`run_fused_batch`."""
+    return fusable(engine, rows, None)
 
 
 def run_fused_batch(engine: Any, items: list[tuple], gating: bool = True) -> list[tuple | None]:
@@ -115,35 +114,39 @@ def run_fused_batch(engine: Any, items: list[tuple], gating: bool = True) -> lis
     alone."""
     from .compiled_batch import run_fused_batch as kernel
 
-    S, Kmax, N = len(items), len(items[0][1]), engine.N
+    S, Kmax, N, dtype = len(items), len(items[0][1]), engine.N, engine.arith.dtype
     given = [_inputs(engine, state, rows, None, gating) for state, rows, _, _ in items]
     fixed = given[0].fixed
+    combined = fixed.operator is not None
     Q, F, m = len(engine.nodes), fixed.summary.shape[1], given[0].y.shape[1]
     lengths = np.array([len(rows) for _, rows, _, _ in items], dtype=np.int64)
     y, constants = np.zeros((S, Kmax, m)), np.zeros((S, Kmax))
     floors = np.full((S, Kmax), -np.inf)
-    nodal, from_nodal = np.empty((S, Q)), np.zeros(S, dtype=bool)
+    nodal, from_nodal = np.empty((S, Q), dtype=dtype), np.zeros(S, dtype=bool)
     for j, ((state, _, _, _), ready) in enumerate(zip(items, given, strict=True)):
         K = lengths[j]
         y[j, :K], constants[j, :K], floors[j, :K] = ready.y, ready.constants, ready.floor_exponents
-        if _continues(state, fixed.projection, fixed.weights, ready.initial):
+        if combined and _continues(state, fixed.projection, fixed.weights, ready.initial):
             nodal[j], from_nodal[j] = state.nodal, True
     initial = np.stack([ready.initial for ready in given])
     sums = np.empty((S, Kmax, F))
     negative, mode, top, masses = (np.empty((S, Kmax)), np.empty((S, Kmax), dtype=np.int64),
                                    np.empty((S, Kmax)), np.empty((S, Kmax)))
-    following, done = np.empty((S, N + 1)), np.empty(S, dtype=np.int64)
-    kernel(lengths, fixed.operator, fixed.propagator, fixed.projection, initial, from_nodal, nodal,
-           fixed.exponent_terms, y, np.full(Kmax, engine.model.dt), constants,
-           bool(engine.observation.discrete), fixed.negligible, floors, fixed.summary, fixed.weights, sums,
-           negative, mode, top, masses, engine.arith.tiny, engine.arith.huge, following, done)
+    following, done = np.empty((S, N + 1), dtype=dtype), np.empty(S, dtype=np.int64)
+    # placeholder: Fortran-only (a 1 × 1 array would type as C: another compiled signature)
+    operator = fixed.operator if combined else np.empty((2, 2), dtype=dtype, order="F")
+    kernel(lengths, combined, operator, fixed.propagator,
+           fixed.projection, initial, from_nodal, nodal, fixed.exponent_terms, y,
+           np.full(Kmax, engine.model.dt), constants, bool(engine.observation.discrete), fixed.negligible,
+           floors, fixed.summary, fixed.weights, sums, negative, mode, top, masses, engine.arith.tiny,
+           engine.arith.huge, following, done)
     out: list[tuple | None] = []
     for j, ((state, rows, steps, times), ready) in enumerate(zip(items, given, strict=True)):
         K = lengths[j]
         out.append(None if done[j] < K else _finished(
             engine, state, rows, steps, times, None, ready,
             (sums[j, :K], negative[j, :K], mode[j, :K], top[j, :K], masses[j, :K]), following[j].copy(),
-            nodal[j].copy()))
+            nodal[j].copy() if combined else None))
     return out
 
 

@@ -116,15 +116,20 @@ def test_degenerate_states_and_irregular_times_run_alone_with_the_same_answer(cu
 
 
 @pytest.mark.slow
-def test_a_2d_batch_is_each_state_stepped_alone(plane):
+def test_a_2d_batch_is_each_state_stepped_alone(plane, monkeypatch):
+    from yauyau.solver import jit
+
     model, offline = plane
     engine = YauYauFilter(model, offline)
     assert len(engine.nodes) + 1 >= 2 * (engine.N + 1)  # the batch's two products (not fused)
-    chunks = _chunks(model, [60, 40, 60, 60, 59], seed=21)
-    chunks[3][5:9, 1] = np.nan  # partly missing rows
+    sizes = _spy_batches(monkeypatch)
+    chunks = _chunks(model, [60, 40, 60, 60, 59, 60], seed=21)
+    chunks[3][5:9, 1] = np.nan  # partly missing rows: with the other such chunk, the numpy loop's
+    chunks[5][30, 0] = np.nan
     states = [engine.initial_state() for _ in chunks]
     _assert_same([engine.run_arrays(s, c) for s, c in zip(states, chunks, strict=True)],
                  engine.run_batch(states, chunks))
+    assert sizes == ([4] if jit.enabled() else [])  # every row observed: the compiled kernel's
 
 
 def test_a_batch_larger_than_memory_allows_runs_in_groups(cubic, monkeypatch):
@@ -168,13 +173,16 @@ def test_other_filters_take_a_batch_one_by_one(ou):
         np.testing.assert_array_equal(r1.mean, r2.mean)
 
 
-@pytest.fixture(scope="module", params=["continuous", "discrete"])
-def ou_one_product(request, ou_doc):
-    """The OU model on a mesh of ~1.8 nodes per basis function (Q = 175 < 2(N + 1)): its regular rows
-    take one product PΠ a row, alone (fused.py) and together (compiled_batch.py)."""
+@pytest.fixture(scope="module", params=[("continuous", 44), ("discrete", 44), ("continuous", None),
+                                        ("discrete", None)], ids=lambda p: f"{p[0]}-mesh{p[1]}")
+def ou_batched(request, ou_doc):
+    """The OU model on a mesh of ~1.8 nodes per basis function (mesh 44: Q = 175 < 2(N + 1)), whose
+    regular rows take one product PΠ a row, and on the default mesh (Q = 195: two products a row)."""
+    kind, mesh = request.param
     doc = dict(ou_doc)
-    doc["discretization"] = {**doc["discretization"], "mesh": 44}
-    if request.param == "discrete":
+    if mesh is not None:
+        doc["discretization"] = {**doc["discretization"], "mesh": mesh}
+    if kind == "discrete":
         doc["measurement"] = {"kind": "discrete"}
     model = compile_model(spec_from_dict(doc))
     return model, precompute(model)
@@ -195,16 +203,15 @@ def _spy_batches(monkeypatch) -> list[int]:
     return sizes
 
 
-def test_one_product_batches_match_the_exact_kalman_filter(ou_one_product, monkeypatch):
-    """Streams of unequal lengths stepped by the compiled batched kernel, chunk after chunk, against the
-    exact sampled-time Kalman filter on each stream's whole data."""
+def test_compiled_batches_match_the_exact_kalman_filter(ou_batched, monkeypatch):
+    """Streams of unequal lengths stepped by the compiled batched kernel (one product a row, or two),
+    chunk after chunk, against the exact sampled-time Kalman filter on each stream's whole data."""
     from yauyau.solver import jit
 
     if not jit.enabled():
         pytest.skip("the compiled kernels are off (YAUYAU_KERNEL=numpy or no numba)")
-    model, offline = ou_one_product
+    model, offline = ou_batched
     engine = YauYauFilter(model, offline)
-    assert len(engine.nodes) + 1 < 2 * (engine.N + 1)
     sizes = _spy_batches(monkeypatch)
     lengths = [300, 120, 299, 37, 1, 300]
     paths = [simulate(model, K, np.random.default_rng(80 + i)).rows for i, K in enumerate(lengths)]
@@ -230,7 +237,7 @@ def test_one_product_batches_match_the_exact_kalman_filter(ou_one_product, monke
             assert abs(states[i].loglik - exact.loglik[-1]) < 1e-2
 
 
-def test_one_product_batches_are_each_state_stepped_alone(cubic, monkeypatch):
+def test_compiled_batches_are_each_state_stepped_alone(cubic, monkeypatch):
     """The compiled batched kernel against each state stepped alone, by the compiled fused rows and by
     the numpy reference path: states at different points of their streams (some continuing from their
     last σ), unequal lengths, an outlier the gate rejects (that state leaves the kernel and runs alone)."""
