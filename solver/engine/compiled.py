@@ -43,7 +43,7 @@ TRANS_N = ord("N")
 TRANS_T = ord("T")
 
 
-def _bind(name: str, arguments: int = 11):
+def bind_blas(name: str, arguments: int = 11):
     """BLAS ``name`` of scipy.linalg.cython_blas as an external symbol: the compiled code refers to it
     by name (registered again in each process), so numba can cache it on disk."""
     symbol = f"yauyau_cython_blas_{name}"
@@ -51,8 +51,8 @@ def _bind(name: str, arguments: int = 11):
     return types.ExternalFunction(symbol, types.void(*[types.voidptr] * arguments))
 
 
-_dgemv = _bind("dgemv")
-_sgemv = _bind("sgemv")
+_dgemv = bind_blas("dgemv")
+_sgemv = bind_blas("sgemv")
 
 CACHE_DIR = writable_cache_dir()
 # numba picks a function's cache directory when it is decorated: ours, then numba's own setting back
@@ -318,7 +318,7 @@ def run_moving(start, stop, propagator, observing, projection, carried, followin
 
 
 @_jit
-def _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary, sums,
+def fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary, sums,
                weights, negative, mode, top, wide_ints, wide_scalars):
     """Row k's update and its moments' sums (fused.py), ``row`` holding s_k: the exponent
     Σ_j y_kj (hR⁻¹)_jq − τ_k·½hᵀR⁻¹h_q (continuous) or − ½hᵀR⁻¹h_q + c_k (discrete Gaussian) in
@@ -388,7 +388,7 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
               huge, modal, real_rates, pair_rates, triangular, schur, tables, lower, subs, indices,
               remainders, degree, w, saved, combined, operator, nodal, from_nodal):
     """Rows start..stop−1, every one observed, with the update factor and the moments' sums fused into
-    each row (:func:`_fused_row`): no K×Q arrays.  Irregular rows first take the carried coefficients
+    each row (:func:`fused_row`): no K×Q arrays.  Irregular rows first take the carried coefficients
     through the row's flow: ``modal``, scaled by e^{τ_kΛ} (:func:`_scale_flow`); ``triangular``, through
     e^{τ_kT} in the Schur coordinates of an ill-conditioned generator (:func:`_advance`, with
     :func:`run_schur`'s arguments; placeholders of the same types otherwise).  ``combined`` (regular
@@ -417,11 +417,11 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
             gemv(1.0 / mass, operator, nodal, row, ints, scalars)
         else:
             gemv(1.0 / mass, propagator, carried, row, ints, scalars)
-        if not _fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary,
+        if not fused_row(k, terms, y, taus, constants, discrete, limit, factor, row, wide, ex, bits, summary,
                           sums, weights, negative, mode, top, wide_ints, wide_scalars):
             return k
         if combined:
-            new_mass = _mass(weights, row)
+            new_mass = row_mass(weights, row)
             if k + 1 < stop:
                 previous, row = row, previous
             else:
@@ -440,7 +440,7 @@ def run_fused(start, stop, propagator, projection, carried, following, mass, ter
 
 
 @_jit
-def _mass(weights, row):
+def row_mass(weights, row):
     """∫σ = Σ w σ in one pass (the combined rows' mass, :func:`run_fused`)."""
     total = 0.0
     for q in range(row.shape[0]):
@@ -459,12 +459,12 @@ def nodal_matches(projection, nodal, weights, carried):
     for i in range(n):
         if out[i] != carried[i]:
             return False
-    return _mass(weights, nodal) == carried[n]
+    return row_mass(weights, nodal) == carried[n]
 
 
 @_jit
 def sum_rows(sigma, summary, weights, sums, negative, mode):
-    """What :func:`_fused_row` keeps of each row of a chunk's σ (K, Q) that the loops kept: the same
+    """What :func:`fused_row` keeps of each row of a chunk's σ (K, Q) that the loops kept: the same
     operations in the same order (a compiled chunk's moments do not depend on whether it ran fused)."""
     wide_ints, wide_scalars = summary_buffers(summary)
     wide = np.empty(sigma.shape[1])
@@ -483,7 +483,7 @@ def sum_rows(sigma, summary, weights, sums, negative, mode):
 
 @_jit
 def exp_factors(log_factor, limit, factor):
-    """factor = exp(log factor) (:func:`exp_shifted`, as :func:`_fused_row`'s) in the matrices'
+    """factor = exp(log factor) (:func:`exp_shifted`, as :func:`fused_row`'s) in the matrices'
     precision, 0 under ``limit``: for the compiled loops that keep σ."""
     wide, bits = np.empty(log_factor.shape[1]), np.empty(log_factor.shape[1], np.int64)
     for k in range(log_factor.shape[0]):

@@ -13,7 +13,7 @@ along as Π's last row); between them, per state,
     s_{k,j} = S_k[:, j] / ∫σ_{k−1,j},   σ_{k,j} = s_{k,j} ⊙ e_{k,j}
 
 with the state's update factor and the sums its moments and checks read made inside the row by
-solver/engine/compiled.py ``_fused_row`` (the single fused loop's), so no K×S×Q array is kept.  With
+solver/engine/compiled.py ``fused_row`` (the single fused loop's), so no K×S×Q array is kept.  With
 one product a row, a state's first row comes from its carried (c, ∫σ) — or its last chunk's σ where
 that is the one they came from (compiled.py ``nodal_matches``) — by one gemv, as in ``run_fused``, and
 after its last row [c, ∫σ] = Πσ.  A state whose row leaves the fast path (an exponent not finite, ∫σ
@@ -30,10 +30,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .compiled import CACHE_DIR, _bind, _fused_row, _mass, buffers, gemv, summary_buffers
+from .compiled import CACHE_DIR, bind_blas, buffers, fused_row, gemv, row_mass, summary_buffers
 
-_dgemm = _bind("dgemm", 13)
-_sgemm = _bind("sgemm", 13)
+_dgemm = bind_blas("dgemm", 13)
+_sgemm = bind_blas("sgemm", 13)
 
 # numba picks a function's cache directory when it is decorated: the engine's, then numba's own back
 _previous_cache_dir = numba.config.CACHE_DIR
@@ -112,7 +112,7 @@ def run_fused_batch(lengths, combined, operator, propagator, projection, initial
             inverse = 1.0 / mass[j]
             for q in range(Q):
                 row[q] = row[q] * inverse
-            if not _fused_row(k, terms, y[j], taus, constants[j], discrete, limit, factor, row, wide, ex,
+            if not fused_row(k, terms, y[j], taus, constants[j], discrete, limit, factor, row, wide, ex,
                               bits, summary, sums[j], weights, negative[j], mode[j], top[j], wide_ints,
                               wide_scalars):
                 _stopped(done, j, k, row)
@@ -122,7 +122,7 @@ def run_fused_batch(lengths, combined, operator, propagator, projection, initial
             if done[j] < lengths[j]:
                 continue
             row = current[j]
-            new_mass = _mass(weights, row) if combined else float(projected[j, n])
+            new_mass = row_mass(weights, row) if combined else float(projected[j, n])
             masses[j, k] = new_mass
             if not tiny < new_mass < huge or new_mass < np.exp(floor_exponents[j, k] - top[j, k]):
                 _stopped(done, j, k, row)
