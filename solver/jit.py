@@ -16,12 +16,15 @@ row): measured with the 1-D cubic sensor, CPU seconds of the whole command, 1 ro
 
 ``YAUYAU_CACHE_DIR``: the directory numba's on-disk cache of the compiled loops goes to (default the
 platform's user cache: ``$XDG_CACHE_HOME/yauyau/numba`` or ``~/.cache/yauyau/numba``, macOS
-``~/Library/Caches/yauyau/numba``, Windows ``%LOCALAPPDATA%\\yauyau\\numba``).  Not writable: the loops
-are compiled in memory in each process, with one warning.
+``~/Library/Caches/yauyau/numba``, Windows ``%LOCALAPPDATA%\\yauyau\\numba``), in a subdirectory named
+by a digest of the kernels' sources (:func:`kernels_digest`: a changed kernel module never loads
+another's stale code; an older release's directory is left, a few MB, for the user to delete).  Not
+writable: the loops are compiled in memory in each process, with one warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import sys
@@ -29,6 +32,7 @@ import tempfile
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 
 KERNELS = ("compiled", "numpy")
@@ -88,9 +92,30 @@ def cache_dir() -> Path:
     return base / "yauyau" / "numba"
 
 
+@lru_cache(maxsize=1)
+def kernels_digest() -> str:
+    """A digest of the sources of every solver module that mentions numba (the kernels and what they
+    inline from each other).  The cache lives in a directory of that name: numba checks only the file
+    that defines a function, so a kernel that inlines another module's function (compiled_batch.py's
+    ``fused_row`` from compiled.py) would otherwise be loaded stale after only that module changed."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.blake2b(digest_size=8)
+    for path, text in kernel_sources():
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + text)
+    return digest.hexdigest()
+
+
+def kernel_sources() -> list[tuple[Path, bytes]]:
+    """(path, contents) of the solver's modules that mention numba, in a fixed order."""
+    root = Path(__file__).resolve().parent
+    found = ((path, path.read_bytes()) for path in sorted(root.rglob("*.py")))
+    return [(path, text) for path, text in found if b"numba" in text]
+
+
 def writable_cache_dir() -> Path | None:
-    """:func:`cache_dir` made and checked writable, or None (compile in memory) with a warning, once."""
-    path = cache_dir()
+    """:func:`cache_dir` / :func:`kernels_digest` made and checked writable, or None (compile in memory)
+    with a warning, once."""
+    path = cache_dir() / kernels_digest()
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=path):

@@ -22,11 +22,12 @@ rows of the cubic sensor: covariances within 1e-11 relative in double precision 
 tested in tests/solver/engine/test_batch.py).  A decision that sits on its threshold to within that
 rounding (the gate, a degeneracy check) can go either way, as it can between two BLAS builds.
 
-Where the compiled kernels are on (solver/jit.py) and a chunk's rows are all observed and take one
-product PΠ a row (double precision, Q < 2(N + 1)), its state goes to the compiled batched kernel
-instead (solver/engine/compiled_batch.py, driven by fused.py ``run_fused_batch``): the same step with
+Where the compiled kernels are on (solver/jit.py) and a chunk's rows are all observed, its state goes to
+the compiled batched kernel instead (solver/engine/compiled_batch.py, driven by fused.py
+``run_fused_batch``): the same products as gemms (one, PΠ, where it is the smaller; else P and Π) with
 each state's factors and sums made inside the row, as the single fused loop makes them — 0.42 against
-0.64 ms a 100-row chunk of the cubic sensor at 16 to 48 streams, 0.72 alone (bench/results/engine-batch.md).
+0.64 ms a 100-row chunk of the cubic sensor at 16 to 48 streams, 0.73 alone (bench/results/engine-batch.md).
+A state alone runs ``run_arrays`` itself.
 
 What the loop does not batch runs alone through ``run_arrays``, with the identical answer it always
 had: the literal form, irregular ``times`` (each gap its own operator), a degenerate state, and a
@@ -107,9 +108,9 @@ def run_batch(engine: Any, states: list[YauYauState], chunks: list[ArrayLike],
 def _fused_together(engine: Any, group: list[_Member], out: list[Any],
                     times: list[ArrayLike | None] | None) -> list[_Member]:
     """The group's members whose rows are all observed stepped by the compiled batched kernel
-    (solver/engine/compiled_batch.py, where ``jit.enabled()`` and the rows take one product PΠ): their
-    results put in ``out`` (one that leaves the fast path: alone, from the start of its chunk); the
-    other members returned, for the numpy loop below."""
+    (solver/engine/compiled_batch.py, where ``jit.enabled()``): their results put in ``out`` (one that
+    leaves the fast path: alone, from the start of its chunk); the other members returned, for the numpy
+    loop below."""
     if len(group) < 2 or not jit.enabled():
         return group
     from .fused import batch_fusable, run_fused_batch

@@ -109,10 +109,14 @@ def batch_fusable(engine: Any, rows: np.ndarray) -> bool:
 
 def run_fused_batch(engine: Any, items: list[tuple], gating: bool = True) -> list[tuple | None]:
     """Chunks of regular rows of several states, each :func:`batch_fusable`, their rows stepped together
-    (solver/engine/compiled_batch.py): per item (state, rows, steps, times), sorted longest first, its
-    (new state, ChunkResult) as :func:`run_fused` gives it alone up to rounding, or None where it must run
-    alone."""
+    (solver/engine/compiled_batch.py): per item (state, rows, steps, times) its (new state, ChunkResult)
+    as :func:`run_fused` gives it alone up to rounding, or None where it must run alone."""
     from .compiled_batch import run_fused_batch as kernel
+
+    order = sorted(range(len(items)), key=lambda i: -len(items[i][1]))  # the kernel's: longest first
+    if order != list(range(len(items))):
+        ordered = run_fused_batch(engine, [items[i] for i in order], gating)
+        return [ordered[order.index(i)] for i in range(len(items))]
 
     S, Kmax, N, dtype = len(items), len(items[0][1]), engine.N, engine.arith.dtype
     given = [_inputs(engine, state, rows, None, gating) for state, rows, _, _ in items]

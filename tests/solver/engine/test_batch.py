@@ -258,3 +258,12 @@ def test_compiled_batches_are_each_state_stepped_alone(cubic, monkeypatch):
     _assert_same([engine.run_arrays(s, c) for s, c in zip(starts, chunks, strict=True)], together)
     monkeypatch.setenv("YAUYAU_KERNEL", "numpy")
     _assert_same([engine.run_arrays(s, c) for s, c in zip(starts, chunks, strict=True)], together)
+    # the driver called in any order (the kernel steps them longest first): each item its own answer
+    from yauyau.solver.engine import fused
+    from yauyau.solver.filtering import chunk_clock
+
+    monkeypatch.delenv("YAUYAU_KERNEL")
+    picked = [0, 2, 3, 4]  # 100, 64, 250 and 3 rows, every row observed and ungated
+    items = [(starts[i], chunks[i], *chunk_clock(starts[i], len(chunks[i]), model.dt, None, None))
+             for i in picked]
+    _assert_same([together[i] for i in picked], fused.run_fused_batch(engine, items))

@@ -17,6 +17,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -393,6 +394,22 @@ def test_the_kernel_switch(monkeypatch):
         jit.enabled()
     monkeypatch.setenv("YAUYAU_CACHE_DIR", "/somewhere/numba")
     assert str(jit.cache_dir()) == "/somewhere/numba"
+
+
+def test_the_cache_lives_under_a_digest_of_every_kernel_source(monkeypatch, tmp_path):
+    """numba checks only the file that defines a function; a kernel inlining another module's (the
+    batched kernel's fused_row from compiled.py) must not load stale code after only that one changed."""
+    root = Path(jit.__file__).resolve().parent
+    sources = jit.kernel_sources()
+    names = {path.relative_to(root).as_posix() for path, _ in sources}
+    assert {"engine/compiled.py", "engine/compiled_batch.py", "engine/compiled_backward.py", "qmc/kernels.py",
+            "exact/mixture_kernels.py", "exact/sensor_kernel.py", "exact/mixture_piece.py"} <= names
+    monkeypatch.setenv("YAUYAU_CACHE_DIR", str(tmp_path))
+    assert jit.writable_cache_dir() == tmp_path / jit.kernels_digest()
+    changed = [(path, text + b"\n# edited") if path.name == "compiled.py" else (path, text)
+               for path, text in sources]
+    monkeypatch.setattr(jit, "kernel_sources", lambda: changed)
+    assert jit.kernels_digest.__wrapped__() != jit.kernels_digest()
 
 
 SCRIPT = """
