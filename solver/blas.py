@@ -10,6 +10,7 @@ leave BLAS as the process has it).  threadpoolctl sets it.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 from .errors import InputError
 
@@ -40,6 +41,16 @@ def blas_threads(requested: int | None, *, allow_keep: bool = False) -> int:
 def limit_process_blas(threads: int) -> None:
     """Limit every BLAS library loaded in this process to ``threads`` threads, for good (0: nothing)."""
     if threads:
-        from threadpoolctl import threadpool_limits  # lazy: it inspects the loaded libraries (~3 ms)
+        limited_blas(threads)
 
-        threadpool_limits(limits=threads, user_api="blas")
+
+def limited_blas(threads: int) -> Any:
+    """threadpoolctl's limit of every BLAS library to ``threads`` (a context manager; left unused, for
+    good).  scipy's own BLAS (scipy.linalg.blas and cython_blas: the engine's products, numpy path and
+    compiled kernels) is a library apart from numpy's, loaded on its first import: it is loaded here
+    first, or a process limited before its first model (the service's workers) ran the products on
+    every core."""
+    import scipy.linalg.blas  # noqa: F401 - loads scipy's BLAS library, so that it is limited too
+    from threadpoolctl import threadpool_limits  # lazy: it inspects the loaded libraries (~3 ms)
+
+    return threadpool_limits(limits=threads, user_api="blas")

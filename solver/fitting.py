@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .blas import blas_threads
+from .blas import blas_threads, limited_blas
 from .errors import InputError
 from .fit_likelihood import RESERVED, Likelihood, Mapper, Stop, evaluations_on, offline_key, with_values
 from .spec import ModelSpec
@@ -162,9 +162,7 @@ def fit(spec: ModelSpec, rows: Any, times: Any = None, free: dict[str, tuple[flo
     ``times`` (K,) (None: one dt apart from ``t0``); ``profile=NAME`` adds the profile log-likelihood of
     a free name; ``workers``/``scheduler``: Dask, see the module's docstring.  BLAS runs on
     $YAUYAU_BLAS_THREADS threads (default 1) meanwhile, as :func:`yauyau.open_filter` has it."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=blas_threads(None), user_api="blas"):  # as open_filter: 1 unless told
+    with limited_blas(blas_threads(None)):  # as open_filter: 1 unless told
         return _fit(spec, rows, times, free, profile, t0, method, workers, scheduler)
 
 

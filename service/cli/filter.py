@@ -178,8 +178,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from threadpoolctl import threadpool_limits
     from yauyau.solver import jit
+    from yauyau.solver.blas import limited_blas
     from yauyau.solver.filtering import check_t0, cumulative_hint
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
@@ -227,7 +227,7 @@ def _run(args: argparse.Namespace) -> int:
     writer = outputs.density_writer(flt, stored, method)
     try:
         bar = progress_bar(args.progress, len(source.rows))
-        with threadpool_limits(limits=threads, user_api="blas"), bar:
+        with limited_blas(threads), bar:
             lines, report = filter_rows(flt, source.rows, args.chunk, outputs, writer, bar,
                                         times=source.times, state=state, policy=args.on_degenerate,
                                         watch=watch)

@@ -130,9 +130,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from threadpoolctl import threadpool_limits
     from yauyau.solver import jit
-    from yauyau.solver.blas import blas_threads
+    from yauyau.solver.blas import blas_threads, limited_blas
     from yauyau.solver.filtering import at_time, check_t0
     from yauyau.solver.measurement import check_gate
     from yauyau.solver.methods import make_filter
@@ -172,7 +171,7 @@ def _run(args: argparse.Namespace) -> int:
             snapshots[int(smoothed.step)] = smoothed
     each = None if outputs.density is None else keep
     try:
-        with threadpool_limits(limits=threads, user_api="blas"):  # one by default (blas.md)
+        with limited_blas(threads):  # one by default (blas.md)
             if lag is None:
                 _, result, table = smooth_with_quantiles(flt, state, source.rows, source.times, outputs.probs,
                                                          each)

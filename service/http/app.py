@@ -122,9 +122,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        from threadpoolctl import threadpool_limits
+        from yauyau.solver.blas import limit_process_blas
 
-        threadpool_limits(limits=settings.blas_threads, user_api="blas")  # this worker process, for good
+        limit_process_blas(settings.blas_threads)  # this worker process, for good (scipy's BLAS too)
         # A lifespan that ends gives back what was there before it: one application object may be run
         # by two lifespans at once (a test client inside a fuzzer's), and the outer one goes on.
         before = {name: getattr(app.state, name, None) for name in ("registry", "sessions", "ready")}

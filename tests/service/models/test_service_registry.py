@@ -96,10 +96,20 @@ from fastapi.testclient import TestClient
 from threadpoolctl import threadpool_info
 from yauyau.service.http.app import create_app
 from yauyau.service.settings import Settings
-settings = Settings(store=sys.argv[1], session_db=sys.argv[2], blas_threads=int(sys.argv[3]))
+settings = Settings(store=sys.argv[1], session_db=sys.argv[2], blas_threads=int(sys.argv[3]),
+                    allowed_hosts="testserver")
 with TestClient(create_app(settings)) as api:
     assert api.get("/readyz").status_code == 200
-    print(json.dumps(sorted({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})))
+    # after a chunk too: the engine's products run in scipy's own BLAS, loaded with the first model
+    listing = api.get("/v1/models")
+    assert listing.status_code == 200, listing.text
+    model = listing.json()[0]["id"]
+    sid = api.post("/v1/sessions", json={"model": model}).json()["id"]
+    chunk = api.post(f"/v1/sessions/{sid}/observations", json={"seq": 0, "increments": [[0.01]] * 20})
+    assert chunk.status_code == 200, chunk.text
+    loaded = [p for p in threadpool_info() if p["user_api"] == "blas"]
+    assert any("scipy_openblas-" in p["filepath"] or "scipy" in p["filepath"] for p in loaded), loaded
+    print(json.dumps(sorted({p["num_threads"] for p in loaded})))
 """
 
 
