@@ -425,7 +425,8 @@ def _check_gaps(t: np.ndarray, taus: np.ndarray, t_now: float, field: str) -> No
     is allowed where resolve_times allows it); InputError naming the first row at fault."""
     before = np.concatenate([[t_now], t[:-1]]) if math.isfinite(t_now) else np.concatenate([t[:1], t[:-1]])
     size = np.maximum(np.abs(t), np.abs(before))
-    short = taus < np.spacing(size) * float(1 << SPACING_BITS)
+    with np.errstate(over="ignore"):  # times near the float maximum: their spacing overflows to inf (short)
+        short = taus < np.spacing(size) * float(1 << SPACING_BITS)
     short[0] &= taus[0] > 0 and math.isfinite(t_now)
     if short.any():
         row = int(np.argmax(short))
