@@ -89,15 +89,13 @@ def run_batch(engine: Any, states: list[YauYauState], chunks: list[ArrayLike],
         group = _fused_together(engine, group, out, times)
         if len(group) < 2:  # alone: run_arrays itself (its fused rows where they apply), the same bits
             for member in group:
-                out[member.index] = engine.run_arrays(member.state, member.rows,
-                                                      None if times is None else times[member.index])
+                out[member.index] = _alone(engine, member, times)
             continue
         for member in group:  # the update factors of this group only: memory bounded by the group
             member.ready = engine.prepare(member.state, member.rows, None, gating=True)
         for member, loop in zip(group, _propagate_together(engine, group), strict=True):
             if loop is None:  # it left the fast path: alone, from the start of its chunk
-                out[member.index] = engine.run_arrays(member.state, member.rows,
-                                                      None if times is None else times[member.index])
+                out[member.index] = _alone(engine, member, times)
             else:
                 out[member.index] = engine.finish(member.state, member.rows, member.steps, member.times,
                                                    None, member.ready, *loop)
@@ -121,9 +119,13 @@ def _fused_together(engine: Any, group: list[_Member], out: list[Any],
     chosen = [member for member, ok in zip(group, fast, strict=True) if ok]
     results = run_fused_batch(engine, [(m.state, m.rows, m.steps, m.times) for m in chosen])
     for member, result in zip(chosen, results, strict=True):
-        out[member.index] = result if result is not None else engine.run_arrays(
-            member.state, member.rows, None if times is None else times[member.index])
+        out[member.index] = result if result is not None else _alone(engine, member, times)
     return [member for member, ok in zip(group, fast, strict=True) if not ok]
+
+
+def _alone(engine: Any, member: _Member, times: list[ArrayLike | None] | None) -> Any:
+    """The member's chunk through ``run_arrays``, from the start, with its times as given."""
+    return engine.run_arrays(member.state, member.rows, None if times is None else times[member.index])
 
 
 def _fast_member(engine: Any, index: int, state: YauYauState, chunk: ArrayLike,
