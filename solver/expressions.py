@@ -382,12 +382,54 @@ def numeric_expression(text: str, states: Mapping[str, int], parameters: Mapping
 
     evaluate.on_columns = on_columns  # type: ignore[attr-defined]
     evaluate.node = node  # type: ignore[attr-defined]  # numeric_many's: many expressions, one errstate
+    evaluate.template = _template(tree, field, states, parameters)  # type: ignore[attr-defined]
     return evaluate
+
+
+class _Renamed(ast.NodeTransformer):
+    """The tree with one name replaced by a placeholder (``_template``'s shape of an expression)."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def visit_Name(self, node: ast.Name) -> ast.Name:
+        return ast.Name(id="_", ctx=node.ctx) if node.id == self.name else node
+
+
+def _template(tree: ast.expr, field: str, states: Mapping[str, int],
+              parameters: Mapping[str, float]) -> tuple[str, int, _Num] | None:
+    """For an expression of one state coordinate (``-0.5*x3``, ``x3**3``): (its shape, the tree
+    with that name as a placeholder; the coordinate; the expression built on a single column, which
+    takes an array of any shape), so that expressions of the same shape on their own coordinates are
+    evaluated as one array operation (:func:`numeric_many`); else None."""
+    used = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and n.id in states}
+    if len(used) != 1:
+        return None
+    (name,) = used
+    shape = ast.dump(_Renamed(name).visit(ast.parse(ast.unparse(tree), mode="eval").body))
+    return shape, int(states[name]), _NumericBuilder(field, {name: 0}, parameters).build(tree)
 
 
 def numeric_many(
         functions: Sequence[Callable[[np.ndarray], np.ndarray]]) -> Callable[[np.ndarray], np.ndarray]:
-    """Stack one-expression functions: points X (P, n) -> (P, len(functions))."""
+    """Stack one-expression functions: points X (P, n) -> (P, len(functions)).  Expressions that are one
+    shape each on its own coordinate (ten or a hundred ``x_i**3``: ``_template``) are evaluated as one
+    array operation over their coordinates' rows instead of one per expression (the same elementwise
+    operations, so the same numbers; at 100 states and 4096 points ~200 numpy calls a row fewer)."""
+    templates = [getattr(f, "template", None) for f in functions]
+    shared = None
+    if functions and all(t is not None for t in templates) and len({t[0] for t in templates}) == 1:
+        shared = templates[0][2], np.array([t[1] for t in templates], np.int64)
+
+    def on_template(XT: np.ndarray) -> np.ndarray:
+        """The expressions at the coordinate rows XT (n, P) by their shared template: (m, P), a new array."""
+        node, index = shared
+        rows = XT if len(index) == len(XT) and (index == np.arange(len(XT))).all() else XT[index]
+        with np.errstate(all="ignore"):
+            value = node((rows,))
+        if value is rows or np.may_share_memory(value, XT):  # the identity: x_i itself
+            return np.array(value, dtype=float)
+        return np.asarray(value, dtype=float)
 
     def evaluate(X: np.ndarray) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
@@ -399,6 +441,9 @@ def numeric_many(
         # by n: at 100 states every element of a column sits on its own cache line); points whose
         # columns are contiguous (Fortran order) get theirs back the same way, without a transpose
         columns = X.T.flags.c_contiguous
+        if shared is not None:
+            out = on_template(X.T if columns else np.ascontiguousarray(X.T))
+            return out.T if columns else np.ascontiguousarray(out.T)
         cols, P = tuple(X.T if columns else np.ascontiguousarray(X.T)), X.shape[0]
         out = np.empty((len(functions), P))
         with np.errstate(all="ignore"):
@@ -412,6 +457,8 @@ def numeric_many(
         XT = np.asarray(XT, dtype=float)
         if not all(hasattr(f, "node") for f in functions):
             return np.ascontiguousarray(evaluate(XT.T).T)
+        if shared is not None and len(functions) >= 8:
+            return on_template(XT)
         cols, out = tuple(XT), np.empty((len(functions), XT.shape[1]))
         with np.errstate(all="ignore"):
             for j, f in enumerate(functions):

@@ -67,6 +67,38 @@ def test_many_expressions_on_points_or_on_coordinate_rows_agree_with_sympy(n):
         assert np.allclose(on_rows.T, exact, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("shape", ["{x}**3", "-0.5*{x}", "{x}", "theta*sin({x}) - {x}/(1 + {x}**2)", "kappa"])
+@pytest.mark.parametrize("order", ["own", "shifted"])
+def test_expressions_of_one_shape_on_their_own_coordinates_agree_with_sympy(shape, order):
+    """Twelve expressions of one shape, each in its own coordinate (a hundred ``x_i**3`` sensors), are
+    evaluated as one array operation (numeric_many's template): against SymPy on points in both orders
+    and on coordinate rows, the same numbers as each expression alone, and never a view of the points
+    (the identity ``x_i`` is copied).  A constant (no coordinate) has no template and still fills its
+    rows."""
+    import sympy
+
+    n = 12
+    states = {f"z{i}": i for i in range(n)}
+    params = {"theta": 0.7, "kappa": -1.3}
+    coordinate = (lambda i: i) if order == "own" else (lambda i: (i + 5) % n)
+    texts = [shape.format(x=f"z{coordinate(i)}") for i in range(n)]
+    functions = [numeric_expression(t, states, params, f"f[{i}]") for i, t in enumerate(texts)]
+    assert all((f.template is not None) == ("{x}" in shape) for f in functions)
+    many = numeric_many(functions)
+    symbols = state_symbols(n)
+    names = {**{f"z{i}": s for i, s in enumerate(symbols)},
+             **{k: sympy.Rational(repr(v)) for k, v in params.items()}}
+    X = np.random.default_rng(2).uniform(-3, 3, size=(300, n))
+    exact = np.stack([np.broadcast_to(vectorize(parse_expression(t, names, "f"), symbols)(X), (300,))
+                      for t in texts], axis=1)
+    alone = np.stack([f(X) for f in functions], axis=1)
+    for points in (X, np.asfortranarray(X)):
+        on_points, on_rows = many(points), many.rows(np.ascontiguousarray(points.T))
+        assert np.allclose(on_points, exact, rtol=1e-12, atol=1e-12)
+        assert np.array_equal(on_points, alone) and np.array_equal(on_rows, alone.T)
+        assert not np.may_share_memory(on_points, points) and not np.may_share_memory(on_rows, points)
+
+
 @pytest.mark.parametrize("text, message", [
     ("__import__('os')", "unknown function"), ("x.real", "not allowed"), ("foo(x)", "unknown function"),
     ("z + 1", "unknown name 'z'"), ("x**100", "exponent"), ("10.0**60*1e10**60", "floating-point range"),
