@@ -352,15 +352,18 @@ class YauNiuFilter(ChunkedFilter):
         return X, count
 
     def _restarts(self, X: np.ndarray, logW: np.ndarray, rng: np.random.Generator, bank: NormalBank | None,
-                  step: int) -> tuple[np.ndarray, int, str | None]:
+                  step: int, known: np.ndarray | None = None) -> tuple[np.ndarray, int, str | None]:
         """Local resampling-restart of every block whose effective coverage fell below ``restart`` × N
         (its ``logW`` row reset in place; X is not written): (the points, how many blocks restarted,
-        None), or (X, 0, the reason) when a posterior collapsed onto fewer than two points."""
+        None), or (X, 0, the reason) when a posterior collapsed onto fewer than two points.  ``known``
+        (blocks of one coordinate): each block's coverage where the observation step made it (else NaN)."""
         moved, count = X, 0
         if self._singles is None:
             candidates = range(len(self.blocks))
         else:  # blocks of one coordinate: the coverage of all at once, the fallen ones only
-            candidates = np.flatnonzero(self._singles.coverage(logW) < self.restart * logW.shape[1]).tolist()
+            known = np.full(len(self.blocks), np.nan) if known is None else known
+            coverage = self._singles.coverage(logW, known)
+            candidates = np.flatnonzero(coverage < self.restart * logW.shape[1]).tolist()
         for b in candidates:
             coords = self.blocks[b]
             w = np.exp(logW[b])
@@ -451,9 +454,10 @@ class YauNiuFilter(ChunkedFilter):
             columns = singles is None and X.flags.f_contiguous  # coupled: each component contiguous
             hX = None if not seen else sensor_rows(model.h, X.T).T if columns else model.h(X)
             predicted = logW.copy() if seen else None
+            known = None if singles is None else np.full(len(self.blocks), np.nan)  # coverage, once made
             gain, offsets, over, factors = 0.0, 0.0, True, {}
             if seen and singles is not None:
-                row = singles.observe(logW, hX, chunk, k, float(gaps[k]), TEMPER)
+                row = singles.observe(logW, hX, chunk, k, float(gaps[k]), TEMPER, known)
                 gain, offsets, bound, components, factors = row
                 over = gain is not None and bound > gate_threshold(obs.gate, components)
             elif seen:
@@ -471,7 +475,9 @@ class YauNiuFilter(ChunkedFilter):
             if predicted is not None and not gated[k] and factors:
                 X, count = self._temper(X, predicted, logW, factors, blocks, k, gaps, rng, bank)
                 restarts += count
-            X, count, failure = self._restarts(X, logW, rng, bank, step)
+            if gated[k] or factors:  # logW rows replaced: their coverage read from them again
+                known = None
+            X, count, failure = self._restarts(X, logW, rng, bank, step, known)
             restarts += count
             if failure is not None:
                 reason, done = failure, k
