@@ -308,17 +308,20 @@ class YauNiuFilter(ChunkedFilter):
 
     def _temper(self, X: np.ndarray, predicted: np.ndarray, logW: np.ndarray, factors: dict[int, np.ndarray],
                 blocks, k: int, gaps: np.ndarray, rng: np.random.Generator,
-                bank: NormalBank | None) -> tuple[np.ndarray, int]:
+                bank: NormalBank | None, known: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """Progressive correction (tempering) of every block whose update left an effective coverage
         under TEMPER × N (an observation far in the prediction's tail): from the predicted weights, the
         factor is applied in powers β₁ + β₂ + … = 1, each the largest that keeps the coverage at
         ``restart`` × N, the points restarted after each and the factor re-read at the new points; its
         rows of ``logW`` are replaced in place.  (The points, how many restarts.)  Without it the
         posterior's covariance is read off a handful of points (a 4-sd reading of the 4-D linear model:
-        variance 31% off at 8192 points)."""
+        variance 31% off at 8192 points).  ``known``: each block's coverage after the update where the
+        observation step made it (NaN where not)."""
         count = 0
         for b, factor in factors.items():
             N = logW.shape[1]
+            if known is not None and known[b] >= TEMPER * N:  # (NaN: not known, read below)
+                continue
             w = np.exp(logW[b])
             if 1.0 / float(np.sum(w * w)) >= TEMPER * N:
                 continue
@@ -349,6 +352,8 @@ class YauNiuFilter(ChunkedFilter):
                 factor = block_obs.log_factors(h[:, :, comps], part[k:k + 1], gaps[k:k + 1], keys[k:k + 1],
                                                terms.rows(k, k + 1, keys))[0]
             logW[b] = total
+            if known is not None:
+                known[b] = np.nan  # its rows replaced: read again where needed
         return X, count
 
     def _restarts(self, X: np.ndarray, logW: np.ndarray, rng: np.random.Generator, bank: NormalBank | None,
@@ -362,10 +367,12 @@ class YauNiuFilter(ChunkedFilter):
             candidates = range(len(self.blocks))
         else:  # blocks of one coordinate: the coverage of all at once, the fallen ones only
             known = np.full(len(self.blocks), np.nan) if known is None else known
-            coverage = self._singles.coverage(logW, known)
-            candidates = np.flatnonzero(coverage < self.restart * logW.shape[1]).tolist()
+            known = self._singles.coverage(logW, known)
+            candidates = np.flatnonzero(known < self.restart * logW.shape[1]).tolist()
         for b in candidates:
             coords = self.blocks[b]
+            if known is not None and known[b] >= self.restart * logW.shape[1]:  # (NaN: read below)
+                continue
             w = np.exp(logW[b])
             coverage = 1.0 / float(np.sum(w * w))
             if coverage < self.restart * len(w):
@@ -395,20 +402,28 @@ class YauNiuFilter(ChunkedFilter):
         return self._coupled.moments(X, W)
 
     # -- the observation step of one row --------------------------------------------------------
-    def _update_blocks(self, k: int, logW: np.ndarray, hX: np.ndarray, blocks: list,
-                       gaps: np.ndarray) -> tuple[float | None, float, dict[int, np.ndarray]]:
+    def _update_blocks(self, k: int, logW: np.ndarray, hX: np.ndarray, blocks: list, gaps: np.ndarray,
+                       known: np.ndarray) -> tuple[float | None, float, dict[int, np.ndarray]]:
         """Row k's observation step at the sensor values hX (P, m), block by block (logW edited in
-        place): (the row's predictive log-likelihood, its sum of offsets, each observed block's log
-        factor), or None for the first where an observed block's likelihood is zero at every point."""
+        place, and each observed block's coverage 1/Σw² in ``known``, from the log-sum-exp's own
+        exponentials): (the row's predictive log-likelihood, its sum of offsets, each observed block's
+        log factor), or None for the first where an observed block's likelihood is zero at every
+        point."""
         gain = offsets = 0.0
         factors: dict[int, np.ndarray] = {}
         for b, (comps, block_obs, part, keys, terms) in enumerate(blocks):
             if keys[k]:
                 factor = block_log_factor(block_obs, hX, comps, part, gaps, keys, terms, k)
                 total = logW[b] + factor  # Yau–Niu, log-domain update
-                block_gain = log_sum_exp(total)
+                top = float(total.max())
+                if not math.isfinite(top):
+                    return None, 0.0, {}
+                e = np.exp(total - top)  # cloud.log_sum_exp's, kept for the coverage
+                total_e = float(e.sum())
+                block_gain = top + math.log(total_e)
                 if not math.isfinite(block_gain):
                     return None, 0.0, {}
+                known[b] = total_e * total_e / float(e @ e)
                 logW[b] = total - block_gain
                 gain += block_gain + float(terms.offset[k])
                 offsets += float(terms.offset[k])
@@ -454,14 +469,14 @@ class YauNiuFilter(ChunkedFilter):
             columns = singles is None and X.flags.f_contiguous  # coupled: each component contiguous
             hX = None if not seen else sensor_rows(model.h, X.T).T if columns else model.h(X)
             predicted = logW.copy() if seen else None
-            known = None if singles is None else np.full(len(self.blocks), np.nan)  # coverage, once made
+            known = np.full(len(self.blocks), np.nan)  # each block's coverage, once made
             gain, offsets, over, factors = 0.0, 0.0, True, {}
             if seen and singles is not None:
                 row = singles.observe(logW, hX, chunk, k, float(gaps[k]), TEMPER, known)
                 gain, offsets, bound, components, factors = row
                 over = gain is not None and bound > gate_threshold(obs.gate, components)
             elif seen:
-                gain, offsets, factors = self._update_blocks(k, logW, hX, blocks, gaps)
+                gain, offsets, factors = self._update_blocks(k, logW, hX, blocks, gaps, known)
             if gain is None:
                 logW = predicted  # (the compiled update leaves its partial work in logW)
                 reason, done = _zero_likelihood(step), k
@@ -473,9 +488,9 @@ class YauNiuFilter(ChunkedFilter):
                 if score is not None:  # the gate: the row only predicts
                     logW, gated[k], scores[k] = predicted, True, score
             if predicted is not None and not gated[k] and factors:
-                X, count = self._temper(X, predicted, logW, factors, blocks, k, gaps, rng, bank)
+                X, count = self._temper(X, predicted, logW, factors, blocks, k, gaps, rng, bank, known)
                 restarts += count
-            if gated[k] or factors:  # logW rows replaced: their coverage read from them again
+            if gated[k]:  # logW back to the prediction: every coverage read from it again
                 known = None
             X, count, failure = self._restarts(X, logW, rng, bank, step, known)
             restarts += count
