@@ -20,7 +20,8 @@ def default_points(n: int, singles: bool = False) -> int:
     gap to Kalman 0.028 at 4096, 0.009 at 8192, 0.007 at 16384, at 5, 6 and 11 ms a row), SINGLE_POINTS
     where every block is one coordinate (independent sensors, each block a 1-D filter on its own
     lattice noise: ten cubic sensors 0.0107 from their exact filters at 4096 points, 0.0119 at 8192;
-    bench/results/yau-niu.md), which keeps 100 of them in real time at dt = 0.01 (9.1 ms a row)."""
+    bench/results/yau-niu.md), which keeps 100 of them in real time at dt = 0.01 on an AVX-512 machine
+    (9.1 ms a row; 20 ms on an AVX2 one, where numpy's float64 exp has no SIMD loop)."""
     return SINGLE_POINTS if singles else DEFAULT_POINTS
 
 
