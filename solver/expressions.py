@@ -393,7 +393,7 @@ class _Renamed(ast.NodeTransformer):
         self.name = name
 
     def visit_Name(self, node: ast.Name) -> ast.Name:
-        return ast.Name(id="_", ctx=node.ctx) if node.id == self.name else node
+        return ast.Name(id="<state>", ctx=node.ctx) if node.id == self.name else node  # no name's spelling
 
 
 def _template(tree: ast.expr, field: str, states: Mapping[str, int],
