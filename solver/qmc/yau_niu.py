@@ -360,8 +360,9 @@ class YauNiuFilter(ChunkedFilter):
                   step: int, known: np.ndarray | None = None) -> tuple[np.ndarray, int, str | None]:
         """Local resampling-restart of every block whose effective coverage fell below ``restart`` × N
         (its ``logW`` row reset in place; X is not written): (the points, how many blocks restarted,
-        None), or (X, 0, the reason) when a posterior collapsed onto fewer than two points.  ``known``
-        (blocks of one coordinate): each block's coverage where the observation step made it (else NaN)."""
+        None), or (X, 0, the reason) when a posterior collapsed onto fewer than two points.  ``known``:
+        each block's coverage where the row's observation step made it (NaN, or None for all, where
+        not: read here from logW); a block known to be above the threshold is not exponentiated."""
         moved, count = X, 0
         if self._singles is None:
             candidates = range(len(self.blocks))
